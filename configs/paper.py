@@ -1,0 +1,20 @@
+"""Paper scale (SC3-Eval on a Cosmos3-Nano-sized backbone, ~2B parameters): 3 views at 480x640, 20 Hz with a 10 Hz
+subsample, l' = 24 predicted / l = 16 kept frames, policy chunk 25, AdamW 1e-4 / wd 0.05 / betas (0.9, 0.99),
+2,000 warm-up steps then cosine to 24,000 steps, global batch 512, modes (0.8, 0.1, 0.1), pseudo-actions p = 0.5.
+
+Until the Wan VAE lands behind the tokenizer interface this uses 32x32 pixel patches (15 x 20 tokens per frame);
+`sc3 plan` / `jax.eval_shape` report its size without allocating it."""
+from sc3_jax.config import Config, DataConfig, MeshConfig, ModelConfig, RolloutConfig, TrainConfig
+
+
+def get_config(arg: str | None = None) -> Config:
+    return Config(
+        name="paper",
+        model=ModelConfig(dim=2048, depth=32, num_heads=16, num_kv_heads=8, head_dim=128, mlp_dim=8192,
+                          rope_axes_dim=(24, 20, 20), patch_size=32, dtype="bfloat16", remat=True,
+                          prediction="velocity", context_attention="causal"),
+        data=DataConfig(image_size=(480, 640), context_frames=4, future_frames=24, batch_size=512),
+        train=TrainConfig(workdir="runs/paper", steps=24_000, warmup_steps=2_000, lr=1e-4, ckpt_every=1000),
+        mesh=MeshConfig(data=-1, fsdp=8, tensor=1),
+        rollout=RolloutConfig(policy_chunk=25, keep_frames=16, tau=0.02),
+    )

@@ -1,0 +1,96 @@
+"""The ``sc3`` command: one subcommand per stage (data -> train -> checkpoint -> rollout -> sweep -> report)."""
+from __future__ import annotations
+
+import sys
+
+USAGE = """usage: sc3 <command> [args]
+
+commands:
+  demo           generate the synthetic multi-view data, train the tiny model, report how far it got
+  train          sc3 train --config NAME_OR_PATH[:ARG] [--section.field VALUE ...]
+  sim            the simulated table-bussing benchmark: sc3 sim demos|eval ...
+  serve-policy   serve one of our policies over the openpi websocket protocol
+  configs        list the named configs
+
+`sc3 <command> --help` for the arguments of each."""
+
+
+def _split_config(argv: list[str]) -> tuple[str, list[str]]:
+    """Pull ``--config X`` / ``--config=X`` out of argv; the rest are field overrides."""
+    name, rest, i = "tiny", [], 0
+    while i < len(argv):
+        if argv[i] == "--config" and i + 1 < len(argv):
+            name, i = argv[i + 1], i + 2
+            continue
+        if argv[i].startswith("--config="):
+            name = argv[i].split("=", 1)[1]
+        else:
+            rest.append(argv[i])
+        i += 1
+    return name, rest
+
+
+def config_from_argv(argv: list[str]):
+    import tyro
+
+    from sc3_jax.config import Config, load_config
+
+    name, overrides = _split_config(argv)
+    return tyro.cli(Config, default=load_config(name), args=overrides, prog="sc3 train",
+                    description="Any field can be overridden, e.g. --train.steps 100 --data.batch-size 16.")
+
+
+def cmd_train(argv: list[str]) -> int:
+    from sc3_jax import train
+
+    cfg = config_from_argv(argv)
+    last = train.train(cfg)
+    print(f"done: step {last.get('step')} loss {last.get('loss', float('nan')):.4f} -> {cfg.train.workdir}")
+    return 0
+
+
+def cmd_demo(argv: list[str]) -> int:
+    from sc3_jax import demo
+
+    return demo.main(argv)
+
+
+def cmd_sim(argv: list[str]) -> int:
+    from sc3_jax.sim import cli as sim_cli
+
+    return sim_cli.main(argv) or 0
+
+
+def cmd_serve_policy(argv: list[str]) -> int:
+    from sc3_jax.policies import openpi
+
+    return openpi.serve_policy_main(argv) or 0
+
+
+def cmd_configs(argv: list[str]) -> int:
+    from sc3_jax.config import available_configs, configs_dir
+
+    print(f"named configs in {configs_dir()}:")
+    for name in available_configs():
+        print(f"  {name}")
+    return 0
+
+
+COMMANDS = {"demo": cmd_demo, "train": cmd_train, "sim": cmd_sim, "serve-policy": cmd_serve_policy,
+            "configs": cmd_configs}
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if not argv or argv[0] in ("-h", "--help"):
+        print(USAGE)
+        return 0
+    cmd = COMMANDS.get(argv[0])
+    if cmd is None:
+        print(f"sc3: unknown command {argv[0]!r}\n\n{USAGE}", file=sys.stderr)
+        return 2
+    return cmd(argv[1:])
+
+
+if __name__ == "__main__":
+    sys.exit(main())

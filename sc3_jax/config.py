@@ -1,0 +1,158 @@
+"""Frozen dataclass configs. Named experiment configs live in ``configs/<name>.py`` (each defines ``get_config()``);
+any field can be overridden from the command line (``sc3 train --config tiny --train.steps 100``)."""
+from __future__ import annotations
+
+import dataclasses
+import importlib.util
+from pathlib import Path
+
+
+@dataclasses.dataclass(frozen=True)
+class ModelConfig:
+    dim: int = 128
+    depth: int = 4
+    num_heads: int = 4
+    num_kv_heads: int = 2
+    head_dim: int = 32
+    mlp_dim: int = 384
+    rope_axes_dim: tuple[int, int, int] = (6, 5, 5)  # (time, row, col) frequency sections; sum = head_dim / 2
+    rope_theta: float = 10000.0
+    time_embed_dim: int = 256  # sinusoid channels of the noise-level embedding
+    norm_eps: float = 1e-6
+    # Tokenizer: "pixel" = non-overlapping p x p pixel patches (exact round trip).
+    tokenizer: str = "pixel"
+    patch_size: int = 4
+    channels: int = 3
+    num_views: int = 3
+    action_dim: int = 7
+    num_action_domains: int = 1
+    view_embedding: bool = True  # per-view learned embedding on video tokens (off for Cosmos3-compatible configs)
+    # "residual": the network predicts clean future frames as (last context frame + zero-initialised output) and
+    # clean actions as (0 + output); the velocity is derived from it. "velocity": predicts eps - x directly
+    # (what pretrained Cosmos3 checkpoints do). Residual is what made tiny CPU models learn (REFERENCE.md).
+    prediction: str = "residual"
+    # "full": every token attends to every token. "causal": clean context tokens attend only to clean context,
+    # so the context's keys/values can be computed once per rollout chunk and reused by every sampler step.
+    context_attention: str = "full"
+    dtype: str = "float32"  # activation dtype
+    param_dtype: str = "float32"
+    remat: bool = False
+
+    def __post_init__(self):
+        if 2 * sum(self.rope_axes_dim) != self.head_dim:
+            raise ValueError(f"rope_axes_dim {self.rope_axes_dim} must sum to head_dim/2 = {self.head_dim // 2}")
+        if self.num_heads % self.num_kv_heads:
+            raise ValueError("num_heads must be a multiple of num_kv_heads")
+        if self.prediction not in ("residual", "velocity"):
+            raise ValueError(f"prediction must be 'residual' or 'velocity', got {self.prediction!r}")
+        if self.context_attention not in ("full", "causal"):
+            raise ValueError(f"context_attention must be 'full' or 'causal', got {self.context_attention!r}")
+
+
+@dataclasses.dataclass(frozen=True)
+class DataConfig:
+    path: str = "runs/synthetic/episodes"  # an episode dataset (sc3_jax/data/episodes.py)
+    views: tuple[str, ...] = ("left", "right", "wrist")
+    image_size: tuple[int, int] = (16, 16)
+    context_frames: int = 2  # K clean context frames
+    future_frames: int = 4  # l' predicted frames (and actions) per window
+    strides: tuple[int, ...] = (1, 2)  # multi-FPS: frame stride drawn per sample from these
+    pseudo_action_prob: float = 0.5  # replace recorded actions by ones derived from end-effector poses
+    batch_size: int = 8  # global batch
+    seed: int = 0
+    read_threads: int = 0  # 0 = read in the training thread
+
+
+@dataclasses.dataclass(frozen=True)
+class ModeConfig:
+    # Per-sample probabilities of forward dynamics, cross-view inpainting, inverse dynamics.
+    probs: tuple[float, float, float] = (0.8, 0.1, 0.1)
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainConfig:
+    workdir: str = "runs/tiny"
+    steps: int = 2000
+    lr: float = 1e-4
+    warmup_steps: int = 100
+    weight_decay: float = 0.05
+    b1: float = 0.9
+    b2: float = 0.99
+    grad_clip: float = 1.0
+    seed: int = 0
+    log_every: int = 10
+    ckpt_every: int = 200
+    keep_checkpoints: int = 3
+    async_checkpointing: bool = True
+    tensorboard: bool = True
+    progress: bool = True
+
+
+@dataclasses.dataclass(frozen=True)
+class MeshConfig:
+    data: int = -1  # -1: all devices not used by the other axes
+    fsdp: int = 1
+    tensor: int = 1
+
+
+@dataclasses.dataclass(frozen=True)
+class SampleConfig:
+    steps: int = 10  # Euler steps from t = 1 to t = 0
+
+
+@dataclasses.dataclass(frozen=True)
+class RolloutConfig:
+    policy_chunk: int = 25  # actions proposed per policy call
+    keep_frames: int = 16  # l: predicted frames kept as context per chunk (l' = data.future_frames)
+    episode_seconds: float = 20.0
+    control_hz: float = 10.0
+    tau: float = 0.02  # stop once U_chunk > tau
+
+
+@dataclasses.dataclass(frozen=True)
+class Config:
+    name: str = "tiny"
+    model: ModelConfig = ModelConfig()
+    data: DataConfig = DataConfig()
+    modes: ModeConfig = ModeConfig()
+    train: TrainConfig = TrainConfig()
+    mesh: MeshConfig = MeshConfig()
+    sample: SampleConfig = SampleConfig()
+    rollout: RolloutConfig = RolloutConfig()
+
+
+def configs_dir() -> Path:
+    return Path(__file__).resolve().parents[1] / "configs"
+
+
+def available_configs() -> list[str]:
+    return sorted(p.stem for p in configs_dir().glob("*.py") if not p.stem.startswith("_"))
+
+
+def load_config(name_or_path: str) -> Config:
+    """``name_or_path`` is a file path or the name of a file in ``configs/``, optionally followed by ``:ARG``
+    (passed to its ``get_config(arg)``, e.g. ``ablation_no_id:tiny``)."""
+    name_or_path, _, arg = name_or_path.partition(":")
+    path = Path(name_or_path)
+    if not path.suffix:
+        path = configs_dir() / f"{name_or_path}.py"
+    if not path.exists():
+        raise FileNotFoundError(f"no config {name_or_path!r}; named configs: {', '.join(available_configs())}")
+    spec = importlib.util.spec_from_file_location(f"sc3_config_{path.stem}", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    cfg = module.get_config(arg or None)
+    if not isinstance(cfg, Config):
+        raise TypeError(f"{path}: get_config() must return sc3_jax.config.Config, got {type(cfg)}")
+    return cfg
+
+
+def replace(cfg, **sections):
+    """``replace(cfg, train=dict(steps=5))``: nested dataclasses.replace for overrides in code and tests."""
+    updates = {}
+    for key, value in sections.items():
+        if isinstance(value, dict):
+            updates[key] = dataclasses.replace(getattr(cfg, key), **value)
+        else:
+            updates[key] = value
+    return dataclasses.replace(cfg, **updates)

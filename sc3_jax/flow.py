@@ -1,0 +1,116 @@
+"""Rectified flow over tokens: noising with per-token noise levels, the loss on noisy tokens only, the Euler sampler.
+
+    x_t = (1 - t) x + t eps,   target velocity v = eps - x,   t = 1 pure noise, t = 0 clean.
+
+The network's raw output is read in one of two ways (``ModelConfig.prediction``):
+  * "velocity": the output is v directly (Cosmos3 checkpoints).
+  * "residual": the output is the clean target minus an anchor (the last context frame of the same view for
+    video, zero for actions); v = (x_t - x0_hat) / t. Its loss is the clean-target error ||x0_hat - x||^2
+    (the v-loss weighted by t^2, which keeps the small-t end well conditioned). Zero-initialised output
+    weights make the untrained model "copy the last frame", the strong baseline a world model must beat.
+"""
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from sc3_jax import modes as modes_lib
+from sc3_jax.config import ModelConfig
+from sc3_jax.model import dit
+
+
+def noise_inputs(video, actions, stride, video_noisy, action_noisy, t, eps_video, eps_actions):
+    """Noised model inputs. ``t`` [B] is the sample's noise level, applied to its noisy tokens only."""
+    tv = jnp.where(video_noisy, t[:, None, None], 0.0)
+    ta = jnp.where(action_noisy, t[:, None], 0.0)
+    xv = jnp.where(video_noisy[..., None, None], (1 - tv[..., None, None]) * video + tv[..., None, None] * eps_video,
+                   video)
+    xa = jnp.where(action_noisy[..., None], (1 - ta[..., None]) * actions + ta[..., None] * eps_actions, actions)
+    return dit.Inputs(xv, xa, tv, video_noisy, ta, action_noisy, stride)
+
+
+def predict(params, cfg: ModelConfig, inp: dit.Inputs, grid, context_kv=None):
+    """Velocity and clean-target estimates for the future video [B, V, T, P, D] and the actions [B, T, Da]."""
+    T = inp.actions.shape[1]
+    K = inp.video.shape[2] - T
+    if context_kv is None:
+        out_v, out_a = dit.apply(params, cfg, inp, grid)
+    else:
+        out_v, out_a = dit.apply_cached(params, cfg, inp, grid, context_kv)
+    xt_v, xt_a = inp.video[:, :, K:], inp.actions
+    tv = inp.video_t[:, :, K:, None, None]
+    ta = inp.action_t[..., None]
+    if cfg.prediction == "velocity":
+        return (out_v, out_a), (xt_v - tv * out_v, xt_a - ta * out_a)
+    x0_v = inp.video[:, :, K - 1: K] + out_v  # anchor: the last (clean) context frame of the same view
+    x0_a = out_a
+    safe = lambda t: jnp.maximum(t, 1e-6)  # noqa: E731  (clean tokens: velocity unused, avoid 0/0)
+    return ((xt_v - x0_v) / safe(tv), (xt_a - x0_a) / safe(ta)), (x0_v, x0_a)
+
+
+def masked_loss(pred_v, pred_a, target_v, target_a, video_noisy_future, action_noisy):
+    """Per-sample mean squared error over noisy tokens only, then the batch mean. Also returns per-sample losses."""
+    se_v = jnp.mean(jnp.square(pred_v - target_v), axis=(-2, -1))  # [B, V, T] per frame (mean over its tokens)
+    se_a = jnp.mean(jnp.square(pred_a - target_a), axis=-1)  # [B, T]
+    mv, ma = video_noisy_future.astype(jnp.float32), action_noisy.astype(jnp.float32)
+    total = jnp.sum(se_v * mv, axis=(1, 2)) + jnp.sum(se_a * ma, axis=1)
+    count = jnp.sum(mv, axis=(1, 2)) + jnp.sum(ma, axis=1)
+    per_sample = total / jnp.maximum(count, 1.0)
+    return jnp.mean(per_sample), per_sample
+
+
+def loss(params, cfg: ModelConfig, video, actions, stride, rng, probs, grid):
+    """The training loss for a batch of clean tokens; modes, noise levels and noise drawn from ``rng``."""
+    B, V, F = video.shape[:3]
+    T = actions.shape[1]
+    k_mode, k_t, k_ev, k_ea = jax.random.split(rng, 4)
+    mode, kept = modes_lib.draw(k_mode, B, V, probs)
+    video_noisy, action_noisy = modes_lib.masks(mode, kept, V, F - T, T)
+    t = jax.random.uniform(k_t, (B,), minval=1e-3, maxval=1.0)
+    eps_v = jax.random.normal(k_ev, video.shape, video.dtype)
+    eps_a = jax.random.normal(k_ea, actions.shape, actions.dtype)
+    inp = noise_inputs(video, actions, stride, video_noisy, action_noisy, t, eps_v, eps_a)
+    (v_v, v_a), (x0_v, x0_a) = predict(params, cfg, inp, grid)
+    if cfg.prediction == "velocity":
+        preds, targets = (v_v, v_a), (eps_v[:, :, F - T:] - video[:, :, F - T:], eps_a - actions)
+    else:
+        preds, targets = (x0_v, x0_a), (video[:, :, F - T:], actions)
+    total, per_sample = masked_loss(*preds, *targets, video_noisy[:, :, F - T:], action_noisy)
+    metrics = {"loss": total}
+    for m, name in enumerate(modes_lib.NAMES):
+        sel = (mode == m).astype(jnp.float32)
+        metrics[f"loss_{name}"] = jnp.sum(per_sample * sel) / jnp.maximum(jnp.sum(sel), 1.0)
+        metrics[f"frac_{name}"] = jnp.mean(sel)
+    return total, metrics
+
+
+def sample(params, cfg: ModelConfig, video, actions, stride, video_noisy, action_noisy, rng, steps: int, grid,
+           use_cache: bool | None = None):
+    """Euler from t = 1 to t = 0 in ``steps`` steps; clean tokens held fixed. Returns (video, actions) with the
+    noisy positions filled in. With ``context_attention="causal"`` the context keys/values are computed once and
+    reused by every step (``use_cache=False`` forces the uncached path, for checks)."""
+    T = actions.shape[1]
+    K = video.shape[2] - T
+    k_v, k_a = jax.random.split(rng)
+    video = jnp.where(video_noisy[..., None, None], jax.random.normal(k_v, video.shape, video.dtype), video)
+    actions = jnp.where(action_noisy[..., None], jax.random.normal(k_a, actions.shape, actions.dtype), actions)
+    if use_cache is None:
+        use_cache = cfg.context_attention == "causal"
+    context_kv = None
+    if use_cache:
+        clean = dit.Inputs(video, actions, jnp.zeros(video_noisy.shape), jnp.zeros_like(video_noisy),
+                           jnp.zeros(action_noisy.shape), jnp.zeros_like(action_noisy), stride)
+        context_kv = dit.encode_context(params, cfg, clean, grid)
+
+    def step(i, carry):
+        xv, xa = carry
+        t, t_next = 1.0 - i / steps, 1.0 - (i + 1) / steps
+        inp = dit.Inputs(xv, xa, jnp.where(video_noisy, t, 0.0), video_noisy, jnp.where(action_noisy, t, 0.0),
+                         action_noisy, stride)
+        (v_v, v_a), _ = predict(params, cfg, inp, grid, context_kv)
+        fut = xv[:, :, K:] + (t_next - t) * v_v
+        xv = xv.at[:, :, K:].set(jnp.where(video_noisy[:, :, K:, None, None], fut, xv[:, :, K:]))
+        xa = jnp.where(action_noisy[..., None], xa + (t_next - t) * v_a, xa)
+        return xv, xa
+
+    return jax.lax.fori_loop(0, steps, step, (video, actions))

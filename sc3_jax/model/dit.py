@@ -1,0 +1,255 @@
+"""The unified-dynamics DiT: a pure function of (params, tokens, noise levels, noisy masks, frame stride).
+
+Token layout of one sample (packed, context first so a context key/value cache is a prefix):
+    [ context video (V, K, P) | future video (V, T, P) | actions (T) ]
+Video tokens get a 3-D RoPE position (time = frame * stride, row, col) and a learned per-view embedding; action j
+(which moves frame K-1+j to K+j) sits at time (K - 0.5 + j) * stride, row = col = 0, plus the action-modality
+embedding. The noise-level embedding is added to noisy tokens only; clean tokens get none.
+
+Parameters are a plain nested dict of arrays; ``param_specs`` gives every parameter's shape, logical axis names and
+initialiser in one place, so ``init_params`` and ``param_axes`` can never disagree. Layers are stacked on a leading
+"layers" axis and run with ``lax.scan`` (one compiled block regardless of depth).
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from sc3_jax.config import ModelConfig
+from sc3_jax.model import layers
+
+
+@dataclasses.dataclass(frozen=True)
+class ParamSpec:
+    shape: tuple[int, ...]
+    axes: tuple[str | None, ...]  # logical axis names, mapped to mesh axes by sharding.RULES
+    init: str = "normal"  # "normal" (fan-in scaled), "zeros", "ones"
+    fan_in: int | None = None
+
+
+def param_specs(cfg: ModelConfig, token_dim: int) -> dict:
+    d, L, hq, hkv, hd, m = cfg.dim, cfg.depth, cfg.num_heads, cfg.num_kv_heads, cfg.head_dim, cfg.mlp_dim
+    out_init = "zeros" if cfg.prediction == "residual" else "normal"  # residual: start as "copy the last frame"
+    specs = {
+        "proj_in": {"w": ParamSpec((token_dim, d), ("patch", "embed")), "b": ParamSpec((d,), ("embed",), "zeros")},
+        "action_in": {"w": ParamSpec((cfg.num_action_domains, cfg.action_dim, d), ("domains", "action", "embed"),
+                                     fan_in=cfg.action_dim),
+                      "b": ParamSpec((cfg.num_action_domains, d), ("domains", "embed"), "zeros")},
+        "action_modality_embed": ParamSpec((d,), ("embed",), fan_in=d),
+        "time_embed": {"w1": ParamSpec((cfg.time_embed_dim, d), ("time_embed", "embed")),
+                       "b1": ParamSpec((d,), ("embed",), "zeros"),
+                       "w2": ParamSpec((d, d), ("embed_in", "embed")),
+                       "b2": ParamSpec((d,), ("embed",), "zeros")},
+        "layers": {
+            "attn_norm": ParamSpec((L, d), ("layers", "embed"), "ones"),
+            "wq": ParamSpec((L, d, hq, hd), ("layers", "embed", "heads", "head_dim"), fan_in=d),
+            "wk": ParamSpec((L, d, hkv, hd), ("layers", "embed", "kv_heads", "head_dim"), fan_in=d),
+            "wv": ParamSpec((L, d, hkv, hd), ("layers", "embed", "kv_heads", "head_dim"), fan_in=d),
+            "q_norm": ParamSpec((L, hd), ("layers", "head_dim"), "ones"),
+            "k_norm": ParamSpec((L, hd), ("layers", "head_dim"), "ones"),
+            "wo": ParamSpec((L, hq, hd, d), ("layers", "heads", "head_dim", "embed"), fan_in=hq * hd * 2 * L),
+            "mlp_norm": ParamSpec((L, d), ("layers", "embed"), "ones"),
+            "w_gate": ParamSpec((L, d, m), ("layers", "embed", "mlp"), fan_in=d),
+            "w_up": ParamSpec((L, d, m), ("layers", "embed", "mlp"), fan_in=d),
+            "w_down": ParamSpec((L, m, d), ("layers", "mlp", "embed"), fan_in=m * 2 * L),
+        },
+        "final_norm": ParamSpec((d,), ("embed",), "ones"),
+        "proj_out": {"w": ParamSpec((d, token_dim), ("embed", "patch"), out_init),
+                     "b": ParamSpec((token_dim,), ("patch",), "zeros")},
+        "action_out": {"w": ParamSpec((cfg.num_action_domains, d, cfg.action_dim), ("domains", "embed", "action"),
+                                      out_init, fan_in=d),
+                       "b": ParamSpec((cfg.num_action_domains, cfg.action_dim), ("domains", "action"), "zeros")},
+    }
+    if cfg.view_embedding:
+        specs["view_embed"] = ParamSpec((cfg.num_views, d), ("views", "embed"), fan_in=d)
+    return specs
+
+
+def _is_spec(x):
+    return isinstance(x, ParamSpec)
+
+
+def init_params(cfg: ModelConfig, token_dim: int, key: jax.Array) -> dict:
+    specs = param_specs(cfg, token_dim)
+    leaves, treedef = jax.tree.flatten(specs, is_leaf=_is_spec)
+    keys = jax.random.split(key, len(leaves))
+    dtype = jnp.dtype(cfg.param_dtype)
+
+    def make(spec: ParamSpec, k):
+        if spec.init == "zeros":
+            return jnp.zeros(spec.shape, dtype)
+        if spec.init == "ones":
+            return jnp.ones(spec.shape, dtype)
+        fan_in = spec.fan_in or spec.shape[-2]
+        return (jax.random.normal(k, spec.shape, jnp.float32) / math.sqrt(fan_in)).astype(dtype)
+
+    return jax.tree.unflatten(treedef, [make(s, k) for s, k in zip(leaves, keys)])
+
+
+def param_axes(cfg: ModelConfig, token_dim: int) -> dict:
+    """The logical axis names of every parameter (same tree structure as the params)."""
+    return jax.tree.map(lambda s: s.axes, param_specs(cfg, token_dim), is_leaf=_is_spec)
+
+
+def count_params(params_or_shapes) -> int:
+    return int(sum(np.prod(x.shape) for x in jax.tree.leaves(params_or_shapes)))
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Inputs and positions
+# ----------------------------------------------------------------------------------------------------------------
+class Inputs(NamedTuple):
+    """One batch of tokens. Noise levels t in [0, 1]; ``*_noisy`` says which tokens are targets (get the timestep
+    embedding and a loss); clean tokens are conditions."""
+    video: jax.Array  # [B, V, F, P, Dp]  F = K context + T future frames
+    actions: jax.Array  # [B, T, Da]
+    video_t: jax.Array  # [B, V, F]
+    video_noisy: jax.Array  # bool [B, V, F]
+    action_t: jax.Array  # [B, T]
+    action_noisy: jax.Array  # bool [B, T]
+    stride: jax.Array  # int [B] frame stride (multi-FPS)
+
+
+def positions(stride: jax.Array, V: int, F: int, grid: tuple[int, int], T: int, K: int) -> jax.Array:
+    """[B, N, 3] (time, row, col) in packed order (context video, future video, actions)."""
+    rows, cols = grid
+    f = jnp.arange(F, dtype=jnp.float32)
+    r, c = jnp.meshgrid(jnp.arange(rows, dtype=jnp.float32), jnp.arange(cols, dtype=jnp.float32), indexing="ij")
+    frame_pos = jnp.stack(jnp.broadcast_arrays(f[:, None], r.reshape(1, -1), c.reshape(1, -1)), -1)  # [F, P, 3]
+    video = jnp.broadcast_to(frame_pos[None], (V,) + frame_pos.shape)  # [V, F, P, 3]
+    ctx, fut = video[:, :K].reshape(-1, 3), video[:, K:].reshape(-1, 3)
+    act_t = K - 0.5 + jnp.arange(T, dtype=jnp.float32)
+    act = jnp.stack([act_t, jnp.zeros(T), jnp.zeros(T)], -1)
+    pos = jnp.concatenate([ctx, fut, act], 0)  # [N, 3]
+    scale = jnp.asarray([1.0, 0.0, 0.0]) * (stride.astype(jnp.float32)[:, None, None] - 1.0) + 1.0
+    return pos[None] * scale  # time axis scaled by the stride
+
+
+def context_length(V: int, K: int, P: int) -> int:
+    return V * K * P
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Forward
+# ----------------------------------------------------------------------------------------------------------------
+def _embed(params, cfg: ModelConfig, inp: Inputs, domain: int):
+    """Token embeddings [B, N, D] in packed order, plus per-token noisy flags."""
+    dt = jnp.dtype(cfg.dtype)
+    B, V, F, P, _ = inp.video.shape
+    T = inp.actions.shape[1]
+    K = F - T
+    xv = inp.video.astype(dt) @ params["proj_in"]["w"].astype(dt) + params["proj_in"]["b"].astype(dt)
+    if cfg.view_embedding:
+        xv = xv + params["view_embed"].astype(dt)[None, :, None, None, :]
+    # Timestep embedding per (view, frame) and per action, added to noisy tokens only.
+    temb_v = _time_mlp(params, inp.video_t).astype(dt)  # [B, V, F, D]
+    xv = xv + jnp.where(inp.video_noisy[..., None, None], temb_v[:, :, :, None, :], 0)
+    xa = jnp.einsum("bta,ad->btd", inp.actions.astype(dt), params["action_in"]["w"][domain].astype(dt))
+    xa = xa + params["action_in"]["b"][domain].astype(dt) + params["action_modality_embed"].astype(dt)
+    temb_a = _time_mlp(params, inp.action_t).astype(dt)
+    xa = xa + jnp.where(inp.action_noisy[..., None], temb_a, 0)
+    D = xv.shape[-1]
+    x = jnp.concatenate([xv[:, :, :K].reshape(B, -1, D), xv[:, :, K:].reshape(B, -1, D), xa], axis=1)
+    return x
+
+
+def _time_mlp(params, t):
+    p = params["time_embed"]
+    e = layers.timestep_embedding(t, p["w1"].shape[0])
+    h = jax.nn.silu(e @ p["w1"].astype(jnp.float32) + p["b1"].astype(jnp.float32))
+    return h @ p["w2"].astype(jnp.float32) + p["b2"].astype(jnp.float32)
+
+
+def _block(cfg: ModelConfig, x, p, cos, sin, mask, prefix_kv=None):
+    """One pre-norm block. ``prefix_kv``: cached (k, v) of a context prefix that x's tokens also attend to."""
+    h = layers.rms_norm(x, p["attn_norm"], cfg.norm_eps)
+    q, k, v = layers.qkv(h, p, cos, sin, cfg.norm_eps)
+    kv = (k, v)
+    if prefix_kv is not None:
+        k = jnp.concatenate([prefix_kv[0].astype(k.dtype), k], axis=1)
+        v = jnp.concatenate([prefix_kv[1].astype(v.dtype), v], axis=1)
+    o = layers.attention(q, k, v, mask)
+    x = x + jnp.einsum("bnhk,hkd->bnd", o, p["wo"].astype(x.dtype))
+    h = layers.rms_norm(x, p["mlp_norm"], cfg.norm_eps)
+    x = x + layers.swiglu(h, p["w_gate"], p["w_up"], p["w_down"])
+    return x, kv
+
+
+def _run_layers(cfg: ModelConfig, params, x, cos, sin, mask, prefix_kv=None):
+    """lax.scan over the stacked layers. Returns the final hidden states and each layer's (k, v)."""
+
+    def body(x, layer):
+        p, pkv = layer
+        return _block(cfg, x, p, cos, sin, mask, pkv)
+
+    if cfg.remat:
+        body = jax.checkpoint(body, policy=jax.checkpoint_policies.nothing_saveable)
+    return jax.lax.scan(body, x, (params["layers"], prefix_kv))
+
+
+def _attention_mask(cfg: ModelConfig, n_ctx: int, n: int):
+    if cfg.context_attention == "full":
+        return None
+    is_ctx = jnp.arange(n) < n_ctx
+    return (~is_ctx[:, None] | is_ctx[None, :])[None, None]  # context queries see context keys only
+
+
+def _outputs(params, cfg: ModelConfig, h, V, T, P, domain):
+    """h: hidden states of the non-context tokens (future video, then actions)."""
+    B = h.shape[0]
+    h = layers.rms_norm(h, params["final_norm"], cfg.norm_eps)
+    hv, ha = h[:, : h.shape[1] - T], h[:, h.shape[1] - T:]
+    out_v = hv @ params["proj_out"]["w"].astype(h.dtype) + params["proj_out"]["b"].astype(h.dtype)
+    out_v = out_v.reshape(B, V, T, P, -1).astype(jnp.float32)
+    out_a = jnp.einsum("btd,da->bta", ha, params["action_out"]["w"][domain].astype(h.dtype))
+    out_a = (out_a + params["action_out"]["b"][domain].astype(h.dtype)).astype(jnp.float32)
+    return out_v, out_a
+
+
+def apply(params, cfg: ModelConfig, inp: Inputs, grid: tuple[int, int], domain: int = 0):
+    """Raw network outputs for the future-video tokens [B, V, T, P, Dp] and action tokens [B, T, Da].
+    (Context-frame outputs are never used, so they are not projected.) See ``flow.predict`` for what the raw
+    outputs mean under each ``cfg.prediction``."""
+    B, V, F, P, _ = inp.video.shape
+    T = inp.actions.shape[1]
+    K = F - T
+    x = _embed(params, cfg, inp, domain)
+    cos, sin = layers.rope_cos_sin(positions(inp.stride, V, F, grid, T, K), cfg.head_dim, cfg.rope_axes_dim,
+                                   cfg.rope_theta)
+    mask = _attention_mask(cfg, V * K * P, x.shape[1])
+    h, _ = _run_layers(cfg, params, x, cos, sin, mask)
+    return _outputs(params, cfg, h[:, V * K * P:], V, T, P, domain)
+
+
+def encode_context(params, cfg: ModelConfig, inp: Inputs, grid, domain: int = 0):
+    """Per-layer keys/values of the clean context tokens, [L, B, V*K*P, Hkv, hd] each. Only valid with
+    ``context_attention="causal"`` (then context tokens never see targets, so this is exact)."""
+    if cfg.context_attention != "causal":
+        raise ValueError("context caching needs context_attention='causal'")
+    B, V, F, P, _ = inp.video.shape
+    T = inp.actions.shape[1]
+    K = F - T
+    n_ctx = V * K * P
+    x = _embed(params, cfg, inp, domain)[:, :n_ctx]
+    cos, sin = layers.rope_cos_sin(positions(inp.stride, V, F, grid, T, K)[:, :n_ctx], cfg.head_dim,
+                                   cfg.rope_axes_dim, cfg.rope_theta)
+    _, kv = _run_layers(cfg, params, x, cos, sin, None)
+    return kv
+
+
+def apply_cached(params, cfg: ModelConfig, inp: Inputs, grid, context_kv, domain: int = 0):
+    """Same outputs as ``apply`` under causal context attention, computing only the non-context tokens."""
+    B, V, F, P, _ = inp.video.shape
+    T = inp.actions.shape[1]
+    K = F - T
+    n_ctx = V * K * P
+    x = _embed(params, cfg, inp, domain)[:, n_ctx:]
+    cos, sin = layers.rope_cos_sin(positions(inp.stride, V, F, grid, T, K)[:, n_ctx:], cfg.head_dim,
+                                   cfg.rope_axes_dim, cfg.rope_theta)
+    h, _ = _run_layers(cfg, params, x, cos, sin, None, context_kv)
+    return _outputs(params, cfg, h, V, T, P, domain)

@@ -1,0 +1,70 @@
+"""Video <-> tokens. One interface; the pixel-patch tokenizer now, the Wan VAE later behind the same methods.
+
+Patch order is (row, col) over the frame with features ordered (pi, pj, c), as Cosmos3 patchifies latents."""
+from __future__ import annotations
+
+import dataclasses
+from typing import Protocol
+
+import jax
+import jax.numpy as jnp
+
+
+class Tokenizer(Protocol):
+    def grid(self, image_size: tuple[int, int]) -> tuple[int, int]: ...  # tokens per frame as (rows, cols)
+
+    @property
+    def token_dim(self) -> int: ...
+
+    def encode(self, frames: jax.Array) -> jax.Array: ...  # uint8 [..., F, H, W, 3] -> [..., F, P, D]
+
+    def decode(self, tokens: jax.Array, image_size: tuple[int, int]) -> jax.Array: ...  # -> float [-1, 1]
+
+
+def to_unit(frames: jax.Array) -> jax.Array:
+    """uint8 [0, 255] -> float32 [-1, 1]."""
+    return frames.astype(jnp.float32) / 127.5 - 1.0
+
+
+def to_uint8(x: jax.Array) -> jax.Array:
+    """float [-1, 1] -> uint8, rounding (exact inverse of ``to_unit`` on its image)."""
+    return jnp.clip(jnp.round((x + 1.0) * 127.5), 0, 255).astype(jnp.uint8)
+
+
+@dataclasses.dataclass(frozen=True)
+class PixelPatchTokenizer:
+    patch_size: int = 4
+    channels: int = 3
+
+    def grid(self, image_size):
+        h, w = image_size
+        if h % self.patch_size or w % self.patch_size:
+            raise ValueError(f"image size {image_size} is not a multiple of patch size {self.patch_size}")
+        return h // self.patch_size, w // self.patch_size
+
+    @property
+    def token_dim(self) -> int:
+        return self.patch_size * self.patch_size * self.channels
+
+    def encode(self, frames):
+        x = to_unit(frames) if frames.dtype == jnp.uint8 else frames
+        *lead, h, w, c = x.shape
+        p = self.patch_size
+        rows, cols = self.grid((h, w))
+        x = x.reshape(*lead, rows, p, cols, p, c)
+        x = jnp.moveaxis(x, -4, -3)  # [..., rows, cols, p, p, c]
+        return x.reshape(*lead, rows * cols, p * p * c)
+
+    def decode(self, tokens, image_size):
+        *lead, n, d = tokens.shape
+        p = self.patch_size
+        rows, cols = self.grid(image_size)
+        x = tokens.reshape(*lead, rows, cols, p, p, self.channels)
+        x = jnp.moveaxis(x, -3, -4)  # [..., rows, p, cols, p, c]
+        return x.reshape(*lead, rows * p, cols * p, self.channels)
+
+
+def make_tokenizer(model_cfg) -> Tokenizer:
+    if model_cfg.tokenizer == "pixel":
+        return PixelPatchTokenizer(model_cfg.patch_size, model_cfg.channels)
+    raise ValueError(f"unknown tokenizer {model_cfg.tokenizer!r} (available: 'pixel')")

@@ -1,0 +1,43 @@
+"""The three training modes as per-sample token masks. A mode is only a choice of which token groups are noisy:
+
+    forward dynamics (FD):       future frames of every view noisy; context frames and actions clean
+    cross-view inpainting (CVI): future frames of every view but one randomly kept view noisy
+    inverse dynamics (ID):       actions noisy; every frame clean
+
+Modes are drawn per sample inside the jitted step with ``jnp.where`` on masks, so one batch mixes modes and one
+compiled step serves all of them.
+"""
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+FD, CVI, ID = 0, 1, 2
+NAMES = ("forward", "inpaint", "inverse")
+
+
+def draw(rng: jax.Array, batch: int, num_views: int, probs) -> tuple[jax.Array, jax.Array]:
+    """Per-sample mode ids [B] drawn with ``probs`` (FD, CVI, ID) and the view kept clean under CVI [B]."""
+    k_mode, k_view = jax.random.split(rng)
+    p = jnp.asarray(probs, jnp.float32)
+    mode = jax.random.choice(k_mode, 3, (batch,), p=p / p.sum())
+    kept_view = jax.random.randint(k_view, (batch,), 0, num_views)
+    return mode.astype(jnp.int32), kept_view.astype(jnp.int32)
+
+
+def masks(mode: jax.Array, kept_view: jax.Array, num_views: int, context_frames: int, future_frames: int):
+    """Noisy-token masks: video [B, V, K+T] and actions [B, T] (True = noisy target, False = clean condition)."""
+    B = mode.shape[0]
+    is_future = jnp.arange(context_frames + future_frames) >= context_frames  # [F]
+    view = jnp.arange(num_views)
+    fd = mode[:, None, None] == FD
+    cvi = (mode[:, None, None] == CVI) & (view[None, :, None] != kept_view[:, None, None])
+    video_noisy = (fd | cvi) & is_future[None, None, :]
+    action_noisy = jnp.broadcast_to((mode == ID)[:, None], (B, future_frames))
+    return video_noisy, action_noisy
+
+
+def fixed(mode: int, batch: int, num_views: int, context_frames: int, future_frames: int, kept_view: int = 0):
+    """Masks for every sample in one given mode (sampling, evaluation)."""
+    return masks(jnp.full((batch,), mode, jnp.int32), jnp.full((batch,), kept_view, jnp.int32), num_views,
+                 context_frames, future_frames)

@@ -1,0 +1,60 @@
+"""What a policy is, for the world model and for the simulator alike.
+
+An observation is a dict of arrays (one sample, no batch axis):
+    "images": uint8   [V, H, W, 3]  the views in dataset order (third-person views first, wrist last)
+    "state":  float32 [S]           proprioception; for our benchmarks the end-effector pose (x, y, z, rotvec, gripper)
+    "task":   int32   []            task id (0 = bussing, 1 = reverse bussing, ...); the host-side prompt maps to it
+A policy returns an action chunk float32 [chunk, 7] of raw (unnormalised) delta end-effector actions.
+
+Two kinds:
+  * ``JaxPolicy``: ``apply(params, obs, rng) -> actions``, a pure function, so it can run inside ``lax.scan``
+    (and ``vmap`` over a batch of observations).
+  * ``HostPolicy``: anything with ``infer(obs: dict[str, np.ndarray]) -> np.ndarray``, called from a Python loop
+    between jitted steps (remote openpi servers, PyTorch models, humans...). ``as_host`` wraps a JaxPolicy so both
+    paths can be checked against each other.
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, Callable, Protocol, runtime_checkable
+
+import jax
+import numpy as np
+
+
+@dataclasses.dataclass(frozen=True)
+class JaxPolicy:
+    name: str
+    apply: Callable[[Any, dict, jax.Array], jax.Array]  # (params, obs, rng) -> [chunk, action_dim]
+    params: Any
+    chunk: int = 25
+    action_dim: int = 7
+
+    def __call__(self, obs: dict, rng: jax.Array) -> jax.Array:
+        return self.apply(self.params, obs, rng)
+
+
+@runtime_checkable
+class HostPolicy(Protocol):
+    chunk: int
+
+    def infer(self, obs: dict[str, np.ndarray]) -> np.ndarray: ...
+
+
+class JaxAsHost:
+    """A JaxPolicy called from the host. Draws its rng from a key it owns, split once per call, so that a host loop
+    that feeds it the same key sequence as a scan reproduces the scan."""
+
+    def __init__(self, policy: JaxPolicy, rng: jax.Array | None = None):
+        self.policy, self.chunk = policy, policy.chunk
+        self._apply = jax.jit(policy.apply)
+        self._rng = rng if rng is not None else jax.random.key(0)
+
+    def infer(self, obs: dict[str, np.ndarray], rng: jax.Array | None = None) -> np.ndarray:
+        if rng is None:
+            self._rng, rng = jax.random.split(self._rng)
+        return np.asarray(self._apply(self.policy.params, {k: jax.numpy.asarray(v) for k, v in obs.items()}, rng))
+
+
+def as_host(policy: JaxPolicy, rng: jax.Array | None = None) -> JaxAsHost:
+    return JaxAsHost(policy, rng)

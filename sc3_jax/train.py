@@ -1,0 +1,299 @@
+"""Training: state, the sharded train step, orbax checkpoints with the data position, metrics, and the loop.
+Reads top to bottom: state -> step -> checkpoints -> metrics -> loop."""
+from __future__ import annotations
+
+import dataclasses
+import json
+import signal
+import time
+from pathlib import Path
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+import orbax.checkpoint as ocp
+
+from sc3_jax import flow, sharding
+from sc3_jax.config import Config
+from sc3_jax.model import dit
+from sc3_jax.model.tokenizer import make_tokenizer
+
+
+# ================================================================================================================
+# State
+# ================================================================================================================
+def make_optimizer(cfg: Config) -> optax.GradientTransformation:
+    """AdamW (paper defaults) with linear warm-up then cosine decay, global-norm clipping; no decay on norms and
+    biases (1-D parameters)."""
+    t = cfg.train
+    schedule = optax.warmup_cosine_decay_schedule(0.0, t.lr, max(t.warmup_steps, 1), max(t.steps, t.warmup_steps + 1))
+    decay_mask = lambda params: jax.tree.map(lambda p: p.ndim >= 2, params)  # noqa: E731
+    return optax.chain(optax.clip_by_global_norm(t.grad_clip),
+                       optax.adamw(schedule, b1=t.b1, b2=t.b2, weight_decay=t.weight_decay, mask=decay_mask))
+
+
+def token_dim(cfg: Config) -> int:
+    return make_tokenizer(cfg.model).token_dim
+
+
+def init_state(cfg: Config) -> dict[str, Any]:
+    """{params, opt_state, step, rng}; rng is raw key data so checkpoints hold plain arrays."""
+    k_init, k_train = jax.random.split(jax.random.key(cfg.train.seed))
+    params = dit.init_params(cfg.model, token_dim(cfg), k_init)
+    return {"params": params, "opt_state": make_optimizer(cfg).init(params), "step": jnp.zeros((), jnp.int32),
+            "rng": jax.random.key_data(k_train)}
+
+
+def state_axes(cfg: Config, abstract_state) -> list[tuple]:
+    """Logical axes of every state leaf (in ``jax.tree.leaves`` order): optimizer moments follow their parameters
+    (matched by the parameter's path at the end of theirs), everything else is replicated."""
+    is_axes = lambda a: type(a) is tuple  # noqa: E731  (optax states are namedtuples: containers, not axes)
+    flat, _ = jax.tree_util.tree_flatten_with_path(dit.param_axes(cfg.model, token_dim(cfg)), is_leaf=is_axes)
+    table = {tuple(k.key for k in path): axes for path, axes in flat}
+
+    def axes_for(path, x):
+        keys = tuple(getattr(k, "key", None) for k in path)
+        for i in range(len(keys)):
+            axes = table.get(keys[i:])
+            if axes is not None and len(axes) == x.ndim:
+                return axes
+        return (None,) * x.ndim
+
+    return [axes_for(path, x) for path, x in jax.tree_util.tree_flatten_with_path(abstract_state)[0]]
+
+
+def state_shardings(cfg: Config, mesh):
+    abstract = jax.eval_shape(lambda: init_state(cfg))
+    leaves, treedef = jax.tree.flatten(abstract)
+    shards = [sharding.named(mesh, axes, x.shape) for axes, x in zip(state_axes(cfg, abstract), leaves)]
+    return abstract, jax.tree.unflatten(treedef, shards)
+
+
+# ================================================================================================================
+# Step
+# ================================================================================================================
+def make_train_step(cfg: Config):
+    tok = make_tokenizer(cfg.model)
+    grid = tok.grid(cfg.data.image_size)
+    opt = make_optimizer(cfg)
+
+    def train_step(state, batch):
+        rng = jax.random.fold_in(jax.random.wrap_key_data(state["rng"]), state["step"])
+        video = tok.encode(batch["frames"])
+        loss_fn = lambda p: flow.loss(p, cfg.model, video, batch["actions"], batch["stride"], rng,  # noqa: E731
+                                      cfg.modes.probs, grid)
+        (_, metrics), grads = jax.value_and_grad(loss_fn, has_aux=True)(state["params"])
+        updates, opt_state = opt.update(grads, state["opt_state"], state["params"])
+        params = optax.apply_updates(state["params"], updates)
+        metrics["grad_norm"] = optax.global_norm(grads)
+        return {**state, "params": params, "opt_state": opt_state, "step": state["step"] + 1}, metrics
+
+    return train_step
+
+
+def batch_shapes(cfg: Config) -> dict[str, jax.ShapeDtypeStruct]:
+    d = cfg.data
+    B, V, F = d.batch_size, len(d.views), d.context_frames + d.future_frames
+    return {"frames": jax.ShapeDtypeStruct((B, V, F, *d.image_size, 3), jnp.uint8),
+            "actions": jax.ShapeDtypeStruct((B, d.future_frames, cfg.model.action_dim), jnp.float32),
+            "stride": jax.ShapeDtypeStruct((B,), jnp.int32)}
+
+
+def compile_train_step(cfg: Config, mesh):
+    """jit with explicit shardings and the state donated. Returns (step_fn, state_shardings)."""
+    _, st_shard = state_shardings(cfg, mesh)
+    b_shard = {k: sharding.batch_sharding(mesh) for k in batch_shapes(cfg)}
+    step = jax.jit(make_train_step(cfg), in_shardings=(st_shard, b_shard),
+                   out_shardings=(st_shard, sharding.replicated(mesh)), donate_argnums=(0,))
+    return step, st_shard
+
+
+def create_state(cfg: Config, mesh):
+    _, st_shard = state_shardings(cfg, mesh)
+    return jax.jit(lambda: init_state(cfg), out_shardings=st_shard)()
+
+
+# ================================================================================================================
+# Checkpoints
+# ================================================================================================================
+def checkpoint_manager(cfg: Config) -> ocp.CheckpointManager:
+    options = ocp.CheckpointManagerOptions(max_to_keep=cfg.train.keep_checkpoints,
+                                           save_interval_steps=cfg.train.ckpt_every,
+                                           enable_async_checkpointing=cfg.train.async_checkpointing)
+    return ocp.CheckpointManager(Path(cfg.train.workdir).absolute() / "checkpoints", options=options)
+
+
+def save(mngr: ocp.CheckpointManager, state, data_state: dict, force: bool = False) -> bool:
+    step = int(state["step"])
+    return mngr.save(step, args=ocp.args.Composite(state=ocp.args.StandardSave(state),
+                                                   data=ocp.args.JsonSave(data_state)), force=force)
+
+
+def restore(mngr: ocp.CheckpointManager, cfg: Config, mesh, step: int | None = None):
+    """(state, data_state) of the latest (or given) checkpoint, placed with this mesh's shardings."""
+    step = mngr.latest_step() if step is None else step
+    abstract, st_shard = state_shardings(cfg, mesh)
+    target = jax.tree.map(lambda a, s: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=s), abstract, st_shard)
+    out = mngr.restore(step, args=ocp.args.Composite(state=ocp.args.StandardRestore(target),
+                                                     data=ocp.args.JsonRestore()))
+    return out["state"], out["data"]
+
+
+def load_params(workdir: str | Path, cfg: Config, step: int | None = None):
+    """Params of a trained run (for rollouts and evaluation), on one device."""
+    mngr = ocp.CheckpointManager(Path(workdir).absolute() / "checkpoints")
+    step = mngr.latest_step() if step is None else step
+    if step is None:
+        raise FileNotFoundError(f"no checkpoint under {workdir}/checkpoints")
+    abstract = jax.eval_shape(lambda: init_state(cfg))
+    out = mngr.restore(step, args=ocp.args.Composite(state=ocp.args.StandardRestore(abstract)))
+    return out["state"]["params"]
+
+
+# ================================================================================================================
+# Metrics
+# ================================================================================================================
+class MetricsLog:
+    """One JSON line per step in ``workdir/metrics.jsonl`` (appended across restarts) and TensorBoard events."""
+
+    def __init__(self, workdir: Path, tensorboard: bool):
+        self.path = workdir / "metrics.jsonl"
+        self.is_primary = jax.process_index() == 0
+        self.tb = None
+        if tensorboard and self.is_primary:
+            from tensorboardX import SummaryWriter
+            self.tb = SummaryWriter(str(workdir / "tensorboard"))
+
+    def write(self, rows: list[dict]):
+        if not self.is_primary or not rows:
+            return
+        with open(self.path, "a") as f:
+            for row in rows:
+                f.write(json.dumps(row) + "\n")
+        if self.tb is not None:
+            for row in rows:
+                for k, v in row.items():
+                    if k != "step":
+                        self.tb.add_scalar(k, v, row["step"])
+            self.tb.flush()
+
+    def close(self):
+        if self.tb is not None:
+            self.tb.close()
+
+
+def read_metrics(workdir: str | Path) -> dict[int, dict]:
+    """step -> row; a step logged twice (a run resumed from an earlier checkpoint) keeps the latest row."""
+    rows = {}
+    path = Path(workdir) / "metrics.jsonl"
+    if path.exists():
+        for line in path.read_text().splitlines():
+            row = json.loads(line)
+            rows[row["step"]] = row
+    return rows
+
+
+# ================================================================================================================
+# Loop
+# ================================================================================================================
+def prepare_data(cfg: Config):
+    """Episode store, normalisation stats (computed once, stored in the workdir next to the checkpoints) and this
+    process's dataset."""
+    from sc3_jax.data import pipeline
+    from sc3_jax.data.episodes import EpisodeStore
+
+    workdir = Path(cfg.train.workdir)
+    store = EpisodeStore(cfg.data.path)
+    stats_path = workdir / "norm_stats.json"
+    if stats_path.exists():
+        stats = pipeline.NormStats.load(stats_path)
+    else:
+        stats = pipeline.NormStats.compute(store)
+        if jax.process_index() == 0:
+            stats.save(stats_path)
+    ds = pipeline.make_dataset(cfg.data, store, stats, jax.process_index(), jax.process_count())
+    return store, stats, ds
+
+
+def train(cfg: Config, mesh=None, stop_at: int | None = None) -> dict:
+    """Train (or resume) until ``cfg.train.steps`` (or ``stop_at``). Returns the last logged metrics."""
+    workdir = Path(cfg.train.workdir)
+    workdir.mkdir(parents=True, exist_ok=True)
+    if jax.process_index() == 0:
+        (workdir / "config.json").write_text(json.dumps(dataclasses.asdict(cfg), indent=1))
+    mesh = sharding.make_mesh(cfg.mesh) if mesh is None else mesh
+    _, _, ds = prepare_data(cfg)
+    data_iter = iter(ds)
+    step_fn, _ = compile_train_step(cfg, mesh)
+    mngr = checkpoint_manager(cfg)
+    if mngr.latest_step() is not None:
+        state, data_state = restore(mngr, cfg, mesh)
+        data_iter.set_state(data_state["iterator"])
+    else:
+        state = create_state(cfg, mesh)
+    log = MetricsLog(workdir, cfg.train.tensorboard)
+    stop = _PreemptionFlag()
+    end = cfg.train.steps if stop_at is None else min(stop_at, cfg.train.steps)
+    start = int(state["step"])
+    pending: list[tuple[int, dict]] = []
+    last: dict = {}
+    bar = _progress(start, end, cfg.train.progress and jax.process_index() == 0)
+    t0, n_since = time.perf_counter(), 0
+    for step in range(start, end):
+        batch = sharding.global_batch(mesh, _model_batch(next(data_iter)))
+        state, metrics = step_fn(state, batch)
+        pending.append((step + 1, metrics))
+        n_since += 1
+        done = step + 1 == end
+        if len(pending) >= cfg.train.log_every or done:
+            rows = [{"step": s, **{k: float(v) for k, v in jax.device_get(m).items()}} for s, m in pending]
+            rate = n_since / (time.perf_counter() - t0)
+            rows[-1]["steps_per_s"] = rate
+            log.write(rows)
+            last, pending, t0, n_since = rows[-1], [], time.perf_counter(), 0
+            if bar is not None:
+                bar.set_postfix(loss=f"{last['loss']:.4f}", steps_s=f"{rate:.2f}")
+        if bar is not None:
+            bar.update(1)
+        preempted = stop.flag or mngr.reached_preemption(step + 1)
+        save(mngr, state, {"iterator": data_iter.get_state()}, force=done or preempted)
+        if preempted:
+            break
+    mngr.wait_until_finished()
+    mngr.close()
+    log.close()
+    stop.restore()
+    if bar is not None:
+        bar.close()
+    return last
+
+
+def _model_batch(batch: dict) -> dict:
+    return {k: batch[k] for k in ("frames", "actions", "stride")}
+
+
+def _progress(start: int, end: int, enabled: bool):
+    if not enabled:
+        return None
+    from tqdm.auto import tqdm
+    return tqdm(total=end, initial=start, desc="train", dynamic_ncols=True)
+
+
+class _PreemptionFlag:
+    """SIGTERM (what schedulers send before preempting) -> save a checkpoint at the next step and stop."""
+
+    def __init__(self):
+        self.flag = False
+        try:
+            self._old = signal.signal(signal.SIGTERM, self._handler)
+        except ValueError:  # not the main thread
+            self._old = None
+
+    def _handler(self, *_):
+        self.flag = True
+
+    def restore(self):
+        if self._old is not None:
+            signal.signal(signal.SIGTERM, self._old)

@@ -1,0 +1,418 @@
+"""openpi wire protocol: msgpack-numpy codec, observation mappings, our client <-> our server, openpi-client interop."""
+from __future__ import annotations
+
+import importlib
+import socket
+import subprocess
+import sys
+import threading
+import time
+import urllib.request
+
+import jax.numpy as jnp
+import msgpack
+import numpy as np
+import pytest
+
+from sc3_jax.policies import msgpack_numpy as mn
+from sc3_jax.policies.base import HostPolicy, JaxPolicy, as_host
+from sc3_jax.policies.openpi import (ALOHA, DEFAULT_PROMPTS, DROID, LIBERO, PolicyConnectionError, PolicyServer,
+                                     PolicyServerError, PolicyTimeoutError, WebsocketClientPolicy,
+                                     build_policy_server, get_mapping, serve)
+
+CHUNK = 5
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# helpers
+# ---------------------------------------------------------------------------------------------------------------------
+def _apply(params, obs, rng):
+    del rng
+    img_mean = jnp.mean(obs["images"].astype(jnp.float32), axis=(1, 2, 3)) / 255.0  # [V]
+    base = obs["state"].astype(jnp.float32) + jnp.sum(img_mean * params["view_w"]) + params["task_w"] * obs["task"]
+    return base[None, :] + params["t"][:, None]  # [CHUNK, 7]
+
+
+def tiny_policy() -> JaxPolicy:
+    params = {"view_w": jnp.array([1.0, 2.0, 3.0]), "task_w": jnp.float32(0.5), "t": jnp.arange(CHUNK) * 0.01}
+    return JaxPolicy("tiny", _apply, params, chunk=CHUNK)
+
+
+def our_obs(h=48, w=64, task=1, seed=0):
+    """Constant-colour views (resizing / letterboxing / un-letterboxing them is exact)."""
+    rng = np.random.default_rng(seed)
+    colours = rng.integers(0, 256, size=3)
+    images = np.stack([np.full((h, w, 3), c, np.uint8) for c in colours])
+    return {"images": images, "state": rng.normal(size=7).astype(np.float32), "task": np.asarray(task, np.int32)}
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def assert_same(a, b, path="obj"):
+    """Equal values *and* types/dtypes; arrays compared bitwise."""
+    if isinstance(a, np.ndarray):
+        assert isinstance(b, np.ndarray), path
+        assert a.dtype == b.dtype and a.shape == b.shape, (path, a.dtype, b.dtype, a.shape, b.shape)
+        assert a.tobytes() == b.tobytes(), path
+    elif isinstance(a, np.generic):
+        assert type(a) is type(b) and a.dtype == b.dtype, (path, type(a), type(b))
+        assert a.tobytes() == b.tobytes(), path
+    elif isinstance(a, dict):
+        assert isinstance(b, dict) and set(a) == set(b), (path, set(a), set(b))
+        for k in a:
+            assert_same(a[k], b[k], f"{path}[{k!r}]")
+    elif isinstance(a, (list, tuple)):
+        assert isinstance(b, list) and len(a) == len(b), path
+        for i, (x, y) in enumerate(zip(a, b)):
+            assert_same(x, y, f"{path}[{i}]")
+    else:
+        assert type(a) is type(b) and a == b, (path, a, b)
+
+
+def payload():
+    rng = np.random.default_rng(1)
+    f32 = rng.normal(size=(4, 6)).astype(np.float32)
+    f32[0, 0] = np.nan
+    return {
+        "images": rng.integers(0, 256, size=(3, 8, 10, 3), dtype=np.uint8),
+        "f32_noncontig": f32[:, ::2],
+        "big_endian": np.arange(6, dtype=">f8").reshape(2, 3),
+        "f16": rng.normal(size=5).astype(np.float16),
+        "bool": np.array([True, False, True]),
+        "u64": np.array([0, 2**64 - 1], np.uint64),
+        "zero_d": np.array(7, np.int16),
+        "empty": np.zeros((0, 3), np.float32),
+        "strs": np.array(["a", "bcd"]),
+        "scalars": {"f32": np.float32(1.25), "f64": np.float64(-2.5), "i8": np.int8(-3), "u64": np.uint64(2**63 + 5),
+                    "b": np.bool_(False), "s": np.str_("héllo"), "f16": np.float16(0.1)},
+        "nested": {"a": {"b": [np.arange(3, dtype=np.int32), {"c": np.float32(3.0)}], "t": (1, 2.0, "x")}},
+        "py": {"int": -5, "float": 0.5, "str": "prompt", "bytes": b"\x00\x01", "none": None, "bool": True},
+    }
+
+
+class EchoPolicy:
+    """Returns a fixed action chunk and echoes the observation it received (a dict reply is passed through)."""
+    chunk = 4
+
+    def __init__(self):
+        self.actions = np.random.default_rng(2).normal(size=(4, 7)).astype(np.float32)
+
+    def infer(self, obs):
+        return {"actions": self.actions, "echo": obs}
+
+
+class FixedPolicy:
+    chunk = 4
+
+    def __init__(self):
+        self.actions = np.random.default_rng(3).normal(size=(4, 7)).astype(np.float32)
+        self.seen = []
+
+    def infer(self, obs):
+        self.seen.append(obs)
+        return self.actions
+
+
+class FailingPolicy:
+    chunk = 4
+
+    def infer(self, obs):
+        raise ValueError("kaboom-4711")
+
+
+class SlowPolicy:
+    chunk = 4
+
+    def infer(self, obs):
+        time.sleep(1.0)
+        return np.zeros((4, 7), np.float32)
+
+
+@pytest.fixture
+def server_factory():
+    servers = []
+
+    def make(policy, **kw):
+        s = PolicyServer(policy, host="127.0.0.1", port=0, **kw).start()
+        servers.append(s)
+        return s
+
+    yield make
+    for s in servers:
+        s.shutdown()
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# codec
+# ---------------------------------------------------------------------------------------------------------------------
+def test_msgpack_roundtrip_exact():
+    p = payload()
+    assert_same(p, mn.unpackb(mn.packb(p)))
+    # the openpi encoding, byte for byte: bytes keys, dtype.str, shape
+    raw = msgpack.unpackb(mn.packb(np.arange(3, dtype="<i4").reshape(1, 3)))
+    assert raw == {b"__ndarray__": True, b"data": np.arange(3, dtype="<i4").tobytes(), b"dtype": "<i4",
+                   b"shape": [1, 3]}
+    assert msgpack.unpackb(mn.packb(np.float32(2.0))) == {b"__npgeneric__": True, b"data": 2.0, b"dtype": "<f4"}
+    # decoded arrays are writable
+    out = mn.unpackb(mn.packb(np.zeros(3)))
+    out[0] = 1.0
+
+
+@pytest.mark.parametrize("bad", [np.zeros(2, complex), np.array([object()], dtype=object),
+                                 np.zeros(2, dtype=[("a", "f4")]), np.complex64(1j), np.zeros(1, "datetime64[s]")])
+def test_msgpack_refuses_dtypes(bad):
+    with pytest.raises(TypeError, match="refused"):
+        mn.packb({"x": bad})
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# mappings
+# ---------------------------------------------------------------------------------------------------------------------
+def test_presets_keys_shapes_and_inverse():
+    obs = our_obs(task=1)
+    s = obs["state"]
+    droid = DROID.to_family(obs)
+    assert set(droid) == {"observation/exterior_image_1_left", "observation/wrist_image_left",
+                          "observation/joint_position", "observation/gripper_position", "prompt"}
+    for k in ("observation/exterior_image_1_left", "observation/wrist_image_left"):
+        assert droid[k].shape == (224, 224, 3) and droid[k].dtype == np.uint8
+    # letterbox of a 48x64 frame: 168 rows of image, 28 black rows above and below
+    ext = droid["observation/exterior_image_1_left"]
+    assert (ext[:28] == 0).all() and (ext[-28:] == 0).all() and (ext[28:196] == obs["images"][0, 0, 0]).all()
+    assert (droid["observation/wrist_image_left"][100, 100] == obs["images"][2, 0, 0]).all()  # wrist = last view
+    np.testing.assert_array_equal(droid["observation/joint_position"], np.r_[s[:6], 0.0].astype(np.float32))
+    np.testing.assert_array_equal(droid["observation/gripper_position"], s[6:7])
+    assert droid["prompt"] == DEFAULT_PROMPTS[1]
+
+    libero = LIBERO.to_family(obs)
+    assert set(libero) == {"observation/image", "observation/wrist_image", "observation/state", "prompt"}
+    assert libero["observation/image"].shape == (224, 224, 3)
+    np.testing.assert_array_equal(libero["observation/state"], np.r_[s, -s[6]].astype(np.float32))
+
+    aloha = ALOHA.to_family(obs)
+    assert set(aloha) == {"images", "state", "prompt"}
+    assert set(aloha["images"]) == {"cam_high", "cam_low", "cam_left_wrist"}
+    for v in aloha["images"].values():
+        assert v.shape == (3, 224, 224) and v.dtype == np.uint8
+    assert aloha["state"].shape == (14,)
+
+    # inverse (server side): back to our observation; constant views survive exactly
+    for m, fobs in ((DROID, droid), (LIBERO, libero), (ALOHA, aloha)):
+        back = m.replace(our_image_size=(48, 64)).from_family(fobs)
+        assert back["images"].shape == (3, 48, 64, 3) and back["images"].dtype == np.uint8
+        np.testing.assert_array_equal(back["state"], s)
+        assert back["task"].dtype == np.int32 and int(back["task"]) == 1
+        sent = {vf.view % 3 for vf in m.views}
+        for v in range(3):
+            np.testing.assert_array_equal(back["images"][v], obs["images"][v] if v in sent else 0)
+    assert DROID.from_family(droid)["images"].shape == (3, 224, 224, 3)  # our_image_size=None keeps the family size
+
+    # prompts: fixed prompt, unknown prompt
+    assert DROID.replace(prompts="do it").to_family(obs)["prompt"] == "do it"
+    with pytest.raises(ValueError, match="matches no task"):
+        DROID.from_family({**droid, "prompt": "dance"})
+    assert int(DROID.replace(default_task=0).from_family({**droid, "prompt": "dance"})["task"]) == 0
+    assert get_mapping("native") is None and get_mapping("DROID") is DROID
+
+
+def test_action_mapping():
+    fam = np.random.default_rng(0).normal(size=(10, 8)).astype(np.float32)
+    ours = DROID.actions_to_ours(fam, chunk=12)
+    assert ours.shape == (12, 7) and ours.dtype == np.float32
+    np.testing.assert_array_equal(ours[:10], fam[:, [0, 1, 2, 3, 4, 5, 7]])
+    np.testing.assert_array_equal(ours[10:], np.repeat(fam[-1:, [0, 1, 2, 3, 4, 5, 7]], 2, 0))  # "hold"
+    np.testing.assert_array_equal(DROID.actions_to_ours(fam, chunk=4), ours[:4])
+    assert (DROID.replace(pad_actions="zeros").actions_to_ours(fam, 12)[10:] == 0).all()
+    with pytest.raises(ValueError, match="chunk of 12"):
+        DROID.replace(pad_actions="error").actions_to_ours(fam, 12)
+    back = DROID.actions_to_family(ours)
+    assert back.shape == (12, 8) and (back[:, 6] == 0).all()
+    np.testing.assert_array_equal(DROID.actions_to_ours(back, 12), ours)
+    assert ALOHA.actions_to_family(ours).shape == (12, 14)
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# client <-> server
+# ---------------------------------------------------------------------------------------------------------------------
+def test_roundtrip_exact_native(server_factory):
+    echo = EchoPolicy()
+    server = server_factory(echo, metadata={"extra": np.arange(2)})
+    with WebsocketClientPolicy("127.0.0.1", server.port, timeout_s=10) as client:
+        assert client.metadata["policy"] == "EchoPolicy" and client.metadata["chunk"] == 4
+        assert_same(client.metadata["extra"], np.arange(2))
+        p = payload()
+        reply = client.infer_raw(p)
+        assert_same(p, reply["echo"])
+        assert_same(echo.actions, reply["actions"])
+        assert set(reply["server_timing"]) == {"infer_ms"}
+        assert "prev_total_ms" in client.infer_raw({"x": 1})["server_timing"]
+
+    fixed = FixedPolicy()
+    server = server_factory(fixed)
+    obs = our_obs()
+    with WebsocketClientPolicy(f"ws://127.0.0.1:{server.port}", None) as client:
+        acts = client.infer(obs)
+        assert client.chunk == 4
+        assert_same(fixed.actions, acts)
+        assert_same(obs, fixed.seen[-1])
+
+
+def test_jax_policy_served_native_and_droid(server_factory):
+    policy = tiny_policy()
+    local = as_host(policy)
+    obs = our_obs(task=1)
+    server = server_factory(policy)
+    with WebsocketClientPolicy("127.0.0.1", server.port) as client:
+        assert isinstance(client, HostPolicy)
+        assert client.chunk == CHUNK and client.metadata["policy"] == "tiny"
+        np.testing.assert_array_equal(client.infer(obs), local.infer(obs))
+
+    mapping = DROID.replace(our_image_size=(48, 64))
+    server = server_factory(policy, mapping=mapping)
+    with WebsocketClientPolicy("127.0.0.1", server.port, mapping=mapping, chunk=8) as client:
+        assert client.metadata["family"] == "droid" and client.metadata["action_dim"] == 8
+        got = client.infer(obs)
+        # DROID sends views 0 and -1; the server's view 1 is black
+        expected_obs = {**obs, "images": obs["images"] * np.array([1, 0, 1], np.uint8)[:, None, None, None]}
+        expected = local.infer(expected_obs)
+        assert got.shape == (8, 7)
+        np.testing.assert_allclose(got[:CHUNK], expected, rtol=0, atol=1e-6)
+        np.testing.assert_array_equal(got[CHUNK:], np.repeat(got[CHUNK - 1:CHUNK], 8 - CHUNK, 0))
+
+
+def test_server_error_text_frame(server_factory):
+    server = server_factory(FailingPolicy())
+    client = WebsocketClientPolicy("127.0.0.1", server.port, max_retries=1, backoff_s=0.01)
+    with pytest.raises(PolicyServerError) as ei:
+        client.infer(our_obs())
+    msg = str(ei.value)
+    assert "kaboom-4711" in msg and "Traceback" in msg and f"127.0.0.1:{server.port}" in msg
+    with pytest.raises(PolicyServerError, match="kaboom-4711"):  # the client reconnects; the error is reported again
+        client.infer(our_obs())
+    client.close()
+
+
+def test_dead_port_bounded_retries():
+    port = free_port()
+    t0 = time.monotonic()
+    with pytest.raises(PolicyConnectionError) as ei:
+        WebsocketClientPolicy("127.0.0.1", port, max_retries=3, backoff_s=0.05, timeout_s=2)
+    elapsed = time.monotonic() - t0
+    assert f"127.0.0.1:{port}" in str(ei.value) and "4 attempts" in str(ei.value)
+    assert 0.3 <= elapsed < 3.0  # 0.05 + 0.1 + 0.2 s of back-off
+
+
+def test_reconnects_after_server_restart(server_factory):
+    first = server_factory(FixedPolicy())
+    port = first.port
+    client = WebsocketClientPolicy("127.0.0.1", port, max_retries=6, backoff_s=0.05)
+    a = client.infer(our_obs())
+    first.shutdown()
+    # the server comes back on the same port a little later; the client's back-off loop finds it
+    later = {}
+    t = threading.Timer(0.3, lambda: later.setdefault("s", PolicyServer(FixedPolicy(), "127.0.0.1", port).start()))
+    t.start()
+    try:
+        np.testing.assert_array_equal(client.infer(our_obs()), a)
+    finally:
+        t.join()
+        client.close()
+        later["s"].shutdown()
+
+
+def test_timeout(server_factory):
+    server = server_factory(SlowPolicy())
+    client = WebsocketClientPolicy("127.0.0.1", server.port, timeout_s=0.2)
+    t0 = time.monotonic()
+    with pytest.raises(PolicyTimeoutError, match="did not answer within 0.2s"):
+        client.infer(our_obs())
+    assert time.monotonic() - t0 < 0.9
+    client.close()
+
+
+def test_healthz_and_api_key(server_factory):
+    server = server_factory(FixedPolicy(), api_key="s3cret")
+    with urllib.request.urlopen(f"http://127.0.0.1:{server.port}/healthz", timeout=5) as r:
+        assert r.status == 200 and r.read().strip() == b"OK"
+    with pytest.raises(PolicyConnectionError, match="401"):
+        WebsocketClientPolicy("127.0.0.1", server.port, max_retries=5, backoff_s=5)  # not retried: fails at once
+    with WebsocketClientPolicy("127.0.0.1", server.port, api_key="s3cret") as client:
+        assert client.infer(our_obs()).shape == (4, 7)
+
+
+def test_serve_nonblocking_and_shutdown_idempotent():
+    server = serve(FixedPolicy(), host="127.0.0.1", port=0, block=False)
+    assert server.port > 0
+    with WebsocketClientPolicy("127.0.0.1", server.port) as client:
+        client.infer(our_obs())
+    server.shutdown()
+    server.shutdown()
+    PolicyServer(FixedPolicy(), host="127.0.0.1", port=0).shutdown()  # never started: closes the socket at once
+
+
+def test_serve_policy_cli_builds_server():
+    server = build_policy_server(["--policy", f"{__name__}:tiny_policy", "--host", "127.0.0.1", "--port", "0",
+                                  "--family", "libero", "--image-size", "48", "64", "--task-prompt", "3=wipe it",
+                                  "--log-level", "WARNING"]).start()
+    try:
+        assert server.mapping.name == "libero" and server.mapping.our_image_size == (48, 64)
+        assert server.metadata["policy"] == "tiny" and server.metadata["family"] == "libero"
+        obs = our_obs(task=3)
+        with WebsocketClientPolicy("127.0.0.1", server.port, mapping=server.mapping) as client:
+            got = client.infer(obs)
+        expected_obs = {**obs, "images": obs["images"] * np.array([1, 0, 1], np.uint8)[:, None, None, None]}
+        np.testing.assert_allclose(got, as_host(tiny_policy()).infer(expected_obs), rtol=0, atol=1e-6)
+    finally:
+        server.shutdown()
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# the real openpi-client (optional: installed with --no-deps into a temporary directory)
+# ---------------------------------------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def openpi_client(tmp_path_factory):
+    target = tmp_path_factory.mktemp("openpi_client")
+    try:
+        r = subprocess.run([sys.executable, "-m", "pip", "install", "--quiet", "--disable-pip-version-check",
+                            "--no-deps", "--target", str(target), "openpi-client"],
+                           capture_output=True, text=True, timeout=120)
+    except (OSError, subprocess.TimeoutExpired) as e:
+        pytest.skip(f"could not run pip to install openpi-client: {e}")
+    if r.returncode != 0:
+        pytest.skip(f"pip install --no-deps openpi-client failed (no network?): {r.stderr.strip()[-300:]}")
+    sys.path.insert(0, str(target))
+    try:
+        wcp = importlib.import_module("openpi_client.websocket_client_policy")
+        omn = importlib.import_module("openpi_client.msgpack_numpy")
+    except ImportError as e:
+        pytest.skip(f"openpi-client installed but not importable without its dependencies: {e}")
+    finally:
+        sys.path.remove(str(target))
+    return wcp, omn
+
+
+@pytest.mark.filterwarnings("ignore::DeprecationWarning")  # openpi-client's own connect() call on websockets >= 17
+def test_real_openpi_client(openpi_client, server_factory):
+    wcp, omn = openpi_client
+    # codecs agree both ways (openpi's packer turns np.float64 scalars into floats, so use arrays and float32 scalars)
+    p = {k: v for k, v in payload().items() if k not in ("scalars", "py")}
+    p["s"] = np.float32(1.5)
+    assert_same(p, omn.unpackb(mn.packb(p)))
+    assert_same(p, mn.unpackb(omn.packb(p)))
+
+    policy = tiny_policy()
+    mapping = DROID.replace(our_image_size=(48, 64))
+    server = server_factory(policy, mapping=mapping, metadata={"note": "sc3"})
+    client = wcp.WebsocketClientPolicy(host="127.0.0.1", port=server.port)
+    assert client.get_server_metadata()["note"] == "sc3"
+    fobs = mapping.to_family(our_obs(task=0))
+    reply = client.infer(fobs)
+    expected = mapping.actions_to_family(as_host(policy).infer(mapping.from_family(fobs)))
+    assert reply["actions"].shape == (CHUNK, 8) and reply["actions"].dtype == np.float32
+    np.testing.assert_array_equal(reply["actions"], expected)
+    assert "infer_ms" in reply["server_timing"]
+    client._ws.close()
