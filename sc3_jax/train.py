@@ -87,7 +87,7 @@ def make_train_step(cfg: Config):
         (_, metrics), grads = jax.value_and_grad(loss_fn, has_aux=True)(state["params"])
         updates, opt_state = opt.update(grads, state["opt_state"], state["params"])
         params = optax.apply_updates(state["params"], updates)
-        metrics["grad_norm"] = optax.global_norm(grads)
+        metrics["grad_norm"] = optax.tree.norm(grads)
         return {**state, "params": params, "opt_state": opt_state, "step": state["step"] + 1}, metrics
 
     return train_step
@@ -200,7 +200,7 @@ def read_metrics(workdir: str | Path) -> dict[int, dict]:
 # ================================================================================================================
 def prepare_data(cfg: Config):
     """Episode store, normalisation stats (computed once, stored in the workdir next to the checkpoints) and this
-    process's dataset."""
+    process's batch iterator (its position is checkpointed)."""
     from sc3_jax.data import pipeline
     from sc3_jax.data.episodes import EpisodeStore
 
@@ -210,11 +210,11 @@ def prepare_data(cfg: Config):
     if stats_path.exists():
         stats = pipeline.NormStats.load(stats_path)
     else:
-        stats = pipeline.NormStats.compute(store)
+        stats = pipeline.NormStats.from_store(store)
         if jax.process_index() == 0:
             stats.save(stats_path)
-    ds = pipeline.make_dataset(cfg.data, store, stats, jax.process_index(), jax.process_count())
-    return store, stats, ds
+    it = pipeline.make_iterator(cfg.data, store, stats, jax.process_index(), jax.process_count())
+    return store, stats, it
 
 
 def train(cfg: Config, mesh=None, stop_at: int | None = None) -> dict:
@@ -224,8 +224,7 @@ def train(cfg: Config, mesh=None, stop_at: int | None = None) -> dict:
     if jax.process_index() == 0:
         (workdir / "config.json").write_text(json.dumps(dataclasses.asdict(cfg), indent=1))
     mesh = sharding.make_mesh(cfg.mesh) if mesh is None else mesh
-    _, _, ds = prepare_data(cfg)
-    data_iter = iter(ds)
+    _, _, data_iter = prepare_data(cfg)
     step_fn, _ = compile_train_step(cfg, mesh)
     mngr = checkpoint_manager(cfg)
     if mngr.latest_step() is not None:

@@ -75,8 +75,7 @@ def test_frames_depend_on_every_action_dimension():
         a[k] += deltas[k]
         out = copy.deepcopy(env).step(a)
         changed = {v: int(np.sum(np.any(out[v] != ref[v], axis=-1))) for v in S.VIEWS}
-        assert sum(changed.values()) >= 5, (k, changed)
-        assert changed["wrist"] >= 1 and max(changed["left"], changed["right"]) >= 1, (k, changed)
+        assert all(n >= 5 for n in changed.values()), (k, changed)  # every view sees every action dimension
 
 
 def test_pose_and_actions_are_consistent():

@@ -43,7 +43,7 @@ CAM_HEIGHT = 0.7  # left camera above the table centre
 LAMP_OFFSET = 0.15  # lamp height above the plate
 VIEW_SPAN = 0.33  # third-person views show [-0.33, 0.33] (walls visible at the border)
 RIGHT_DISPLACE = np.array([0.55, -0.35])  # right view: a point at height z appears shifted by z * this (table units)
-SUPERSAMPLE = 4
+SUPERSAMPLE_GRID = 64  # render on a fine grid of at least this many samples per side, then area-average
 
 _BLOCK_COLOURS = np.array([[0.85, 0.2, 0.15], [0.15, 0.35, 0.9], [0.95, 0.8, 0.1], [0.2, 0.75, 0.3]])
 
@@ -73,7 +73,7 @@ class SyntheticEnv:
         self._seed = seed
         self._num_objects = num_objects
         h, w = self.image_size
-        ss = SUPERSAMPLE
+        self._ss = ss = max(1, -(-SUPERSAMPLE_GRID // max(h, w)))
         # normalised fine-pixel coordinates u (right), v (down) in [-1, 1]
         v, u = np.meshgrid((np.arange(h * ss) + 0.5) / (h * ss) * 2 - 1, (np.arange(w * ss) + 0.5) / (w * ss) * 2 - 1,
                            indexing="ij")
@@ -202,7 +202,7 @@ class SyntheticEnv:
             else:  # oblique: a raised plate appears displaced
                 px, py = x - z * RIGHT_DISPLACE[0], y - z * RIGHT_DISPLACE[1]
             self._draw_agent(img, px, py, yaw, tool, view)
-            out[view] = _to_uint8(_pool(img, SUPERSAMPLE))
+            out[view] = _to_uint8(_pool(img, self._ss))
         # wrist: looks along the tool axis, rotates with yaw, sees more of the table when higher
         span = 0.06 + 0.5 * z
         c, s = np.cos(yaw), np.sin(yaw)
@@ -220,7 +220,7 @@ class SyntheticEnv:
         g = 0.12 + 0.55 * w
         fingers = (self._v < -0.45) & (np.abs(self._u) > g) & (np.abs(self._u) < g + 0.3)
         img[fingers] = (0.85, 0.85 * w, 0.3)
-        out["wrist"] = _to_uint8(_pool(np.clip(img, 0, 1), SUPERSAMPLE))
+        out["wrist"] = _to_uint8(_pool(np.clip(img, 0, 1), self._ss))
         return out
 
 

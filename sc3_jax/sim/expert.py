@@ -114,6 +114,9 @@ class ScriptedExpert:
                 goal = np.array([aim[0], aim[1], HOVER_Z])
                 if np.linalg.norm(pos[:2] - aim) < 0.006:
                     self._next("descend")
+                elif self.count > 60 or obj[2] < -0.05:  # unreachable (e.g. knocked off the table): skip it
+                    self._advance()
+                    return self.act(env)
             elif ph == "descend":
                 goal = np.array([aim[0], aim[1], grasp_z])
                 if abs(pos[2] - grasp_z) < 0.004:

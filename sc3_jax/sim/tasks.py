@@ -46,7 +46,7 @@ OBJECT_NAMES = tuple(o.name for o in OBJECTS)
 OBJECT_BY_NAME = {o.name: o for o in OBJECTS}
 
 # Workspace geometry (metres; the table surface is z = 0).
-SPAWN_X = (-0.20, 0.06)
+SPAWN_X = (-0.21, 0.03)  # keeps every object footprint clear of the containers
 SPAWN_Y = (-0.19, 0.19)
 MIN_SPACING = 0.095
 BIN_XY = (0.20, -0.135)

@@ -1,0 +1,326 @@
+"""Policy zoo: pixel-input policies for bussing / reverse bussing, pure JAX, trained by cloning the expert's intent.
+
+What is learned and what is scripted (honestly):
+  * Learned: a small CNN (shared conv trunk over the three 64x64 views, spatial-softmax keypoints + pooled features,
+    then an MLP with the 7-D gripper state) that, from the pixels, regresses what the expert was aiming at in that
+    frame: the xy of the next object to pick (with the expert's own grasp offset), which container the expert took
+    (would take) the next / held object to, whether anything is left, and where the two containers are. It is
+    trained by supervised learning on expert demonstrations (``demos.py``), i.e. behaviour cloning of the expert's
+    intent rather than of raw actions (pure pixel-to-action BC did not fit the CPU budget).
+  * Scripted: a stateless controller in ``jnp`` (``jnp.where`` phase logic from the observation only: held-object
+    state is read from the finger gap) turns those estimates into a 25-step chunk of raw delta-EE actions
+    (hover -> descend -> close -> lift -> carry -> lower -> release; a failed grasp, seen as a fully closed empty
+    gripper, is reopened and retried). For reverse bussing (``task == 1``) the chosen container is swapped.
+Policies differ only by learned quality: training checkpoint, amount of data and quality of the demonstrator
+(a biased demonstrator that always takes some object types to the wrong container).
+
+The policy sees only ``obs["images"]`` (uint8 [3, H, W, 3], resized to 64x64 inside), ``obs["state"]`` and
+``obs["task"]``; ``apply(params, obs, rng)`` is pure, so it runs inside ``lax.scan`` and under ``vmap``.
+
+Reproduce the shipped weights: ``python -m sc3_jax.sim.zoo train --workdir /tmp/sc3_zoo`` (see docs/sim.md).
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..policies.base import JaxPolicy
+from . import scene as S
+
+ZOO_DIR = Path(__file__).parent / "zoo"
+NET_SIZE = 64
+N_KP = 16
+CHUNK = 25
+# controller constants (shared with the expert's geometry)
+HOVER_Z, CARRY_Z, GRASP_Z = 0.13, 0.17, 0.015
+STEP, GAIN = 0.03, 0.6
+RELEASE_Z = jnp.array([S.BIN_WALL_H + 0.06, S.CAN_WALL_H + 0.06])
+HOLD_LO, HOLD_HI = 0.015, 0.083
+OUT_DIM = 9  # pick_xy(2), pick_dest, held_dest, any_left, bin_xy(2), can_xy(2)
+XY_SCALE = 10.0
+
+
+# -- network ---------------------------------------------------------------------------------------------------
+def _conv_init(key, k, cin, cout):
+    return {"w": jax.random.normal(key, (k, k, cin, cout)) * np.sqrt(2.0 / (k * k * cin)), "b": jnp.zeros(cout)}
+
+
+def _dense_init(key, din, dout, scale=1.0):
+    return {"w": jax.random.normal(key, (din, dout)) * np.sqrt(1.0 / din) * scale, "b": jnp.zeros(dout)}
+
+
+def init_net(key: jax.Array, n_views: int = 3) -> dict:
+    ks = jax.random.split(key, 8)
+    feat = n_views * (2 * N_KP + N_KP) + 7
+    return {"c1": _conv_init(ks[0], 3, 5, 16), "c2": _conv_init(ks[1], 3, 16, 32),
+            "c3": _conv_init(ks[2], 3, 32, 32), "c4": _conv_init(ks[3], 3, 32, N_KP),
+            "d1": _dense_init(ks[4], feat, 256), "d2": _dense_init(ks[5], 256, 256),
+            "out": _dense_init(ks[6], 256, OUT_DIM, 0.1)}
+
+
+def _conv(x, p, stride):
+    y = jax.lax.conv_general_dilated(x, p["w"], (stride, stride), "SAME", dimension_numbers=("NHWC", "HWIO", "NHWC"))
+    return y + p["b"]
+
+
+def net_apply(net: dict, images: jax.Array, state: jax.Array) -> jax.Array:
+    """images uint8 [B, V, H, W, 3], state [B, 7] -> raw outputs [B, OUT_DIM]."""
+    b, v, h, w, _ = images.shape
+    x = images.reshape(b * v, h, w, 3).astype(jnp.float32) / 255.0
+    if (h, w) != (NET_SIZE, NET_SIZE):
+        x = jax.image.resize(x, (b * v, NET_SIZE, NET_SIZE, 3), "linear")
+    ys, xs = jnp.meshgrid(jnp.linspace(-1, 1, NET_SIZE), jnp.linspace(-1, 1, NET_SIZE), indexing="ij")
+    coords = jnp.broadcast_to(jnp.stack([xs, ys], -1), (b * v, NET_SIZE, NET_SIZE, 2))
+    x = jnp.concatenate([x - 0.5, coords], -1)
+    x = jax.nn.relu(_conv(x, net["c1"], 2))
+    x = jax.nn.relu(_conv(x, net["c2"], 2))
+    x = jax.nn.relu(_conv(x, net["c3"], 1))
+    x = _conv(x, net["c4"], 1)  # [BV, 16, 16, K]
+    hh, ww = x.shape[1:3]
+    logits = x.reshape(b * v, hh * ww, N_KP)
+    att = jax.nn.softmax(logits, axis=1)
+    gy, gx = jnp.meshgrid(jnp.linspace(-1, 1, hh), jnp.linspace(-1, 1, ww), indexing="ij")
+    grid = jnp.stack([gx.reshape(-1), gy.reshape(-1)], -1)  # [HW, 2]
+    kp = jnp.einsum("nsk,sc->nkc", att, grid).reshape(b, v * N_KP * 2)
+    pooled = jnp.max(logits, axis=1).reshape(b, v * N_KP)
+    f = jnp.concatenate([kp, jnp.tanh(pooled * 0.1), state * jnp.array([5, 5, 5, 1, 1, 1, 10.0])], -1)
+    f = jax.nn.relu(f @ net["d1"]["w"] + net["d1"]["b"])
+    f = jax.nn.relu(f @ net["d2"]["w"] + net["d2"]["b"])
+    return f @ net["out"]["w"] + net["out"]["b"]
+
+
+def decode(out: jax.Array, state: jax.Array) -> dict:
+    """The pick target is regressed relative to the gripper (``pick_xy - ee_xy``), the containers absolutely."""
+    return {"pick_xy": state[..., 0:2] + out[..., 0:2] / XY_SCALE, "pick_dest": out[..., 2], "held_dest": out[..., 3],
+            "any_left": out[..., 4], "bin_xy": out[..., 5:7] / XY_SCALE, "can_xy": out[..., 7:9] / XY_SCALE}
+
+
+# -- controller -----------------------------------------------------------------------------------------------
+def controller(est: dict, state: jax.Array, task: jax.Array) -> jax.Array:
+    """Stateless chunk planner: estimates (one sample) + state [7] + task -> actions [CHUNK, 7]."""
+    pos0, rv0, width = state[:3], state[3:6], state[6]
+    holding0 = (width > HOLD_LO) & (width < HOLD_HI)
+    empty0 = width <= HOLD_LO  # closed on nothing: failed grasp
+    flip = task.astype(bool)
+    held_c = ((est["held_dest"] > 0) ^ flip).astype(jnp.int32)
+    pick_c = ((est["pick_dest"] > 0) ^ flip).astype(jnp.int32)
+    containers = jnp.stack([est["bin_xy"], est["can_xy"]])
+    left = est["any_left"] > 0
+    g = est["pick_xy"]
+
+    def step(carry, k):
+        p, hold, empty, dest_c = carry
+        # holding: lift, carry, lower, release
+        dxy = containers[dest_c]
+        far = jnp.linalg.norm(p[:2] - dxy) > 0.01
+        low = p[2] < CARRY_Z - 0.03
+        rz = RELEASE_Z[dest_c]
+        goal_hold = jnp.where(far, jnp.where(low & far, jnp.array([p[0], p[1], CARRY_Z]),
+                                             jnp.array([dxy[0], dxy[1], CARRY_Z])), jnp.array([dxy[0], dxy[1], rz]))
+        release = (~far) & (jnp.abs(p[2] - rz) < 0.008)
+        # not holding: hover over target, descend, close
+        gfar = jnp.linalg.norm(p[:2] - g) > 0.008
+        goal_pick = jnp.where(gfar, jnp.array([g[0], g[1], HOVER_Z]), jnp.array([g[0], g[1], GRASP_Z]))
+        close = (~gfar) & (p[2] < GRASP_Z + 0.006)
+        goal_idle = jnp.array([p[0], p[1], HOVER_Z + 0.02])
+        goal = jnp.where(hold, goal_hold, jnp.where(empty | ~left, goal_idle, goal_pick))
+        grip = jnp.where(hold, jnp.where(release, S.OPEN_WIDTH, 0.0),
+                         jnp.where(empty | ~left, S.OPEN_WIDTH, jnp.where(close, 0.0, S.OPEN_WIDTH)))
+        d = GAIN * (goal - p)
+        n = jnp.linalg.norm(d)
+        d = d * jnp.minimum(1.0, STEP / jnp.maximum(n, 1e-9))
+        rot = -0.5 * rv0 * (0.5 ** k)
+        a = jnp.concatenate([d, rot, grip[None]])
+        new_hold = jnp.where(hold, ~release, (~empty) & left & close)
+        new_dest = jnp.where(hold, dest_c, pick_c)
+        return (p + d, new_hold, empty, new_dest), a  # after a failed grasp: reopen and rise for this chunk
+
+    init = (pos0, holding0, empty0, jnp.where(holding0, held_c, pick_c))
+    _, acts = jax.lax.scan(step, init, jnp.arange(CHUNK, dtype=jnp.float32))
+    return acts.astype(jnp.float32)
+
+
+def policy_apply(params: dict, obs: dict, rng: jax.Array) -> jax.Array:
+    """The zoo policy: pixels + state + task -> [25, 7] raw delta-EE actions. ``rng`` is unused (deterministic)."""
+    del rng
+    images = jnp.asarray(obs["images"])[None]
+    state = jnp.asarray(obs["state"], jnp.float32)
+    est = decode(net_apply(params, images, state[None])[0], state)
+    return controller(est, state, jnp.asarray(obs["task"], jnp.int32))
+
+
+# -- registry -----------------------------------------------------------------------------------------------------
+@dataclasses.dataclass(frozen=True)
+class ZooEntry:
+    name: str
+    task: str  # the task the policy is meant for
+    weights: str  # file under sc3_jax/sim/zoo/
+    recipe: str  # how it was trained
+
+
+ZOO: dict[str, ZooEntry] = {e.name: e for e in (
+    ZooEntry("bus_bc_full", "bussing", "run_clean_final.npz", "clean demos (all), final checkpoint"),
+    ZooEntry("bus_bc_early", "bussing", "run_clean_early.npz", "clean demos (all), early checkpoint"),
+    ZooEntry("bus_bc_biased", "bussing", "run_biased_final.npz",
+             "biased demonstrator (takes bags and cups to the wrong container), final checkpoint"),
+    ZooEntry("bus_bc_small", "bussing", "run_small_final.npz", "few clean demos, final checkpoint"),
+    ZooEntry("rev_bc_full", "reverse", "run_clean_mid.npz", "clean demos (all), mid checkpoint; routes swapped"),
+    ZooEntry("rev_bc_small", "reverse", "run_small_mid.npz", "few clean demos, mid checkpoint; routes swapped"),
+    ZooEntry("rev_bc_biased", "reverse", "run_biased_mid.npz", "biased demonstrator, mid checkpoint; routes swapped"),
+)}
+
+
+def zoo_names(task: str | None = None) -> list[str]:
+    return [n for n, e in ZOO.items() if task is None or e.task == task]
+
+
+def save_params(path: str | Path, net: dict) -> None:
+    flat = {f"{k}/{kk}": np.asarray(v, np.float32) for k, d in net.items() for kk, v in d.items()}
+    np.savez_compressed(path, **flat)
+
+
+def load_params(path: str | Path) -> dict:
+    with np.load(path) as z:
+        net: dict = {}
+        for key in z.files:
+            a, b = key.split("/")
+            net.setdefault(a, {})[b] = jnp.asarray(z[key])
+    return net
+
+
+def load_policy(name: str, zoo_dir: str | Path | None = None) -> JaxPolicy:
+    if name not in ZOO:
+        raise KeyError(f"unknown zoo policy {name!r}; known: {sorted(ZOO)}")
+    path = Path(zoo_dir or ZOO_DIR) / ZOO[name].weights
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: zoo weights missing; train them with `python -m sc3_jax.sim.zoo train`")
+    return JaxPolicy(name, policy_apply, load_params(path), chunk=CHUNK)
+
+
+# -- training -------------------------------------------------------------------------------------------------------
+def load_training_data(store_root: str | Path, max_episodes: int | None = None, stride: int = 3):
+    from ..data.episodes import EpisodeStore
+    store = EpisodeStore(store_root)
+    ids = store.episode_ids()[:max_episodes]
+    imgs, states, labels = [], [], []
+    for eid in ids:
+        ep = store.load(eid, mmap=False)
+        it = ep.meta["intent"]
+        sel = np.arange(0, ep.length, stride)
+        imgs.append(np.stack([ep.frames[v][sel] for v in store.views], 1))
+        states.append(ep.ee_pose[sel])
+        lab = np.concatenate([np.asarray(it["pick_xy"])[sel], np.asarray(it["pick_dest"])[sel, None],
+                              np.asarray(it["held_dest"])[sel, None], np.asarray(it["any_left"])[sel, None],
+                              np.asarray(it["bin_xy"])[sel], np.asarray(it["can_xy"])[sel]], 1)
+        labels.append(lab)
+    return np.concatenate(imgs), np.concatenate(states).astype(np.float32), np.concatenate(labels).astype(np.float32)
+
+
+def loss_fn(net, images, states, labels):
+    out = net_apply(net, images, states)
+    any_left, held = labels[:, 4], labels[:, 3]
+    pick_err = jnp.sum((out[:, 0:2] - (labels[:, 0:2] - states[:, 0:2]) * XY_SCALE) ** 2, -1)
+    l_pick = jnp.sum(pick_err * any_left) / jnp.maximum(jnp.sum(any_left), 1.0)
+    l_cont = jnp.mean(jnp.sum((out[:, 5:9] - labels[:, 5:9] * XY_SCALE) ** 2, -1))
+
+    def bce(logit, y):
+        return jnp.maximum(logit, 0) - logit * y + jnp.log1p(jnp.exp(-jnp.abs(logit)))
+
+    l_pdest = jnp.sum(bce(out[:, 2], labels[:, 2]) * any_left) / jnp.maximum(jnp.sum(any_left), 1.0)
+    hm = (held >= 0).astype(jnp.float32)
+    l_hdest = jnp.sum(bce(out[:, 3], jnp.maximum(held, 0)) * hm) / jnp.maximum(jnp.sum(hm), 1.0)
+    l_left = jnp.mean(bce(out[:, 4], any_left))
+    total = 4.0 * l_pick + l_cont + l_pdest + l_hdest + 0.5 * l_left
+    return total, {"pick": l_pick, "cont": l_cont, "pdest": l_pdest, "hdest": l_hdest, "left": l_left}
+
+
+def train_net(data, steps: int, checkpoints: dict[int, Path], seed: int = 0, batch: int = 32, lr: float = 1e-3,
+              log_every: int = 100) -> dict:
+    import optax
+    imgs, states, labels = data
+    key = jax.random.key(seed)
+    net = init_net(key)
+    opt = optax.adamw(optax.warmup_cosine_decay_schedule(0.0, lr, min(50, steps // 4), steps, lr * 0.05), weight_decay=1e-4)
+    opt_state = opt.init(net)
+
+    @jax.jit
+    def train_step(net, opt_state, idx):
+        (loss, aux), g = jax.value_and_grad(loss_fn, has_aux=True)(net, imgs_d[idx], states_d[idx], labels_d[idx])
+        upd, opt_state = opt.update(g, opt_state, net)
+        return optax.apply_updates(net, upd), opt_state, loss, aux
+
+    imgs_d, states_d, labels_d = jnp.asarray(imgs), jnp.asarray(states), jnp.asarray(labels)
+    rng = np.random.default_rng(seed)
+    t0 = time.time()
+    for s in range(1, steps + 1):
+        idx = jnp.asarray(rng.integers(0, len(imgs), batch))
+        net, opt_state, loss, aux = train_step(net, opt_state, idx)
+        if s % log_every == 0 or s == 1:
+            print(f"  step {s:5d} loss {float(loss):.4f} " + " ".join(f"{k}={float(v):.4f}" for k, v in aux.items())
+                  + f" ({time.time() - t0:.0f}s)", flush=True)
+        if s in checkpoints:
+            save_params(checkpoints[s], net)
+    return net
+
+
+# run name -> (demo set, max episodes, steps, {checkpoint step: file suffix})
+RUNS = {
+    "clean": ("clean", None, 3000, {200: "early", 800: "mid", 3000: "final"}),
+    "small": ("clean", 10, 800, {300: "mid", 800: "final"}),
+    "biased": ("biased", None, 3000, {800: "mid", 3000: "final"}),
+}
+DEMO_SETS = {"clean": dict(n=200, seed=1), "biased": dict(n=150, seed=2)}
+
+
+def train_zoo(workdir: str | Path, out_dir: str | Path = ZOO_DIR, runs: list[str] | None = None,
+              demo_scale: float = 1.0) -> dict:
+    """Generate the demo sets (resumable) and train every run, saving its checkpoints as zoo weights."""
+    from .demos import generate_demos
+    from .expert import ExpertKnobs
+    workdir, out_dir = Path(workdir), Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    knobs = {"clean": ExpertKnobs(), "biased": ExpertKnobs(swap_types=("bag", "cup"))}
+    summary = {}
+    for name, cfg in DEMO_SETS.items():
+        summary[f"demos_{name}"] = generate_demos(workdir / f"demos_{name}", max(1, int(cfg["n"] * demo_scale)),
+                                                  seed=cfg["seed"], knobs=knobs[name])
+    for run in runs or list(RUNS):
+        dset, max_eps, steps, ckpts = RUNS[run]
+        data = load_training_data(workdir / f"demos_{dset}", max_eps)
+        print(f"run {run}: {len(data[0])} frames from demos_{dset}", flush=True)
+        t0 = time.time()
+        train_net(data, steps, {s: out_dir / f"run_{run}_{suffix}.npz" for s, suffix in ckpts.items()})
+        summary[f"run_{run}_seconds"] = time.time() - t0
+    (out_dir / "zoo.json").write_text(json.dumps({
+        "policies": {n: dataclasses.asdict(e) for n, e in ZOO.items()}, "runs": {k: list(v[:3]) for k, v in RUNS.items()},
+        "demo_sets": DEMO_SETS, "command": "python -m sc3_jax.sim.zoo train --workdir /tmp/sc3_zoo",
+        "training_summary": {k: v for k, v in summary.items() if not isinstance(v, dict) or "success" in v}},
+        indent=1, default=str))
+    return summary
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(prog="python -m sc3_jax.sim.zoo")
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    t = sub.add_parser("train", help="generate demos and train the zoo's networks")
+    t.add_argument("--workdir", default="/tmp/sc3_zoo")
+    t.add_argument("--out", default=str(ZOO_DIR))
+    t.add_argument("--runs", nargs="*", default=None)
+    sub.add_parser("list", help="list the zoo")
+    a = ap.parse_args(argv)
+    if a.cmd == "train":
+        print(json.dumps(train_zoo(a.workdir, a.out, a.runs), indent=1, default=str))
+    else:
+        for n, e in ZOO.items():
+            print(f"{n:16s} {e.task:8s} {e.recipe}")
+
+
+if __name__ == "__main__":
+    main()
