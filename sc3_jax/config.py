@@ -27,6 +27,16 @@ class ModelConfig:
     action_dim: int = 7
     num_action_domains: int = 1
     view_embedding: bool = True  # per-view learned embedding on video tokens (off for Cosmos3-compatible configs)
+    # Shortcuts that make small models learn dynamics in CPU-minutes (off for Cosmos3-compatible configs; none of
+    # them touches the context tokens, so context caching stays exact):
+    #  anchor_conditioning: each future frame token also sees the 3x3 neighbourhood of its patch in the last
+    #    context frame (channel-concatenation conditioning, as video diffusion models do with conditioning latents);
+    #  action_to_frames: future frame K+j's tokens also see action j and the running sum of actions 0..j;
+    #  action_reads_frames: action j's token also sees the difference of the two frames it connects (all views).
+    # Without them, each of these relations must first be discovered through attention.
+    anchor_conditioning: bool = False
+    action_to_frames: bool = False
+    action_reads_frames: bool = False
     # "residual": the network predicts clean future frames as (last context frame + zero-initialised output) and
     # clean actions as (0 + output); the velocity is derived from it. "velocity": predicts eps - x directly
     # (what pretrained Cosmos3 checkpoints do). Residual is what made tiny CPU models learn (REFERENCE.md).
@@ -67,6 +77,18 @@ class DataConfig:
 class ModeConfig:
     # Per-sample probabilities of forward dynamics, cross-view inpainting, inverse dynamics.
     probs: tuple[float, float, float] = (0.8, 0.1, 0.1)
+
+
+@dataclasses.dataclass(frozen=True)
+class FlowConfig:
+    # Noise levels t are drawn logit-normal (SD3): t = sigmoid(mean + std * n). A positive mean spends more of the
+    # training on high noise, where a world model must actually predict from its context and actions.
+    t_logit_mean: float = 0.0
+    t_logit_std: float = 1.0
+    # Per-modality loss weights. Modes mix video-only and action-only losses in one batch; when their scales differ
+    # by 10x+ (residual video targets are small), Adam's shared second moments starve the smaller one.
+    video_loss_weight: float = 1.0
+    action_loss_weight: float = 1.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -115,6 +137,7 @@ class Config:
     model: ModelConfig = ModelConfig()
     data: DataConfig = DataConfig()
     modes: ModeConfig = ModeConfig()
+    flow: FlowConfig = FlowConfig()
     train: TrainConfig = TrainConfig()
     mesh: MeshConfig = MeshConfig()
     sample: SampleConfig = SampleConfig()

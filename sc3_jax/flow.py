@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 
 from sc3_jax import modes as modes_lib
-from sc3_jax.config import ModelConfig
+from sc3_jax.config import FlowConfig, ModelConfig
 from sc3_jax.model import dit
 
 
@@ -48,25 +48,32 @@ def predict(params, cfg: ModelConfig, inp: dit.Inputs, grid, context_kv=None):
     return ((xt_v - x0_v) / safe(tv), (xt_a - x0_a) / safe(ta)), (x0_v, x0_a)
 
 
-def masked_loss(pred_v, pred_a, target_v, target_a, video_noisy_future, action_noisy):
-    """Per-sample mean squared error over noisy tokens only, then the batch mean. Also returns per-sample losses."""
+def masked_loss(pred_v, pred_a, target_v, target_a, video_noisy_future, action_noisy, weights=(1.0, 1.0)):
+    """Per-sample (weighted) mean squared error over noisy tokens only, then the batch mean. Also returns the
+    per-sample losses. ``weights``: (video, action) loss weights."""
     se_v = jnp.mean(jnp.square(pred_v - target_v), axis=(-2, -1))  # [B, V, T] per frame (mean over its tokens)
     se_a = jnp.mean(jnp.square(pred_a - target_a), axis=-1)  # [B, T]
     mv, ma = video_noisy_future.astype(jnp.float32), action_noisy.astype(jnp.float32)
-    total = jnp.sum(se_v * mv, axis=(1, 2)) + jnp.sum(se_a * ma, axis=1)
+    total = weights[0] * jnp.sum(se_v * mv, axis=(1, 2)) + weights[1] * jnp.sum(se_a * ma, axis=1)
     count = jnp.sum(mv, axis=(1, 2)) + jnp.sum(ma, axis=1)
     per_sample = total / jnp.maximum(count, 1.0)
     return jnp.mean(per_sample), per_sample
 
 
-def loss(params, cfg: ModelConfig, video, actions, stride, rng, probs, grid):
+def draw_t(rng, batch: int, fcfg: FlowConfig) -> jax.Array:
+    """Per-sample noise levels, logit-normal, kept inside (0, 1)."""
+    t = jax.nn.sigmoid(fcfg.t_logit_mean + fcfg.t_logit_std * jax.random.normal(rng, (batch,)))
+    return jnp.clip(t, 1e-3, 1.0)
+
+
+def loss(params, cfg: ModelConfig, video, actions, stride, rng, probs, grid, fcfg: FlowConfig = FlowConfig()):
     """The training loss for a batch of clean tokens; modes, noise levels and noise drawn from ``rng``."""
     B, V, F = video.shape[:3]
     T = actions.shape[1]
     k_mode, k_t, k_ev, k_ea = jax.random.split(rng, 4)
     mode, kept = modes_lib.draw(k_mode, B, V, probs)
     video_noisy, action_noisy = modes_lib.masks(mode, kept, V, F - T, T)
-    t = jax.random.uniform(k_t, (B,), minval=1e-3, maxval=1.0)
+    t = draw_t(k_t, B, fcfg)
     eps_v = jax.random.normal(k_ev, video.shape, video.dtype)
     eps_a = jax.random.normal(k_ea, actions.shape, actions.dtype)
     inp = noise_inputs(video, actions, stride, video_noisy, action_noisy, t, eps_v, eps_a)
@@ -75,7 +82,8 @@ def loss(params, cfg: ModelConfig, video, actions, stride, rng, probs, grid):
         preds, targets = (v_v, v_a), (eps_v[:, :, F - T:] - video[:, :, F - T:], eps_a - actions)
     else:
         preds, targets = (x0_v, x0_a), (video[:, :, F - T:], actions)
-    total, per_sample = masked_loss(*preds, *targets, video_noisy[:, :, F - T:], action_noisy)
+    total, per_sample = masked_loss(*preds, *targets, video_noisy[:, :, F - T:], action_noisy,
+                                    (fcfg.video_loss_weight, fcfg.action_loss_weight))
     metrics = {"loss": total}
     for m, name in enumerate(modes_lib.NAMES):
         sel = (mode == m).astype(jnp.float32)
@@ -84,11 +92,21 @@ def loss(params, cfg: ModelConfig, video, actions, stride, rng, probs, grid):
     return total, metrics
 
 
+def time_grid(steps: int, fcfg: FlowConfig = FlowConfig()) -> jax.Array:
+    """``steps + 1`` noise levels from 1 to 0 at equal-probability quantiles of the training distribution of t, so
+    every Euler step covers the same share of what the model was trained on (with the default logit-normal(0, 1)
+    this is close to SD3's shifted schedule). Uniform spacing would spend the last steps at noise levels a
+    high-noise-biased model has rarely seen."""
+    u = 1.0 - jnp.arange(steps + 1, dtype=jnp.float32) / steps
+    t = jax.nn.sigmoid(fcfg.t_logit_mean + fcfg.t_logit_std * jax.scipy.special.ndtri(u))
+    return t.at[0].set(1.0).at[-1].set(0.0)
+
+
 def sample(params, cfg: ModelConfig, video, actions, stride, video_noisy, action_noisy, rng, steps: int, grid,
-           use_cache: bool | None = None):
-    """Euler from t = 1 to t = 0 in ``steps`` steps; clean tokens held fixed. Returns (video, actions) with the
-    noisy positions filled in. With ``context_attention="causal"`` the context keys/values are computed once and
-    reused by every step (``use_cache=False`` forces the uncached path, for checks)."""
+           use_cache: bool | None = None, fcfg: FlowConfig = FlowConfig()):
+    """Euler from t = 1 to t = 0 in ``steps`` steps (``time_grid``); clean tokens held fixed. Returns (video,
+    actions) with the noisy positions filled in. With ``context_attention="causal"`` the context keys/values are
+    computed once and reused by every step (``use_cache=False`` forces the uncached path, for checks)."""
     T = actions.shape[1]
     K = video.shape[2] - T
     k_v, k_a = jax.random.split(rng)
@@ -102,9 +120,11 @@ def sample(params, cfg: ModelConfig, video, actions, stride, video_noisy, action
                            jnp.zeros(action_noisy.shape), jnp.zeros_like(action_noisy), stride)
         context_kv = dit.encode_context(params, cfg, clean, grid)
 
+    ts = time_grid(steps, fcfg)
+
     def step(i, carry):
         xv, xa = carry
-        t, t_next = 1.0 - i / steps, 1.0 - (i + 1) / steps
+        t, t_next = ts[i], ts[i + 1]
         inp = dit.Inputs(xv, xa, jnp.where(video_noisy, t, 0.0), video_noisy, jnp.where(action_noisy, t, 0.0),
                          action_noisy, stride)
         (v_v, v_a), _ = predict(params, cfg, inp, grid, context_kv)

@@ -34,14 +34,16 @@ def make_optimizer(cfg: Config) -> optax.GradientTransformation:
                        optax.adamw(schedule, b1=t.b1, b2=t.b2, weight_decay=t.weight_decay, mask=decay_mask))
 
 
-def token_dim(cfg: Config) -> int:
-    return make_tokenizer(cfg.model).token_dim
+def token_geometry(cfg: Config) -> tuple[int, tuple[int, int]]:
+    """(token_dim, (rows, cols) tokens per frame) of this config's tokenizer and image size."""
+    tok = make_tokenizer(cfg.model)
+    return tok.token_dim, tok.grid(cfg.data.image_size)
 
 
 def init_state(cfg: Config) -> dict[str, Any]:
     """{params, opt_state, step, rng}; rng is raw key data so checkpoints hold plain arrays."""
     k_init, k_train = jax.random.split(jax.random.key(cfg.train.seed))
-    params = dit.init_params(cfg.model, token_dim(cfg), k_init)
+    params = dit.init_params(cfg.model, token_geometry(cfg)[0], k_init, token_geometry(cfg)[1])
     return {"params": params, "opt_state": make_optimizer(cfg).init(params), "step": jnp.zeros((), jnp.int32),
             "rng": jax.random.key_data(k_train)}
 
@@ -50,7 +52,7 @@ def state_axes(cfg: Config, abstract_state) -> list[tuple]:
     """Logical axes of every state leaf (in ``jax.tree.leaves`` order): optimizer moments follow their parameters
     (matched by the parameter's path at the end of theirs), everything else is replicated."""
     is_axes = lambda a: type(a) is tuple  # noqa: E731  (optax states are namedtuples: containers, not axes)
-    flat, _ = jax.tree_util.tree_flatten_with_path(dit.param_axes(cfg.model, token_dim(cfg)), is_leaf=is_axes)
+    flat, _ = jax.tree_util.tree_flatten_with_path(dit.param_axes(cfg.model, *token_geometry(cfg)), is_leaf=is_axes)
     table = {tuple(k.key for k in path): axes for path, axes in flat}
 
     def axes_for(path, x):
@@ -83,7 +85,7 @@ def make_train_step(cfg: Config):
         rng = jax.random.fold_in(jax.random.wrap_key_data(state["rng"]), state["step"])
         video = tok.encode(batch["frames"])
         loss_fn = lambda p: flow.loss(p, cfg.model, video, batch["actions"], batch["stride"], rng,  # noqa: E731
-                                      cfg.modes.probs, grid)
+                                      cfg.modes.probs, grid, cfg.flow)
         (_, metrics), grads = jax.value_and_grad(loss_fn, has_aux=True)(state["params"])
         updates, opt_state = opt.update(grads, state["opt_state"], state["params"])
         params = optax.apply_updates(state["params"], updates)

@@ -12,10 +12,13 @@ from sc3_jax.model import dit, layers, tokenizer
 B, V, K, T, H = 2, 3, 2, 4, 16
 
 
+SHORTCUTS = dict(anchor_conditioning=True, action_to_frames=True, action_reads_frames=True)
+
+
 def _setup(**kw):
     cfg = ModelConfig(dim=64, depth=2, num_heads=4, num_kv_heads=2, head_dim=32, mlp_dim=128, **kw)
     tok = tokenizer.PixelPatchTokenizer(4)
-    params = dit.init_params(cfg, tok.token_dim, jax.random.key(0))
+    params = dit.init_params(cfg, tok.token_dim, jax.random.key(0), tok.grid((H, H)))
     # non-zero output weights so outputs depend on everything
     params = jax.tree.map(lambda p: p + 0.05 * jax.random.normal(jax.random.key(1), p.shape), params)
     frames = jax.random.randint(jax.random.key(2), (B, V, K + T, H, H, 3), 0, 256).astype(jnp.uint8)
@@ -39,9 +42,9 @@ def test_tokenizer_round_trip_exact():
 
 
 def test_param_axes_cover_every_param():
-    cfg = ModelConfig()
-    params = dit.init_params(cfg, 48, jax.random.key(0))
-    axes = dit.param_axes(cfg, 48)
+    cfg = ModelConfig(**SHORTCUTS)
+    params = dit.init_params(cfg, 48, jax.random.key(0), (4, 4))
+    axes = dit.param_axes(cfg, 48, (4, 4))
     flat_p = jax.tree.leaves(params)
     flat_a = jax.tree.leaves(axes, is_leaf=lambda a: type(a) is tuple)
     assert len(flat_p) == len(flat_a)
@@ -100,7 +103,7 @@ def test_timestep_embedding_only_on_noisy_tokens():
 
 @pytest.mark.parametrize("mode", [modes.FD, modes.CVI, modes.ID])
 def test_context_cache_matches_uncached(mode):
-    cfg, tok, params, frames, video, actions, grid = _setup(context_attention="causal")
+    cfg, tok, params, frames, video, actions, grid = _setup(context_attention="causal", **SHORTCUTS)
     vn, an = modes.fixed(mode, B, V, K, T, kept_view=1)
     stride = jnp.asarray([1, 2])
     full = flow.sample(params, cfg, video, actions, stride, vn, an, jax.random.key(5), 3, grid, use_cache=False)
@@ -111,11 +114,38 @@ def test_context_cache_matches_uncached(mode):
 
 def test_causal_context_does_not_see_targets():
     """Under causal context attention, the context's keys/values do not depend on the future tokens."""
-    cfg, tok, params, frames, video, actions, grid = _setup(context_attention="causal")
+    cfg, tok, params, frames, video, actions, grid = _setup(context_attention="causal", **SHORTCUTS)
     vn, an = modes.fixed(modes.FD, B, V, K, T)
     inp = dit.Inputs(video, actions, jnp.where(vn, 0.5, 0.0), vn, jnp.zeros(an.shape), an, jnp.ones(B, jnp.int32))
     kv1 = dit.encode_context(params, cfg, inp, grid)
     kv2 = dit.encode_context(params, cfg, inp._replace(video=video.at[:, :, K:].add(1.0), actions=actions * 2), grid)
     np.testing.assert_array_equal(kv1[0], kv2[0])
     with pytest.raises(ValueError, match="causal"):
-        dit.encode_context(params, ModelConfig(), inp, grid)
+        dit.encode_context(params, ModelConfig(**SHORTCUTS), inp, grid)
+
+
+def test_shortcut_features():
+    """anchor_conditioning sees the 3x3 neighbourhood; action_reads_frames sees frame differences."""
+    frame = jnp.arange(2 * 1 * 4 * 1, dtype=jnp.float32).reshape(2, 1, 4, 1)  # 2x2 grid, 1 feature
+    nb = dit._neighbourhood(frame, (2, 2))
+    assert nb.shape == (2, 1, 4, 9)
+    # patch (0, 0): centre is index 4 of the 3x3 block, its right neighbour (0, 1) index 5, below (1, 0) index 7
+    np.testing.assert_array_equal(nb[0, 0, 0], [0, 0, 0, 0, 0, 1, 0, 2, 3])
+    cfg, tok, params, frames, video, actions, grid = _setup(**SHORTCUTS)
+    vn, an = modes.fixed(modes.ID, B, V, K, T)
+    inp = dit.Inputs(video, actions, jnp.zeros(vn.shape), vn, jnp.where(an, 0.5, 0.0), an, jnp.ones(B, jnp.int32))
+    emb = lambda i, c=cfg: dit._embed(params, c, i, grid, 0)  # noqa: E731
+    x0 = emb(inp)
+    # action token embeddings move with frame K's content (it is a frame difference for actions 0 and 1) ...
+    x1 = emb(inp._replace(video=inp.video.at[:, :, K].add(0.5)))
+    assert not np.allclose(x0[:, -T:], x1[:, -T:])
+    # ... but not with a change of every frame by the same amount (differences unchanged, anchor moves)
+    x2 = emb(inp._replace(video=inp.video.at[:, :, K - 1:].add(0.5)))
+    np.testing.assert_allclose(x0[:, -T:], x2[:, -T:], atol=1e-5)
+    # future frames see the anchor frame (context tokens are untouched by every shortcut)
+    x3 = emb(inp._replace(video=inp.video.at[:, :, K - 1].add(0.5)))
+    n_ctx = V * K * grid[0] * grid[1]
+    assert not np.allclose(x0[:, n_ctx:-T], x3[:, n_ctx:-T])
+    plain = dit.init_params(ModelConfig(dim=64, depth=2, num_heads=4, num_kv_heads=2, head_dim=32, mlp_dim=128), 48,
+                            jax.random.key(0))
+    assert set(params) - set(plain) == {"anchor_in", "action_to_frames", "frames_to_action"}

@@ -112,7 +112,7 @@ def test_demos_written_resumable_and_bussing_only(tmp_path):
     ep = store.load(store.episode_ids()[0])
     assert ep.frames["wrist"].shape[1:] == (32, 32, 3) and ep.actions.shape == (ep.length, 7)
     assert ep.prompt and ep.meta["task"] == "bussing" and len(ep.meta["labels"]["objects"]) == 3
-    assert len(ep.meta["intent"]["pick_xy"]) == ep.length
+    assert len(ep.meta["intent"]["obj_xy"]) == ep.length and len(ep.meta["intent"]["obj_xy"][0]) == 6
     # pseudo-actions: consecutive poses move by the (clipped) commanded translation
     np.testing.assert_allclose(np.diff(ep.ee_pose[:, :3], axis=0)[:5], ep.actions[:5, :3], atol=1e-4)
     with pytest.raises(ValueError):
@@ -120,8 +120,10 @@ def test_demos_written_resumable_and_bussing_only(tmp_path):
 
 
 def test_controller_routes_by_task():
-    est = {"pick_xy": jnp.array([-0.1, 0.0]), "pick_dest": jnp.array(-3.0), "held_dest": jnp.array(3.0),
-           "any_left": jnp.array(3.0), "bin_xy": jnp.array([0.2, -0.13]), "can_xy": jnp.array([0.2, 0.13])}
+    obj_xy = jnp.zeros((zoo.N_OBJ, 2)).at[0].set(jnp.array([-0.1, 0.0])).at[1].set(jnp.array([-0.2, 0.1]))
+    present = jnp.full((zoo.N_OBJ,), -3.0).at[0].set(3.0)
+    est = {"obj_xy": obj_xy, "present": present, "dest": jnp.full((zoo.N_OBJ,), -3.0), "held_dest": jnp.array(3.0),
+           "bin_xy": jnp.array([0.2, -0.13]), "can_xy": jnp.array([0.2, 0.13])}
     holding = jnp.array([0.0, 0.0, 0.17, 0, 0, 0, 0.05])  # a held object keeps the fingers apart
     a0 = zoo.controller(est, holding, jnp.int32(0))
     a1 = zoo.controller(est, holding, jnp.int32(1))

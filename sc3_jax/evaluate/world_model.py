@@ -31,7 +31,8 @@ def make_sampler(cfg: Config):
         video = tok.encode(frames)
         B = frames.shape[0]
         vn, an = modes.masks(jnp.full((B,), mode), jnp.full((B,), kept_view), V, K, T)
-        out_v, out_a = flow.sample(params, cfg.model, video, actions, stride, vn, an, rng, cfg.sample.steps, grid)
+        out_v, out_a = flow.sample(params, cfg.model, video, actions, stride, vn, an, rng, cfg.sample.steps, grid,
+                                   fcfg=cfg.flow)
         return to_uint8(tok.decode(out_v, cfg.data.image_size)), out_a
 
     return run

@@ -32,7 +32,7 @@ class ParamSpec:
     fan_in: int | None = None
 
 
-def param_specs(cfg: ModelConfig, token_dim: int) -> dict:
+def param_specs(cfg: ModelConfig, token_dim: int, grid: tuple[int, int] | None = None) -> dict:
     d, L, hq, hkv, hd, m = cfg.dim, cfg.depth, cfg.num_heads, cfg.num_kv_heads, cfg.head_dim, cfg.mlp_dim
     out_init = "zeros" if cfg.prediction == "residual" else "normal"  # residual: start as "copy the last frame"
     specs = {
@@ -67,6 +67,15 @@ def param_specs(cfg: ModelConfig, token_dim: int) -> dict:
     }
     if cfg.view_embedding:
         specs["view_embed"] = ParamSpec((cfg.num_views, d), ("views", "embed"), fan_in=d)
+    if cfg.anchor_conditioning:
+        specs["anchor_in"] = ParamSpec((9 * token_dim, d), ("patch", "embed"))
+    if cfg.action_to_frames:
+        specs["action_to_frames"] = ParamSpec((2 * cfg.action_dim, d), ("action", "embed"))
+    if cfg.action_reads_frames:
+        if grid is None:
+            raise ValueError("action_reads_frames needs the token grid (rows, cols) of a frame")
+        n = cfg.num_views * grid[0] * grid[1] * token_dim
+        specs["frames_to_action"] = ParamSpec((n, d), ("frame_features", "embed"))
     return specs
 
 
@@ -74,8 +83,8 @@ def _is_spec(x):
     return isinstance(x, ParamSpec)
 
 
-def init_params(cfg: ModelConfig, token_dim: int, key: jax.Array) -> dict:
-    specs = param_specs(cfg, token_dim)
+def init_params(cfg: ModelConfig, token_dim: int, key: jax.Array, grid: tuple[int, int] | None = None) -> dict:
+    specs = param_specs(cfg, token_dim, grid)
     leaves, treedef = jax.tree.flatten(specs, is_leaf=_is_spec)
     keys = jax.random.split(key, len(leaves))
     dtype = jnp.dtype(cfg.param_dtype)
@@ -91,9 +100,9 @@ def init_params(cfg: ModelConfig, token_dim: int, key: jax.Array) -> dict:
     return jax.tree.unflatten(treedef, [make(s, k) for s, k in zip(leaves, keys)])
 
 
-def param_axes(cfg: ModelConfig, token_dim: int) -> dict:
+def param_axes(cfg: ModelConfig, token_dim: int, grid: tuple[int, int] | None = None) -> dict:
     """The logical axis names of every parameter (same tree structure as the params)."""
-    return jax.tree.map(lambda s: s.axes, param_specs(cfg, token_dim), is_leaf=_is_spec)
+    return jax.tree.map(lambda s: s.axes, param_specs(cfg, token_dim, grid), is_leaf=_is_spec)
 
 
 def count_params(params_or_shapes) -> int:
@@ -137,7 +146,16 @@ def context_length(V: int, K: int, P: int) -> int:
 # ----------------------------------------------------------------------------------------------------------------
 # Forward
 # ----------------------------------------------------------------------------------------------------------------
-def _embed(params, cfg: ModelConfig, inp: Inputs, domain: int):
+def _neighbourhood(frame: jax.Array, grid: tuple[int, int]) -> jax.Array:
+    """[B, V, P, D] tokens -> [B, V, P, 9 D]: each patch with its 8 neighbours (zero outside the frame)."""
+    B, V, P, D = frame.shape
+    rows, cols = grid
+    x = jnp.pad(frame.reshape(B, V, rows, cols, D), ((0, 0), (0, 0), (1, 1), (1, 1), (0, 0)))
+    shifts = [x[:, :, i:i + rows, j:j + cols] for i in range(3) for j in range(3)]
+    return jnp.concatenate(shifts, axis=-1).reshape(B, V, P, 9 * D)
+
+
+def _embed(params, cfg: ModelConfig, inp: Inputs, grid, domain: int):
     """Token embeddings [B, N, D] in packed order, plus per-token noisy flags."""
     dt = jnp.dtype(cfg.dtype)
     B, V, F, P, _ = inp.video.shape
@@ -149,10 +167,22 @@ def _embed(params, cfg: ModelConfig, inp: Inputs, domain: int):
     # Timestep embedding per (view, frame) and per action, added to noisy tokens only.
     temb_v = _time_mlp(params, inp.video_t).astype(dt)  # [B, V, F, D]
     xv = xv + jnp.where(inp.video_noisy[..., None, None], temb_v[:, :, :, None, :], 0)
+    future = jnp.zeros_like(xv[:, :, K:])
+    if cfg.anchor_conditioning:  # the 3x3 neighbourhood of the same patch in the last context frame
+        future = future + (_neighbourhood(inp.video[:, :, K - 1], grid).astype(dt) @ params["anchor_in"].astype(dt))[:, :, None]
+    if cfg.action_to_frames:  # frame K+j: action j and the sum of actions 0..j
+        a = inp.actions.astype(dt)
+        feats = jnp.concatenate([a, jnp.cumsum(a, axis=1)], axis=-1) @ params["action_to_frames"].astype(dt)
+        future = future + feats[:, None, :, None, :]
+    xv = xv.at[:, :, K:].add(future)
     xa = jnp.einsum("bta,ad->btd", inp.actions.astype(dt), params["action_in"]["w"][domain].astype(dt))
     xa = xa + params["action_in"]["b"][domain].astype(dt) + params["action_modality_embed"].astype(dt)
     temb_a = _time_mlp(params, inp.action_t).astype(dt)
     xa = xa + jnp.where(inp.action_noisy[..., None], temb_a, 0)
+    if cfg.action_reads_frames:  # action j: frame K+j minus frame K-1+j, every view
+        diff = inp.video[:, :, K:] - inp.video[:, :, K - 1:-1]  # [B, V, T, P, Dp]
+        diff = jnp.moveaxis(diff, 2, 1).reshape(B, T, -1).astype(dt)
+        xa = xa + diff @ params["frames_to_action"].astype(dt)
     D = xv.shape[-1]
     x = jnp.concatenate([xv[:, :, :K].reshape(B, -1, D), xv[:, :, K:].reshape(B, -1, D), xa], axis=1)
     return x
@@ -218,7 +248,7 @@ def apply(params, cfg: ModelConfig, inp: Inputs, grid: tuple[int, int], domain: 
     B, V, F, P, _ = inp.video.shape
     T = inp.actions.shape[1]
     K = F - T
-    x = _embed(params, cfg, inp, domain)
+    x = _embed(params, cfg, inp, grid, domain)
     cos, sin = layers.rope_cos_sin(positions(inp.stride, V, F, grid, T, K), cfg.head_dim, cfg.rope_axes_dim,
                                    cfg.rope_theta)
     mask = _attention_mask(cfg, V * K * P, x.shape[1])
@@ -235,7 +265,7 @@ def encode_context(params, cfg: ModelConfig, inp: Inputs, grid, domain: int = 0)
     T = inp.actions.shape[1]
     K = F - T
     n_ctx = V * K * P
-    x = _embed(params, cfg, inp, domain)[:, :n_ctx]
+    x = _embed(params, cfg, inp, grid, domain)[:, :n_ctx]
     cos, sin = layers.rope_cos_sin(positions(inp.stride, V, F, grid, T, K)[:, :n_ctx], cfg.head_dim,
                                    cfg.rope_axes_dim, cfg.rope_theta)
     _, kv = _run_layers(cfg, params, x, cos, sin, None)
@@ -248,7 +278,7 @@ def apply_cached(params, cfg: ModelConfig, inp: Inputs, grid, context_kv, domain
     T = inp.actions.shape[1]
     K = F - T
     n_ctx = V * K * P
-    x = _embed(params, cfg, inp, domain)[:, n_ctx:]
+    x = _embed(params, cfg, inp, grid, domain)[:, n_ctx:]
     cos, sin = layers.rope_cos_sin(positions(inp.stride, V, F, grid, T, K)[:, n_ctx:], cfg.head_dim,
                                    cfg.rope_axes_dim, cfg.rope_theta)
     h, _ = _run_layers(cfg, params, x, cos, sin, None, context_kv)

@@ -20,9 +20,9 @@ import dataclasses
 import numpy as np
 
 from . import scene as S
-from .criteria import ObjectOutcome, evaluate_episode
+from .criteria import ObjectOutcome, evaluate_episode, inside_container
 from .env import BussingEnv
-from .tasks import CONTAINERS, OBJECT_BY_NAME, destination
+from .tasks import CONTAINERS, OBJECT_BY_NAME, OBJECTS, destination
 
 HOVER_Z = 0.13
 CARRY_Z = 0.17
@@ -91,8 +91,23 @@ class ScriptedExpert:
         held_dest = -1
         if holding and self.k < len(self.plans):
             held_dest = CONTAINERS.index(self.plans[self.k].container)
+        # per object type (tasks.OBJECTS order): position, "still to be bussed" (on the table, not held, not in a
+        # container), and the container the expert chose for it (-1 if not in the episode)
+        obj_xy = np.zeros((len(OBJECTS), 2))
+        obj_present = np.zeros(len(OBJECTS))
+        obj_dest = -np.ones(len(OBJECTS))
+        chosen = {p.name: CONTAINERS.index(p.container) for p in self.plans}
+        for j, o in enumerate(OBJECTS):
+            if o.name not in chosen:
+                continue
+            pos = env.object_pos(o.name)
+            obj_xy[j] = pos[:2]
+            obj_dest[j] = chosen[o.name]
+            placed = any(bool(inside_container(pos, env.container_xy(c), c)) for c in CONTAINERS)
+            obj_present[j] = float(env.held != o.name and not placed and pos[2] > -0.05)
         return {"pick_xy": pick_xy, "pick_dest": pick_dest, "held_dest": held_dest, "any_left": any_left,
-                "bin_xy": env.container_xy("bin"), "can_xy": env.container_xy("can")}
+                "bin_xy": env.container_xy("bin"), "can_xy": env.container_xy("can"),
+                "obj_xy": obj_xy, "obj_present": obj_present, "obj_dest": obj_dest}
 
     # -- control -----------------------------------------------------------------------------------------------
     def act(self, env: BussingEnv) -> np.ndarray:
@@ -197,7 +212,8 @@ def run_expert_episode(env: BussingEnv, seed: int, task: str = "bussing", knobs:
     expert.reset(env)
     frames = {v: [] for v in env.views} if record else None
     actions, poses, traj = [], [], [env.object_positions()]
-    intents = {k: [] for k in ("pick_xy", "pick_dest", "held_dest", "any_left", "bin_xy", "can_xy")}
+    intents = {k: [] for k in ("pick_xy", "pick_dest", "held_dest", "any_left", "bin_xy", "can_xy", "obj_xy",
+                               "obj_present", "obj_dest")}
     settle = 0
     for _ in range(max_steps):
         if record:

@@ -1,16 +1,17 @@
 """Policy zoo: pixel-input policies for bussing / reverse bussing, pure JAX, trained by cloning the expert's intent.
 
 What is learned and what is scripted (honestly):
-  * Learned: a small CNN (shared conv trunk over the three 64x64 views, spatial-softmax keypoints + pooled features,
-    then an MLP with the 7-D gripper state) that, from the pixels, regresses what the expert was aiming at in that
-    frame: the xy of the next object to pick (with the expert's own grasp offset), which container the expert took
-    (would take) the next / held object to, whether anything is left, and where the two containers are. It is
-    trained by supervised learning on expert demonstrations (``demos.py``), i.e. behaviour cloning of the expert's
-    intent rather than of raw actions (pure pixel-to-action BC did not fit the CPU budget).
-  * Scripted: a stateless controller in ``jnp`` (``jnp.where`` phase logic from the observation only: held-object
+  * Learned: a small CNN (shared conv trunk over the three 64x64 views with coordinate channels, spatial-softmax
+    keypoints + pooled features, then an MLP with the 7-D gripper state) that, from the pixels, estimates for each of
+    the six object types where it is and whether it still has to be bussed, which container the demonstrator took
+    objects of that type to (and the held object to), and where the two containers are. It is trained by supervised
+    learning on the expert's demonstrations (``demos.py``): positions/presence are read from the simulator state of
+    each demonstration frame, destinations are the demonstrator's own choices (so a biased demonstrator yields a
+    biased policy). Pure pixel-to-action BC did not fit the CPU budget.
+  * Scripted: a stateless controller in ``jnp`` (``jnp.where`` phase logic from the observation only: the held-object
     state is read from the finger gap) turns those estimates into a 25-step chunk of raw delta-EE actions
-    (hover -> descend -> close -> lift -> carry -> lower -> release; a failed grasp, seen as a fully closed empty
-    gripper, is reopened and retried). For reverse bussing (``task == 1``) the chosen container is swapped.
+    (largest-x object first: hover -> descend -> close -> lift -> carry -> lower -> release; a failed grasp, seen as a
+    fully closed empty gripper, is reopened and retried). For reverse bussing (``task == 1``) containers are swapped.
 Policies differ only by learned quality: training checkpoint, amount of data and quality of the demonstrator
 (a biased demonstrator that always takes some object types to the wrong container).
 
@@ -33,17 +34,20 @@ import numpy as np
 
 from ..policies.base import JaxPolicy
 from . import scene as S
+from .tasks import OBJECTS
 
 ZOO_DIR = Path(__file__).parent / "zoo"
 NET_SIZE = 64
-N_KP = 16
+N_KP = 32
 CHUNK = 25
 # controller constants (shared with the expert's geometry)
 HOVER_Z, CARRY_Z, GRASP_Z = 0.13, 0.17, 0.015
 STEP, GAIN = 0.03, 0.6
 RELEASE_Z = jnp.array([S.BIN_WALL_H + 0.06, S.CAN_WALL_H + 0.06])
 HOLD_LO, HOLD_HI = 0.015, 0.083
-OUT_DIM = 9  # pick_xy(2), pick_dest, held_dest, any_left, bin_xy(2), can_xy(2)
+N_OBJ = len(OBJECTS)
+# per object type: xy (2), "to be bussed" logit, destination logit; then held-object destination logit, bin xy, can xy
+OUT_DIM = 4 * N_OBJ + 5
 XY_SCALE = 10.0
 
 
@@ -84,65 +88,82 @@ def net_apply(net: dict, images: jax.Array, state: jax.Array) -> jax.Array:
     x = jax.nn.relu(_conv(x, net["c3"], 1))
     x = _conv(x, net["c4"], 1)  # [BV, 16, 16, K]
     hh, ww = x.shape[1:3]
-    logits = x.reshape(b * v, hh * ww, N_KP)
+    n_kp = net["c4"]["w"].shape[-1]  # keypoints per view (read from the weights)
+    logits = x.reshape(b * v, hh * ww, n_kp)
     att = jax.nn.softmax(logits, axis=1)
     gy, gx = jnp.meshgrid(jnp.linspace(-1, 1, hh), jnp.linspace(-1, 1, ww), indexing="ij")
     grid = jnp.stack([gx.reshape(-1), gy.reshape(-1)], -1)  # [HW, 2]
-    kp = jnp.einsum("nsk,sc->nkc", att, grid).reshape(b, v * N_KP * 2)
-    pooled = jnp.max(logits, axis=1).reshape(b, v * N_KP)
+    kp = jnp.einsum("nsk,sc->nkc", att, grid).reshape(b, v * n_kp * 2)
+    pooled = jnp.max(logits, axis=1).reshape(b, v * n_kp)
     f = jnp.concatenate([kp, jnp.tanh(pooled * 0.1), state * jnp.array([5, 5, 5, 1, 1, 1, 10.0])], -1)
     f = jax.nn.relu(f @ net["d1"]["w"] + net["d1"]["b"])
     f = jax.nn.relu(f @ net["d2"]["w"] + net["d2"]["b"])
     return f @ net["out"]["w"] + net["out"]["b"]
 
 
-def decode(out: jax.Array, state: jax.Array) -> dict:
-    """The pick target is regressed relative to the gripper (``pick_xy - ee_xy``), the containers absolutely."""
-    return {"pick_xy": state[..., 0:2] + out[..., 0:2] / XY_SCALE, "pick_dest": out[..., 2], "held_dest": out[..., 3],
-            "any_left": out[..., 4], "bin_xy": out[..., 5:7] / XY_SCALE, "can_xy": out[..., 7:9] / XY_SCALE}
+def decode(out: jax.Array) -> dict:
+    n = N_OBJ
+    return {"obj_xy": out[..., 0:2 * n].reshape(out.shape[:-1] + (n, 2)) / XY_SCALE,
+            "present": out[..., 2 * n:3 * n], "dest": out[..., 3 * n:4 * n], "held_dest": out[..., 4 * n],
+            "bin_xy": out[..., 4 * n + 1:4 * n + 3] / XY_SCALE, "can_xy": out[..., 4 * n + 3:4 * n + 5] / XY_SCALE}
 
 
 # -- controller -----------------------------------------------------------------------------------------------
 def controller(est: dict, state: jax.Array, task: jax.Array) -> jax.Array:
-    """Stateless chunk planner: estimates (one sample) + state [7] + task -> actions [CHUNK, 7]."""
+    """Stateless chunk planner: estimates (one sample) + state [7] + task -> actions [CHUNK, 7].
+
+    Picks the still-to-be-bussed object with the largest x (the expert's order), hovers over it, descends, closes;
+    when holding (finger gap strictly between closed and open), lifts, carries to the container chosen for it
+    (swapped when ``task == 1``), lowers and releases; then goes on to the next object within the same chunk.
+    A fully closed gripper means a failed grasp: reopen and rise for the rest of the chunk."""
     pos0, rv0, width = state[:3], state[3:6], state[6]
     holding0 = (width > HOLD_LO) & (width < HOLD_HI)
-    empty0 = width <= HOLD_LO  # closed on nothing: failed grasp
+    empty0 = width <= HOLD_LO
     flip = task.astype(bool)
     held_c = ((est["held_dest"] > 0) ^ flip).astype(jnp.int32)
-    pick_c = ((est["pick_dest"] > 0) ^ flip).astype(jnp.int32)
+    obj_c = ((est["dest"] > 0) ^ flip).astype(jnp.int32)  # [N_OBJ]
     containers = jnp.stack([est["bin_xy"], est["can_xy"]])
-    left = est["any_left"] > 0
-    g = est["pick_xy"]
+    present = est["present"] > 0
 
     def step(carry, k):
-        p, hold, empty, dest_c = carry
+        p, hold, empty, dest_c, done = carry
+        todo = present & ~done
+        left = jnp.any(todo)
+        j = jnp.argmax(jnp.where(todo, est["obj_xy"][:, 0], -jnp.inf))
+        g = est["obj_xy"][j]
         # holding: lift, carry, lower, release
         dxy = containers[dest_c]
         far = jnp.linalg.norm(p[:2] - dxy) > 0.01
         low = p[2] < CARRY_Z - 0.03
         rz = RELEASE_Z[dest_c]
-        goal_hold = jnp.where(far, jnp.where(low & far, jnp.array([p[0], p[1], CARRY_Z]),
+        goal_hold = jnp.where(far, jnp.where(low, jnp.array([p[0], p[1], CARRY_Z]),
                                              jnp.array([dxy[0], dxy[1], CARRY_Z])), jnp.array([dxy[0], dxy[1], rz]))
         release = (~far) & (jnp.abs(p[2] - rz) < 0.008)
-        # not holding: hover over target, descend, close
-        gfar = jnp.linalg.norm(p[:2] - g) > 0.008
-        goal_pick = jnp.where(gfar, jnp.array([g[0], g[1], HOVER_Z]), jnp.array([g[0], g[1], GRASP_Z]))
+        # not holding: hover over the target, descend, close
+        gerr = jnp.linalg.norm(p[:2] - g)
+        gfar = gerr > 0.008
+        # far: travel at hover height; close: hold the height while correcting xy (no bobbing up when the estimate
+        # moves by a few mm between chunks); aligned: descend
+        goal_z = jnp.where(gerr > 0.03, HOVER_Z, jnp.where(gfar, p[2], GRASP_Z))
+        goal_pick = jnp.array([g[0], g[1], goal_z])
         close = (~gfar) & (p[2] < GRASP_Z + 0.006)
         goal_idle = jnp.array([p[0], p[1], HOVER_Z + 0.02])
-        goal = jnp.where(hold, goal_hold, jnp.where(empty | ~left, goal_idle, goal_pick))
+        idle = empty | ~left
+        goal = jnp.where(hold, goal_hold, jnp.where(idle, goal_idle, goal_pick))
         grip = jnp.where(hold, jnp.where(release, S.OPEN_WIDTH, 0.0),
-                         jnp.where(empty | ~left, S.OPEN_WIDTH, jnp.where(close, 0.0, S.OPEN_WIDTH)))
+                         jnp.where(idle, S.OPEN_WIDTH, jnp.where(close, 0.0, S.OPEN_WIDTH)))
         d = GAIN * (goal - p)
         n = jnp.linalg.norm(d)
         d = d * jnp.minimum(1.0, STEP / jnp.maximum(n, 1e-9))
         rot = -0.5 * rv0 * (0.5 ** k)
         a = jnp.concatenate([d, rot, grip[None]])
-        new_hold = jnp.where(hold, ~release, (~empty) & left & close)
-        new_dest = jnp.where(hold, dest_c, pick_c)
-        return (p + d, new_hold, empty, new_dest), a  # after a failed grasp: reopen and rise for this chunk
+        grasp = (~hold) & (~idle) & close
+        new_hold = jnp.where(hold, ~release, grasp)
+        new_dest = jnp.where(hold, dest_c, obj_c[j])
+        new_done = done | (grasp & (jnp.arange(N_OBJ) == j))
+        return (p + d, new_hold, empty, new_dest, new_done), a
 
-    init = (pos0, holding0, empty0, jnp.where(holding0, held_c, pick_c))
+    init = (pos0, holding0, empty0, held_c, jnp.zeros(N_OBJ, bool))
     _, acts = jax.lax.scan(step, init, jnp.arange(CHUNK, dtype=jnp.float32))
     return acts.astype(jnp.float32)
 
@@ -152,7 +173,7 @@ def policy_apply(params: dict, obs: dict, rng: jax.Array) -> jax.Array:
     del rng
     images = jnp.asarray(obs["images"])[None]
     state = jnp.asarray(obs["state"], jnp.float32)
-    est = decode(net_apply(params, images, state[None])[0], state)
+    est = decode(net_apply(params, images, state[None])[0])
     return controller(est, state, jnp.asarray(obs["task"], jnp.int32))
 
 
@@ -216,29 +237,32 @@ def load_training_data(store_root: str | Path, max_episodes: int | None = None, 
         sel = np.arange(0, ep.length, stride)
         imgs.append(np.stack([ep.frames[v][sel] for v in store.views], 1))
         states.append(ep.ee_pose[sel])
-        lab = np.concatenate([np.asarray(it["pick_xy"])[sel], np.asarray(it["pick_dest"])[sel, None],
-                              np.asarray(it["held_dest"])[sel, None], np.asarray(it["any_left"])[sel, None],
+        n = len(sel)
+        lab = np.concatenate([np.asarray(it["obj_xy"])[sel].reshape(n, -1), np.asarray(it["obj_present"])[sel],
+                              np.asarray(it["obj_dest"])[sel], np.asarray(it["held_dest"])[sel, None],
                               np.asarray(it["bin_xy"])[sel], np.asarray(it["can_xy"])[sel]], 1)
         labels.append(lab)
     return np.concatenate(imgs), np.concatenate(states).astype(np.float32), np.concatenate(labels).astype(np.float32)
 
 
 def loss_fn(net, images, states, labels):
+    n = N_OBJ
     out = net_apply(net, images, states)
-    any_left, held = labels[:, 4], labels[:, 3]
-    pick_err = jnp.sum((out[:, 0:2] - (labels[:, 0:2] - states[:, 0:2]) * XY_SCALE) ** 2, -1)
-    l_pick = jnp.sum(pick_err * any_left) / jnp.maximum(jnp.sum(any_left), 1.0)
-    l_cont = jnp.mean(jnp.sum((out[:, 5:9] - labels[:, 5:9] * XY_SCALE) ** 2, -1))
 
     def bce(logit, y):
         return jnp.maximum(logit, 0) - logit * y + jnp.log1p(jnp.exp(-jnp.abs(logit)))
 
-    l_pdest = jnp.sum(bce(out[:, 2], labels[:, 2]) * any_left) / jnp.maximum(jnp.sum(any_left), 1.0)
+    present, dest, held = labels[:, 2 * n:3 * n], labels[:, 3 * n:4 * n], labels[:, 4 * n]
+    xy_err = jnp.sum((out[:, :2 * n] - labels[:, :2 * n] * XY_SCALE).reshape(-1, n, 2) ** 2, -1)
+    l_xy = jnp.sum(xy_err * present) / jnp.maximum(jnp.sum(present), 1.0)
+    l_present = jnp.mean(bce(out[:, 2 * n:3 * n], present))
+    dm = (dest >= 0).astype(jnp.float32)
+    l_dest = jnp.sum(bce(out[:, 3 * n:4 * n], jnp.maximum(dest, 0)) * dm) / jnp.maximum(jnp.sum(dm), 1.0)
     hm = (held >= 0).astype(jnp.float32)
-    l_hdest = jnp.sum(bce(out[:, 3], jnp.maximum(held, 0)) * hm) / jnp.maximum(jnp.sum(hm), 1.0)
-    l_left = jnp.mean(bce(out[:, 4], any_left))
-    total = 4.0 * l_pick + l_cont + l_pdest + l_hdest + 0.5 * l_left
-    return total, {"pick": l_pick, "cont": l_cont, "pdest": l_pdest, "hdest": l_hdest, "left": l_left}
+    l_hdest = jnp.sum(bce(out[:, 4 * n], jnp.maximum(held, 0)) * hm) / jnp.maximum(jnp.sum(hm), 1.0)
+    l_cont = jnp.mean(jnp.sum((out[:, 4 * n + 1:] - labels[:, 4 * n + 1:] * XY_SCALE) ** 2, -1))
+    total = 4.0 * l_xy + 2.0 * l_present + l_dest + l_hdest + l_cont
+    return total, {"xy": l_xy, "present": l_present, "dest": l_dest, "hdest": l_hdest, "cont": l_cont}
 
 
 def train_net(data, steps: int, checkpoints: dict[int, Path], seed: int = 0, batch: int = 32, lr: float = 1e-3,
@@ -272,11 +296,11 @@ def train_net(data, steps: int, checkpoints: dict[int, Path], seed: int = 0, bat
 
 # run name -> (demo set, max episodes, steps, {checkpoint step: file suffix})
 RUNS = {
-    "clean": ("clean", None, 3000, {200: "early", 800: "mid", 3000: "final"}),
-    "small": ("clean", 10, 800, {300: "mid", 800: "final"}),
-    "biased": ("biased", None, 3000, {800: "mid", 3000: "final"}),
+    "clean": ("clean", None, 5000, {600: "early", 1500: "mid", 5000: "final"}),
+    "small": ("clean", 30, 1500, {600: "mid", 1500: "final"}),
+    "biased": ("biased", None, 3000, {1000: "mid", 3000: "final"}),
 }
-DEMO_SETS = {"clean": dict(n=200, seed=1), "biased": dict(n=150, seed=2)}
+DEMO_SETS = {"clean": dict(n=300, seed=1), "biased": dict(n=150, seed=2)}
 
 
 def train_zoo(workdir: str | Path, out_dir: str | Path = ZOO_DIR, runs: list[str] | None = None,

@@ -1,0 +1,73 @@
+"""The robot state inside an imagined rollout (there is no simulator to read it from).
+
+The state is the end-effector pose ``(x, y, z, rotvec, gripper)`` (float32 [7], the episode format's ``ee_pose``).
+Each commanded raw action ``a = (dx, dy, dz, axis-angle r, gripper target)`` is integrated onto it open loop, with
+the conventions of ``sc3_jax/data/rotations.py`` (world-frame rotation deltas):
+
+    xyz     <- xyz + a[:3]
+    R       <- R(a[3:6]) @ R          (stored back as a rotation vector, angle in [0, pi])
+    gripper <- a[6]                   (the commanded target; a real gripper follows at a limited rate)
+
+No workspace clipping and no contact: this is what the policy *asked for*, which is what a policy that reads its
+own proprioception expects to see if the world model follows its actions. Everything here is jnp (runs inside the
+rollout scan and under ``vmap``); float32 throughout, exact to ~1e-6 against the float64 numpy helpers.
+"""
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+
+def _skew(v):
+    x, y, w = v[..., 0], v[..., 1], v[..., 2]
+    z = jnp.zeros_like(x)
+    return jnp.stack([jnp.stack([z, -w, y], -1), jnp.stack([w, z, -x], -1), jnp.stack([-y, x, z], -1)], -2)
+
+
+def rotvec_to_matrix(r):
+    """Rodrigues [..., 3] -> [..., 3, 3], Taylor series near 0 (no division by a small angle)."""
+    t2 = jnp.sum(r * r, -1)
+    small = t2 < 1e-6
+    t = jnp.sqrt(jnp.where(small, 1.0, t2))
+    a = jnp.where(small, 1.0 - t2 / 6.0 + t2 * t2 / 120.0, jnp.sin(t) / t)
+    b = jnp.where(small, 0.5 - t2 / 24.0 + t2 * t2 / 720.0, (1.0 - jnp.cos(t)) / (t * t))
+    k = _skew(r)
+    return jnp.eye(3, dtype=r.dtype) + a[..., None, None] * k + b[..., None, None] * (k @ k)
+
+
+def matrix_to_rotvec(m):
+    """[..., 3, 3] -> [..., 3] via the quaternion (Shepperd's method), stable near 0 and near pi."""
+    m00, m01, m02 = m[..., 0, 0], m[..., 0, 1], m[..., 0, 2]
+    m10, m11, m12 = m[..., 1, 0], m[..., 1, 1], m[..., 1, 2]
+    m20, m21, m22 = m[..., 2, 0], m[..., 2, 1], m[..., 2, 2]
+    tr = m00 + m11 + m22
+    cands = jnp.stack([
+        jnp.stack([1.0 + tr, m21 - m12, m02 - m20, m10 - m01], -1),
+        jnp.stack([m21 - m12, 1.0 + m00 - m11 - m22, m01 + m10, m02 + m20], -1),
+        jnp.stack([m02 - m20, m01 + m10, 1.0 - m00 + m11 - m22, m12 + m21], -1),
+        jnp.stack([m10 - m01, m02 + m20, m12 + m21, 1.0 - m00 - m11 + m22], -1)], -2)
+    which = jnp.argmax(jnp.stack([tr, m00, m11, m22], -1), -1)
+    q = jnp.take_along_axis(cands, which[..., None, None], axis=-2)[..., 0, :]
+    q = q / jnp.linalg.norm(q, axis=-1, keepdims=True)
+    q = jnp.where(q[..., :1] < 0, -q, q)
+    w, v = q[..., 0], q[..., 1:]
+    n = jnp.linalg.norm(v, axis=-1)
+    small = n < 1e-7
+    scale = jnp.where(small, 2.0 / jnp.maximum(w, 1e-12), 2.0 * jnp.arctan2(n, w) / jnp.where(small, 1.0, n))
+    return v * scale[..., None]
+
+
+def step(state, action):
+    """One commanded raw action [7] applied to the state [7]."""
+    rot = matrix_to_rotvec(rotvec_to_matrix(action[3:6]) @ rotvec_to_matrix(state[3:6]))
+    return jnp.concatenate([state[:3] + action[:3], rot, action[6:7]]).astype(state.dtype)
+
+
+def integrate(state, actions):
+    """States after each of ``actions`` [n, 7]: returns (final state [7], states [n, 7])."""
+
+    def body(s, a):
+        s = step(s, a)
+        return s, s
+
+    return jax.lax.scan(body, state, actions)

@@ -1,0 +1,384 @@
+"""Closed-loop rollouts inside the world model (Algorithm 1 of DESIGN.md), on device, and offline (open-loop) replay.
+
+One chunk (per initial condition; ``vmap`` over a batch of them, the batch sharded over the mesh's data axes):
+
+    obs      = (last context frame of every view as uint8, imagined state, task)
+    a[0:C]   = policy(obs, k_policy)                      raw actions, C = policy chunk (25) >= l' (24)
+    v[0:l']  = FD-sample(context, normalise(a[0:l']))     S Euler steps (flow.sample), every view
+    â[0:l']  = ID-sample(context, v[0:l'])                re-read the actions from the predicted frames
+    U        = mean_{i<l} ||normalise(a_i) - â_i||_2      l = kept frames (16), NORMALISED action units
+    done'    = done | (U > tau)
+    if not done': context = last K frames of [context, v[0:l]];  state = integrate(state, a[0:l])
+    emit (decode(v[0:l]) as uint8, a[0:l], denormalise(â[0:l]), U, done')
+
+Decisions (see docs/rollout.md for more):
+* Static shapes: the context is a fixed [V, K, P, D] token buffer updated by a static concat + slice (the ring
+  buffer, kept in temporal order because the model's RoPE positions are frame indices); termination is a mask.
+  A chunk whose U exceeds tau is *not* pushed into the context and everything after it is marked invalid; the scan
+  still computes the later chunks (on the frozen context) so shapes stay static. Their U values are emitted but are
+  not those of an untruncated rollout: to sweep tau after the fact run once with ``tau=inf`` and cut with
+  :func:`terminated_at` -- identical, up to the termination chunk, to a run with that tau.
+* U is the mean over the l kept steps of the L2 norm over the 7 action dimensions, in the model's normalised units
+  (per-dimension unit variance), so tau is comparable across dimensions and robots.
+* Frames advance at ``control_hz``: the model runs with frame stride ``round(data_fps / control_hz)`` (20 Hz data,
+  10 Hz control -> 2) and one policy action per predicted frame.
+* State: no simulator, so the commanded actions are integrated onto the initial end-effector pose
+  (``sc3_jax.imagination_state``); only the l executed actions of each chunk are integrated.
+* Randomness: episode ``b`` has its own key; chunk ``c`` uses ``fold_in(key_b, c)`` split into (policy, FD, ID)
+  keys. Results therefore do not depend on the batch composition or the number of devices, and the host loop
+  (:meth:`Rollout.run_host`) reproduces the scan (:meth:`Rollout.run`) by driving the very same per-chunk functions
+  (observe -> policy on the host -> model step).
+* Context caching: ``flow.sample`` reuses the context keys/values over the S sampler steps when
+  ``cfg.model.context_attention == "causal"`` (``use_cache`` overrides, for checks and benchmarks).
+"""
+from __future__ import annotations
+
+import dataclasses
+import functools
+import inspect
+import math
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from sc3_jax import flow, imagination_state, modes, sharding
+from sc3_jax.config import Config, MeshConfig
+from sc3_jax.model import dit
+from sc3_jax.model.tokenizer import make_tokenizer, to_uint8
+from sc3_jax.policies.base import JaxPolicy, as_host
+
+
+# ================================================================================================================
+# Static description of a rollout
+# ================================================================================================================
+@dataclasses.dataclass(frozen=True)
+class RolloutSpec:
+    views: int
+    image_size: tuple[int, int]
+    context: int  # K
+    predict: int  # l'
+    keep: int  # l
+    policy_chunk: int  # C
+    num_chunks: int
+    stride: int
+    steps: int  # Euler steps per sampler call
+
+    @property
+    def num_frames(self) -> int:
+        return self.num_chunks * self.keep
+
+
+def make_spec(cfg: Config, data_fps: float = 20.0, num_chunks: int | None = None) -> RolloutSpec:
+    r, d = cfg.rollout, cfg.data
+    if not 1 <= r.keep_frames <= d.future_frames:
+        raise ValueError(f"rollout.keep_frames={r.keep_frames} must be in [1, data.future_frames={d.future_frames}]")
+    if r.policy_chunk < d.future_frames:
+        raise ValueError(f"rollout.policy_chunk={r.policy_chunk} < data.future_frames={d.future_frames}: the model "
+                         "needs an action for every predicted frame")
+    stride = data_fps / r.control_hz
+    if abs(stride - round(stride)) > 1e-6 or round(stride) < 1:
+        raise ValueError(f"data fps {data_fps} / control_hz {r.control_hz} is not a positive integer frame stride")
+    if num_chunks is None:
+        num_chunks = math.ceil(r.episode_seconds * r.control_hz / r.keep_frames - 1e-9)
+    return RolloutSpec(len(d.views), tuple(d.image_size), d.context_frames, d.future_frames, r.keep_frames,
+                       r.policy_chunk, int(num_chunks), int(round(stride)), cfg.sample.steps)
+
+
+class InitialConditions(NamedTuple):
+    frames: Any  # uint8 [B, V, K, H, W, 3] the first K context frames (at the rollout's stride)
+    state: Any  # float32 [B, 7] end-effector pose at the last context frame
+    task: Any  # int32 [B]
+
+
+class Carry(NamedTuple):  # one episode (no batch axis); vmapped
+    context: jax.Array  # [V, K, P, D] tokens
+    state: jax.Array  # [7]
+    done: jax.Array  # bool []
+    chunk: jax.Array  # int32 []
+
+
+def episode_keys(seed: int, n: int, start: int = 0) -> jax.Array:
+    """Per-episode keys (raw uint32 data [n, 2]); episode i's key depends only on (seed, start + i)."""
+    base = jax.random.key(seed)
+    return jax.vmap(lambda i: jax.random.key_data(jax.random.fold_in(base, i)))(jnp.arange(start, start + n))
+
+
+def terminated_at(u: np.ndarray, tau: float) -> np.ndarray:
+    """First chunk with U > tau per episode (-1: never). ``u`` [B, N]. Cutting a ``tau=inf`` rollout with this gives
+    exactly the termination a rollout run with ``tau`` reports."""
+    above = np.asarray(u) > tau
+    return np.where(above.any(-1), above.argmax(-1), -1).astype(np.int32)
+
+
+# ================================================================================================================
+# One chunk (per episode), in the pieces the scan and the host loop share
+# ================================================================================================================
+class _Steps:
+    """The per-episode chunk functions, closed over the (hashable) model config, spec and cache flag only, so their
+    jitted versions are shared by every Rollout with the same key (see ``_compiled``)."""
+
+    def __init__(self, model_cfg, spec: RolloutSpec, use_cache: bool | None):
+        self.model_cfg, self.spec, self.use_cache = model_cfg, spec, use_cache
+        self.tok = make_tokenizer(model_cfg)
+        self.grid = self.tok.grid(spec.image_size)
+
+    def init(self, frames, state) -> Carry:
+        return Carry(self.tok.encode(frames), jnp.asarray(state, jnp.float32), jnp.zeros((), bool),
+                     jnp.zeros((), jnp.int32))
+
+    def keys(self, key_data, chunk):
+        """(policy, forward, inverse) keys of this chunk."""
+        k = jax.random.fold_in(jax.random.wrap_key_data(key_data), chunk)
+        return jax.random.split(k, 3)
+
+    def observe(self, carry: Carry, task, key_data):
+        obs = {"images": to_uint8(self.tok.decode(carry.context[:, -1], self.spec.image_size)),
+               "state": carry.state, "task": jnp.asarray(task, jnp.int32)}
+        return obs, jax.random.key_data(self.keys(key_data, carry.chunk)[0])
+
+    def model_step(self, params, norm, carry: Carry, actions, key_data, tau):
+        """Algorithm 1 after the policy: ``actions`` raw [C, 7] -> (next carry, emitted arrays). ``norm`` [2, 7]:
+        the per-dimension action mean and std."""
+        s, m = self.spec, self.model_cfg
+        K, T, l, V = s.context, s.predict, s.keep, s.views
+        _, k_fd, k_id = self.keys(key_data, carry.chunk)
+        mean, std = norm[0], norm[1]
+        a = (actions[:T].astype(jnp.float32) - mean) / std  # normalised [T, 7]
+        stride = jnp.full((1,), s.stride, jnp.int32)
+        ctx = carry.context[None]
+        video = jnp.concatenate([ctx, jnp.zeros((1, V, T) + ctx.shape[3:], ctx.dtype)], axis=2)
+        # forward dynamics: every view's future frames from the context and the commanded actions
+        vn, an = modes.fixed(modes.FD, 1, V, K, T)
+        video, _ = flow.sample(params, m, video, a[None], stride, vn, an, k_fd, s.steps, self.grid, self.use_cache)
+        # inverse dynamics: re-read the actions from the context and the predicted frames
+        vn, an = modes.fixed(modes.ID, 1, V, K, T)
+        _, a_hat = flow.sample(params, m, video, jnp.zeros_like(a)[None], stride, vn, an, k_id, s.steps, self.grid,
+                               self.use_cache)
+        a_hat = a_hat[0]
+        u = jnp.mean(jnp.linalg.norm(a[:l] - a_hat[:l], axis=-1))
+        done = carry.done | (u > tau)
+        kept = video[0, :, K:K + l]  # [V, l, P, D]
+        context = jnp.concatenate([carry.context, kept], axis=1)[:, -K:]
+        state, states = imagination_state.integrate(carry.state, actions[:l].astype(jnp.float32))
+        new = Carry(jnp.where(done, carry.context, context), jnp.where(done, carry.state, state), done,
+                    carry.chunk + 1)
+        emit = {"frames": to_uint8(self.tok.decode(kept, s.image_size)), "actions": actions[:l].astype(jnp.float32),
+                "reread": a_hat[:l] * std + mean, "states": states, "u": u, "done": done}
+        return new, emit
+
+
+# ================================================================================================================
+# Batched drivers: scan (JAX policy or recorded actions) and host loop (any HostPolicy)
+# ================================================================================================================
+class Rollout:
+    """Rollouts of one world model (config + normalisation stats) over batches of initial conditions.
+
+    ``run`` (scan, JAX policy), ``run_host`` (Python loop, host policy), ``run_offline`` (recorded actions) all return
+    a dict of numpy arrays, B episodes, N chunks, l kept frames per chunk::
+
+        frames uint8 [B, V, N*l, H, W, 3]   predicted frames kept per chunk (invalid ones after termination too)
+        initial_frames uint8 [B, V, K, H, W, 3]
+        actions float32 [B, N*l, 7]         commanded raw actions a[0:l] of every chunk
+        reread  float32 [B, N*l, 7]         raw actions re-read by the inverse mode
+        states  float32 [B, N*l, 7]         imagined end-effector pose after each commanded action
+        u float32 [B, N], done bool [B, N]  U_chunk and done' after each chunk; valid = ~done
+        frame_valid bool [B, N*l], terminated_at int32 [B] (-1 never), termination_rate float, tau float
+    """
+
+    def __init__(self, cfg: Config, norm_stats, mesh=None, data_fps: float = 20.0, num_chunks: int | None = None,
+                 use_cache: bool | None = None):
+        self.cfg = cfg
+        self.spec = make_spec(cfg, data_fps, num_chunks)
+        self.mesh = mesh if mesh is not None else sharding.make_mesh(MeshConfig(-1, 1, 1))
+        self._batch = sharding.batch_sharding(self.mesh)
+        self._repl = sharding.replicated(self.mesh)
+        self.batch_multiple = self.mesh.shape["data"] * self.mesh.shape["fsdp"]
+        self.norm = jax.device_put(np.stack([norm_stats.mean, norm_stats.std]).astype(np.float32), self._repl)
+        self.steps, self._init, self._observe, self._model_step_fn, self._scan_policy, self._scan_actions = \
+            _compiled(cfg.model, self.spec, use_cache)
+
+    def _model_step(self, params, carry, actions, keys, tau):
+        return self._model_step_fn(params, self.norm, carry, actions, keys, tau)
+
+    # -- placement ---------------------------------------------------------------------------------------------
+    def place_params(self, params):
+        axes = dit.param_axes(self.cfg.model, self.steps.tok.token_dim, self.steps.grid)
+        shard = jax.tree.map(lambda ax, x: sharding.named(self.mesh, ax, x.shape), axes, params,
+                             is_leaf=lambda a: type(a) is tuple)
+        return jax.device_put(params, shard)
+
+    def _pad(self, x: np.ndarray, n: int) -> jax.Array:
+        x = np.asarray(x)
+        if x.shape[0] < n:
+            x = np.concatenate([x, np.repeat(x[-1:], n - x.shape[0], 0)], 0)
+        return jax.device_put(x, self._batch)
+
+    def _inputs(self, ics: InitialConditions, keys):
+        B = np.shape(ics.frames)[0]
+        n = -(-B // self.batch_multiple) * self.batch_multiple
+        frames, state = self._pad(ics.frames, n), self._pad(np.asarray(ics.state, np.float32), n)
+        task, keys = self._pad(np.asarray(ics.task, np.int32), n), self._pad(np.asarray(keys), n)
+        return B, frames, state, task, keys
+
+    # -- scan paths ----------------------------------------------------------------------------------------------
+    def run(self, params, policy: JaxPolicy, ics: InitialConditions, keys, tau: float | None = None) -> dict:
+        """Closed loop, the whole episode in one jitted ``lax.scan``; ``keys`` from :func:`episode_keys`."""
+        self._check_chunk(policy.chunk, policy.name)
+        tau = self.cfg.rollout.tau if tau is None else tau
+        B, frames, state, task, keys = self._inputs(ics, keys)
+        params, policy_params = self.place_params(params), jax.device_put(policy.params, self._repl)
+        emits = self._scan_policy(policy.apply, params, self.norm, policy_params, frames, state, task, keys,
+                                  jnp.float32(tau))
+        return self._finish(jax.device_get(emits), ics, B, tau, chunk_axis=0)
+
+    def run_offline(self, params, ics: InitialConditions, actions, keys, tau: float = math.inf,
+                    targets=None) -> dict:
+        """Open loop: ``actions`` raw [B, N, >= l', 7] (the recorded actions of each chunk) replace the policy.
+        With ``targets`` uint8 [B, V, N*l, H, W, 3] (the recorded frames) adds ``psnr`` [B, V, N*l] per frame and
+        view, and ``psnr_view`` [B, V] (mean over valid frames, where finite)."""
+        actions = np.asarray(actions, np.float32)
+        if actions.shape[1] != self.spec.num_chunks or actions.shape[2] < self.spec.predict:
+            raise ValueError(f"actions {list(actions.shape)}: expected [B, {self.spec.num_chunks}, "
+                             f">={self.spec.predict}, 7]")
+        B, frames, state, task, keys = self._inputs(ics, keys)
+        emits = self._scan_actions(self.place_params(params), self.norm, frames, state, task, keys, jnp.float32(tau), self._pad(actions, len(keys)))
+        out = self._finish(jax.device_get(emits), ics, B, tau, chunk_axis=0)
+        if targets is not None:
+            from sc3_jax.evaluate.metrics import psnr
+            out["psnr"] = np.asarray(psnr(out["frames"], np.asarray(targets)), np.float32)
+            masked = np.where(out["frame_valid"][:, None] & np.isfinite(out["psnr"]), out["psnr"], np.nan)
+            with np.errstate(all="ignore"):
+                out["psnr_view"] = np.nanmean(masked, axis=-1).astype(np.float32)
+        return out
+
+    # -- host loop ---------------------------------------------------------------------------------------------
+    def run_host(self, params, policy, ics: InitialConditions, keys, tau: float | None = None,
+                 progress: bool = False, skip_done: bool = False) -> dict:
+        """Closed loop from Python: per chunk, the jitted ``observe`` -> ``policy.infer`` on the host for every
+        episode -> the jitted model step. A JaxPolicy is wrapped with ``as_host``; a host policy whose ``infer``
+        takes ``rng`` gets the same per-chunk key as the scan, so both paths agree. ``skip_done=True`` does not query
+        the policy for finished episodes (saves remote calls; their later, invalid chunks then differ from ``run``)."""
+        if isinstance(policy, JaxPolicy):
+            policy = as_host(policy)
+        self._check_chunk(policy.chunk, type(policy).__name__)
+        takes_rng = "rng" in inspect.signature(policy.infer).parameters
+        tau = self.cfg.rollout.tau if tau is None else tau
+        B, frames, state, task, keys = self._inputs(ics, keys)
+        params = self.place_params(params)
+        carry = self._init(frames, state)
+        emits = []
+        chunks = range(self.spec.num_chunks)
+        if progress:
+            from tqdm import tqdm
+            chunks = tqdm(chunks, desc="rollout chunks", unit="chunk")
+        for _ in chunks:
+            obs, k_pol = jax.device_get(self._observe(carry, task, keys))
+            done = np.asarray(jax.device_get(carry.done))
+            acts = np.zeros((len(k_pol), self.spec.policy_chunk, 7), np.float32)
+            for b in range(B):  # padded episodes copy episode B-1: reuse its actions
+                if skip_done and done[b]:
+                    continue
+                ob = {k: v[b] for k, v in obs.items()}
+                a = policy.infer(ob, rng=jax.random.wrap_key_data(k_pol[b])) if takes_rng else policy.infer(ob)
+                a = np.asarray(a, np.float32)
+                if a.ndim != 2 or a.shape[0] < self.spec.predict or a.shape[1] != 7:
+                    raise ValueError(f"policy returned actions of shape {list(a.shape)}, expected "
+                                     f"[>={self.spec.predict}, 7]")
+                acts[b] = a[:self.spec.policy_chunk] if a.shape[0] >= self.spec.policy_chunk else np.pad(
+                    a, ((0, self.spec.policy_chunk - a.shape[0]), (0, 0)), mode="edge")
+            acts[B:] = acts[B - 1]
+            carry, emit = self._model_step(params, carry, self._pad(acts, len(acts)), keys, jnp.float32(tau))
+            emits.append(jax.device_get(emit))
+        stacked = {k: np.stack([e[k] for e in emits]) for k in emits[0]}
+        return self._finish(stacked, ics, B, tau, chunk_axis=0)
+
+    # -- helpers -----------------------------------------------------------------------------------------------
+    def _check_chunk(self, chunk: int, name: str):
+        if chunk < self.spec.predict:
+            raise ValueError(f"policy {name} proposes {chunk} actions per call; the world model predicts "
+                             f"{self.spec.predict} frames per chunk and needs one action each")
+
+    def _finish(self, emits: dict, ics: InitialConditions, B: int, tau: float, chunk_axis: int) -> dict:
+        """[N, Bpad, ...] per-chunk emissions -> the documented [B, ...] episode arrays."""
+        s = self.spec
+        e = {k: np.moveaxis(np.asarray(v), chunk_axis, 1)[:B] for k, v in emits.items()}  # [B, N, ...]
+        frames = e["frames"]  # [B, N, V, l, H, W, 3]
+        frames = np.moveaxis(frames, 2, 1).reshape(B, s.views, s.num_frames, *frames.shape[-3:])
+        flat = lambda x: x.reshape(B, s.num_frames, *x.shape[3:])  # noqa: E731  [B, N, l, ...] -> [B, N*l, ...]
+        done = e["done"].astype(bool)
+        return {"frames": frames, "initial_frames": np.asarray(ics.frames), "actions": flat(e["actions"]),
+                "reread": flat(e["reread"]), "states": flat(e["states"]), "u": e["u"].astype(np.float32),
+                "done": done, "frame_valid": np.repeat(~done, s.keep, axis=1),
+                "terminated_at": np.where(done.any(-1), done.argmax(-1), -1).astype(np.int32),
+                "termination_rate": float(done.any(-1).mean()), "tau": float(tau)}
+
+
+# ================================================================================================================
+# The jitted programs, shared by every Rollout with the same (model config, spec, cache flag)
+# ================================================================================================================
+@functools.lru_cache(maxsize=32)
+def _compiled(model_cfg, spec: RolloutSpec, use_cache: bool | None):
+    st = _Steps(model_cfg, spec, use_cache)
+    step_b = jax.vmap(st.model_step, in_axes=(None, None, 0, 0, 0, None))
+
+    def scan(params, norm, carry, task, keys, tau, actions_fn, xs):
+        def body(carry, x):
+            obs, k_pol = jax.vmap(st.observe)(carry, task, keys)
+            return step_b(params, norm, carry, actions_fn(obs, k_pol, x), keys, tau)
+
+        return jax.lax.scan(body, carry, xs, length=spec.num_chunks)[1]
+
+    def scan_policy(policy_apply, params, norm, policy_params, frames, state, task, keys, tau):
+        carry = jax.vmap(st.init)(frames, state)
+        act = lambda o, k: policy_apply(policy_params, o, jax.random.wrap_key_data(k))  # noqa: E731
+        return scan(params, norm, carry, task, keys, tau, lambda obs, k, _: jax.vmap(act)(obs, k), None)
+
+    def scan_actions(params, norm, frames, state, task, keys, tau, actions):
+        carry = jax.vmap(st.init)(frames, state)
+        return scan(params, norm, carry, task, keys, tau, lambda obs, k, x: x, jnp.swapaxes(actions, 0, 1))
+
+    return (st, jax.jit(jax.vmap(st.init)), jax.jit(jax.vmap(st.observe)), jax.jit(step_b),
+            jax.jit(scan_policy, static_argnums=(0,)), jax.jit(scan_actions))
+
+
+# ================================================================================================================
+# Initial conditions and recorded actions from an episode store
+# ================================================================================================================
+def from_episode(ep, views, spec: RolloutSpec, start: int = 0, task: int = 0):
+    """(initial conditions of one episode [no batch axis], recorded raw actions [N, l', 7], recorded frames
+    [V, N*l, H, W, 3]) for an offline rollout starting at frame ``start``. Rollout step i (i = 0 is the last
+    context frame) is episode frame ``start + stride * (K - 1 + i)``; its action is the composition of the
+    ``stride`` recorded actions in between (``pipeline.compose_actions``)."""
+    from sc3_jax.data.pipeline import compose_actions
+
+    s = spec
+    frame_at = lambda i: start + s.stride * (s.context - 1 + i)  # noqa: E731
+    if max_offline_chunks(ep.length, s, start) < s.num_chunks:
+        raise ValueError(f"episode {ep.episode_id}: {ep.length} frames are too few for an offline rollout of "
+                         f"{s.num_chunks} chunks at stride {s.stride} from frame {start}; at most "
+                         f"{max_offline_chunks(ep.length, s, start)} (max_offline_chunks)")
+    ctx_idx = [frame_at(i) for i in range(-(s.context - 1), 1)]
+    frames = np.stack([np.asarray(ep.frames[v])[ctx_idx] for v in views])
+    step_actions = np.stack([compose_actions(ep.actions, frame_at(i), s.stride)
+                             for i in range((s.num_chunks - 1) * s.keep + s.predict)])
+    actions = np.stack([step_actions[c * s.keep: c * s.keep + s.predict] for c in range(s.num_chunks)])
+    tgt_idx = [frame_at(i) for i in range(1, s.num_frames + 1)]
+    targets = np.stack([np.asarray(ep.frames[v])[tgt_idx] for v in views])
+    return (frames, np.asarray(ep.ee_pose[frame_at(0)], np.float32), np.int32(task)), actions, targets
+
+
+def max_offline_chunks(length: int, spec: RolloutSpec, start: int = 0) -> int:
+    """The most chunks an episode of ``length`` frames supports from ``start`` (see :func:`from_episode`)."""
+    s = spec
+    frame_at = lambda i: start + s.stride * (s.context - 1 + i)  # noqa: E731
+    n = 0  # chunk n+1 needs the actions of steps < n*l + l' (frames up to frame_at(n*l + l') - 1) and its targets
+    while frame_at(n * s.keep + s.predict) <= length and frame_at((n + 1) * s.keep) < length:
+        n += 1
+    return n
+
+
+def stack_initial_conditions(items) -> InitialConditions:
+    frames, state, task = zip(*items)
+    return InitialConditions(np.stack(frames), np.stack(state).astype(np.float32), np.asarray(task, np.int32))

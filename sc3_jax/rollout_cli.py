@@ -1,0 +1,241 @@
+"""``sc3 rollout``: closed-loop (and optionally offline) rollouts of a trained world model, written as arrays and videos.
+
+    sc3 rollout --checkpoint runs/tiny --policy zero --initial-conditions runs/synthetic/heldout --out runs/ro \\
+        [--episodes 8] [--tau 0.02|inf] [--num-chunks N] [--offline] [--seed 0]
+
+``--checkpoint``: a training workdir (``config.json``, ``norm_stats.json``, ``checkpoints/``).
+``--policy``: ``zero`` | ``random`` (built-in JAX policies), ``ws://HOST:PORT`` (an openpi policy server, see
+``--family``), or ``package.module:attr`` (a JaxPolicy / HostPolicy, or a zero-argument factory of one). JAX policies
+run inside the scan; host policies are called between jitted chunk steps.
+``--initial-conditions``: an episode store (its first K frames at the rollout stride and the pose at the last of them)
+or an ``.npz`` with ``frames`` uint8 [B, V, K, H, W, 3], ``state`` float32 [B, 7] and optionally ``task`` int32 [B].
+Writes ``OUT/rollout.npz`` (every array of ``Rollout.run``, see sc3_jax/rollout.py), ``OUT/summary.json``, one
+``OUT/<episode>_<view>.mp4`` per episode and view (context frames, then the kept frames up to termination) and, with
+``--offline`` (episode stores only), ``OUT/offline.npz`` with PSNR per frame and view against the recorded frames.
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import importlib
+import json
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+
+
+def config_from_dict(d: dict, default=None):
+    """Rebuild a Config from ``dataclasses.asdict`` output (``config.json``); lists become tuples, unknown keys are
+    dropped with a warning (configs evolve), missing keys keep their defaults."""
+    from sc3_jax.config import Config
+
+    default = Config() if default is None else default
+    changes = {}
+    for f in dataclasses.fields(default):
+        if f.name not in d:
+            continue
+        cur, val = getattr(default, f.name), d[f.name]
+        if dataclasses.is_dataclass(cur):
+            changes[f.name] = config_from_dict(val, cur)
+        elif isinstance(cur, tuple):
+            changes[f.name] = tuple(tuple(v) if isinstance(v, list) else v for v in val)
+        else:
+            changes[f.name] = val
+    unknown = set(d) - {f.name for f in dataclasses.fields(default)}
+    if unknown:
+        print(f"sc3 rollout: ignoring unknown config fields {sorted(unknown)}", file=sys.stderr)
+    return dataclasses.replace(default, **changes)
+
+
+def resolve_policy(spec: str, cfg, family: str | None = None):
+    from sc3_jax.policies import simple
+    from sc3_jax.policies.base import JaxPolicy
+
+    chunk = cfg.rollout.policy_chunk
+    if spec in simple.BUILTIN:
+        return simple.BUILTIN[spec](chunk=chunk)
+    if spec.startswith(("ws://", "wss://")):
+        from sc3_jax.policies.openpi import WebsocketClientPolicy
+
+        return WebsocketClientPolicy(spec, port=None, mapping=None if family in (None, "native") else family)
+    if ":" not in spec:
+        raise ValueError(f"--policy {spec!r}: expected one of {sorted(simple.BUILTIN)}, ws://HOST:PORT or "
+                         "package.module:attr")
+    mod, attr = spec.split(":", 1)
+    obj = importlib.import_module(mod)
+    for part in attr.split("."):
+        obj = getattr(obj, part)
+    if not isinstance(obj, JaxPolicy) and not callable(getattr(obj, "infer", None)):
+        obj = obj()
+    if not isinstance(obj, JaxPolicy) and not callable(getattr(obj, "infer", None)):
+        raise TypeError(f"{spec} is neither a JaxPolicy nor a HostPolicy")
+    return obj
+
+
+def load_initial_conditions(path: str, cfg, spec, episodes: int | None, start: int, task: int):
+    """(ids, InitialConditions, store or None)."""
+    from sc3_jax import rollout
+
+    p = Path(path)
+    if p.suffix == ".npz":
+        z = np.load(p)
+        n = len(z["frames"]) if episodes is None else min(episodes, len(z["frames"]))
+        tasks = z["task"][:n] if "task" in z else np.full(n, task, np.int32)
+        ids = [f"ic{i:04d}" for i in range(n)]
+        return ids, rollout.InitialConditions(z["frames"][:n], z["state"][:n].astype(np.float32),
+                                              tasks.astype(np.int32)), None
+    from sc3_jax.data.episodes import EpisodeStore
+
+    store = EpisodeStore(p)
+    ids = store.episode_ids()[:episodes]
+    if not ids:
+        raise ValueError(f"{p}: no episodes")
+    K, s = spec.context, spec.stride
+    items = []
+    for eid in ids:
+        ep = store.load(eid)
+        idx = [start + s * i for i in range(K)]
+        if idx[-1] >= ep.length:
+            raise ValueError(f"episode {eid}: {ep.length} frames, the initial context needs frame {idx[-1]}")
+        frames = np.stack([np.asarray(ep.frames[v])[idx] for v in cfg.data.views])
+        items.append((frames, np.asarray(ep.ee_pose[idx[-1]], np.float32), np.int32(task)))
+    return ids, rollout.stack_initial_conditions(items), store
+
+
+def write_videos(out: Path, ids, result: dict, views, fps: float) -> list[str]:
+    import cv2
+
+    written = []
+    for b, eid in enumerate(ids):
+        valid = result["frame_valid"][b]
+        for v, view in enumerate(views):
+            frames = np.concatenate([result["initial_frames"][b, v], result["frames"][b, v][valid]])
+            H, W = frames.shape[1:3]
+            path = out / f"{eid}_{view}.mp4"
+            writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), float(fps), (W, H))
+            if not writer.isOpened():
+                raise RuntimeError(f"OpenCV cannot write {path} with the mp4v codec")
+            for f in frames:
+                writer.write(cv2.cvtColor(np.ascontiguousarray(f), cv2.COLOR_RGB2BGR))
+            writer.release()
+            written.append(path.name)
+    return written
+
+
+def _batches(n: int, size: int):
+    for i in range(0, n, size):
+        yield slice(i, min(i + size, n))
+
+
+def _run_batched(fn, n: int, size: int, progress: bool, desc: str) -> dict:
+    """Run ``fn(slice)`` over batches of episodes and concatenate the per-episode arrays."""
+    parts = []
+    it = list(_batches(n, size))
+    if progress:
+        from tqdm import tqdm
+        it = tqdm(it, desc=desc, unit="batch")
+    for sl in it:
+        parts.append(fn(sl))
+    out = {}
+    for k, v in parts[0].items():
+        out[k] = np.concatenate([p[k] for p in parts]) if isinstance(v, np.ndarray) and v.ndim > 0 else v
+    done = out["done"]
+    out["termination_rate"] = float(done.any(-1).mean())
+    return out
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="sc3 rollout", description=__doc__.split("\n\n")[0])
+    p.add_argument("--checkpoint", required=True, help="training workdir (config.json, norm_stats.json, checkpoints/)")
+    p.add_argument("--step", type=int, default=None, help="checkpoint step (default: latest)")
+    p.add_argument("--policy", required=True, help="zero | random | ws://HOST:PORT | package.module:attr")
+    p.add_argument("--family", default="native", help="openpi observation mapping for ws:// policies")
+    p.add_argument("--initial-conditions", required=True, help="episode store directory or .npz")
+    p.add_argument("--out", required=True)
+    p.add_argument("--episodes", type=int, default=None, help="use the first N initial conditions")
+    p.add_argument("--start", type=int, default=0, help="first frame of the initial context in each episode")
+    p.add_argument("--task", type=int, default=0, help="task id given to the policy (stores carry no task id)")
+    p.add_argument("--tau", type=float, default=None, help="termination threshold (default: config; 'inf' never)")
+    p.add_argument("--num-chunks", type=int, default=None, help="default: episode_seconds * control_hz / keep")
+    p.add_argument("--batch-size", type=int, default=None, help="episodes per jitted call (default: all)")
+    p.add_argument("--data-fps", type=float, default=None, help="frame rate the model was trained at (default: "
+                   "the store's fps, else 20)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--offline", action="store_true", help="also replay the recorded actions (episode stores only)")
+    p.add_argument("--no-video", action="store_true")
+    p.add_argument("--no-progress", action="store_true")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
+    from sc3_jax import rollout, train
+    from sc3_jax.config import load_config
+    from sc3_jax.data.pipeline import NormStats
+    from sc3_jax.policies.base import JaxPolicy
+
+    work = Path(args.checkpoint)
+    cfg = config_from_dict(json.loads((work / "config.json").read_text())) if (work / "config.json").exists() \
+        else load_config("tiny")
+    stats = NormStats.load(work / "norm_stats.json")
+    params = train.load_params(work, cfg, args.step)
+    data_fps = args.data_fps
+    if data_fps is None:
+        ic = Path(args.initial_conditions)
+        data_fps = json.loads((ic / "dataset.json").read_text())["fps"] if (ic / "dataset.json").exists() else 20.0
+    ro = rollout.Rollout(cfg, stats, data_fps=data_fps, num_chunks=args.num_chunks)
+    ids, ics, store = load_initial_conditions(args.initial_conditions, cfg, ro.spec, args.episodes, args.start,
+                                              args.task)
+    policy = resolve_policy(args.policy, cfg, args.family)
+    tau = cfg.rollout.tau if args.tau is None else args.tau
+    n = len(ids)
+    size = args.batch_size or n
+    progress = not args.no_progress
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    keys = np.asarray(rollout.episode_keys(args.seed, n))
+    pick = lambda sl: rollout.InitialConditions(*(np.asarray(x)[sl] for x in ics))  # noqa: E731
+    if isinstance(policy, JaxPolicy):
+        result = _run_batched(lambda sl: ro.run(params, policy, pick(sl), keys[sl], tau), n, size, progress,
+                              "rollout")
+    else:
+        result = _run_batched(lambda sl: ro.run_host(params, policy, pick(sl), keys[sl], tau, progress=progress,
+                                                     skip_done=True), n, size, False, "rollout")
+    meta = {"episodes": ids, "policy": args.policy, "tau": tau, "seed": args.seed, "num_chunks": ro.spec.num_chunks,
+            "keep_frames": ro.spec.keep, "stride": ro.spec.stride, "control_hz": cfg.rollout.control_hz}
+    np.savez_compressed(out / "rollout.npz", **{k: v for k, v in result.items()}, episode_ids=np.asarray(ids))
+    summary = {**meta, "termination_rate": result["termination_rate"],
+               "terminated_at": result["terminated_at"].tolist(), "mean_u": result["u"].mean(-1).tolist()}
+    if not args.no_video:
+        summary["videos"] = write_videos(out, ids, result, cfg.data.views, cfg.rollout.control_hz)
+    if args.offline:
+        if store is None:
+            raise ValueError("--offline needs an episode store as --initial-conditions")
+        eps = [store.load(e) for e in ids]
+        n_off = min(rollout.max_offline_chunks(ep.length, ro.spec, args.start) for ep in eps)
+        n_off = min(n_off, ro.spec.num_chunks)
+        if n_off < 1:
+            raise ValueError("episodes too short for one offline chunk")
+        ro_off = rollout.Rollout(cfg, stats, data_fps=data_fps, num_chunks=n_off)
+        items = [rollout.from_episode(ep, cfg.data.views, ro_off.spec, args.start, args.task) for ep in eps]
+        off_ics = rollout.stack_initial_conditions([it[0] for it in items])
+        acts, tgts = np.stack([it[1] for it in items]), np.stack([it[2] for it in items])
+        pick_off = lambda sl: rollout.InitialConditions(*(np.asarray(x)[sl] for x in off_ics))  # noqa: E731
+        off = _run_batched(lambda sl: ro_off.run_offline(params, pick_off(sl), acts[sl], keys[sl], math.inf,
+                                                         tgts[sl]), n, size, progress, "offline")
+        np.savez_compressed(out / "offline.npz", **off, targets=tgts, episode_ids=np.asarray(ids))
+        summary["offline_psnr_per_view"] = dict(zip(cfg.data.views, np.nanmean(off["psnr_view"], 0).tolist()))
+        summary["offline_chunks"] = n_off
+    (out / "summary.json").write_text(json.dumps(summary, indent=1))
+    print(f"rollout: {n} episodes x {ro.spec.num_chunks} chunks, termination rate {result['termination_rate']:.3f} "
+          f"(tau={tau}), mean U {float(result['u'].mean()):.4f} -> {out}")
+    if args.offline:
+        print("offline PSNR per view: " + ", ".join(f"{k} {v:.2f} dB"
+                                                    for k, v in summary["offline_psnr_per_view"].items()))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

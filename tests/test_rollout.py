@@ -1,0 +1,254 @@
+"""Closed-loop rollout engine (sc3_jax/rollout.py): scan vs host loop, U_chunk, termination, context caching, offline
+replay, batching/sharding and the CLI. Tiny random-parameter models: semantics, not learning."""
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from sc3_jax import imagination_state, rollout
+from sc3_jax.config import load_config, replace
+from sc3_jax.data import rotations
+from sc3_jax.data.pipeline import NormStats
+from sc3_jax.evaluate.metrics import psnr, termination_rate
+from sc3_jax.model import dit
+from sc3_jax.model.tokenizer import make_tokenizer, to_uint8
+from sc3_jax.policies import simple
+from sc3_jax.policies.base import as_host
+
+B = 3  # episodes (padded to the 8 test devices)
+N = 3  # chunks
+
+
+def _cfg(**model):
+    cfg = load_config("tiny")
+    return replace(cfg, model=dict(dim=32, depth=1, num_heads=2, num_kv_heads=1, mlp_dim=64, **model),
+                   data=dict(image_size=(8, 8), context_frames=2, future_frames=4),
+                   rollout=dict(policy_chunk=5, keep_frames=3), sample=dict(steps=2))
+
+
+def _params(cfg, seed=0):
+    tok = make_tokenizer(cfg.model)
+    p = dit.init_params(cfg.model, tok.token_dim, jax.random.key(seed), tok.grid(cfg.data.image_size))
+    # non-zero output weights so frames and re-read actions depend on everything
+    return jax.tree.map(lambda x: x + 0.05 * jax.random.normal(jax.random.key(seed + 1), x.shape), p)
+
+
+STATS = NormStats(np.full(7, 0.001, np.float32), np.full(7, 0.01, np.float32))
+
+
+def _ics(cfg, n=B, seed=0):
+    rng = np.random.default_rng(seed)
+    V, K, (H, W) = len(cfg.data.views), cfg.data.context_frames, cfg.data.image_size
+    frames = rng.integers(0, 256, (n, V, K, H, W, 3), dtype=np.uint8)
+    state = np.concatenate([rng.normal(0, 0.1, (n, 3)), rng.normal(0, 0.3, (n, 3)), np.full((n, 1), 0.04)], 1)
+    return rollout.InitialConditions(frames, state.astype(np.float32), np.arange(n, dtype=np.int32) % 2)
+
+
+@pytest.fixture(scope="module")
+def setup():
+    cfg = _cfg()
+    ro = rollout.Rollout(cfg, STATS, num_chunks=N)
+    params = ro.place_params(_params(cfg))
+    policy = simple.linear_policy(jax.random.key(7), len(cfg.data.views), chunk=cfg.rollout.policy_chunk)
+    ics = _ics(cfg)
+    keys = rollout.episode_keys(0, B)
+    ref = ro.run(params, policy, ics, keys, tau=math.inf)
+    return cfg, ro, params, policy, ics, keys, ref
+
+
+def _assert_same(a, b, frame_tol=1, frac=1e-3, atol=1e-5):
+    """Same rollout: float outputs to ``atol``; uint8 frames differ by at most ``frame_tol`` levels on a tiny
+    fraction of pixels (separately compiled XLA programs may round a value differently)."""
+    for k in ("actions", "reread", "states", "u"):
+        np.testing.assert_allclose(a[k], b[k], atol=atol, rtol=1e-5, err_msg=k)
+    np.testing.assert_array_equal(a["done"], b["done"])
+    d = np.abs(a["frames"].astype(int) - b["frames"].astype(int))
+    assert d.max() <= frame_tol and np.mean(d > 0) <= frac, (d.max(), np.mean(d > 0))
+
+
+def test_shapes_and_spec(setup):
+    cfg, ro, params, policy, ics, keys, ref = setup
+    V, (H, W), l = 3, (8, 8), 3
+    assert ref["frames"].shape == (B, V, N * l, H, W, 3) and ref["frames"].dtype == np.uint8
+    assert ref["actions"].shape == ref["reread"].shape == ref["states"].shape == (B, N * l, 7)
+    assert ref["u"].shape == ref["done"].shape == (B, N) and ref["terminated_at"].shape == (B,)
+    np.testing.assert_array_equal(ref["initial_frames"], ics.frames)
+    assert np.all(np.isfinite(ref["u"])) and np.all(ref["u"] > 0)
+    # episodes differ (own keys, own initial conditions): no accidental broadcasting across the batch
+    assert not np.allclose(ref["u"][0], ref["u"][1])
+    # paper defaults: 20 s at 10 Hz with l = 16 -> 13 chunks at frame stride 2 (20 Hz data)
+    spec = rollout.make_spec(load_config("paper"))
+    assert (spec.num_chunks, spec.stride, spec.keep, spec.predict, spec.policy_chunk) == (13, 2, 16, 24, 25)
+    with pytest.raises(ValueError, match="keep_frames"):
+        rollout.make_spec(replace(cfg, rollout=dict(keep_frames=5)))
+    with pytest.raises(ValueError, match="policy_chunk"):
+        rollout.make_spec(replace(cfg, rollout=dict(policy_chunk=3)))
+
+
+def test_scan_and_host_loop_agree(setup):
+    cfg, ro, params, policy, ics, keys, ref = setup
+    host = ro.run_host(params, as_host(policy), ics, keys, tau=math.inf)
+    _assert_same(ref, host)
+    # the policy actually uses its rng and its observation: another seed changes the actions
+    other = ro.run(params, policy, ics, rollout.episode_keys(1, B), tau=math.inf)
+    assert np.abs(other["actions"] - ref["actions"]).max() > 1e-4
+
+
+def test_u_chunk_equals_numpy_recomputation(setup):
+    cfg, ro, params, policy, ics, keys, ref = setup
+    a = STATS.normalize(ref["actions"]).reshape(B, N, 3, 7)
+    a_hat = STATS.normalize(ref["reread"]).reshape(B, N, 3, 7)
+    u = np.linalg.norm(a.astype(np.float64) - a_hat, axis=-1).mean(-1)
+    np.testing.assert_allclose(ref["u"], u, rtol=1e-4, atol=1e-5)
+
+
+def test_termination_at_first_chunk_above_tau(setup):
+    cfg, ro, params, policy, ics, keys, ref = setup
+    u = ref["u"]
+    assert np.all(ref["terminated_at"] == -1) and ref["termination_rate"] == 0.0  # tau = inf never stops
+    # a tau between two of episode 0's chunk values such that it stops after at least one valid chunk
+    c_max = int(np.argmax(u[0]))
+    assert c_max > 0 or N > 1
+    if c_max == 0:  # make chunk 0 pass: tau just above u[0, 0], stop at the first later chunk above it
+        tau = float(u[0, 0]) + 1e-4
+        assert np.any(u[0, 1:] > tau), "need a later chunk above the first one"
+    else:
+        tau = float((u[0, :c_max].max() + u[0, c_max]) / 2)
+    expect = rollout.terminated_at(u, tau)
+    assert expect[0] >= 1
+    out = ro.run(params, policy, ics, keys, tau=tau)
+    np.testing.assert_array_equal(out["terminated_at"], expect)
+    assert out["termination_rate"] == pytest.approx(termination_rate(out["done"])) == np.mean(expect >= 0)
+    for b in range(B):
+        c = expect[b] if expect[b] >= 0 else N
+        assert np.all(~out["done"][b, :c]) and np.all(out["done"][b, c:])
+        assert np.all(out["frame_valid"][b] == (np.arange(N * 3) < c * 3))
+        upto = min(c + 1, N)  # up to and including the terminating chunk the rollout equals the untruncated one
+        np.testing.assert_allclose(out["u"][b, :upto], u[b, :upto], atol=1e-5)
+        np.testing.assert_array_equal(out["frames"][b, :, :upto * 3], ref["frames"][b, :, :upto * 3])
+        if c < N - 1:  # after termination the state (and context) is frozen: later chunks start from the same state
+            base = out["states"][b, c * 3 - 1] if c > 0 else ics.state[b]
+            for cc in range(c + 1, N):
+                _, st = imagination_state.integrate(jnp.asarray(base), jnp.asarray(out["actions"][b, cc * 3:cc * 3 + 3]))
+                np.testing.assert_allclose(out["states"][b, cc * 3:cc * 3 + 3], st, atol=1e-6)
+    # tau = 0: every episode stops at chunk 0
+    zero = ro.run(params, policy, ics, keys, tau=0.0)
+    assert np.all(zero["terminated_at"] == 0) and zero["termination_rate"] == 1.0
+
+
+def test_context_unchanged_by_terminating_chunk(setup):
+    cfg, ro, params, policy, ics, keys, ref = setup
+    B_, frames, state, task, k = ro._inputs(ics, keys)
+    carry = ro._init(frames, state)
+    acts = ro._pad(np.random.default_rng(0).normal(0, 0.01, (len(k), 5, 7)).astype(np.float32), len(k))
+    params = ro.place_params(params)
+    stop, emit = ro._model_step(params, carry, acts, k, jnp.float32(-1.0))  # every U > -1
+    go, _ = ro._model_step(params, carry, acts, k, jnp.float32(math.inf))
+    assert np.all(stop.done) and not np.any(go.done)
+    np.testing.assert_array_equal(stop.context, carry.context)
+    np.testing.assert_array_equal(stop.state, carry.state)
+    assert not np.allclose(go.context, carry.context)
+    # the pushed context is the last K frames of [context, kept l frames]: here l = 3 >= K = 2
+    decoded = to_uint8(jax.vmap(lambda c: ro.steps.tok.decode(c, (8, 8)))(go.context[:B_]))
+    np.testing.assert_array_equal(np.asarray(decoded), np.asarray(emit["frames"][:B_, :, 1:]))
+
+
+def test_cached_and_uncached_rollouts_agree():
+    cfg = _cfg(context_attention="causal")
+    params = _params(cfg, seed=3)
+    policy = simple.linear_policy(jax.random.key(7), 3, chunk=5)
+    ics, keys = _ics(cfg, 2), rollout.episode_keys(0, 2)
+    cached = rollout.Rollout(cfg, STATS, num_chunks=2)  # causal config -> cache by default
+    uncached = rollout.Rollout(cfg, STATS, num_chunks=2, use_cache=False)
+    assert cached.steps.use_cache is None and cfg.model.context_attention == "causal"
+    a = cached.run(params, policy, ics, keys, tau=math.inf)
+    b = uncached.run(params, policy, ics, keys, tau=math.inf)
+    _assert_same(a, b, atol=2e-5)
+
+
+def test_batch_composition_and_sharding_do_not_change_an_episode(setup):
+    cfg, ro, params, policy, ics, keys, ref = setup
+    one = rollout.InitialConditions(ics.frames[1:2], ics.state[1:2], ics.task[1:2])
+    alone = ro.run(params, policy, one, keys[1:2], tau=math.inf)
+    _assert_same({k: v[1:2] for k, v in ref.items() if isinstance(v, np.ndarray)}, alone)
+
+
+def test_imagination_state_matches_numpy_rotations():
+    rng = np.random.default_rng(0)
+    s0 = np.concatenate([rng.normal(size=3), rng.normal(size=3) * 0.8, [0.03]]).astype(np.float32)
+    acts = np.concatenate([rng.normal(0, 0.01, (6, 3)), rng.normal(0, 0.2, (6, 3)), rng.uniform(0, 0.08, (6, 1))],
+                          1).astype(np.float32)
+    acts[2, 3:6] = 0.0  # zero rotation
+    final, states = imagination_state.integrate(jnp.asarray(s0), jnp.asarray(acts))
+    s = s0.astype(np.float64)
+    for i, a in enumerate(acts):
+        s = np.concatenate([s[:3] + a[:3], rotations.compose_rotvec(a[3:6], s[3:6]), a[6:7]])
+        np.testing.assert_allclose(states[i], s, atol=2e-5)
+    np.testing.assert_allclose(final, states[-1])
+
+
+def _store(tmp_path, n=B):
+    from sc3_jax.data import synthetic
+
+    return synthetic.generate(tmp_path / "eps", n, length=40, image_size=(8, 8), seed=0, progress=False)
+
+
+def test_offline_replay_with_recorded_actions(tmp_path, setup):
+    cfg, ro_closed, params, *_ = setup
+    store = _store(tmp_path)
+    ro = rollout.Rollout(cfg, STATS, data_fps=store.fps, num_chunks=N)
+    eps = [store.load(e) for e in store.episode_ids()]
+    assert min(rollout.max_offline_chunks(ep.length, ro.spec) for ep in eps) == 6  # (40 // 2 - 2) // 3
+    items = [rollout.from_episode(ep, store.views, ro.spec) for ep in eps]
+    ics = rollout.stack_initial_conditions([it[0] for it in items])
+    actions, targets = np.stack([it[1] for it in items]), np.stack([it[2] for it in items])
+    # recorded frames at stride 2: context = frames 0, 2; targets = frames 4, 6, ...; action i composes 2 steps
+    np.testing.assert_array_equal(ics.frames[0, 0], eps[0].frames["left"][[0, 2]])
+    np.testing.assert_array_equal(targets[0, 0, :2], eps[0].frames["left"][[4, 6]])
+    np.testing.assert_allclose(ics.state[0], eps[0].ee_pose[2])
+    np.testing.assert_allclose(actions[0, 1, 0, :3], eps[0].actions[2 + 2 * 3: 2 + 2 * 3 + 2, :3].sum(0), atol=1e-6)
+    with pytest.raises(ValueError, match="too few"):
+        rollout.from_episode(eps[0], store.views, rollout.make_spec(cfg, store.fps, num_chunks=7))
+    out = ro.run_offline(params, ics, actions, rollout.episode_keys(0, B), targets=targets)
+    np.testing.assert_allclose(out["actions"], actions[:, :, :3].reshape(B, N * 3, 7))
+    assert out["psnr"].shape == (B, 3, N * 3) and np.all(np.isfinite(out["psnr"]))
+    np.testing.assert_allclose(out["psnr"], psnr(out["frames"], targets), rtol=1e-5)
+    np.testing.assert_allclose(out["psnr_view"], out["psnr"].mean(-1), rtol=1e-5)
+    assert np.all(out["terminated_at"] == -1)
+
+
+def test_cli_writes_arrays_and_videos(tmp_path, setup):
+    import dataclasses
+    import json
+
+    import cv2
+
+    from sc3_jax import rollout_cli, train
+
+    cfg = replace(setup[0], data=dict(path=str(tmp_path / "eps")),
+                  train=dict(workdir=str(tmp_path / "run"), async_checkpointing=False))
+    _store(tmp_path)
+    mngr = train.checkpoint_manager(cfg)
+    train.save(mngr, train.init_state(cfg), {"iterator": {}}, force=True)
+    mngr.wait_until_finished()
+    STATS.save(tmp_path / "run" / "norm_stats.json")
+    (tmp_path / "run" / "config.json").write_text(json.dumps(dataclasses.asdict(cfg)))
+    assert rollout_cli.config_from_dict(json.loads((tmp_path / "run" / "config.json").read_text())) == cfg
+    rc = rollout_cli.main(["--checkpoint", str(tmp_path / "run"), "--policy", "linear", "--initial-conditions",
+                           str(tmp_path / "eps"), "--out", str(tmp_path / "out"), "--num-chunks", str(N),
+                           "--tau", "inf", "--offline", "--no-progress"])
+    assert rc == 0
+    z = np.load(tmp_path / "out" / "rollout.npz")
+    assert z["frames"].shape == (B, 3, N * 3, 8, 8, 3) and z["u"].shape == (B, N)
+    assert list(z["episode_ids"]) == ["ep000000", "ep000001", "ep000002"]
+    off = np.load(tmp_path / "out" / "offline.npz")
+    assert off["psnr"].shape == (B, 3, N * 3)
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert summary["termination_rate"] == 0.0 and set(summary["offline_psnr_per_view"]) == {"left", "right", "wrist"}
+    cap = cv2.VideoCapture(str(tmp_path / "out" / "ep000000_left.mp4"))
+    count = 0
+    while cap.read()[0]:
+        count += 1
+    assert count == 2 + N * 3  # context + kept frames
