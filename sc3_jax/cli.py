@@ -8,9 +8,10 @@ USAGE = """usage: sc3 <command> [args]
 commands:
   demo           generate the synthetic multi-view data, train the tiny model, report how far it got
   train          sc3 train --config NAME_OR_PATH[:ARG] [--section.field VALUE ...]
+  rollout        closed-loop / offline rollouts of a policy inside a trained world model
   sim            the simulated table-bussing benchmark: sc3 sim demos|eval ...
   serve-policy   serve one of our policies over the openpi websocket protocol
-  configs        list the named configs
+  configs        list the named configs with their parameter counts
 
 `sc3 <command> --help` for the arguments of each."""
 
@@ -68,16 +69,32 @@ def cmd_serve_policy(argv: list[str]) -> int:
 
 
 def cmd_configs(argv: list[str]) -> int:
-    from sc3_jax.config import available_configs, configs_dir
+    """Each named config with its parameter count (from abstract shapes: nothing is allocated)."""
+    import jax
+
+    from sc3_jax import train
+    from sc3_jax.config import available_configs, configs_dir, load_config
+    from sc3_jax.model import dit
 
     print(f"named configs in {configs_dir()}:")
     for name in available_configs():
-        print(f"  {name}")
+        cfg = load_config(name)
+        n = dit.count_params(jax.eval_shape(lambda: train.init_state(cfg)["params"]))
+        d = cfg.data
+        rows, cols = train.token_geometry(cfg)[1]
+        tokens = len(d.views) * (d.context_frames + d.future_frames) * rows * cols + d.future_frames
+        print(f"  {name:24s} {n / 1e6:10.2f}M params  {tokens:6d} tokens/sample  batch {d.batch_size}")
     return 0
 
 
-COMMANDS = {"demo": cmd_demo, "train": cmd_train, "sim": cmd_sim, "serve-policy": cmd_serve_policy,
-            "configs": cmd_configs}
+def cmd_rollout(argv: list[str]) -> int:
+    from sc3_jax import rollout_cli
+
+    return rollout_cli.main(argv) or 0
+
+
+COMMANDS = {"demo": cmd_demo, "train": cmd_train, "rollout": cmd_rollout, "sim": cmd_sim,
+            "serve-policy": cmd_serve_policy, "configs": cmd_configs}
 
 
 def main(argv: list[str] | None = None) -> int:

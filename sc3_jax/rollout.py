@@ -116,11 +116,12 @@ def terminated_at(u: np.ndarray, tau: float) -> np.ndarray:
 # One chunk (per episode), in the pieces the scan and the host loop share
 # ================================================================================================================
 class _Steps:
-    """The per-episode chunk functions, closed over the (hashable) model config, spec and cache flag only, so their
-    jitted versions are shared by every Rollout with the same key (see ``_compiled``)."""
+    """The per-episode chunk functions, closed over hashable things only (model config, flow config -- it sets the
+    sampler's time grid --, spec, cache flag), so their jitted versions are shared by every Rollout with the same
+    key (see ``_compiled``)."""
 
-    def __init__(self, model_cfg, spec: RolloutSpec, use_cache: bool | None):
-        self.model_cfg, self.spec, self.use_cache = model_cfg, spec, use_cache
+    def __init__(self, model_cfg, flow_cfg, spec: RolloutSpec, use_cache: bool | None):
+        self.model_cfg, self.flow_cfg, self.spec, self.use_cache = model_cfg, flow_cfg, spec, use_cache
         self.tok = make_tokenizer(model_cfg)
         self.grid = self.tok.grid(spec.image_size)
 
@@ -151,11 +152,12 @@ class _Steps:
         video = jnp.concatenate([ctx, jnp.zeros((1, V, T) + ctx.shape[3:], ctx.dtype)], axis=2)
         # forward dynamics: every view's future frames from the context and the commanded actions
         vn, an = modes.fixed(modes.FD, 1, V, K, T)
-        video, _ = flow.sample(params, m, video, a[None], stride, vn, an, k_fd, s.steps, self.grid, self.use_cache)
+        video, _ = flow.sample(params, m, video, a[None], stride, vn, an, k_fd, s.steps, self.grid, self.use_cache,
+                               fcfg=self.flow_cfg)
         # inverse dynamics: re-read the actions from the context and the predicted frames
         vn, an = modes.fixed(modes.ID, 1, V, K, T)
         _, a_hat = flow.sample(params, m, video, jnp.zeros_like(a)[None], stride, vn, an, k_id, s.steps, self.grid,
-                               self.use_cache)
+                               self.use_cache, fcfg=self.flow_cfg)
         a_hat = a_hat[0]
         u = jnp.mean(jnp.linalg.norm(a[:l] - a_hat[:l], axis=-1))
         done = carry.done | (u > tau)
@@ -183,7 +185,8 @@ class Rollout:
         actions float32 [B, N*l, 7]         commanded raw actions a[0:l] of every chunk
         reread  float32 [B, N*l, 7]         raw actions re-read by the inverse mode
         states  float32 [B, N*l, 7]         imagined end-effector pose after each commanded action
-        u float32 [B, N], done bool [B, N]  U_chunk and done' after each chunk; valid = ~done
+        u float32 [B, N], done bool [B, N]  U_chunk (normalised units) and done' after each chunk; valid = ~done
+        u_raw float32 [B, N]                the same mean L2 distance in raw action units (host-side, reference)
         frame_valid bool [B, N*l], terminated_at int32 [B] (-1 never), termination_rate float, tau float
     """
 
@@ -197,7 +200,7 @@ class Rollout:
         self.batch_multiple = self.mesh.shape["data"] * self.mesh.shape["fsdp"]
         self.norm = jax.device_put(np.stack([norm_stats.mean, norm_stats.std]).astype(np.float32), self._repl)
         self.steps, self._init, self._observe, self._model_step_fn, self._scan_policy, self._scan_actions = \
-            _compiled(cfg.model, self.spec, use_cache)
+            _compiled(cfg.model, cfg.flow, self.spec, use_cache)
 
     def _model_step(self, params, carry, actions, keys, tau):
         return self._model_step_fn(params, self.norm, carry, actions, keys, tau)
@@ -243,7 +246,8 @@ class Rollout:
             raise ValueError(f"actions {list(actions.shape)}: expected [B, {self.spec.num_chunks}, "
                              f">={self.spec.predict}, 7]")
         B, frames, state, task, keys = self._inputs(ics, keys)
-        emits = self._scan_actions(self.place_params(params), self.norm, frames, state, task, keys, jnp.float32(tau), self._pad(actions, len(keys)))
+        emits = self._scan_actions(self.place_params(params), self.norm, frames, state, task, keys, jnp.float32(tau),
+                                   self._pad(actions, len(keys)))
         out = self._finish(jax.device_get(emits), ics, B, tau, chunk_axis=0)
         if targets is not None:
             from sc3_jax.evaluate.metrics import psnr
@@ -308,19 +312,22 @@ class Rollout:
         frames = np.moveaxis(frames, 2, 1).reshape(B, s.views, s.num_frames, *frames.shape[-3:])
         flat = lambda x: x.reshape(B, s.num_frames, *x.shape[3:])  # noqa: E731  [B, N, l, ...] -> [B, N*l, ...]
         done = e["done"].astype(bool)
-        return {"frames": frames, "initial_frames": np.asarray(ics.frames), "actions": flat(e["actions"]),
-                "reread": flat(e["reread"]), "states": flat(e["states"]), "u": e["u"].astype(np.float32),
+        actions, reread = flat(e["actions"]), flat(e["reread"])
+        u_raw = np.linalg.norm(actions - reread, axis=-1).reshape(B, s.num_chunks, s.keep).mean(-1)
+        return {"frames": frames, "initial_frames": np.asarray(ics.frames), "actions": actions,
+                "reread": reread, "states": flat(e["states"]), "u": e["u"].astype(np.float32),
+                "u_raw": u_raw.astype(np.float32),
                 "done": done, "frame_valid": np.repeat(~done, s.keep, axis=1),
                 "terminated_at": np.where(done.any(-1), done.argmax(-1), -1).astype(np.int32),
                 "termination_rate": float(done.any(-1).mean()), "tau": float(tau)}
 
 
 # ================================================================================================================
-# The jitted programs, shared by every Rollout with the same (model config, spec, cache flag)
+# The jitted programs, shared by every Rollout with the same (model config, flow config, spec, cache flag)
 # ================================================================================================================
 @functools.lru_cache(maxsize=32)
-def _compiled(model_cfg, spec: RolloutSpec, use_cache: bool | None):
-    st = _Steps(model_cfg, spec, use_cache)
+def _compiled(model_cfg, flow_cfg, spec: RolloutSpec, use_cache: bool | None):
+    st = _Steps(model_cfg, flow_cfg, spec, use_cache)
     step_b = jax.vmap(st.model_step, in_axes=(None, None, 0, 0, 0, None))
 
     def scan(params, norm, carry, task, keys, tau, actions_fn, xs):

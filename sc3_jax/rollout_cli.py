@@ -1,4 +1,4 @@
-"""``sc3 rollout``: closed-loop (and optionally offline) rollouts of a trained world model, written as arrays and videos.
+"""``sc3 rollout``: closed-loop (and optionally offline) rollouts of a trained world model -> arrays and videos.
 
     sc3 rollout --checkpoint runs/tiny --policy zero --initial-conditions runs/synthetic/heldout --out runs/ro \\
         [--episodes 8] [--tau 0.02|inf] [--num-chunks N] [--offline] [--seed 0]
@@ -159,6 +159,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--task", type=int, default=0, help="task id given to the policy (stores carry no task id)")
     p.add_argument("--tau", type=float, default=None, help="termination threshold (default: config; 'inf' never)")
     p.add_argument("--num-chunks", type=int, default=None, help="default: episode_seconds * control_hz / keep")
+    p.add_argument("--keep-frames", type=int, default=None, help="override rollout.keep_frames (l)")
+    p.add_argument("--policy-chunk", type=int, default=None, help="override rollout.policy_chunk")
+    p.add_argument("--sample-steps", type=int, default=None, help="override sample.steps (Euler steps)")
     p.add_argument("--batch-size", type=int, default=None, help="episodes per jitted call (default: all)")
     p.add_argument("--data-fps", type=float, default=None, help="frame rate the model was trained at (default: "
                    "the store's fps, else 20)")
@@ -172,13 +175,18 @@ def _parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     from sc3_jax import rollout, train
-    from sc3_jax.config import load_config
+    from sc3_jax.config import load_config, replace
     from sc3_jax.data.pipeline import NormStats
     from sc3_jax.policies.base import JaxPolicy
 
     work = Path(args.checkpoint)
     cfg = config_from_dict(json.loads((work / "config.json").read_text())) if (work / "config.json").exists() \
         else load_config("tiny")
+    overrides = {k: v for k, v in (("keep_frames", args.keep_frames), ("policy_chunk", args.policy_chunk))
+                 if v is not None}
+    cfg = replace(cfg, rollout=overrides)
+    if args.sample_steps is not None:
+        cfg = replace(cfg, sample=dict(steps=args.sample_steps))
     stats = NormStats.load(work / "norm_stats.json")
     params = train.load_params(work, cfg, args.step)
     data_fps = args.data_fps

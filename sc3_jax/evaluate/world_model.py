@@ -2,7 +2,9 @@
 
   forward dynamics   PSNR of sampled future frames (true actions)  vs  "repeat the last context frame"
   action use         the same with actions shuffled across the batch (must be worse: the model uses its actions)
-  inverse dynamics   error of sampled actions (normalised units)    vs  predicting the mean action (zero)
+  inverse dynamics   error of the model's action estimate           vs  predicting the mean action (zero)
+                     (normalised units; one sampler step = the model's conditional-mean estimate; a multi-step
+                     sample also carries the model's remaining uncertainty as variance: reported as id_sample_mse)
   inpainting         PSNR of the held-out views' future frames      vs  the mean frame of each view
 """
 from __future__ import annotations
@@ -21,7 +23,7 @@ def _psnr(pred_u8, true_u8) -> float:
     return float(10 * np.log10(255.0 ** 2 / max(mse, 1e-10)))
 
 
-def make_sampler(cfg: Config):
+def make_sampler(cfg: Config, steps: int | None = None):
     tok = make_tokenizer(cfg.model)
     grid = tok.grid(cfg.data.image_size)
     V, K, T = len(cfg.data.views), cfg.data.context_frames, cfg.data.future_frames
@@ -31,8 +33,8 @@ def make_sampler(cfg: Config):
         video = tok.encode(frames)
         B = frames.shape[0]
         vn, an = modes.masks(jnp.full((B,), mode), jnp.full((B,), kept_view), V, K, T)
-        out_v, out_a = flow.sample(params, cfg.model, video, actions, stride, vn, an, rng, cfg.sample.steps, grid,
-                                   fcfg=cfg.flow)
+        out_v, out_a = flow.sample(params, cfg.model, video, actions, stride, vn, an, rng, steps or cfg.sample.steps,
+                                   grid, fcfg=cfg.flow)
         return to_uint8(tok.decode(out_v, cfg.data.image_size)), out_a
 
     return run
@@ -41,6 +43,7 @@ def make_sampler(cfg: Config):
 def evaluate(params, cfg: Config, batches, seed: int = 0) -> dict[str, float]:
     """Averages over ``batches`` (pipeline batches of held-out windows: stride 1, recorded actions)."""
     run = make_sampler(cfg)
+    run_mean = make_sampler(cfg, steps=1)
     K = cfg.data.context_frames
     rng = jax.random.key(seed)
     acc: dict[str, list[float]] = {}
@@ -58,8 +61,10 @@ def evaluate(params, cfg: Config, batches, seed: int = 0) -> dict[str, float]:
         shuffled = actions[np.roll(np.arange(len(actions)), 1)]
         pred_s, _ = run(params, frames, shuffled, stride, k1, modes.FD, 0)  # same noise, wrong actions
         add("fd_shuffled_psnr", _psnr(np.asarray(pred_s)[:, :, K:], true_future))
-        _, act = run(params, frames, np.zeros_like(actions), stride, k2, modes.ID, 0)
+        _, act = run_mean(params, frames, np.zeros_like(actions), stride, k2, modes.ID, 0)
         add("id_mse", float(np.mean((np.asarray(act) - actions) ** 2)))
+        _, act = run(params, frames, np.zeros_like(actions), stride, k2, modes.ID, 0)
+        add("id_sample_mse", float(np.mean((np.asarray(act) - actions) ** 2)))
         add("mean_action_mse", float(np.mean(actions ** 2)))
         kept = int(jax.random.randint(k3, (), 0, frames.shape[1]))
         pred_c, _ = run(params, frames, actions, stride, k4, modes.CVI, kept)
@@ -75,6 +80,7 @@ def summary(m: dict[str, float]) -> str:
     return "\n".join([
         f"forward dynamics : {m['fd_psnr']:.2f} dB   (repeat last frame {m['copy_last_psnr']:.2f} dB, "
         f"shuffled actions {m['fd_shuffled_psnr']:.2f} dB)",
-        f"inverse dynamics : action MSE {m['id_mse']:.3f}   (mean action {m['mean_action_mse']:.3f})",
+        f"inverse dynamics : action MSE {m['id_mse']:.3f}, sampled {m['id_sample_mse']:.3f}   "
+        f"(mean action {m['mean_action_mse']:.3f})",
         f"inpainting       : {m['cvi_psnr']:.2f} dB   (mean frame {m['mean_frame_psnr']:.2f} dB)",
     ])

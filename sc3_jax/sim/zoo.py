@@ -187,14 +187,14 @@ class ZooEntry:
 
 
 ZOO: dict[str, ZooEntry] = {e.name: e for e in (
-    ZooEntry("bus_bc_full", "bussing", "run_clean_final.npz", "clean demos (all), final checkpoint"),
-    ZooEntry("bus_bc_early", "bussing", "run_clean_early.npz", "clean demos (all), early checkpoint"),
+    ZooEntry("bus_bc_full", "bussing", "run_clean_final.npz", "300 clean demos, final checkpoint (5000 steps)"),
+    ZooEntry("bus_bc_mid", "bussing", "run_clean_mid.npz", "300 clean demos, checkpoint at 1500 steps"),
+    ZooEntry("bus_bc_small", "bussing", "run_small_final.npz", "30 clean demos, final checkpoint (1500 steps)"),
     ZooEntry("bus_bc_biased", "bussing", "run_biased_final.npz",
-             "biased demonstrator (takes bags and cups to the wrong container), final checkpoint"),
-    ZooEntry("bus_bc_small", "bussing", "run_small_final.npz", "few clean demos, final checkpoint"),
-    ZooEntry("rev_bc_full", "reverse", "run_clean_mid.npz", "clean demos (all), mid checkpoint; routes swapped"),
-    ZooEntry("rev_bc_small", "reverse", "run_small_mid.npz", "few clean demos, mid checkpoint; routes swapped"),
-    ZooEntry("rev_bc_biased", "reverse", "run_biased_mid.npz", "biased demonstrator, mid checkpoint; routes swapped"),
+             "150 demos of a biased demonstrator (bags and cups to the wrong container), 3000 steps"),
+    ZooEntry("rev_bc_full", "reverse", "run_clean_final.npz", "as bus_bc_full, task=1 routes to swapped containers"),
+    ZooEntry("rev_bc_small", "reverse", "run_small_mid.npz", "30 clean demos, checkpoint at 600 steps; task=1"),
+    ZooEntry("rev_bc_biased", "reverse", "run_biased_final.npz", "as bus_bc_biased, task=1 routes to swapped containers"),
 )}
 
 
@@ -203,7 +203,8 @@ def zoo_names(task: str | None = None) -> list[str]:
 
 
 def save_params(path: str | Path, net: dict) -> None:
-    flat = {f"{k}/{kk}": np.asarray(v, np.float32) for k, d in net.items() for kk, v in d.items()}
+    """Weights ship as float16 (about 0.3 MB per policy); ``load_params`` casts them back to float32."""
+    flat = {f"{k}/{kk}": np.asarray(v, np.float16) for k, d in net.items() for kk, v in d.items()}
     np.savez_compressed(path, **flat)
 
 
@@ -212,7 +213,7 @@ def load_params(path: str | Path) -> dict:
         net: dict = {}
         for key in z.files:
             a, b = key.split("/")
-            net.setdefault(a, {})[b] = jnp.asarray(z[key])
+            net.setdefault(a, {})[b] = jnp.asarray(z[key], jnp.float32)
     return net
 
 
@@ -296,9 +297,9 @@ def train_net(data, steps: int, checkpoints: dict[int, Path], seed: int = 0, bat
 
 # run name -> (demo set, max episodes, steps, {checkpoint step: file suffix})
 RUNS = {
-    "clean": ("clean", None, 5000, {600: "early", 1500: "mid", 5000: "final"}),
+    "clean": ("clean", None, 5000, {1500: "mid", 5000: "final"}),
     "small": ("clean", 30, 1500, {600: "mid", 1500: "final"}),
-    "biased": ("biased", None, 3000, {1000: "mid", 3000: "final"}),
+    "biased": ("biased", None, 3000, {3000: "final"}),
 }
 DEMO_SETS = {"clean": dict(n=300, seed=1), "biased": dict(n=150, seed=2)}
 
@@ -323,10 +324,12 @@ def train_zoo(workdir: str | Path, out_dir: str | Path = ZOO_DIR, runs: list[str
         train_net(data, steps, {s: out_dir / f"run_{run}_{suffix}.npz" for s, suffix in ckpts.items()})
         summary[f"run_{run}_seconds"] = time.time() - t0
     (out_dir / "zoo.json").write_text(json.dumps({
-        "policies": {n: dataclasses.asdict(e) for n, e in ZOO.items()}, "runs": {k: list(v[:3]) for k, v in RUNS.items()},
-        "demo_sets": DEMO_SETS, "command": "python -m sc3_jax.sim.zoo train --workdir /tmp/sc3_zoo",
-        "training_summary": {k: v for k, v in summary.items() if not isinstance(v, dict) or "success" in v}},
-        indent=1, default=str))
+        "policies": {n: dataclasses.asdict(e) for n, e in ZOO.items()},
+        "runs": {k: {"demo_set": v[0], "max_episodes": v[1], "steps": v[2], "checkpoints": v[3]} for k, v in RUNS.items()},
+        "demo_sets": DEMO_SETS, "biased_demonstrator": {"swap_types": ["bag", "cup"]},
+        "command": "python -m sc3_jax.sim.zoo train --workdir /tmp/sc3_zoo",
+        "dtype": "float16 (cast to float32 on load)",
+        "training_seconds_measured": {k: round(v) for k, v in summary.items() if k.endswith("seconds")}}, indent=1))
     return summary
 
 
