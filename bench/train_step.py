@@ -2,8 +2,9 @@
 
     python bench/train_step.py [--configs tiny cpu_medium] [--rounds 3]
 
-FLOPs per step come from XLA's cost analysis of the compiled step; the matmul reference is a square fp32 matmul of a
-size that saturates the CPU. Rounds alternate matmul and train-step timings so both see the same machine load.
+FLOPs per step come from XLA's cost analysis of the compiled step with the layer scan unrolled (the cost analysis
+counts a loop body once, which would undercount a depth-L model by ~L x); the timed step is the config as it trains
+(scanned layers). The matmul reference is a square fp32 matmul of a size that saturates the CPU. Rounds alternate matmul and train-step timings so both see the same machine load.
 Last lines: `train_step <config>: fraction_of_matmul=<x> tokens_per_s=<y>`."""
 from __future__ import annotations
 
@@ -57,11 +58,12 @@ class StepBench:
             "frames": rng.integers(0, 256, shapes["frames"].shape, dtype=np.uint8),
             "actions": rng.normal(size=shapes["actions"].shape).astype(np.float32),
             "stride": np.ones(shapes["stride"].shape, np.int32)})
-        compiled = step.lower(self.state, self.batch).compile()
-        cost = compiled.cost_analysis()
+        self.step = step.lower(self.state, self.batch).compile()
+        unrolled = replace(self.cfg, model=dict(scan_layers=False))
+        counted, _ = train.compile_train_step(unrolled, mesh)
+        cost = counted.lower(self.state, self.batch).compile().cost_analysis()
         cost = cost[0] if isinstance(cost, (list, tuple)) else cost
         self.flops = float(cost["flops"])
-        self.step = compiled
         self.tokens = self.cfg.data.batch_size * tokens_per_sample(self.cfg)
 
     def seconds(self, repeats: int) -> float:

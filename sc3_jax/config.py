@@ -47,6 +47,9 @@ class ModelConfig:
     dtype: str = "float32"  # activation dtype
     param_dtype: str = "float32"
     remat: bool = False
+    # lax.scan over the stacked layers (one compiled block, fast compiles at any depth). False unrolls the scan:
+    # same math; XLA's cost analysis counts a loop body once, so FLOP counting compiles the unrolled form.
+    scan_layers: bool = True
 
     def __post_init__(self):
         if 2 * sum(self.rope_axes_dim) != self.head_dim:

@@ -6,7 +6,7 @@ from sc3_jax.config import load_config, replace
 from sc3_jax.data import synthetic
 from sc3_jax.demo import train_and_evaluate
 
-STEPS = 800
+STEPS = 1200
 
 
 @pytest.mark.slow

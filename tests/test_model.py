@@ -69,6 +69,10 @@ def test_gqa_attention_matches_reference():
     w = jax.nn.softmax(jnp.einsum("bnhd,bmhd->bhnm", q, kk) / math.sqrt(8), axis=-1)
     ref = jnp.einsum("bhnm,bmhd->bnhd", w, vv)
     np.testing.assert_allclose(out, ref, atol=1e-5)
+    np.testing.assert_allclose(out, jax.nn.dot_product_attention(q, k, v), atol=1e-5)
+    mask = jax.random.bernoulli(jax.random.key(3), 0.7, (1, 1, 5, 7)).at[..., 0].set(True)
+    np.testing.assert_allclose(layers.attention(q, k, v, mask), jax.nn.dot_product_attention(q, k, v, mask=mask),
+                               atol=1e-5)
 
 
 def test_mrope_sections_and_relative_positions():

@@ -49,6 +49,13 @@ def test_expert_succeeds(env, task):
     assert r["outcome/no failure"] >= 0.9, r
 
 
+def test_control_at_10hz():
+    e = BussingEnv(render=False, control_hz=10)
+    r = run_expert_episode(e, 3, "bussing", record=False)
+    assert e.substeps == 50 and r.length <= 200
+    assert success_rates(r.outcomes)["outcome/no failure"] == 1.0
+
+
 def test_knobs_produce_their_failure_category(env):
     seeds = range(200, 206)
     grasp = _rates(env, "bussing", ExpertKnobs(grasp_noise=0.05), seeds)

@@ -219,7 +219,7 @@ def _run_layers(cfg: ModelConfig, params, x, cos, sin, mask, prefix_kv=None):
 
     if cfg.remat:
         body = jax.checkpoint(body, policy=jax.checkpoint_policies.nothing_saveable)
-    return jax.lax.scan(body, x, (params["layers"], prefix_kv))
+    return jax.lax.scan(body, x, (params["layers"], prefix_kv), unroll=not cfg.scan_layers)
 
 
 def _attention_mask(cfg: ModelConfig, n_ctx: int, n: int):

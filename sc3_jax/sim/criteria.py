@@ -26,7 +26,8 @@ RIM_MARGIN = 0.06  # objects stacked on another object inside a container still 
 
 
 def inside_container(pos: np.ndarray, container_xy: np.ndarray, container: str) -> np.ndarray:
-    """pos [..., 3] -> bool [...]: centre within the inner footprint and below the rim (+ ``RIM_MARGIN``, so a stack counts)."""
+    """pos [..., 3] -> bool [...]: centre within the inner footprint and below the rim (+ ``RIM_MARGIN``, so that a
+    stack of objects inside the container counts)."""
     inner, height = CONTAINER_GEOM[container]
     pos = np.asarray(pos)
     d = np.abs(pos[..., :2] - np.asarray(container_xy))

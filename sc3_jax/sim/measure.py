@@ -33,18 +33,22 @@ def render_ms(image_size=(64, 64), n: int = 200) -> float:
     return ms
 
 
-def changed_pixel_fraction(episodes: int = 5, image_size=(64, 64), threshold: int = 20) -> dict[str, float]:
-    """Per view: share of pixels whose colour changes by more than ``threshold`` (any channel) at some time during an
-    expert episode, relative to the episode's first frame; mean over episodes."""
+def changed_pixel_fraction(episodes: int = 5, image_size=(64, 64), threshold: int = 20) -> dict[str, dict]:
+    """Per view, over expert episodes (mean over episodes), pixels whose colour differs by more than ``threshold``
+    (any channel) from the episode's first frame: ``ever`` = share of pixels that change at some time;
+    ``per_frame`` = mean share changed in a frame; ``step`` = mean share changed between consecutive frames."""
     env = BussingEnv(image_size=image_size)
-    out = {v: [] for v in env.views}
+    out = {v: {"ever": [], "per_frame": [], "step": []} for v in env.views}
     for s in range(episodes):
         r = run_expert_episode(env, 20_000_000 + s, "bussing", record=True)
         for v in env.views:
             f = r.frames[v].astype(np.int16)
-            out[v].append(float(np.mean(np.any(np.abs(f - f[:1]).max(-1) > threshold, axis=0))))
+            diff = np.abs(f - f[:1]).max(-1) > threshold
+            out[v]["ever"].append(float(np.mean(np.any(diff, axis=0))))
+            out[v]["per_frame"].append(float(np.mean(diff)))
+            out[v]["step"].append(float(np.mean(np.abs(np.diff(f, axis=0)).max(-1) > threshold)))
     env.close()
-    return {v: float(np.mean(x)) for v, x in out.items()}
+    return {v: {k: round(float(np.mean(x)), 4) for k, x in d.items()} for v, d in out.items()}
 
 
 def demos_per_hour(n: int = 10) -> dict:

@@ -194,7 +194,8 @@ ZOO: dict[str, ZooEntry] = {e.name: e for e in (
              "150 demos of a biased demonstrator (bags and cups to the wrong container), 3000 steps"),
     ZooEntry("rev_bc_full", "reverse", "run_clean_final.npz", "as bus_bc_full, task=1 routes to swapped containers"),
     ZooEntry("rev_bc_small", "reverse", "run_small_mid.npz", "30 clean demos, checkpoint at 600 steps; task=1"),
-    ZooEntry("rev_bc_biased", "reverse", "run_biased_final.npz", "as bus_bc_biased, task=1 routes to swapped containers"),
+    ZooEntry("rev_bc_biased", "reverse", "run_biased_final.npz",
+             "as bus_bc_biased, task=1 routes to swapped containers"),
 )}
 
 
@@ -272,7 +273,8 @@ def train_net(data, steps: int, checkpoints: dict[int, Path], seed: int = 0, bat
     imgs, states, labels = data
     key = jax.random.key(seed)
     net = init_net(key)
-    opt = optax.adamw(optax.warmup_cosine_decay_schedule(0.0, lr, min(50, steps // 4), steps, lr * 0.05), weight_decay=1e-4)
+    schedule = optax.warmup_cosine_decay_schedule(0.0, lr, min(50, steps // 4), steps, lr * 0.05)
+    opt = optax.adamw(schedule, weight_decay=1e-4)
     opt_state = opt.init(net)
 
     @jax.jit
@@ -325,7 +327,8 @@ def train_zoo(workdir: str | Path, out_dir: str | Path = ZOO_DIR, runs: list[str
         summary[f"run_{run}_seconds"] = time.time() - t0
     (out_dir / "zoo.json").write_text(json.dumps({
         "policies": {n: dataclasses.asdict(e) for n, e in ZOO.items()},
-        "runs": {k: {"demo_set": v[0], "max_episodes": v[1], "steps": v[2], "checkpoints": v[3]} for k, v in RUNS.items()},
+        "runs": {k: {"demo_set": v[0], "max_episodes": v[1], "steps": v[2], "checkpoints": v[3]}
+                 for k, v in RUNS.items()},
         "demo_sets": DEMO_SETS, "biased_demonstrator": {"swap_types": ["bag", "cup"]},
         "command": "python -m sc3_jax.sim.zoo train --workdir /tmp/sc3_zoo",
         "dtype": "float16 (cast to float32 on load)",
