@@ -44,34 +44,20 @@ def forward_flops(cfg, n_q: int, n_k: int, token_dim: int) -> float:
 
 
 def chunk_flops(cfg, cached: bool, latent_frames: tuple[int, int] | None = None) -> float:
-    """One chunk = FD sampling + ID sampling, S Euler steps each. Uncached: every step runs all tokens. Cached: the
-    context once per sampler call, then every step runs only the non-context tokens against all keys."""
+    """One chunk = FD sampling + ID sampling, S Euler steps each. Uncached: every step runs all tokens. Cached
+    (context_attention="causal"): FD encodes the context once, then each step runs the future frames and the actions
+    against all keys; ID encodes every frame once, then each step runs only the l' action tokens."""
     tok = make_tokenizer(cfg.model)
     rows, cols = tok.grid(cfg.data.image_size)
     P, V, K, T = rows * cols, len(cfg.data.views), cfg.data.context_frames, cfg.data.future_frames
     Kv, Tv = latent_frames or (K, T)  # video frames as tokenised (a temporally compressing VAE has fewer)
-    n_ctx, n_rest = V * Kv * P, V * Tv * P + T
-    n_all, S = n_ctx + n_rest, cfg.sample.steps
-    if cached:
-        per_call = forward_flops(cfg, n_ctx, n_ctx, tok.token_dim) + S * forward_flops(cfg, n_rest, n_all,
-                                                                                         tok.token_dim)
-    else:
-        per_call = S * forward_flops(cfg, n_all, n_all, tok.token_dim)
-    return 2 * per_call
-
-
-def chunk_flops_clean_prefix(cfg, latent_frames: tuple[int, int] | None = None) -> float:
-    """The same chunk if *every* clean token attended only to clean tokens (a proposed generalisation of
-    context_attention="causal"; needs retraining): per sampler call the clean tokens' keys/values once, then each
-    step runs only the noisy tokens -- FD: the V*l'*P future-frame tokens; ID: just the l' action tokens."""
-    tok = make_tokenizer(cfg.model)
-    rows, cols = tok.grid(cfg.data.image_size)
-    P, V, K, T = rows * cols, len(cfg.data.views), cfg.data.context_frames, cfg.data.future_frames
-    Kv, Tv = latent_frames or (K, T)
     S, td = cfg.sample.steps, tok.token_dim
-    n_all = V * (Kv + Tv) * P + T
-    fd = forward_flops(cfg, V * Kv * P + T, V * Kv * P + T, td) + S * forward_flops(cfg, V * Tv * P, n_all, td)
-    idm = forward_flops(cfg, V * (Kv + Tv) * P, V * (Kv + Tv) * P, td) + S * forward_flops(cfg, T, n_all, td)
+    n_ctx, n_video = V * Kv * P, V * (Kv + Tv) * P
+    n_all = n_video + T
+    if not cached:
+        return 2 * S * forward_flops(cfg, n_all, n_all, td)
+    fd = forward_flops(cfg, n_ctx, n_ctx, td) + S * forward_flops(cfg, n_all - n_ctx, n_all, td)
+    idm = forward_flops(cfg, n_video, n_video, td) + S * forward_flops(cfg, T, n_all, td)
     return fd + idm
 
 
@@ -131,7 +117,7 @@ def main(argv=None) -> int:
     # (ii) cached vs uncached at the paper's proportions
     cfg2 = replace(base, model=dict(dim=128, depth=2, num_heads=4, num_kv_heads=2, head_dim=32, mlp_dim=384,
                                     context_attention="causal"),
-                   data=dict(image_size=(16, 16), context_frames=4, future_frames=24),
+                   data=dict(image_size=(32, 32), context_frames=4, future_frames=24),
                    rollout=dict(policy_chunk=25, keep_frames=16), sample=dict(steps=args.steps),
                    mesh=MeshConfig(1, 1, 1))
     n2 = 2
@@ -146,7 +132,7 @@ def main(argv=None) -> int:
     cpu_rate = flops[True] / times[True]
     print(f"(ii)  cached {times[True] * 1e3:.1f} ms/chunk   uncached {times[False] * 1e3:.1f} ms/chunk   "
           f"speedup {speedup:.2f}x (analytic FLOP ratio {flops[False] / flops[True]:.2f}x; K=4 l'=24 l=16, 3 views "
-          f"16x16, dim 128 depth 2, S={args.steps}); CPU rate {cpu_rate / 1e9:.1f} GFLOP/s")
+          f"32x32, dim 128 depth 2, S={args.steps}); CPU rate {cpu_rate / 1e9:.1f} GFLOP/s")
 
     # (iii) paper scale, analytic
     paper = load_config("paper")
@@ -164,9 +150,6 @@ def main(argv=None) -> int:
     print(f"      with the Wan VAE's 4x temporal compression (context 1 + future 6 latent frames, 24 action tokens): "
           f"{lat / 1e9:,.0f} GFLOP/chunk -> {lat / PAPER_SECONDS_PER_CHUNK / GB200_BF16_DENSE:.0%} of the GB200 peak "
           f"in 2.3 s; cached/uncached FLOP ratio at paper proportions {pf_u / pf_c:.2f}x")
-    print(f"      proposed clean-prefix cache (every clean token attends only to clean tokens; ID steps then run only "
-          f"the 24 action tokens): uncached/cached FLOP ratio {pf_u / chunk_flops_clean_prefix(paper):.2f}x at paper "
-          f"scale, {flops[False] / chunk_flops_clean_prefix(cfg2):.2f}x for the (ii) model")
     print(f"rollout: scan_over_host={t_host / t_scan:.2f} cached_speedup={speedup:.2f} "
           f"paper_chunk_gflops={pf_c / 1e9:.0f}")
     return 0

@@ -33,6 +33,7 @@ class ModelConfig:
     #    context frame (channel-concatenation conditioning, as video diffusion models do with conditioning latents);
     #  action_to_frames: future frame K+j's tokens also see action j and the running sum of actions 0..j;
     #  action_reads_frames: action j's token also sees the difference of the two frames it connects (all views).
+    # Each feature reads clean tokens only, so no clean token ever depends on a noisy one.
     # Without them, each of these relations must first be discovered through attention.
     anchor_conditioning: bool = False
     action_to_frames: bool = False
@@ -41,8 +42,9 @@ class ModelConfig:
     # clean actions as (0 + output); the velocity is derived from it. "velocity": predicts eps - x directly
     # (what pretrained Cosmos3 checkpoints do). Residual is what made tiny CPU models learn (REFERENCE.md).
     prediction: str = "residual"
-    # "full": every token attends to every token. "causal": clean context tokens attend only to clean context,
-    # so the context's keys/values can be computed once per rollout chunk and reused by every sampler step.
+    # "full": every token attends to every token. "causal": context tokens attend only to context, other clean
+    # tokens only to clean tokens, noisy tokens to everything; so clean keys/values can be computed once per
+    # rollout chunk and reused by every sampler step (the context in forward mode, all frames in inverse mode).
     context_attention: str = "full"
     dtype: str = "float32"  # activation dtype
     param_dtype: str = "float32"

@@ -103,10 +103,13 @@ def time_grid(steps: int, fcfg: FlowConfig = FlowConfig()) -> jax.Array:
 
 
 def sample(params, cfg: ModelConfig, video, actions, stride, video_noisy, action_noisy, rng, steps: int, grid,
-           use_cache: bool | None = None, fcfg: FlowConfig = FlowConfig()):
+           use_cache: bool | str | None = None, fcfg: FlowConfig = FlowConfig()):
     """Euler from t = 1 to t = 0 in ``steps`` steps (``time_grid``); clean tokens held fixed. Returns (video,
-    actions) with the noisy positions filled in. With ``context_attention="causal"`` the context keys/values are
-    computed once and reused by every step (``use_cache=False`` forces the uncached path, for checks)."""
+    actions) with the noisy positions filled in.
+
+    With ``context_attention="causal"`` a clean prefix's keys/values are computed once and reused by every step:
+    ``use_cache`` None/True = the context frames, "video" = every frame (only for inverse mode: all frames clean,
+    all actions noisy), False = no cache (for checks)."""
     T = actions.shape[1]
     K = video.shape[2] - T
     k_v, k_a = jax.random.split(rng)
@@ -116,9 +119,10 @@ def sample(params, cfg: ModelConfig, video, actions, stride, video_noisy, action
         use_cache = cfg.context_attention == "causal"
     context_kv = None
     if use_cache:
-        clean = dit.Inputs(video, actions, jnp.zeros(video_noisy.shape), jnp.zeros_like(video_noisy),
-                           jnp.zeros(action_noisy.shape), jnp.zeros_like(action_noisy), stride)
-        context_kv = dit.encode_context(params, cfg, clean, grid)
+        clean = dit.Inputs(video, actions, jnp.zeros(video_noisy.shape), video_noisy,
+                           jnp.zeros(action_noisy.shape), action_noisy, stride)
+        prefix = "video" if use_cache == "video" else "context"
+        context_kv = dit.encode_context(params, cfg, clean, grid, prefix=prefix)
 
     ts = time_grid(steps, fcfg)
 

@@ -28,8 +28,9 @@ Decisions (see docs/rollout.md for more):
   keys. Results therefore do not depend on the batch composition or the number of devices, and the host loop
   (:meth:`Rollout.run_host`) reproduces the scan (:meth:`Rollout.run`) by driving the very same per-chunk functions
   (observe -> policy on the host -> model step).
-* Context caching: ``flow.sample`` reuses the context keys/values over the S sampler steps when
-  ``cfg.model.context_attention == "causal"`` (``use_cache`` overrides, for checks and benchmarks).
+* Context caching: with ``cfg.model.context_attention == "causal"`` the forward sampler reuses the context's
+  keys/values over its S steps and the inverse sampler those of every frame (each step then runs only the action
+  tokens); ``use_cache=False`` forces the uncached path, for checks and benchmarks.
 """
 from __future__ import annotations
 
@@ -156,8 +157,9 @@ class _Steps:
                                fcfg=self.flow_cfg)
         # inverse dynamics: re-read the actions from the context and the predicted frames
         vn, an = modes.fixed(modes.ID, 1, V, K, T)
+        id_cache = "video" if m.context_attention == "causal" and self.use_cache is not False else False
         _, a_hat = flow.sample(params, m, video, jnp.zeros_like(a)[None], stride, vn, an, k_id, s.steps, self.grid,
-                               self.use_cache, fcfg=self.flow_cfg)
+                               id_cache, fcfg=self.flow_cfg)
         a_hat = a_hat[0]
         u = jnp.mean(jnp.linalg.norm(a[:l] - a_hat[:l], axis=-1))
         done = carry.done | (u > tau)

@@ -105,15 +105,26 @@ def test_timestep_embedding_only_on_noisy_tokens():
     assert not np.allclose(out0[0], out2[0])
 
 
-@pytest.mark.parametrize("mode", [modes.FD, modes.CVI, modes.ID])
-def test_context_cache_matches_uncached(mode):
+@pytest.mark.parametrize("mode,prefix", [(modes.FD, True), (modes.CVI, True), (modes.ID, True),
+                                         (modes.ID, "video")])
+def test_context_cache_matches_uncached(mode, prefix):
     cfg, tok, params, frames, video, actions, grid = _setup(context_attention="causal", **SHORTCUTS)
     vn, an = modes.fixed(mode, B, V, K, T, kept_view=1)
     stride = jnp.asarray([1, 2])
     full = flow.sample(params, cfg, video, actions, stride, vn, an, jax.random.key(5), 3, grid, use_cache=False)
-    cached = flow.sample(params, cfg, video, actions, stride, vn, an, jax.random.key(5), 3, grid, use_cache=True)
+    cached = flow.sample(params, cfg, video, actions, stride, vn, an, jax.random.key(5), 3, grid, use_cache=prefix)
     np.testing.assert_allclose(full[0], cached[0], atol=2e-5)
     np.testing.assert_allclose(full[1], cached[1], atol=2e-5)
+
+
+def test_causal_attention_rule():
+    """causal: context -> context only; other clean tokens -> clean only; noisy tokens -> everything."""
+    cfg = ModelConfig(context_attention="causal")
+    noisy = jnp.asarray([[False, False, True, False, True]])  # tokens 0-1 context, 2 noisy, 3 clean, 4 noisy
+    m = np.asarray(dit._attention_mask(cfg, noisy, n_ctx=2))[0, 0]
+    np.testing.assert_array_equal(m, [[1, 1, 0, 0, 0], [1, 1, 0, 0, 0], [1, 1, 1, 1, 1], [1, 1, 0, 1, 0],
+                                      [1, 1, 1, 1, 1]])
+    assert dit._attention_mask(ModelConfig(), noisy, 2) is None
 
 
 def test_causal_context_does_not_see_targets():
@@ -143,6 +154,11 @@ def test_shortcut_features():
     # action token embeddings move with frame K's content (it is a frame difference for actions 0 and 1) ...
     x1 = emb(inp._replace(video=inp.video.at[:, :, K].add(0.5)))
     assert not np.allclose(x0[:, -T:], x1[:, -T:])
+    # ... only while the frames are clean (forward mode: future frames noisy, no frame differences read)
+    fd_v, fd_a = modes.fixed(modes.FD, B, V, K, T)
+    fd = inp._replace(video_noisy=fd_v, action_noisy=fd_a, action_t=jnp.zeros(fd_a.shape))
+    np.testing.assert_allclose(emb(fd)[:, -T:], emb(fd._replace(video=fd.video.at[:, :, K].add(0.5)))[:, -T:],
+                               atol=1e-6)
     # ... but not with a change of every frame by the same amount (differences unchanged, anchor moves)
     x2 = emb(inp._replace(video=inp.video.at[:, :, K - 1:].add(0.5)))
     np.testing.assert_allclose(x0[:, -T:], x2[:, -T:], atol=1e-5)

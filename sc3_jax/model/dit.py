@@ -170,8 +170,8 @@ def _embed(params, cfg: ModelConfig, inp: Inputs, grid, domain: int):
     future = jnp.zeros_like(xv[:, :, K:])
     if cfg.anchor_conditioning:  # the 3x3 neighbourhood of the same patch in the last context frame
         future = future + (_neighbourhood(inp.video[:, :, K - 1], grid).astype(dt) @ params["anchor_in"].astype(dt))[:, :, None]
-    if cfg.action_to_frames:  # frame K+j: action j and the sum of actions 0..j
-        a = inp.actions.astype(dt)
+    if cfg.action_to_frames:  # frame K+j: action j and the sum of actions 0..j (clean actions only)
+        a = jnp.where(inp.action_noisy[..., None], 0, inp.actions).astype(dt)
         feats = jnp.concatenate([a, jnp.cumsum(a, axis=1)], axis=-1) @ params["action_to_frames"].astype(dt)
         future = future + feats[:, None, :, None, :]
     xv = xv.at[:, :, K:].add(future)
@@ -179,8 +179,9 @@ def _embed(params, cfg: ModelConfig, inp: Inputs, grid, domain: int):
     xa = xa + params["action_in"]["b"][domain].astype(dt) + params["action_modality_embed"].astype(dt)
     temb_a = _time_mlp(params, inp.action_t).astype(dt)
     xa = xa + jnp.where(inp.action_noisy[..., None], temb_a, 0)
-    if cfg.action_reads_frames:  # action j: frame K+j minus frame K-1+j, every view
-        diff = inp.video[:, :, K:] - inp.video[:, :, K - 1:-1]  # [B, V, T, P, Dp]
+    if cfg.action_reads_frames:  # action j: frame K+j minus frame K-1+j, every view (when both are clean)
+        clean = ~inp.video_noisy[:, :, K:] & ~inp.video_noisy[:, :, K - 1:-1]  # [B, V, T]
+        diff = jnp.where(clean[..., None, None], inp.video[:, :, K:] - inp.video[:, :, K - 1:-1], 0)
         diff = jnp.moveaxis(diff, 2, 1).reshape(B, T, -1).astype(dt)
         xa = xa + diff @ params["frames_to_action"].astype(dt)
     D = xv.shape[-1]
@@ -222,20 +223,44 @@ def _run_layers(cfg: ModelConfig, params, x, cos, sin, mask, prefix_kv=None):
     return jax.lax.scan(body, x, (params["layers"], prefix_kv), unroll=not cfg.scan_layers)
 
 
-def _attention_mask(cfg: ModelConfig, n_ctx: int, n: int):
+def token_noisy(inp: Inputs, P: int) -> jax.Array:
+    """Per-token noisy flags [B, N] in packed order (context video, future video, actions)."""
+    B, V, F = inp.video_noisy.shape
+    T = inp.actions.shape[1]
+    K = F - T
+    per_frame = jnp.broadcast_to(inp.video_noisy[..., None], (B, V, F, P))
+    return jnp.concatenate([per_frame[:, :, :K].reshape(B, -1), per_frame[:, :, K:].reshape(B, -1),
+                            inp.action_noisy], axis=1)
+
+
+def _attention_mask(cfg: ModelConfig, noisy: jax.Array, n_ctx: int, q_start: int = 0):
+    """Attention mask [B, 1, Nq, N] for queries ``q_start:`` (None = full attention).
+
+    ``context_attention="causal"``: context tokens attend to context only, other clean tokens to clean tokens only,
+    noisy tokens to everything. So nothing clean ever depends on a noisy token: the context's keys/values can be
+    computed once per rollout chunk, and in inverse mode (every frame clean) those of all video tokens, leaving only
+    the action tokens for each sampler step."""
     if cfg.context_attention == "full":
         return None
+    n = noisy.shape[1]
     is_ctx = jnp.arange(n) < n_ctx
-    return (~is_ctx[:, None] | is_ctx[None, :])[None, None]  # context queries see context keys only
+    q_ctx, q_noisy = is_ctx[q_start:][None, :, None], noisy[:, q_start:, None]
+    mask = jnp.where(q_ctx, is_ctx[None, None, :], q_noisy | ~noisy[:, None, :])
+    return mask[:, None]
 
 
 def _outputs(params, cfg: ModelConfig, h, V, T, P, domain):
-    """h: hidden states of the non-context tokens (future video, then actions)."""
+    """h: hidden states of the future video then the action tokens, or of the action tokens only (then the video
+    outputs are zeros: a video-prefix cache is only used when no video token is a target)."""
     B = h.shape[0]
     h = layers.rms_norm(h, params["final_norm"], cfg.norm_eps)
     hv, ha = h[:, : h.shape[1] - T], h[:, h.shape[1] - T:]
-    out_v = hv @ params["proj_out"]["w"].astype(h.dtype) + params["proj_out"]["b"].astype(h.dtype)
-    out_v = out_v.reshape(B, V, T, P, -1).astype(jnp.float32)
+    dp = params["proj_out"]["w"].shape[1]
+    if hv.shape[1] == 0:
+        out_v = jnp.zeros((B, V, T, P, dp), jnp.float32)
+    else:
+        out_v = hv @ params["proj_out"]["w"].astype(h.dtype) + params["proj_out"]["b"].astype(h.dtype)
+        out_v = out_v.reshape(B, V, T, P, dp).astype(jnp.float32)
     out_a = jnp.einsum("btd,da->bta", ha, params["action_out"]["w"][domain].astype(h.dtype))
     out_a = (out_a + params["action_out"]["b"][domain].astype(h.dtype)).astype(jnp.float32)
     return out_v, out_a
@@ -251,35 +276,50 @@ def apply(params, cfg: ModelConfig, inp: Inputs, grid: tuple[int, int], domain: 
     x = _embed(params, cfg, inp, grid, domain)
     cos, sin = layers.rope_cos_sin(positions(inp.stride, V, F, grid, T, K), cfg.head_dim, cfg.rope_axes_dim,
                                    cfg.rope_theta)
-    mask = _attention_mask(cfg, V * K * P, x.shape[1])
+    mask = _attention_mask(cfg, token_noisy(inp, P), V * K * P)
     h, _ = _run_layers(cfg, params, x, cos, sin, mask)
     return _outputs(params, cfg, h[:, V * K * P:], V, T, P, domain)
 
 
-def encode_context(params, cfg: ModelConfig, inp: Inputs, grid, domain: int = 0):
-    """Per-layer keys/values of the clean context tokens, [L, B, V*K*P, Hkv, hd] each. Only valid with
-    ``context_attention="causal"`` (then context tokens never see targets, so this is exact)."""
+def prefix_length(inp: Inputs, P: int, prefix: str) -> int:
+    """Tokens in a cacheable prefix: "context" = the context video (exact whenever context_attention="causal"),
+    "video" = all video tokens (exact when every frame is clean and every action noisy: inverse mode)."""
+    B, V, F = inp.video_noisy.shape
+    T = inp.actions.shape[1]
+    if prefix == "context":
+        return V * (F - T) * P
+    if prefix == "video":
+        return V * F * P
+    raise ValueError(f"prefix must be 'context' or 'video', got {prefix!r}")
+
+
+def encode_context(params, cfg: ModelConfig, inp: Inputs, grid, domain: int = 0, prefix: str = "context"):
+    """Per-layer keys/values of a clean prefix (``prefix_length``), [L, B, n_prefix, Hkv, hd] each. Only valid with
+    ``context_attention="causal"`` (then clean tokens never see targets, so this is exact)."""
     if cfg.context_attention != "causal":
         raise ValueError("context caching needs context_attention='causal'")
     B, V, F, P, _ = inp.video.shape
     T = inp.actions.shape[1]
     K = F - T
-    n_ctx = V * K * P
-    x = _embed(params, cfg, inp, grid, domain)[:, :n_ctx]
-    cos, sin = layers.rope_cos_sin(positions(inp.stride, V, F, grid, T, K)[:, :n_ctx], cfg.head_dim,
+    n = prefix_length(inp, P, prefix)
+    x = _embed(params, cfg, inp, grid, domain)[:, :n]
+    cos, sin = layers.rope_cos_sin(positions(inp.stride, V, F, grid, T, K)[:, :n], cfg.head_dim,
                                    cfg.rope_axes_dim, cfg.rope_theta)
-    _, kv = _run_layers(cfg, params, x, cos, sin, None)
+    mask = _attention_mask(cfg, token_noisy(inp, P)[:, :n], V * K * P)
+    _, kv = _run_layers(cfg, params, x, cos, sin, mask)
     return kv
 
 
 def apply_cached(params, cfg: ModelConfig, inp: Inputs, grid, context_kv, domain: int = 0):
-    """Same outputs as ``apply`` under causal context attention, computing only the non-context tokens."""
+    """Same outputs as ``apply`` under causal context attention, computing only the tokens after the cached
+    prefix (its length is read off ``context_kv``)."""
     B, V, F, P, _ = inp.video.shape
     T = inp.actions.shape[1]
     K = F - T
-    n_ctx = V * K * P
-    x = _embed(params, cfg, inp, grid, domain)[:, n_ctx:]
-    cos, sin = layers.rope_cos_sin(positions(inp.stride, V, F, grid, T, K)[:, n_ctx:], cfg.head_dim,
+    n = context_kv[0].shape[2]
+    x = _embed(params, cfg, inp, grid, domain)[:, n:]
+    cos, sin = layers.rope_cos_sin(positions(inp.stride, V, F, grid, T, K)[:, n:], cfg.head_dim,
                                    cfg.rope_axes_dim, cfg.rope_theta)
-    h, _ = _run_layers(cfg, params, x, cos, sin, None, context_kv)
+    mask = _attention_mask(cfg, token_noisy(inp, P), V * K * P, q_start=n)
+    h, _ = _run_layers(cfg, params, x, cos, sin, mask, context_kv)
     return _outputs(params, cfg, h, V, T, P, domain)
