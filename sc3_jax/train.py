@@ -11,7 +11,6 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 import optax
 import orbax.checkpoint as ocp
 
@@ -43,7 +42,8 @@ def token_geometry(cfg: Config) -> tuple[int, tuple[int, int]]:
 def init_state(cfg: Config) -> dict[str, Any]:
     """{params, opt_state, step, rng}; rng is raw key data so checkpoints hold plain arrays."""
     k_init, k_train = jax.random.split(jax.random.key(cfg.train.seed))
-    params = dit.init_params(cfg.model, token_geometry(cfg)[0], k_init, token_geometry(cfg)[1])
+    token_dim, grid = token_geometry(cfg)
+    params = dit.init_params(cfg.model, token_dim, k_init, grid)
     return {"params": params, "opt_state": make_optimizer(cfg).init(params), "step": jnp.zeros((), jnp.int32),
             "rng": jax.random.key_data(k_train)}
 

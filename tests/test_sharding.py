@@ -1,6 +1,5 @@
 """One train step on several meshes of 8 forced CPU devices gives the same loss and params as on one device."""
 import jax
-import jax.numpy as jnp
 import numpy as np
 import pytest
 

@@ -30,7 +30,7 @@ import grain
 import numpy as np
 
 from sc3_jax.data import rotations
-from sc3_jax.data.episodes import Episode, EpisodeError, EpisodeStore
+from sc3_jax.data.episodes import Episode, EpisodeStore
 
 STD_FLOOR = 1e-3
 _OPEN_LOCK = threading.Lock()
