@@ -106,7 +106,13 @@ def main(argv: list[str] | None = None) -> int:
     if cmd is None:
         print(f"sc3: unknown command {argv[0]!r}\n\n{USAGE}", file=sys.stderr)
         return 2
-    return cmd(argv[1:])
+    from sc3_jax.data.episodes import EpisodeError
+
+    try:
+        return cmd(argv[1:])
+    except (FileNotFoundError, EpisodeError) as e:  # user-facing input problems: the message says it all
+        print(f"sc3 {argv[0]}: error: {e}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

@@ -207,7 +207,11 @@ def prepare_data(cfg: Config):
     from sc3_jax.data.episodes import EpisodeStore
 
     workdir = Path(cfg.train.workdir)
-    store = EpisodeStore(cfg.data.path)
+    try:
+        store = EpisodeStore(cfg.data.path)
+    except FileNotFoundError as e:
+        raise FileNotFoundError(f"{e}. Make a dataset first (`sc3 demo` writes synthetic episodes, `sc3 sim demos "
+                                f"--out DIR` simulator demonstrations) and pass --data.path DIR") from None
     stats_path = workdir / "norm_stats.json"
     if stats_path.exists():
         stats = pipeline.NormStats.load(stats_path)
