@@ -11,6 +11,7 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 import optax
 import orbax.checkpoint as ocp
 
@@ -24,13 +25,13 @@ from sc3_jax.model.tokenizer import make_tokenizer
 # State
 # ================================================================================================================
 def make_optimizer(cfg: Config) -> optax.GradientTransformation:
-    """AdamW (paper defaults) with linear warm-up then cosine decay, global-norm clipping; no decay on norms and
-    biases (1-D parameters)."""
+    """AdamW (paper defaults) with linear warm-up then cosine decay, global-norm clipping; weight decay on weight
+    matrices only (``dit.decay_mask``: not on norms, biases or embeddings, whatever their stacking)."""
     t = cfg.train
     schedule = optax.warmup_cosine_decay_schedule(0.0, t.lr, max(t.warmup_steps, 1), max(t.steps, t.warmup_steps + 1))
-    decay_mask = lambda params: jax.tree.map(lambda p: p.ndim >= 2, params)  # noqa: E731
+    decay = dit.decay_mask(cfg.model, *token_geometry(cfg))
     return optax.chain(optax.clip_by_global_norm(t.grad_clip),
-                       optax.adamw(schedule, b1=t.b1, b2=t.b2, weight_decay=t.weight_decay, mask=decay_mask))
+                       optax.adamw(schedule, b1=t.b1, b2=t.b2, weight_decay=t.weight_decay, mask=decay))
 
 
 def token_geometry(cfg: Config) -> tuple[int, tuple[int, int]]:
@@ -77,6 +78,8 @@ def state_shardings(cfg: Config, mesh):
 # Step
 # ================================================================================================================
 def make_train_step(cfg: Config):
+    if len(cfg.data.views) == 1 and cfg.modes.probs[1] > 0:
+        raise ValueError("cross-view inpainting needs two or more views: set modes.probs[1] = 0 for one view")
     tok = make_tokenizer(cfg.model)
     grid = tok.grid(cfg.data.image_size)
     opt = make_optimizer(cfg)
@@ -127,8 +130,8 @@ def checkpoint_manager(cfg: Config) -> ocp.CheckpointManager:
     return ocp.CheckpointManager(Path(cfg.train.workdir).absolute() / "checkpoints", options=options)
 
 
-def save(mngr: ocp.CheckpointManager, state, data_state: dict, force: bool = False) -> bool:
-    step = int(state["step"])
+def save(mngr: ocp.CheckpointManager, step: int, state, data_state: dict, force: bool = False) -> bool:
+    """``step`` is passed from the loop (reading it off the device state would block on every step)."""
     return mngr.save(step, args=ocp.args.Composite(state=ocp.args.StandardSave(state),
                                                    data=ocp.args.JsonSave(data_state)), force=force)
 
@@ -252,7 +255,8 @@ def train(cfg: Config, mesh=None, stop_at: int | None = None) -> dict:
         pending.append((step + 1, metrics))
         n_since += 1
         done = step + 1 == end
-        if len(pending) >= cfg.train.log_every or done:
+        preempted = stop.requested() or mngr.reached_preemption(step + 1)
+        if len(pending) >= cfg.train.log_every or done or preempted:
             rows = [{"step": s, **{k: float(v) for k, v in jax.device_get(m).items()}} for s, m in pending]
             rate = n_since / (time.perf_counter() - t0)
             rows[-1]["steps_per_s"] = rate
@@ -262,8 +266,7 @@ def train(cfg: Config, mesh=None, stop_at: int | None = None) -> dict:
                 bar.set_postfix(loss=f"{last['loss']:.4f}", steps_s=f"{rate:.2f}")
         if bar is not None:
             bar.update(1)
-        preempted = stop.flag or mngr.reached_preemption(step + 1)
-        save(mngr, state, {"iterator": data_iter.get_state()}, force=done or preempted)
+        save(mngr, step + 1, state, {"iterator": data_iter.get_state()}, force=done or preempted)
         if preempted:
             break
     mngr.wait_until_finished()
@@ -287,7 +290,8 @@ def _progress(start: int, end: int, enabled: bool):
 
 
 class _PreemptionFlag:
-    """SIGTERM (what schedulers send before preempting) -> save a checkpoint at the next step and stop."""
+    """SIGTERM (what schedulers send before preempting) -> save a checkpoint at the next step and stop. With several
+    processes the flag is agreed on by all of them (a signal reaching only some hosts must not split the job)."""
 
     def __init__(self):
         self.flag = False
@@ -298,6 +302,12 @@ class _PreemptionFlag:
 
     def _handler(self, *_):
         self.flag = True
+
+    def requested(self) -> bool:
+        if jax.process_count() == 1:
+            return self.flag
+        from jax.experimental import multihost_utils
+        return bool(np.any(multihost_utils.process_allgather(np.int32(self.flag))))
 
     def restore(self):
         if self._old is not None:

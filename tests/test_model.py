@@ -169,3 +169,11 @@ def test_shortcut_features():
     plain = dit.init_params(ModelConfig(dim=64, depth=2, num_heads=4, num_kv_heads=2, head_dim=32, mlp_dim=128), 48,
                             jax.random.key(0))
     assert set(params) - set(plain) == {"anchor_in", "action_to_frames", "frames_to_action"}
+
+
+def test_weight_decay_only_on_weight_matrices():
+    mask = dit.decay_mask(ModelConfig(**SHORTCUTS), 48, (4, 4))
+    assert mask["layers"]["wq"] and mask["layers"]["w_down"] and mask["proj_out"]["w"] and mask["action_in"]["w"]
+    assert not any([mask["layers"]["attn_norm"], mask["layers"]["q_norm"], mask["final_norm"], mask["proj_in"]["b"],
+                    mask["action_in"]["b"], mask["action_out"]["b"], mask["view_embed"],
+                    mask["action_modality_embed"]])

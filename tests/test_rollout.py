@@ -249,7 +249,7 @@ def test_cli_writes_arrays_and_videos(tmp_path, setup):
                   train=dict(workdir=str(tmp_path / "run"), async_checkpointing=False))
     _store(tmp_path)
     mngr = train.checkpoint_manager(cfg)
-    train.save(mngr, train.init_state(cfg), {"iterator": {}}, force=True)
+    train.save(mngr, 0, train.init_state(cfg), {"iterator": {}}, force=True)
     mngr.wait_until_finished()
     STATS.save(tmp_path / "run" / "norm_stats.json")
     (tmp_path / "run" / "config.json").write_text(json.dumps(dataclasses.asdict(cfg)))

@@ -105,6 +105,14 @@ def param_axes(cfg: ModelConfig, token_dim: int, grid: tuple[int, int] | None = 
     return jax.tree.map(lambda s: s.axes, param_specs(cfg, token_dim, grid), is_leaf=_is_spec)
 
 
+def decay_mask(cfg: ModelConfig, token_dim: int, grid: tuple[int, int] | None = None) -> dict:
+    """True for weight matrices: parameters with two or more axes besides the stacking axes (layers, domains,
+    views). Norm gains, biases and embeddings get no weight decay, however they are stacked."""
+    stacking = ("layers", "domains", "views")
+    return jax.tree.map(lambda s: sum(a not in stacking for a in s.axes) >= 2, param_specs(cfg, token_dim, grid),
+                        is_leaf=_is_spec)
+
+
 def count_params(params_or_shapes) -> int:
     return int(sum(np.prod(x.shape) for x in jax.tree.leaves(params_or_shapes)))
 

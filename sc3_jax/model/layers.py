@@ -79,10 +79,10 @@ def attention(q, k, v, mask=None):
     G = Hq // Hkv
     qg = jnp.moveaxis(q.reshape(B, N, Hkv, G, D), 1, 3).reshape(B, Hkv, G * N, D)
     kk, vv = jnp.moveaxis(k, 1, 2), jnp.moveaxis(v, 1, 2)  # [B, Hkv, M, D]
-    s = jnp.einsum("bkqd,bkmd->bkqm", qg, kk) / math.sqrt(D)
+    s = jnp.einsum("bkqd,bkmd->bkqm", qg, kk, preferred_element_type=jnp.float32) / math.sqrt(D)
     if mask is not None:
         m = jnp.broadcast_to(mask, (mask.shape[0], 1, N, M))
         s = jnp.where(jnp.tile(m, (1, 1, G, 1)), s, jnp.finfo(s.dtype).min)
-    w = jax.nn.softmax(s.astype(jnp.float32), axis=-1).astype(v.dtype)
+    w = jax.nn.softmax(s, axis=-1).astype(v.dtype)  # scores and softmax in fp32 whatever the activation dtype
     o = jnp.einsum("bkqm,bkmd->bkqd", w, vv).reshape(B, Hkv, G, N, D)
     return jnp.moveaxis(o, 3, 1).reshape(B, N, Hq, D)
