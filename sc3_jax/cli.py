@@ -9,6 +9,9 @@ commands:
   demo           generate the synthetic multi-view data, train the tiny model, report how far it got
   train          sc3 train --config NAME_OR_PATH[:ARG] [--section.field VALUE ...]
   rollout        closed-loop / offline rollouts of a policy inside a trained world model
+  sweep          policies x initial conditions x {real, offline, online} on the simulated benchmark -> report
+  report         sc3 report RESULTS --out DIR: tables, plots and videos from a sweep's results store
+  data           LeRobot datasets: sc3 data import-lerobot ROOT --out DIR | export-lerobot STORE --out DIR
   sim            the simulated table-bussing benchmark: sc3 sim demos|eval ...
   serve-policy   serve one of our policies over the openpi websocket protocol
   configs        list the named configs with their parameter counts
@@ -56,6 +59,12 @@ def cmd_demo(argv: list[str]) -> int:
     return demo.main(argv)
 
 
+def cmd_data(argv: list[str]) -> int:
+    from sc3_jax.data import lerobot_cli
+
+    return lerobot_cli.main(argv)
+
+
 def cmd_sim(argv: list[str]) -> int:
     from sc3_jax.sim import cli as sim_cli
 
@@ -87,13 +96,46 @@ def cmd_configs(argv: list[str]) -> int:
     return 0
 
 
+def cmd_sweep(argv: list[str]) -> int:
+    """Run (or resume) a sweep, then write its report to OUT/report."""
+    import tyro
+
+    from sc3_jax.evaluate import report, sweep
+
+    cfg = tyro.cli(sweep.SweepConfig, args=argv, prog="sc3 sweep",
+                   description="Evaluate policies in the simulator and inside the world model; resumable (rerun the "
+                               "same command). Ends with OUT/report/report.md.")
+    out = sweep.run_sweep(cfg)
+    md = report.render(out, out / "report")
+    sections = md.read_text().split("\n## ")
+    print("## " + sections[1] if len(sections) > 1 else "")  # the main table
+    print(f"report: {md} (and report.html, report.json)")
+    return 0
+
+
+def cmd_report(argv: list[str]) -> int:
+    import argparse
+
+    from sc3_jax.evaluate import report
+
+    ap = argparse.ArgumentParser(prog="sc3 report", description="Report of a sweep's results store.")
+    ap.add_argument("results", help="the sweep's --out directory")
+    ap.add_argument("--out", default=None, help="report directory (default RESULTS/report)")
+    ap.add_argument("--videos", type=int, default=3, help="side-by-side example videos")
+    a = ap.parse_args(argv)
+    md = report.render(a.results, a.out or f"{a.results}/report", a.videos)
+    print(f"report: {md}")
+    return 0
+
+
 def cmd_rollout(argv: list[str]) -> int:
     from sc3_jax import rollout_cli
 
     return rollout_cli.main(argv) or 0
 
 
-COMMANDS = {"demo": cmd_demo, "train": cmd_train, "rollout": cmd_rollout, "sim": cmd_sim,
+COMMANDS = {"demo": cmd_demo, "train": cmd_train, "rollout": cmd_rollout, "sweep": cmd_sweep, "report": cmd_report,
+            "data": cmd_data, "sim": cmd_sim,
             "serve-policy": cmd_serve_policy, "configs": cmd_configs}
 
 

@@ -52,6 +52,13 @@ class ModelConfig:
     # lax.scan over the stacked layers (one compiled block, fast compiles at any depth). False unrolls the scan:
     # same math; XLA's cost analysis counts a loop body once, so FLOP counting compiles the unrolled form.
     scan_layers: bool = True
+    # Attention over the packed token sequence. "dense": one device holds every query and key (the default; the
+    # only mode before context parallelism existed). With a mesh that has a ``context`` axis (MeshConfig.context > 1)
+    # the token sequence is split over that axis and attention runs under ``jax.shard_map``
+    # (sc3_jax/model/context_parallel.py): "context_parallel" all-gathers keys/values (scores [N/C, N] per device),
+    # "ring" passes key/value blocks around the ring with an online softmax (scores [N/C, N/C] per device). Same
+    # math and parameters as "dense"; without a context axis both fall back to the dense computation.
+    attention_impl: str = "dense"
 
     def __post_init__(self):
         if 2 * sum(self.rope_axes_dim) != self.head_dim:
@@ -62,6 +69,9 @@ class ModelConfig:
             raise ValueError(f"prediction must be 'residual' or 'velocity', got {self.prediction!r}")
         if self.context_attention not in ("full", "causal"):
             raise ValueError(f"context_attention must be 'full' or 'causal', got {self.context_attention!r}")
+        if self.attention_impl not in ("dense", "context_parallel", "ring"):
+            raise ValueError(f"attention_impl must be 'dense', 'context_parallel' or 'ring', "
+                             f"got {self.attention_impl!r}")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -120,6 +130,9 @@ class MeshConfig:
     data: int = -1  # -1: all devices not used by the other axes
     fsdp: int = 1
     tensor: int = 1
+    # context parallelism: the token sequence of every sample is split over this many devices (needs
+    # model.attention_impl "context_parallel" or "ring"). 1 = no "context" mesh axis at all (meshes as before).
+    context: int = 1
 
 
 @dataclasses.dataclass(frozen=True)
@@ -132,7 +145,10 @@ class RolloutConfig:
     policy_chunk: int = 25  # actions proposed per policy call
     keep_frames: int = 16  # l: predicted frames kept as context per chunk (l' = data.future_frames)
     episode_seconds: float = 20.0
-    control_hz: float = 10.0
+    control_hz: float = 10.0  # the model's frame rate in a rollout (frame stride = data fps / control_hz)
+    # the policy's action rate (None = control_hz). When higher, each group of policy_hz / control_hz raw actions is
+    # composed into one model-rate action (as the data pipeline composes recorded actions for strided windows).
+    policy_hz: float | None = None
     tau: float = 0.02  # stop once U_chunk > tau
 
 

@@ -63,6 +63,20 @@ def step(state, action):
     return jnp.concatenate([state[:3] + action[:3], rot, action[6:7]]).astype(state.dtype)
 
 
+def compose(actions, ratio: int):
+    """Raw actions [n * ratio, 7] -> [n, 7], each group of ``ratio`` consecutive actions as one action (translations
+    summed, rotations chained with later ones on the left, the last gripper target), the jnp twin of
+    ``sc3_jax.data.pipeline.compose_actions``."""
+    if ratio == 1:
+        return actions
+    g = actions.reshape(-1, ratio, actions.shape[-1])
+    mats = rotvec_to_matrix(g[..., 3:6])  # [n, ratio, 3, 3]
+    m = mats[:, 0]
+    for j in range(1, ratio):
+        m = mats[:, j] @ m
+    return jnp.concatenate([g[..., :3].sum(1), matrix_to_rotvec(m), g[:, -1, 6:7]], -1).astype(actions.dtype)
+
+
 def integrate(state, actions):
     """States after each of ``actions`` [n, 7]: returns (final state [7], states [n, 7])."""
 

@@ -65,6 +65,12 @@ class RolloutSpec:
     num_chunks: int
     stride: int
     steps: int  # Euler steps per sampler call
+    ratio: int = 1  # raw policy actions per model-rate action (policy_hz / control_hz)
+
+    @property
+    def raw_needed(self) -> int:
+        """Raw policy actions one chunk needs: one model-rate action per predicted frame."""
+        return self.predict * self.ratio
 
     @property
     def num_frames(self) -> int:
@@ -75,16 +81,20 @@ def make_spec(cfg: Config, data_fps: float = 20.0, num_chunks: int | None = None
     r, d = cfg.rollout, cfg.data
     if not 1 <= r.keep_frames <= d.future_frames:
         raise ValueError(f"rollout.keep_frames={r.keep_frames} must be in [1, data.future_frames={d.future_frames}]")
-    if r.policy_chunk < d.future_frames:
-        raise ValueError(f"rollout.policy_chunk={r.policy_chunk} < data.future_frames={d.future_frames}: the model "
-                         "needs an action for every predicted frame")
+    ratio = (r.policy_hz or r.control_hz) / r.control_hz
+    if abs(ratio - round(ratio)) > 1e-6 or round(ratio) < 1:
+        raise ValueError(f"rollout.policy_hz {r.policy_hz} / control_hz {r.control_hz} is not a positive integer")
+    ratio = int(round(ratio))
+    if r.policy_chunk < d.future_frames * ratio:
+        raise ValueError(f"rollout.policy_chunk={r.policy_chunk} < data.future_frames={d.future_frames} x {ratio}: "
+                         "the model needs an action for every predicted frame")
     stride = data_fps / r.control_hz
     if abs(stride - round(stride)) > 1e-6 or round(stride) < 1:
         raise ValueError(f"data fps {data_fps} / control_hz {r.control_hz} is not a positive integer frame stride")
     if num_chunks is None:
         num_chunks = math.ceil(r.episode_seconds * r.control_hz / r.keep_frames - 1e-9)
     return RolloutSpec(len(d.views), tuple(d.image_size), d.context_frames, d.future_frames, r.keep_frames,
-                       r.policy_chunk, int(num_chunks), int(round(stride)), cfg.sample.steps)
+                       r.policy_chunk, int(num_chunks), int(round(stride)), cfg.sample.steps, ratio)
 
 
 class InitialConditions(NamedTuple):
@@ -135,19 +145,29 @@ class _Steps:
         k = jax.random.fold_in(jax.random.wrap_key_data(key_data), chunk)
         return jax.random.split(k, 3)
 
-    def observe(self, carry: Carry, task, key_data):
-        obs = {"images": to_uint8(self.tok.decode(carry.context[:, -1], self.spec.image_size)),
-               "state": carry.state, "task": jnp.asarray(task, jnp.int32)}
+    def observe(self, carry: Carry, task, key_data, reader_params=None, reader=None):
+        """What the policy sees: the last context frame of every view, the imagined state, the task. With a
+        ``reader`` (a pure ``apply(params, images uint8 [V, H, W, 3]) -> gripper width``) the state's gripper entry
+        is read from the frames: commanded actions cannot tell whether the fingers closed on an object or on air."""
+        images = to_uint8(self.tok.decode(carry.context[:, -1], self.spec.image_size))
+        state = carry.state
+        if reader is not None:
+            state = state.at[6].set(reader(reader_params, images).astype(state.dtype))
+        obs = {"images": images, "state": state, "task": jnp.asarray(task, jnp.int32)}
         return obs, jax.random.key_data(self.keys(key_data, carry.chunk)[0])
 
-    def model_step(self, params, norm, carry: Carry, actions, key_data, tau):
-        """Algorithm 1 after the policy: ``actions`` raw [C, 7] -> (next carry, emitted arrays). ``norm`` [2, 7]:
-        the per-dimension action mean and std."""
+    def model_step(self, params, norm, carry: Carry, actions, key_data, tau, raw: bool = True):
+        """Algorithm 1 after the policy: ``actions`` [C, 7] -> (next carry, emitted arrays). ``raw``: the policy's
+        actions at ``policy_hz`` (composed ``ratio`` at a time to the model's rate); else already model-rate actions
+        (offline replay). ``norm`` [2, 7]: the per-dimension action mean and std."""
         s, m = self.spec, self.model_cfg
         K, T, l, V = s.context, s.predict, s.keep, s.views
         _, k_fd, k_id = self.keys(key_data, carry.chunk)
         mean, std = norm[0], norm[1]
-        a = (actions[:T].astype(jnp.float32) - mean) / std  # normalised [T, 7]
+        actions = actions.astype(jnp.float32)
+        r = s.ratio if raw else 1
+        model_actions = imagination_state.compose(actions[:T * r], r)  # [T, 7] raw units, model rate
+        a = (model_actions - mean) / std  # normalised [T, 7]
         stride = jnp.full((1,), s.stride, jnp.int32)
         ctx = carry.context[None]
         video = jnp.concatenate([ctx, jnp.zeros((1, V, T) + ctx.shape[3:], ctx.dtype)], axis=2)
@@ -165,11 +185,12 @@ class _Steps:
         done = carry.done | (u > tau)
         kept = video[0, :, K:K + l]  # [V, l, P, D]
         context = jnp.concatenate([carry.context, kept], axis=1)[:, -K:]
-        state, states = imagination_state.integrate(carry.state, actions[:l].astype(jnp.float32))
+        # the l executed steps: l * r raw actions; the state at each kept frame is every r-th integrated state
+        state, states = imagination_state.integrate(carry.state, actions[:l * r])
         new = Carry(jnp.where(done, carry.context, context), jnp.where(done, carry.state, state), done,
                     carry.chunk + 1)
-        emit = {"frames": to_uint8(self.tok.decode(kept, s.image_size)), "actions": actions[:l].astype(jnp.float32),
-                "reread": a_hat[:l] * std + mean, "states": states, "u": u, "done": done}
+        emit = {"frames": to_uint8(self.tok.decode(kept, s.image_size)), "actions": model_actions[:l],
+                "reread": a_hat[:l] * std + mean, "states": states[r - 1::r], "u": u, "done": done}
         return new, emit
 
 
@@ -193,7 +214,7 @@ class Rollout:
     """
 
     def __init__(self, cfg: Config, norm_stats, mesh=None, data_fps: float = 20.0, num_chunks: int | None = None,
-                 use_cache: bool | None = None):
+                 use_cache: bool | None = None, state_reader=None):
         self.cfg = cfg
         self.spec = make_spec(cfg, data_fps, num_chunks)
         self.mesh = mesh if mesh is not None else sharding.make_mesh(MeshConfig(-1, 1, 1))
@@ -202,7 +223,10 @@ class Rollout:
         self.batch_multiple = self.mesh.shape["data"] * self.mesh.shape["fsdp"]
         self.norm = jax.device_put(np.stack([norm_stats.mean, norm_stats.std]).astype(np.float32), self._repl)
         self.steps, self._init, self._observe, self._model_step_fn, self._scan_policy, self._scan_actions = \
-            _compiled(cfg.model, cfg.flow, self.spec, use_cache)
+            _compiled(cfg.model, cfg.flow, self.spec, use_cache, state_reader and state_reader.apply)
+        # state_reader: anything with a pure ``apply(params, images uint8 [V, H, W, 3]) -> gripper width`` and
+        # ``params`` (e.g. ``evaluate.scorers.PerceptionScorer.state_reader()``); see ``_Steps.observe``
+        self.reader_params = None if state_reader is None else jax.device_put(state_reader.params, self._repl)
 
     def _model_step(self, params, carry, actions, keys, tau):
         return self._model_step_fn(params, self.norm, carry, actions, keys, tau)
@@ -234,8 +258,8 @@ class Rollout:
         tau = self.cfg.rollout.tau if tau is None else tau
         B, frames, state, task, keys = self._inputs(ics, keys)
         params, policy_params = self.place_params(params), jax.device_put(policy.params, self._repl)
-        emits = self._scan_policy(policy.apply, params, self.norm, policy_params, frames, state, task, keys,
-                                  jnp.float32(tau))
+        emits = self._scan_policy(policy.apply, params, self.norm, policy_params, self.reader_params, frames, state,
+                                  task, keys, jnp.float32(tau))
         return self._finish(jax.device_get(emits), ics, B, tau, chunk_axis=0)
 
     def run_offline(self, params, ics: InitialConditions, actions, keys, tau: float = math.inf,
@@ -280,7 +304,7 @@ class Rollout:
             from tqdm import tqdm
             chunks = tqdm(chunks, desc="rollout chunks", unit="chunk")
         for _ in chunks:
-            obs, k_pol = jax.device_get(self._observe(carry, task, keys))
+            obs, k_pol = jax.device_get(self._observe(carry, task, keys, self.reader_params))
             done = np.asarray(jax.device_get(carry.done))
             acts = np.zeros((len(k_pol), self.spec.policy_chunk, 7), np.float32)
             for b in range(B):  # padded episodes copy episode B-1: reuse its actions
@@ -289,9 +313,9 @@ class Rollout:
                 ob = {k: v[b] for k, v in obs.items()}
                 a = policy.infer(ob, rng=jax.random.wrap_key_data(k_pol[b])) if takes_rng else policy.infer(ob)
                 a = np.asarray(a, np.float32)
-                if a.ndim != 2 or a.shape[0] < self.spec.predict or a.shape[1] != 7:
+                if a.ndim != 2 or a.shape[0] < self.spec.raw_needed or a.shape[1] != 7:
                     raise ValueError(f"policy returned actions of shape {list(a.shape)}, expected "
-                                     f"[>={self.spec.predict}, 7]")
+                                     f"[>={self.spec.raw_needed}, 7]")
                 acts[b] = a[:self.spec.policy_chunk] if a.shape[0] >= self.spec.policy_chunk else np.pad(
                     a, ((0, self.spec.policy_chunk - a.shape[0]), (0, 0)), mode="edge")
             acts[B:] = acts[B - 1]
@@ -302,9 +326,9 @@ class Rollout:
 
     # -- helpers -----------------------------------------------------------------------------------------------
     def _check_chunk(self, chunk: int, name: str):
-        if chunk < self.spec.predict:
+        if chunk < self.spec.raw_needed:
             raise ValueError(f"policy {name} proposes {chunk} actions per call; the world model predicts "
-                             f"{self.spec.predict} frames per chunk and needs one action each")
+                             f"{self.spec.predict} frames per chunk and needs {self.spec.raw_needed} raw actions")
 
     def _finish(self, emits: dict, ics: InitialConditions, B: int, tau: float, chunk_axis: int) -> dict:
         """[N, Bpad, ...] per-chunk emissions -> the documented [B, ...] episode arrays."""
@@ -328,27 +352,26 @@ class Rollout:
 # The jitted programs, shared by every Rollout with the same (model config, flow config, spec, cache flag)
 # ================================================================================================================
 @functools.lru_cache(maxsize=32)
-def _compiled(model_cfg, flow_cfg, spec: RolloutSpec, use_cache: bool | None):
+def _compiled(model_cfg, flow_cfg, spec: RolloutSpec, use_cache: bool | None, reader=None):
     st = _Steps(model_cfg, flow_cfg, spec, use_cache)
+    observe_b = jax.vmap(lambda c, t, k, rp: st.observe(c, t, k, rp, reader), in_axes=(0, 0, 0, None))
     step_b = jax.vmap(st.model_step, in_axes=(None, None, 0, 0, 0, None))
+    step_offline = jax.vmap(functools.partial(st.model_step, raw=False), in_axes=(None, None, 0, 0, 0, None))
 
-    def scan(params, norm, carry, task, keys, tau, actions_fn, xs):
-        def body(carry, x):
-            obs, k_pol = jax.vmap(st.observe)(carry, task, keys)
-            return step_b(params, norm, carry, actions_fn(obs, k_pol, x), keys, tau)
-
-        return jax.lax.scan(body, carry, xs, length=spec.num_chunks)[1]
-
-    def scan_policy(policy_apply, params, norm, policy_params, frames, state, task, keys, tau):
-        carry = jax.vmap(st.init)(frames, state)
+    def scan_policy(policy_apply, params, norm, policy_params, reader_params, frames, state, task, keys, tau):
         act = lambda o, k: policy_apply(policy_params, o, jax.random.wrap_key_data(k))  # noqa: E731
-        return scan(params, norm, carry, task, keys, tau, lambda obs, k, _: jax.vmap(act)(obs, k), None)
+
+        def body(carry, _):
+            obs, k_pol = observe_b(carry, task, keys, reader_params)
+            return step_b(params, norm, carry, jax.vmap(act)(obs, k_pol), keys, tau)
+
+        return jax.lax.scan(body, jax.vmap(st.init)(frames, state), None, length=spec.num_chunks)[1]
 
     def scan_actions(params, norm, frames, state, task, keys, tau, actions):
-        carry = jax.vmap(st.init)(frames, state)
-        return scan(params, norm, carry, task, keys, tau, lambda obs, k, x: x, jnp.swapaxes(actions, 0, 1))
+        body = lambda carry, a: step_offline(params, norm, carry, a, keys, tau)  # noqa: E731
+        return jax.lax.scan(body, jax.vmap(st.init)(frames, state), jnp.swapaxes(actions, 0, 1))[1]
 
-    return (st, jax.jit(jax.vmap(st.init)), jax.jit(jax.vmap(st.observe)), jax.jit(step_b),
+    return (st, jax.jit(jax.vmap(st.init)), jax.jit(observe_b), jax.jit(step_b),
             jax.jit(scan_policy, static_argnums=(0,)), jax.jit(scan_actions))
 
 

@@ -270,3 +270,31 @@ def test_cli_writes_arrays_and_videos(tmp_path, setup):
     while cap.read()[0]:
         count += 1
     assert count == 2 + N * 3  # context + kept frames
+
+
+def test_policy_rate_actions_are_composed_to_the_model_rate():
+    """policy_hz = 2 x control_hz: the model sees pairs of raw actions composed (as the data pipeline composes
+    recorded actions for strided windows); the state integrates every raw action and is read at the kept frames."""
+    from sc3_jax.data.pipeline import compose_actions
+    rng = np.random.default_rng(1)
+    raw = np.concatenate([rng.normal(0, 0.01, (8, 3)), rng.normal(0, 0.2, (8, 3)), rng.uniform(0, 0.08, (8, 1))],
+                         1).astype(np.float32)
+    got = np.asarray(imagination_state.compose(jnp.asarray(raw), 2))
+    want = np.stack([compose_actions(raw, i, 2) for i in range(0, 8, 2)])
+    np.testing.assert_allclose(got, want, atol=2e-5)
+    cfg = replace(_cfg(), rollout=dict(policy_chunk=8, keep_frames=3, policy_hz=20.0, control_hz=10.0))
+    ro = rollout.Rollout(cfg, STATS, num_chunks=2)
+    assert (ro.spec.ratio, ro.spec.raw_needed) == (2, 8)
+    policy = simple.linear_policy(jax.random.key(7), len(cfg.data.views), chunk=8, noise=0.0)
+    out = ro.run(ro.place_params(_params(cfg)), policy, _ics(cfg), rollout.episode_keys(0, B), tau=math.inf)
+    assert out["actions"].shape == (B, 2 * 3, 7) and out["states"].shape == (B, 2 * 3, 7)
+    # the state after kept frame j of chunk 0 integrates raw actions 0 .. 2j+1 of that chunk's proposal
+    host = as_host(policy)
+    obs = {"images": _ics(cfg).frames[0][:, -1], "state": _ics(cfg).state[0], "task": np.int32(0)}
+    a0 = np.asarray(host.infer(obs), np.float32)
+    _, states = imagination_state.integrate(jnp.asarray(_ics(cfg).state[0]), jnp.asarray(a0[:6]))
+    np.testing.assert_allclose(out["states"][0, :3], np.asarray(states)[1::2], atol=1e-5)
+    np.testing.assert_allclose(out["actions"][0, :3], np.stack([compose_actions(a0, i, 2) for i in (0, 2, 4)]),
+                               atol=2e-5)
+    with pytest.raises(ValueError, match="policy_chunk=5"):
+        rollout.make_spec(replace(cfg, rollout=dict(policy_chunk=5)))

@@ -48,7 +48,8 @@ def generate_demos(out: str | Path, n_episodes: int, seed: int = 0, knobs: Exper
                 "initial_condition": r.ic.to_json(), "control_hz": control_hz,
                 "labels": {"objects": [o.to_json() for o in r.outcomes],
                            "success": success_rates(r.outcomes)},
-                "intent": {k: np.round(v, 5).tolist() for k, v in r.intents.items()}}
+                "intent": {k: np.round(v, 5).tolist() for k, v in r.intents.items()},
+                "object_pos": np.round(r.object_pos, 4).tolist()}
         store.write(Episode(eid, r.frames, r.actions, r.ee_pose, r.ic.prompt, meta))
         outcomes += r.outcomes
         written += 1

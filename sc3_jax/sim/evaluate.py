@@ -71,7 +71,8 @@ def run_policy_episode(env: BussingEnv, policy, seed: int, task: str = "bussing"
         if settled >= SETTLE_STEPS:
             break
     return EpisodeResult(env.ic, {v: np.stack(x) for v, x in frames.items()} if record else None,
-                         np.stack(actions), np.stack(poses), finish(env, traj))
+                         np.stack(actions), np.stack(poses), finish(env, traj), None,
+                         np.stack(traj).astype(np.float32))
 
 
 def write_mp4(path: str | Path, frames: np.ndarray, fps: int = 20) -> None:

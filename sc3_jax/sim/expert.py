@@ -192,6 +192,8 @@ class EpisodeResult:
     ee_pose: np.ndarray  # [T, 7]
     outcomes: list[ObjectOutcome]
     intents: dict[str, np.ndarray] | None = None  # per-step expert intent (expert episodes only)
+    # object centres [T + 1, n, 3] (ic.objects order): row t is the state seen in frame t, the last row the final one
+    object_pos: np.ndarray | None = None
 
     @property
     def length(self) -> int:
@@ -234,4 +236,5 @@ def run_expert_episode(env: BussingEnv, seed: int, task: str = "bussing", knobs:
                 break
     return EpisodeResult(env.ic, {v: np.stack(x) for v, x in frames.items()} if record else None,
                          np.stack(actions).astype(np.float32), np.stack(poses).astype(np.float32),
-                         finish(env, traj), {k: np.asarray(v, np.float32) for k, v in intents.items()})
+                         finish(env, traj), {k: np.asarray(v, np.float32) for k, v in intents.items()},
+                         np.stack(traj).astype(np.float32))

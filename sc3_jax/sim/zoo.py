@@ -34,10 +34,10 @@ import numpy as np
 
 from ..policies.base import JaxPolicy
 from . import scene as S
+from .convnet import dense_init, init_trunk, mlp, trunk_features
 from .tasks import OBJECTS
 
 ZOO_DIR = Path(__file__).parent / "zoo"
-NET_SIZE = 64
 N_KP = 32
 CHUNK = 25
 # controller constants (shared with the expert's geometry)
@@ -51,54 +51,18 @@ OUT_DIM = 4 * N_OBJ + 5
 XY_SCALE = 10.0
 
 
-# -- network ---------------------------------------------------------------------------------------------------
-def _conv_init(key, k, cin, cout):
-    return {"w": jax.random.normal(key, (k, k, cin, cout)) * np.sqrt(2.0 / (k * k * cin)), "b": jnp.zeros(cout)}
-
-
-def _dense_init(key, din, dout, scale=1.0):
-    return {"w": jax.random.normal(key, (din, dout)) * np.sqrt(1.0 / din) * scale, "b": jnp.zeros(dout)}
-
-
+# -- network (trunk in convnet.py) ------------------------------------------------------------------------------
 def init_net(key: jax.Array, n_views: int = 3) -> dict:
-    ks = jax.random.split(key, 8)
+    ks = jax.random.split(key, 8)  # (the split the shipped weights were trained from)
     feat = n_views * (2 * N_KP + N_KP) + 7
-    return {"c1": _conv_init(ks[0], 3, 5, 16), "c2": _conv_init(ks[1], 3, 16, 32),
-            "c3": _conv_init(ks[2], 3, 32, 32), "c4": _conv_init(ks[3], 3, 32, N_KP),
-            "d1": _dense_init(ks[4], feat, 256), "d2": _dense_init(ks[5], 256, 256),
-            "out": _dense_init(ks[6], 256, OUT_DIM, 0.1)}
-
-
-def _conv(x, p, stride):
-    y = jax.lax.conv_general_dilated(x, p["w"], (stride, stride), "SAME", dimension_numbers=("NHWC", "HWIO", "NHWC"))
-    return y + p["b"]
+    return {**init_trunk(ks[:4], N_KP), "d1": dense_init(ks[4], feat, 256), "d2": dense_init(ks[5], 256, 256),
+            "out": dense_init(ks[6], 256, OUT_DIM, 0.1)}
 
 
 def net_apply(net: dict, images: jax.Array, state: jax.Array) -> jax.Array:
     """images uint8 [B, V, H, W, 3], state [B, 7] -> raw outputs [B, OUT_DIM]."""
-    b, v, h, w, _ = images.shape
-    x = images.reshape(b * v, h, w, 3).astype(jnp.float32) / 255.0
-    if (h, w) != (NET_SIZE, NET_SIZE):
-        x = jax.image.resize(x, (b * v, NET_SIZE, NET_SIZE, 3), "linear")
-    ys, xs = jnp.meshgrid(jnp.linspace(-1, 1, NET_SIZE), jnp.linspace(-1, 1, NET_SIZE), indexing="ij")
-    coords = jnp.broadcast_to(jnp.stack([xs, ys], -1), (b * v, NET_SIZE, NET_SIZE, 2))
-    x = jnp.concatenate([x - 0.5, coords], -1)
-    x = jax.nn.relu(_conv(x, net["c1"], 2))
-    x = jax.nn.relu(_conv(x, net["c2"], 2))
-    x = jax.nn.relu(_conv(x, net["c3"], 1))
-    x = _conv(x, net["c4"], 1)  # [BV, 16, 16, K]
-    hh, ww = x.shape[1:3]
-    n_kp = net["c4"]["w"].shape[-1]  # keypoints per view (read from the weights)
-    logits = x.reshape(b * v, hh * ww, n_kp)
-    att = jax.nn.softmax(logits, axis=1)
-    gy, gx = jnp.meshgrid(jnp.linspace(-1, 1, hh), jnp.linspace(-1, 1, ww), indexing="ij")
-    grid = jnp.stack([gx.reshape(-1), gy.reshape(-1)], -1)  # [HW, 2]
-    kp = jnp.einsum("nsk,sc->nkc", att, grid).reshape(b, v * n_kp * 2)
-    pooled = jnp.max(logits, axis=1).reshape(b, v * n_kp)
-    f = jnp.concatenate([kp, jnp.tanh(pooled * 0.1), state * jnp.array([5, 5, 5, 1, 1, 1, 10.0])], -1)
-    f = jax.nn.relu(f @ net["d1"]["w"] + net["d1"]["b"])
-    f = jax.nn.relu(f @ net["d2"]["w"] + net["d2"]["b"])
-    return f @ net["out"]["w"] + net["out"]["b"]
+    f = trunk_features(net, images)
+    return mlp(net, jnp.concatenate([f, state * jnp.array([5, 5, 5, 1, 1, 1, 10.0])], -1))
 
 
 def decode(out: jax.Array) -> dict:

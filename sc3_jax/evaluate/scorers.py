@@ -1,0 +1,133 @@
+"""Scorers: a rollout -> one outcome per object (``language``, ``lifting``, ``placing`` booleans + category).
+
+One interface, three kinds, interchangeable in a sweep:
+
+* :class:`SimScorer` -- the simulator's physics ground truth (real rollouts only; ``sim/criteria.py``).
+* :class:`PerceptionScorer` -- reads only frames: the learned per-object predicates of ``perception.py`` (lifted,
+  in the bin, in the can), then the criteria's own logic. Works on real and imagined rollouts alike.
+* :class:`HumanScorer` -- annotations imported from a blinded CSV (``annotation.py``).
+
+Criteria from predicates, per object (a predicate "holds" when its probability is > 0.5 for ``min_run``
+consecutive frames, so one misread frame does not decide an outcome):
+  language = it never held in the *wrong* container;
+  lifting  = it was lifted at some point, or it was ever in a container (walls are taller than the lift clearance);
+  placing  = it is in the instructed container in the last frame.
+The physics criteria also require the object to be at rest and released at the end; frames show that only
+indirectly, which is the main source of disagreement (measured by the sweep: ``scorer_agreement``).
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import Protocol
+
+import numpy as np
+
+from sc3_jax.evaluate import perception
+from sc3_jax.evaluate.metrics import CRITERIA, outcome_category
+
+
+@dataclasses.dataclass
+class RolloutView:
+    """What a scorer may look at. ``physics``: the simulator's outcomes (real rollouts only)."""
+    id: str
+    frames: np.ndarray  # uint8 [V, T, H, W, 3]
+    objects: tuple[str, ...]
+    destinations: dict[str, str]
+    physics: list[dict] | None = None
+
+
+class Scorer(Protocol):
+    name: str
+
+    def score(self, rollout: RolloutView) -> list[dict]: ...  # one dict per object, in rollout.objects order
+
+
+def outcome(name: str, destination: str, language: bool, lifting: bool, placing: bool) -> dict:
+    passed = {"language": bool(language), "lifting": bool(lifting), "placing": bool(placing)}
+    return {"object": name, "destination": destination, **passed, "outcome": outcome_category(passed)}
+
+
+class SimScorer:
+    name = "sim"
+
+    def score(self, rollout: RolloutView) -> list[dict]:
+        if rollout.physics is None:
+            raise ValueError(f"{rollout.id}: simulator ground truth exists only for real (simulated) rollouts")
+        return [outcome(o["name"], o["destination"], o["language"], o["lifting"], o["placing"])
+                for o in rollout.physics]
+
+
+def held(p: np.ndarray, min_run: int) -> bool:
+    """Whether the bool series ``p`` [T] is True for ``min_run`` consecutive steps somewhere."""
+    run = 0
+    for v in np.asarray(p, bool):
+        run = run + 1 if v else 0
+        if run >= min_run:
+            return True
+    return False
+
+
+def criteria_from_predicates(probs: np.ndarray, objects, destinations: dict, min_run: int = 2) -> list[dict]:
+    """probs [T, 6, 3] (perception.TYPES x PREDICATES) -> one outcome per object (see the module docstring)."""
+    on = np.asarray(probs) > 0.5
+    out = []
+    for name in objects:
+        k = perception.TYPES.index(name)
+        lifted, in_bin, in_can = on[:, k, 0], on[:, k, 1], on[:, k, 2]
+        dest = destinations[name]
+        right, wrong = (in_bin, in_can) if dest == "bin" else (in_can, in_bin)
+        language = not held(wrong, min_run)
+        lifting = held(lifted, min_run) or held(in_bin | in_can, min_run)
+        placing = bool(right[-1])
+        out.append(outcome(name, dest, language, lifting, placing))
+    return out
+
+
+class PerceptionScorer:
+    name = "perception"
+
+    def __init__(self, params: dict | None = None, min_run: int = 2):
+        self.params = perception.load() if params is None else params
+        self.min_run = min_run
+
+    def predicates(self, frames: np.ndarray) -> np.ndarray:
+        return perception.predict(self.params, frames)[0]
+
+    def score(self, rollout: RolloutView) -> list[dict]:
+        return criteria_from_predicates(self.predicates(rollout.frames), rollout.objects, rollout.destinations,
+                                        self.min_run)
+
+    def score_cuts(self, frames: np.ndarray, objects, destinations, frames_per_chunk: int, num_chunks: int,
+                   prefix: int = 0) -> list[list[dict]]:
+        """Outcomes of the rollout cut after each number of chunks: entry c scores ``prefix`` initial frames plus
+        the first c chunks (entry ``num_chunks`` = the whole rollout). One perception pass serves every cut, so a
+        tau sweep costs nothing extra (termination at chunk c keeps exactly the frames of chunks < c)."""
+        probs = self.predicates(frames)
+        return [criteria_from_predicates(probs[:prefix + c * frames_per_chunk], objects, destinations, self.min_run)
+                for c in range(num_chunks + 1)]
+
+
+class HumanScorer:
+    """Outcomes from imported annotations: ``{(rollout id, object): {criterion: bool}}`` (``annotation.py``)."""
+    name = "human"
+
+    def __init__(self, labels: dict):
+        self.labels = labels
+
+    def score(self, rollout: RolloutView) -> list[dict]:
+        out = []
+        for name in rollout.objects:
+            key = (rollout.id, name)
+            if key not in self.labels:
+                raise KeyError(f"no annotation for rollout {rollout.id!r}, object {name!r}")
+            out.append(outcome(name, rollout.destinations[name], *(self.labels[key][c] for c in CRITERIA)))
+        return out
+
+
+def agreement(scored: list[list[dict]], truth: list[list[dict]]) -> dict[str, float]:
+    """Per criterion (and for the outcome category), the fraction of objects on which two scorers agree."""
+    pairs = [(a, b) for xs, ys in zip(scored, truth, strict=True) for a, b in zip(xs, ys, strict=True)]
+    if not pairs:
+        raise ValueError("agreement: no objects")
+    return {k: float(np.mean([a[k] == b[k] for a, b in pairs])) for k in CRITERIA + ("outcome",)} | \
+        {"n_objects": len(pairs)}

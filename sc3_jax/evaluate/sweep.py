@@ -1,0 +1,351 @@
+"""Evaluation sweep: policies x initial conditions x {real, offline, online}, into a resumable results store.
+
+    real     the policy acts in the simulator; scored by physics (ground truth) and by the perception scorer
+             (their agreement validates the scorer the imagined rollouts are judged by)
+    offline  the world model replays the real rollout's actions open loop from the same first frame; PSNR against
+             the real frames, outcomes by the perception scorer
+    online   the policy acts inside the world model (closed loop, ``rollout.Rollout``), U_chunk per chunk, outcomes
+             by the perception scorer for every possible termination point
+
+Early termination is swept after the fact: each online rollout runs once untruncated (tau = inf) and stores the
+outcomes of the rollout cut after every chunk; a threshold tau keeps the chunks before the first one with
+U_chunk > tau, which are exactly the frames a rollout run with that tau would have produced.
+
+Results store (``out/``): ``sweep.json`` (the config, checked on resume), ``results.jsonl`` (one JSON line per
+rollout, appended and flushed as each finishes), ``rollouts/<policy>/<seed>_<mode>.npz`` (frames and arrays,
+written before their line). A killed sweep restarted with the same config skips every rollout whose line exists
+and redoes only the work in flight: one real rollout, or one world-model batch (``batch`` initial conditions are
+rolled out together, and a batch is always the same set, so results do not depend on where a sweep was killed).
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+
+SPLITS = {"bussing": "in_distribution", "reverse": "out_of_distribution"}
+MODES = ("real", "offline", "online")
+SHIPPED_WORLD_MODEL = Path(__file__).resolve().parent / "shipped" / "bussing_sim"
+
+
+@dataclasses.dataclass(frozen=True)
+class SweepConfig:
+    out: str = "runs/sweep"
+    world_model: str = str(SHIPPED_WORLD_MODEL)  # a training run dir (checkpoints/) or an exported dir (params.npz)
+    perception: str | None = None  # perception weights (None: the shipped ones)
+    policies: tuple[str, ...] = ()  # zoo names or NAME=ws://HOST:PORT@TASK (openpi server); () = the whole zoo
+    episodes: int = 12  # initial conditions per policy (simulator seeds seed0 + i)
+    seed0: int = 10_000_000
+    modes: tuple[str, ...] = MODES
+    taus: tuple[float, ...] = (math.inf, 0.05, 0.02, 0.01)
+    tau_units: str = "normalised"  # "normalised" (U in per-dimension unit-variance action units) or "raw"
+    batch: int = 4  # initial conditions per world-model batch (the resume unit for offline/online)
+    rollout_seed: int = 0
+    # real and imagined horizon (None: the world model's rollout config). 12 s: a successful zoo episode takes 6.5-7.5 s,
+    # a failing one retries until the limit; 12 s keeps every success and costs 60% of the 20 s default
+    episode_seconds: float | None = 12.0
+    sample_steps: int | None = None  # None: the world model's config
+    progress: bool = True
+
+    def to_json(self) -> dict:
+        d = dataclasses.asdict(self)
+        d["taus"] = [str(t) for t in self.taus]  # JSON has no inf
+        return json.loads(json.dumps(d))  # tuples -> lists, as read back from sweep.json
+
+
+# ================================================================================================================
+# Results store
+# ================================================================================================================
+class ResultsStore:
+    """Append-only JSONL of rollout records + one npz of arrays per rollout."""
+
+    def __init__(self, root: str | Path, config: dict | None = None):
+        self.root = Path(root)
+        self.path = self.root / "results.jsonl"
+        if config is not None:
+            self._check_config(config)
+
+    def _check_config(self, config: dict):
+        self.root.mkdir(parents=True, exist_ok=True)
+        cfg_path = self.root / "sweep.json"
+        # modes may be added to a store (records are per mode); anything else that changes results may not
+        keep = lambda d: {k: v for k, v in d.items() if k not in ("progress", "out", "modes")}  # noqa: E731
+        if cfg_path.exists():
+            old = json.loads(cfg_path.read_text())
+            if keep(old) != keep(config):
+                diff = {k: (old.get(k), v) for k, v in keep(config).items() if old.get(k) != v}
+                raise ValueError(f"{self.root} holds results of a different sweep (changed: {diff}); use another "
+                                 "--out or delete it")
+            config = dict(config, modes=[m for m in MODES if m in set(old["modes"]) | set(config["modes"])])
+        cfg_path.write_text(json.dumps(config, indent=1))
+
+    def records(self) -> list[dict]:
+        """Every complete line (a line cut by a kill is dropped and truncated away)."""
+        if not self.path.exists():
+            return []
+        raw = self.path.read_bytes()
+        if raw and not raw.endswith(b"\n"):
+            raw = raw[:raw.rfind(b"\n") + 1]
+            self.path.write_bytes(raw)
+        return [json.loads(line) for line in raw.decode().splitlines() if line.strip()]
+
+    def done(self) -> set[str]:
+        return {r["id"] for r in self.records()}
+
+    def append(self, records: list[dict]):
+        with open(self.path, "a") as fh:
+            fh.write("".join(json.dumps(r, sort_keys=True) + "\n" for r in records))
+            fh.flush()
+            os.fsync(fh.fileno())
+
+    def array_path(self, rid: str) -> Path:
+        return self.root / "rollouts" / f"{rid}.npz"
+
+    def save_arrays(self, rid: str, **arrays):
+        p = self.array_path(rid)
+        p.parent.mkdir(parents=True, exist_ok=True)
+        tmp = p.with_suffix(".tmp.npz")
+        np.savez_compressed(tmp, **arrays)
+        os.replace(tmp, p)
+
+    def load_arrays(self, rid: str) -> dict:
+        with np.load(self.array_path(rid)) as z:
+            return {k: z[k] for k in z.files}
+
+
+def rollout_id(policy: str, seed: int, mode: str) -> str:
+    return f"{policy}/{seed}_{mode}"
+
+
+# ================================================================================================================
+# Policies and the world model
+# ================================================================================================================
+def resolve_policy(spec: str):
+    """(name, task, policy): a zoo name (a JaxPolicy, batched inside the rollout scan) or NAME=ws://HOST:PORT@TASK
+    (an openpi-protocol server, driven from the host loop)."""
+    if "=" in spec:
+        name, rest = spec.split("=", 1)
+        url, _, task = rest.rpartition("@")
+        if not url or task not in SPLITS:
+            raise ValueError(f"policy {spec!r}: expected NAME=ws://HOST:PORT@TASK with TASK in {list(SPLITS)}")
+        from sc3_jax.policies.openpi import WebsocketClientPolicy
+        return name, task, WebsocketClientPolicy(url, port=None)
+    from sc3_jax.sim.zoo import ZOO, load_policy
+    if spec not in ZOO:
+        raise ValueError(f"unknown policy {spec!r}: zoo policies are {sorted(ZOO)} (or NAME=ws://HOST:PORT@TASK)")
+    return spec, ZOO[spec].task, load_policy(spec)
+
+
+def load_world_model(path: str | Path):
+    """(config, norm stats, params) of a training run dir (latest orbax checkpoint) or an exported dir."""
+    from sc3_jax import train
+    from sc3_jax.data.pipeline import NormStats
+    from sc3_jax.rollout_cli import config_from_dict
+    path = Path(path)
+    if not (path / "config.json").exists():
+        raise FileNotFoundError(f"{path}: no config.json (expected a `sc3 train` workdir or an exported world model)")
+    cfg = config_from_dict(json.loads((path / "config.json").read_text()))
+    stats = NormStats.load(path / "norm_stats.json")
+    params = load_exported(path / "params.npz") if (path / "params.npz").exists() else train.load_params(path, cfg)
+    return cfg, stats, params
+
+
+def export_world_model(workdir: str | Path, out: str | Path, dtype=np.float16) -> Path:
+    """Write a run's latest params (as ``dtype``), config and norm stats to ``out`` -- small enough to commit."""
+    cfg, stats, params = load_world_model(workdir)
+    return save_world_model(out, cfg, stats, params, dtype)
+
+
+def save_world_model(out: str | Path, cfg, stats, params, dtype=np.float16) -> Path:
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    np.savez_compressed(out / "params.npz", **{k: np.asarray(v).astype(dtype) for k, v in _flatten(params)})
+    (out / "config.json").write_text(json.dumps(dataclasses.asdict(cfg), indent=1))
+    stats.save(out / "norm_stats.json")
+    return out
+
+
+def _flatten(tree, prefix=""):
+    for k, v in tree.items():
+        if isinstance(v, dict):
+            yield from _flatten(v, f"{prefix}{k}/")
+        else:
+            yield f"{prefix}{k}", v
+
+
+def load_exported(path: Path) -> dict:
+    import jax.numpy as jnp
+    params: dict = {}
+    with np.load(path) as z:
+        for k in z.files:
+            *parents, leaf = k.split("/")
+            node = params
+            for p in parents:
+                node = node.setdefault(p, {})
+            node[leaf] = jnp.asarray(z[k], jnp.float32)
+    return params
+
+
+# ================================================================================================================
+# The three modes
+# ================================================================================================================
+def initial_observation(env, seed: int, task: str):
+    """Frames uint8 [V, H, W, 3] and end-effector pose [7] right after reset: where real and imagined start."""
+    env.reset(seed, task)
+    f = env.render()
+    return np.stack([f[v] for v in env.views]), env.ee_pose().astype(np.float32)
+
+
+def run_real(env, name, task, policy, seed, scorer, max_steps: int) -> tuple[dict, dict]:
+    from sc3_jax.evaluate.scorers import RolloutView, SimScorer
+    from sc3_jax.sim.evaluate import run_policy_episode
+    r = run_policy_episode(env, policy, seed, task, record=True, max_steps=max_steps)
+    frames = np.stack([r.frames[v] for v in env.views])  # [V, T, H, W, 3] at 20 Hz
+    view = RolloutView(rollout_id(name, seed, "real"), frames, r.ic.objects, r.ic.destinations(),
+                       [o.to_json() for o in r.outcomes])
+    rec = {"objects": SimScorer().score(view), "perception": scorer.score(view), "length": int(r.length),
+           "prompt": r.ic.prompt}
+    return rec, {"frames": frames, "actions": r.actions.astype(np.float32), "ee_pose": r.ee_pose.astype(np.float32),
+                 "object_pos": r.object_pos}
+
+
+def offline_actions(actions: np.ndarray, spec) -> np.ndarray:
+    """Recorded raw actions [T, 7] -> model-rate actions per chunk [N, l', 7]; after the episode ended (all objects
+    settled) the robot holds still (zero motion, last gripper command)."""
+    from sc3_jax.data.pipeline import compose_actions
+    r = spec.stride  # recorded (data-rate) actions per model step
+    need = ((spec.num_chunks - 1) * spec.keep + spec.predict) * r
+    a = np.asarray(actions, np.float32)
+    if len(a) < need:
+        hold = np.zeros((need - len(a), 7), np.float32)
+        hold[:, 6] = a[-1, 6]
+        a = np.concatenate([a, hold])
+    steps = np.stack([compose_actions(a, i * r, r) for i in range(need // r)])
+    return np.stack([steps[c * spec.keep: c * spec.keep + spec.predict] for c in range(spec.num_chunks)])
+
+
+def offline_targets(frames: np.ndarray, spec) -> tuple[np.ndarray, np.ndarray]:
+    """Real frames [V, T, ...] -> (targets [V, N*l, ...] at the model's steps, valid bool [N*l]: before the end)."""
+    idx = spec.stride * np.arange(1, spec.num_frames + 1)
+    valid = idx < frames.shape[1]
+    return frames[:, np.minimum(idx, frames.shape[1] - 1)], valid
+
+
+# ================================================================================================================
+# The sweep
+# ================================================================================================================
+def run_sweep(cfg: SweepConfig) -> Path:
+    """Run (or resume) the sweep; returns the results directory. See the module docstring."""
+    import jax
+    from tqdm import tqdm
+
+    from sc3_jax import rollout as ro_mod
+    from sc3_jax.evaluate import perception
+    from sc3_jax.evaluate.scorers import PerceptionScorer
+    from sc3_jax.policies.base import JaxPolicy
+    from sc3_jax.sim.evaluate import make_env
+
+    bad = [m for m in cfg.modes if m not in MODES]
+    if bad or not cfg.modes:
+        raise ValueError(f"modes {list(cfg.modes)}: choose from {list(MODES)}")
+    if "offline" in cfg.modes and "real" not in cfg.modes:
+        raise ValueError("offline rollouts replay the real rollouts' actions: include 'real' in modes")
+    if cfg.tau_units not in ("normalised", "raw"):
+        raise ValueError(f"tau_units {cfg.tau_units!r}: 'normalised' or 'raw'")
+    store = ResultsStore(cfg.out, cfg.to_json())
+    p_params = perception.load(cfg.perception or perception.DEFAULT_WEIGHTS)
+    scorer = PerceptionScorer(p_params)
+    policies = [resolve_policy(p) for p in (cfg.policies or _zoo_names())]
+    seeds = [cfg.seed0 + i for i in range(cfg.episodes)]
+    wm_modes = [m for m in cfg.modes if m != "real"]
+    ro = params = None
+    if wm_modes:
+        wcfg, stats, params = load_world_model(cfg.world_model)
+        from sc3_jax.config import replace
+        if cfg.sample_steps:
+            wcfg = replace(wcfg, sample=dict(steps=cfg.sample_steps))
+        if cfg.episode_seconds:
+            wcfg = replace(wcfg, rollout=dict(episode_seconds=cfg.episode_seconds))
+        ro = ro_mod.Rollout(wcfg, stats, state_reader=perception.state_reader(p_params))
+    env = make_env(tuple(ro.spec.image_size) if ro else (64, 64))
+    seconds = cfg.episode_seconds or (wcfg.rollout.episode_seconds if ro else 20.0)
+    max_steps = int(round(seconds * env.control_hz))
+    done = store.done()
+    total = len(policies) * len(seeds) * len(cfg.modes)
+    bar = tqdm(total=total, initial=len(done), desc="sweep", unit="rollout", disable=not cfg.progress)
+    t0 = time.time()
+    for name, task, policy in policies:
+        base = {"policy": name, "task": task, "split": SPLITS[task]}
+        if "real" in cfg.modes:
+            for seed in seeds:
+                rid = rollout_id(name, seed, "real")
+                if rid in done:
+                    continue
+                rec, arrays = run_real(env, name, task, policy, seed, scorer, max_steps)
+                store.save_arrays(rid, **arrays)
+                store.append([{"id": rid, "mode": "real", "seed": seed, **base, **rec}])
+                bar.update(1)
+        for mode in wm_modes:
+            for g in range(0, len(seeds), cfg.batch):
+                group = seeds[g:g + cfg.batch]
+                ids = [rollout_id(name, s, mode) for s in group]
+                if all(i in done for i in ids):
+                    continue
+                recs = _world_model_batch(mode, ro, params, env, name, task, policy, group,
+                                          list(range(g, g + len(group))), cfg, store, scorer, isinstance(
+                                              policy, JaxPolicy))
+                store.append([{"id": i, "mode": mode, "seed": s, **base, **r} for i, s, r in zip(ids, group, recs)])
+                bar.update(len(group))
+    bar.close()
+    env.close()
+    (store.root / "timing.json").write_text(json.dumps({"seconds_last_run": time.time() - t0,
+                                                        "devices": [str(d) for d in jax.devices()]}))
+    return store.root
+
+
+def _zoo_names():
+    from sc3_jax.sim.zoo import zoo_names
+    return zoo_names()
+
+
+def _world_model_batch(mode, ro, params, env, name, task, policy, seeds, indices, cfg, store, scorer, is_jax):
+    """Offline or online rollouts of one batch of initial conditions -> one record per rollout."""
+    from sc3_jax import rollout as ro_mod
+    from sc3_jax.evaluate.metrics import psnr
+    from sc3_jax.sim.tasks import make_initial_condition, task_id
+    s = ro.spec
+    obs = [initial_observation(env, seed, task) for seed in seeds]
+    frames0 = np.stack([np.repeat(f[:, None], s.context, 1) for f, _ in obs])  # [B, V, K, H, W, 3]: at rest
+    ics = ro_mod.InitialConditions(frames0, np.stack([p for _, p in obs]), np.full(len(seeds), task_id(task)))
+    # episode i's noise depends only on (rollout_seed, i): every policy meets the same draws (common random numbers)
+    keys = np.asarray(ro_mod.episode_keys(cfg.rollout_seed, len(seeds), start=indices[0]))
+    if mode == "offline":
+        real = [store.load_arrays(rollout_id(name, seed, "real")) for seed in seeds]
+        actions = np.stack([offline_actions(r["actions"], s) for r in real])
+        out = ro.run_offline(params, ics, actions, keys, math.inf)
+    elif is_jax:
+        out = ro.run(params, policy, ics, keys, math.inf)
+    else:
+        out = ro.run_host(params, policy, ics, keys, math.inf)
+    recs = []
+    for b, seed in enumerate(seeds):
+        ic = make_initial_condition(seed, task)
+        frames = np.concatenate([out["initial_frames"][b][:, -1:], out["frames"][b]], 1)  # [V, 1 + N*l, ...]
+        cuts = scorer.score_cuts(frames, ic.objects, ic.destinations(), s.keep, s.num_chunks, prefix=1)
+        rec = {"objects": cuts[-1], "u": out["u"][b].tolist(), "u_raw": out["u_raw"][b].tolist(),
+               "num_chunks": s.num_chunks, "frames_per_chunk": s.keep, "stride": s.stride}
+        if mode == "online":
+            rec["objects_by_cut"] = cuts
+        else:
+            targets, valid = offline_targets(real[b]["frames"], s)
+            p = psnr(out["frames"][b], targets)  # [V, N*l]
+            rec["psnr_view"] = [float(np.mean(p[v][valid & np.isfinite(p[v])])) for v in range(p.shape[0])]
+        store.save_arrays(rollout_id(name, seed, mode), frames=frames, actions=out["actions"][b],
+                          reread=out["reread"][b], u=out["u"][b], u_raw=out["u_raw"][b])
+        recs.append(rec)
+    return recs

@@ -1,0 +1,279 @@
+"""LeRobot datasets: writing both layouts (v2.1, v3.0) with h264 / AV1 / PNG cameras, reading them back, the
+reader's errors, and export -> import of the simulated benchmark's demonstrations."""
+import json
+import shutil
+
+import numpy as np
+import pytest
+
+av = pytest.importorskip("av", reason="LeRobot support needs the [lerobot] extra (PyAV)")
+pa = pytest.importorskip("pyarrow", reason="LeRobot support needs the [lerobot] extra (pyarrow)")
+import pyarrow.parquet as pq  # noqa: E402
+
+from sc3_jax.data.lerobot import LeRobotEpisodes, LeRobotError, import_lerobot  # noqa: E402
+from sc3_jax.data.lerobot_write import RawEpisode, av1_encoder, write_lerobot  # noqa: E402
+
+FPS = 20
+LENGTHS = (12, 9, 15)
+TASKS = ("pick the cup", "wipe the table", "pick the cup")
+CAMS = ("observation.images.left", "observation.images.wrist")
+MAX_MAE = 6.0  # mean absolute error in uint8 levels (6/255) allowed for lossy codecs on smooth frames
+
+
+def _smooth(length: int, phase: float, size: int = 32) -> np.ndarray:
+    """Smooth moving colour gradients: what lossy codecs reproduce well, so errors mean bugs, not compression."""
+    t, y, x = np.meshgrid(np.arange(length), np.arange(size), np.arange(size), indexing="ij")
+    return np.stack([120 + 60 * np.sin(x / 7 + t / 5 + phase), 120 + 60 * np.cos(y / 6 + t / 4 + phase),
+                     80 + 3 * t + 0 * x], -1).astype(np.uint8)
+
+
+def _episodes() -> list[RawEpisode]:
+    rng = np.random.default_rng(0)
+    return [RawEpisode({cam: _smooth(n, e + 2 * c) for c, cam in enumerate(CAMS)},
+                       rng.normal(size=(n, 7)).astype(np.float32), TASKS[e], rng.normal(size=(n, 5)).astype(np.float32))
+            for e, n in enumerate(LENGTHS)]
+
+
+def _codec(codec: str) -> str:
+    if codec == "av1" and av1_encoder() is None:
+        pytest.skip("this PyAV build has no AV1 encoder (libsvtav1 or libaom-av1)")
+    return codec
+
+
+@pytest.fixture(scope="module")
+def datasets(tmp_path_factory):
+    """Writes each (version, codec) dataset once; tests that break a dataset copy it first."""
+    made = {}
+
+    def get(version: str, codec: str = "h264", images: str = "video"):
+        key = (version, codec, images)
+        if key not in made:
+            made[key] = tmp_path_factory.mktemp("lerobot") / f"{version}_{codec}_{images}"
+            write_lerobot(made[key], _episodes(), FPS, version=version, codec=_codec(codec), image_dtype=images)
+        return made[key]
+    return get
+
+
+def _broken_copy(src, tmp_path):
+    dst = tmp_path / "ds"
+    shutil.copytree(src, dst)
+    return dst
+
+
+# -- reading what we wrote ---------------------------------------------------------------------------------------
+@pytest.mark.parametrize("version", ["v3.0", "v2.1"])
+@pytest.mark.parametrize("codec", ["h264", "av1"])
+def test_read_videos(datasets, version, codec):
+    ds = LeRobotEpisodes(datasets(version, codec))
+    assert len(ds) == 3 and ds.version == version and ds.fps == FPS
+    assert ds.views == ["left", "wrist"] and ds.wrist_views == ("wrist",) and ds.third_person_views == ("left",)
+    for i, raw in enumerate(_episodes()):
+        ep = ds.episode(i)
+        n = LENGTHS[i]
+        np.testing.assert_array_equal(ep.actions, raw.action)
+        np.testing.assert_array_equal(ep.state, raw.state)
+        np.testing.assert_array_equal(ep.timestamps, (np.arange(n) / FPS).astype(np.float32))
+        assert ep.prompt == TASKS[i] and ep.tasks == [TASKS[i]] and ep.length == n
+        for view, cam in zip(ds.views, CAMS, strict=True):
+            assert ep.frames[view].shape == (n, 32, 32, 3) and ep.frames[view].dtype == np.uint8
+            assert np.abs(ep.frames[view].astype(float) - raw.frames[cam]).mean() < MAX_MAE, (view, i)
+
+
+def test_v3_layout_packs_episodes_into_one_file(datasets):
+    root = datasets("v3.0")
+    info = json.loads((root / "meta" / "info.json").read_text())
+    assert info["codebase_version"] == "v3.0" and info["total_episodes"] == 3 and info["total_frames"] == sum(LENGTHS)
+    assert info["features"]["observation.images.left"]["info"]["video.codec"] == "h264"
+    assert sorted(p.relative_to(root).as_posix() for p in root.rglob("*") if p.is_file()) == sorted(
+        ["meta/info.json", "meta/stats.json", "meta/tasks.parquet", "meta/episodes/chunk-000/file-000.parquet",
+         "data/chunk-000/file-000.parquet", *(f"videos/{c}/chunk-000/file-000.mp4" for c in CAMS)])
+    eps = pq.read_table(root / "meta" / "episodes" / "chunk-000" / "file-000.parquet").to_pylist()
+    bounds = np.cumsum((0,) + LENGTHS)
+    for e, row in enumerate(eps):
+        assert (row["dataset_from_index"], row["dataset_to_index"]) == (bounds[e], bounds[e + 1])
+        for cam in CAMS:  # consecutive segments of one mp4
+            assert row[f"videos/{cam}/from_timestamp"] == pytest.approx(bounds[e] / FPS)
+            assert row[f"videos/{cam}/to_timestamp"] == pytest.approx(bounds[e + 1] / FPS)
+    with av.open(str(root / "videos" / CAMS[0] / "chunk-000" / "file-000.mp4")) as c:
+        assert sum(1 for _ in c.decode(video=0)) == sum(LENGTHS)
+    tasks = pq.read_table(root / "meta" / "tasks.parquet")  # task string is the pandas index, as in LeRobot
+    assert json.loads(tasks.schema.metadata[b"pandas"])["index_columns"] == ["task"]
+    task_of = dict(zip(tasks["task"].to_pylist(), tasks["task_index"].to_pylist(), strict=True))
+    assert task_of == {TASKS[0]: 0, TASKS[1]: 1}
+
+
+def test_v21_layout(datasets):
+    root = datasets("v2.1")
+    assert (root / "data" / "chunk-000" / "episode_000002.parquet").exists()
+    assert (root / "videos" / "chunk-000" / CAMS[1] / "episode_000001.mp4").exists()
+    episodes = [json.loads(line) for line in (root / "meta" / "episodes.jsonl").read_text().splitlines()]
+    assert [e["length"] for e in episodes] == list(LENGTHS)
+    stats = [json.loads(line) for line in (root / "meta" / "episodes_stats.jsonl").read_text().splitlines()]
+    assert stats[1]["stats"]["action"]["count"] == [LENGTHS[1]]
+
+
+@pytest.mark.parametrize("version", ["v3.0", "v2.1"])
+def test_image_features_are_exact(datasets, version):
+    root = datasets(version, images="image")
+    ds = LeRobotEpisodes(root)
+    data = next(root.glob("data/chunk-000/*.parquet"))
+    col = pq.read_table(data, columns=[CAMS[0]])[CAMS[0]]
+    assert col.type == pa.struct([("bytes", pa.binary()), ("path", pa.string())])
+    assert col[0].as_py()["bytes"][:8] == b"\x89PNG\r\n\x1a\n"
+    for i, raw in enumerate(_episodes()):
+        for view, cam in zip(ds.views, CAMS, strict=True):
+            np.testing.assert_array_equal(ds.episode(i).frames[view], raw.frames[cam])
+
+
+def test_random_access_and_window_cache(datasets):
+    ds = LeRobotEpisodes(datasets("v3.0"), cache_size=2)
+    full = ds.episode(2).frames
+    w = ds.window(2, 5, 11)
+    for view in ds.views:
+        np.testing.assert_array_equal(w[view], full[view][5:11])
+        assert not w[view].flags.writeable  # shared with the cache
+    assert ds.window(2, 5, 11)["left"] is w["left"]  # served from the cache
+    np.testing.assert_array_equal(ds.frame(1, 4)["wrist"], ds.episode(1).frames["wrist"][4])
+    ds.window(0, 0, 2)  # two more windows per view evict the first
+    assert ds.window(2, 5, 11)["left"] is not w["left"]
+    assert ds.window(1, 3, 3)["left"].shape == (0, 32, 32, 3)
+
+
+def test_fps_subsampling(datasets):
+    root = datasets("v3.0")
+    full, half = LeRobotEpisodes(root).episode(2), LeRobotEpisodes(root, fps=10).episode(2)
+    assert half.fps == 10 and half.length == 8
+    np.testing.assert_array_equal(half.timestamps, full.timestamps[::2])
+    np.testing.assert_array_equal(half.actions, full.actions[::2])
+    np.testing.assert_array_equal(half.state, full.state[::2])
+    np.testing.assert_array_equal(half.frames["left"], full.frames["left"][::2])
+    for fps in (15, 40):
+        with pytest.raises(LeRobotError, match="cannot be reached .* integer subsampling"):
+            LeRobotEpisodes(root, fps=fps)
+
+
+def test_camera_mapping_and_columns(datasets):
+    root = datasets("v2.1")
+    ds = LeRobotEpisodes(root, views={"top": "observation.images.left", "hand": "wrist"}, wrist_views=["hand"],
+                         state_key=None)
+    assert ds.views == ["top", "hand"] and ds.wrist_views == ("hand",) and ds.third_person_views == ("top",)
+    assert ds.cameras["hand"] == "observation.images.wrist"
+    ep = ds.episode(0)
+    assert ep.state is None and set(ep.frames) == {"top", "hand"}
+    assert LeRobotEpisodes(root, views=["wrist"]).views == ["wrist"]
+
+
+# -- errors ------------------------------------------------------------------------------------------------------
+def test_error_missing_camera_and_columns(datasets):
+    root = datasets("v3.0")
+    with pytest.raises(LeRobotError, match=r"camera 'observation.images.top' \(view 'top'\) not found"):
+        LeRobotEpisodes(root, views=["top"])
+    with pytest.raises(LeRobotError, match="wrist view 'hand'"):
+        LeRobotEpisodes(root, wrist_views=["hand"])
+    with pytest.raises(LeRobotError, match="state key 'observation.joints'"):
+        LeRobotEpisodes(root, state_key="observation.joints")
+    with pytest.raises(LeRobotError, match="action key 'act'"):
+        LeRobotEpisodes(root, action_key="act")
+
+
+def test_error_unsupported_version(datasets, tmp_path):
+    root = _broken_copy(datasets("v2.1"), tmp_path)
+    info = json.loads((root / "meta" / "info.json").read_text())
+    (root / "meta" / "info.json").write_text(json.dumps({**info, "codebase_version": "v1.6"}))
+    with pytest.raises(LeRobotError, match=r"info.json: unsupported codebase_version 'v1.6'"):
+        LeRobotEpisodes(root)
+    with pytest.raises(LeRobotError, match="info.json: missing"):
+        LeRobotEpisodes(tmp_path / "nothing")
+
+
+def test_error_inconsistent_lengths(datasets, tmp_path):
+    # episode metadata says 10 rows, the parquet has 9
+    root = _broken_copy(datasets("v2.1"), tmp_path)
+    path = root / "meta" / "episodes.jsonl"
+    path.write_text(path.read_text().replace('"length": 9', '"length": 10'))
+    with pytest.raises(LeRobotError, match=r"episode_000001.parquet: inconsistent lengths: episode 1 has 9 rows"):
+        LeRobotEpisodes(root).episode(1)
+    # the mp4 of episode 2 is shorter than its parquet
+    eps, short = _episodes(), tmp_path / "short"
+    last = RawEpisode({c: f[:10] for c, f in eps[2].frames.items()}, eps[2].action[:10], TASKS[2], eps[2].state[:10])
+    write_lerobot(short, eps[:2] + [last], FPS, version="v2.1")
+    broken = _broken_copy(datasets("v2.1"), tmp_path / "b")
+    video = "videos/chunk-000/observation.images.left/episode_000002.mp4"
+    shutil.copy(short / video, broken / video)
+    with pytest.raises(LeRobotError, match="episode_000002.mp4: inconsistent lengths: video ends"):
+        _ = LeRobotEpisodes(broken).episode(2).frames
+    # v3.0: an episode's video segment disagrees with its number of frames
+    root = _broken_copy(datasets("v3.0"), tmp_path / "v3")
+    path = root / "meta" / "episodes" / "chunk-000" / "file-000.parquet"
+    table = pq.read_table(path)
+    col = f"videos/{CAMS[0]}/to_timestamp"
+    to = table[col].to_numpy().copy()
+    to[0] += 0.5
+    pq.write_table(table.set_column(table.schema.get_field_index(col), col, pa.array(to)), path)
+    with pytest.raises(LeRobotError, match="file-000.parquet: inconsistent lengths: episode 0 camera"):
+        LeRobotEpisodes(root).window(0, 0, 2)
+
+
+def test_error_undecodable_codec_and_missing_video(datasets, tmp_path):
+    root = _broken_copy(datasets("v2.1"), tmp_path)
+    video = root / "videos" / "chunk-000" / CAMS[0] / "episode_000000.mp4"
+    # An mp4 whose sample entry names a codec FFmpeg has no decoder for (as AV1 is for builds without dav1d).
+    video.write_bytes(video.read_bytes().replace(b"avc1", b"zzzz"))
+    with pytest.raises(LeRobotError, match=r"episode_000000.mp4: codec .* cannot be decoded"):
+        LeRobotEpisodes(root).window(0, 0, 1)
+    video.unlink()
+    with pytest.raises(LeRobotError, match="episode_000000.mp4: missing video file"):
+        LeRobotEpisodes(root).window(0, 0, 1)
+
+
+# -- export -> import of the simulated benchmark's demonstrations ------------------------------------------------
+def test_sim_export_import_roundtrip(tmp_path):
+    pytest.importorskip("mujoco")
+    import sc3_jax.sim  # noqa: F401
+    from sc3_jax.data.episodes import EpisodeStore
+    from sc3_jax.data.lerobot_cli import main
+    from sc3_jax.sim.demos import generate_demos
+
+    generate_demos(tmp_path / "demos", 2, seed=0, image_size=(64, 64), progress=False)
+    assert main(["export-lerobot", str(tmp_path / "demos"), "--out", str(tmp_path / "lr")]) == 0
+    root = tmp_path / "lr"
+    info = json.loads((root / "meta" / "info.json").read_text())
+    src = EpisodeStore(tmp_path / "demos")
+    eps = [src.load(e) for e in src.episode_ids()]
+    total = sum(e.length for e in eps)
+    assert info["codebase_version"] == "v3.0" and info["fps"] == 20 and info["total_frames"] == total
+    assert info["features"]["observation.state"]["names"][:3] == ["x", "y", "z"]
+    assert {f"observation.images.{v}" for v in src.views} <= set(info["features"])
+    stats = json.loads((root / "meta" / "stats.json").read_text())
+    actions = np.concatenate([e.actions for e in eps])
+    for key in ("action", "observation.state", "observation.images.left", "timestamp"):
+        assert set(stats[key]) == {"mean", "std", "min", "max", "count"} and stats[key]["count"] == [total]
+    np.testing.assert_allclose(stats["action"]["mean"], actions.mean(0), atol=1e-6)
+    np.testing.assert_allclose(stats["action"]["std"], actions.std(0), atol=1e-6)
+    assert np.shape(stats["observation.images.left"]["mean"]) == (3, 1, 1)
+
+    assert main(["import-lerobot", str(root), "--out", str(tmp_path / "back")]) == 0
+    back = EpisodeStore(tmp_path / "back")
+    assert back.views == src.views and back.fps == src.fps and len(back) == 2
+    for a, b in zip(eps, (back.load(e) for e in back.episode_ids()), strict=True):
+        np.testing.assert_array_equal(a.actions, b.actions)
+        np.testing.assert_array_equal(a.ee_pose, b.ee_pose)
+        assert a.prompt == b.prompt and b.meta["wrist_views"] == ["wrist"]
+        for v in src.views:
+            assert np.abs(a.frames[v].astype(float) - b.frames[v]).mean() < MAX_MAE, v
+    # importing again skips what is there; a bad root is a clean error, not a traceback
+    assert import_lerobot(root, tmp_path / "back")["skipped"] == 2
+    assert main(["import-lerobot", str(tmp_path / "nothing"), "--out", str(tmp_path / "x")]) == 2
+
+
+def test_import_needs_a_7d_pose(datasets, tmp_path):
+    root = datasets("v3.0")  # observation.state is 5-D here
+    with pytest.raises(LeRobotError, match="7-D feature"):
+        import_lerobot(root, tmp_path / "a")
+    out = import_lerobot(root, tmp_path / "b", fps=10, image_size=(16, 24), allow_missing_pose=True)
+    assert out["written"] == 3 and out["fps"] == 10
+    from sc3_jax.data.episodes import EpisodeStore
+
+    ep = EpisodeStore(tmp_path / "b").load("lerobot000002")
+    assert ep.length == 8 and not ep.ee_pose.any() and ep.prompt == TASKS[2]
+    assert ep.frames["left"].shape == (8, 16, 24, 3) and ep.meta["ee_pose_source"] == "missing (zeros)"

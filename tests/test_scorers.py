@@ -1,0 +1,91 @@
+"""Scorers: criteria from per-frame predicates (hand-built cases), perception labels from physics state, the state
+reader, agreement."""
+import jax
+import numpy as np
+import pytest
+
+from sc3_jax.evaluate import perception
+from sc3_jax.evaluate.scorers import (PerceptionScorer, RolloutView, SimScorer, agreement, criteria_from_predicates,
+                                      held)
+from sc3_jax.sim.criteria import evaluate_object
+
+DEST = {"cup": "bin", "bag": "can"}
+
+
+def probs_for(T, series: dict):
+    """series: {(object, predicate): bool list} -> probs [T, 6, 3]."""
+    p = np.zeros((T, 6, 3))
+    for (obj, pred), v in series.items():
+        p[:, perception.TYPES.index(obj), perception.PREDICATES.index(pred)] = np.asarray(v, float)
+    return p
+
+
+def test_held_needs_a_run():
+    assert held([0, 1, 1, 0], 2) and not held([1, 0, 1, 0], 2) and held([1], 1) and not held([], 1)
+
+
+@pytest.mark.parametrize("series, expected", [
+    # untouched: passes language, fails lifting and placing
+    ({}, ("cup", True, False, False, "lifting")),
+    # lifted and dropped in the right container
+    ({("cup", "lifted"): [0, 1, 1, 1, 0, 0], ("cup", "in_bin"): [0, 0, 0, 0, 1, 1]}, ("cup", True, True, True,
+                                                                                     "no_failure")),
+    # a single misread frame of "lifted" does not count
+    ({("cup", "lifted"): [0, 1, 0, 0, 0, 0]}, ("cup", True, False, False, "lifting")),
+    # into the wrong container: language violated (lifting counts: it got into a container)
+    ({("cup", "in_can"): [0, 0, 1, 1, 1, 1]}, ("cup", False, True, False, "language")),
+    # lifted but ends outside: placing failure
+    ({("cup", "lifted"): [0, 1, 1, 0, 0, 0]}, ("cup", True, True, False, "placing")),
+    # in the bin, but taken out again at the end
+    ({("cup", "in_bin"): [0, 1, 1, 1, 1, 0]}, ("cup", True, True, False, "placing")),
+])
+def test_criteria_from_predicates(series, expected):
+    (o,) = criteria_from_predicates(probs_for(6, series), ["cup"], DEST)
+    assert (o["object"], o["language"], o["lifting"], o["placing"], o["outcome"]) == expected
+
+
+def test_predicate_labels_match_the_physics_criteria():
+    """Labels built from positions, aggregated the scorer's way, equal the physics criteria on the same trajectory."""
+    bin_xy, can_xy = np.array([0.2, -0.135]), np.array([0.2, 0.135])
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        start = np.array([-0.1, 0.0, 0.03])
+        up = start + [0, 0, rng.uniform(0.0, 0.12)]
+        spots = [bin_xy, can_xy, np.array([0.0, 0.1])]
+        carry = np.r_[spots[rng.integers(3)], rng.uniform(0.1, 0.15)]  # carried above the walls
+        stops = [start, up, up, up] if rng.random() < 0.3 else [start, up, carry,
+                                                                np.r_[spots[rng.integers(3)], 0.03]]
+        traj = np.concatenate([np.linspace(a, b, 8) for a, b in zip(stops[:-1], stops[1:])])
+        lab, mask = perception.predicate_labels(traj[:, None], ["cup"], bin_xy, can_xy)
+        assert mask.sum() == 1 and mask[perception.TYPES.index("cup")]
+        (o,) = criteria_from_predicates(lab.astype(float), ["cup"], DEST, min_run=1)
+        truth = evaluate_object("cup", traj, 0.03, "bin", {"bin": bin_xy, "can": can_xy})
+        assert (o["language"], o["lifting"], o["placing"]) == (truth.language, truth.lifting, truth.placing)
+
+
+def test_perception_shapes_state_reader_and_round_trip(tmp_path):
+    params = perception.init(jax.random.key(0))
+    frames = np.random.default_rng(0).integers(0, 255, (3, 5, 64, 64, 3), dtype=np.uint8)
+    probs, width = perception.predict(params, frames)
+    assert probs.shape == (5, 6, 3) and width.shape == (5,) and np.all((probs >= 0) & (probs <= 1))
+    w = perception.read_width(params, frames[:, 0])
+    assert w.shape == () and 0.0 <= float(w) <= 0.09
+    perception.save(tmp_path / "p.npz", params, {"note": 1})
+    back = perception.load(tmp_path / "p.npz")
+    assert np.allclose(perception.predict(back, frames)[0], probs, atol=1e-6)
+    assert perception.load_meta(tmp_path / "p.npz") == {"note": 1}
+    with pytest.raises(FileNotFoundError, match="perception weights"):
+        perception.load(tmp_path / "missing.npz")
+
+
+def test_scorers_share_one_interface_and_agreement():
+    physics = [{"name": "cup", "destination": "bin", "language": True, "lifting": True, "placing": False}]
+    view = RolloutView("r0", np.zeros((3, 4, 64, 64, 3), np.uint8), ("cup",), {"cup": "bin"}, physics)
+    gt = SimScorer().score(view)
+    assert gt[0]["outcome"] == "placing"
+    with pytest.raises(ValueError, match="only for real"):
+        SimScorer().score(RolloutView("r1", view.frames, ("cup",), {"cup": "bin"}))
+    p = PerceptionScorer(perception.init(jax.random.key(0))).score(view)
+    assert set(p[0]) == set(gt[0])
+    a = agreement([gt, gt], [gt, [dict(gt[0], lifting=False, outcome="lifting")]])
+    assert a["lifting"] == 0.5 and a["language"] == 1.0 and a["outcome"] == 0.5 and a["n_objects"] == 2
