@@ -122,8 +122,11 @@ def cmd_report(argv: list[str]) -> int:
     ap.add_argument("results", help="the sweep's --out directory")
     ap.add_argument("--out", default=None, help="report directory (default RESULTS/report)")
     ap.add_argument("--videos", type=int, default=3, help="side-by-side example videos")
+    ap.add_argument("--taus", type=float, nargs="+", default=None, help="termination thresholds (default: the "
+                    "sweep's); evaluated from the stored U_chunk, no new rollouts")
+    ap.add_argument("--tau-units", choices=("normalised", "raw"), default=None)
     a = ap.parse_args(argv)
-    md = report.render(a.results, a.out or f"{a.results}/report", a.videos)
+    md = report.render(a.results, a.out or f"{a.results}/report", a.videos, a.taus, a.tau_units)
     print(f"report: {md}")
     return 0
 

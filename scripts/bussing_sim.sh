@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # Rebuild the shipped world model and perception scorer of the simulated benchmark from nothing (resumable: every
-# step skips what exists). On the 2-core CPU machine: demos ~6 min, world model ~80 min, scorer ~25 min.
+# step skips what exists). On the 2-core CPU machine: demos ~6 min, world model ~80 min
+# (the shipped one was stopped at step 2,177 of 2,600 for time), scorer ~20 min.
 #   bash scripts/bussing_sim.sh [RUNS_DIR]        then: sc3 sweep --world-model RUNS_DIR/train ...
 set -euo pipefail
 R=${1:-runs/bussing}
@@ -13,8 +14,10 @@ sc3 sim demos --out $D --episodes 50 --seed 13 --release-noise 0.08
 sc3 sim demos --out $D --episodes 50 --seed 14 --wrong-destination-prob 0.4
 # the world model (configs/bussing_sim.py); resumes from its latest checkpoint
 sc3 train --config bussing_sim --data.path $D --train.workdir $R/train --train.no-progress
-# the perception scorer: the same demos + 300 expert episodes of both tasks (a measuring instrument may see reverse)
-python -m sc3_jax.evaluate.perception --store $D $R/scorer_data --generate 300 --steps 4000 --out $R/perception.npz
+# the perception scorer: the same demos + 300 expert episodes of both tasks + 140 zoo-policy episodes on training
+# seeds (a measuring instrument may see reverse bussing and the policies' behaviours; never the evaluation seeds)
+python -m sc3_jax.evaluate.perception --store $D $R/scorer_data $R/scorer_zoo --generate 300 --generate-policies 140 \
+    --steps 3000 --out $R/perception.npz
 # small copies to commit (params as float16)
 python -c "from sc3_jax.evaluate import sweep; sweep.export_world_model('$R/train', 'sc3_jax/evaluate/shipped/bussing_sim')"
 cp $R/perception.npz sc3_jax/evaluate/perception.npz

@@ -194,3 +194,25 @@ def test_offline_actions_compose_pairs_and_hold_still_after_the_end():
 def sweep_spec():
     from sc3_jax import rollout
     return rollout.make_spec(load_config("bussing_sim"), num_chunks=2)
+
+
+def test_remote_policy_over_the_openpi_protocol(setup, tmp_path):
+    """A policy behind an openpi-protocol server is evaluated like a zoo policy (real + online via the host loop)."""
+    from sc3_jax.policies.openpi import PolicyServer
+    from sc3_jax.sim.zoo import load_policy
+    root, cfg = setup
+    server = PolicyServer(load_policy("bus_bc_full"), host="127.0.0.1", port=0).start()
+    try:
+        remote = dataclasses.replace(cfg, out=str(tmp_path / "remote"), episodes=1, modes=("real", "online"),
+                                     policies=(f"served=ws://127.0.0.1:{server.port}@bussing",))
+        sweep.run_sweep(remote)
+    finally:
+        server.shutdown()
+    recs = {r["mode"]: r for r in sweep.ResultsStore(remote.out).records()}
+    local = {r["mode"]: r for r in sweep.ResultsStore(cfg.out).records()
+             if r["policy"] == "bus_bc_full" and r["seed"] == cfg.seed0}
+    assert set(recs) == {"real", "online"} and recs["real"]["policy"] == "served"
+    assert recs["real"]["objects"] == local["real"]["objects"]  # same policy, same simulator: same outcomes
+    assert len(recs["online"]["u"]) == 2
+    with pytest.raises(ValueError, match="NAME=ws://HOST:PORT@TASK"):
+        sweep.resolve_policy("x=ws://127.0.0.1:1@nowhere")

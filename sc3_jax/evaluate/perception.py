@@ -11,7 +11,8 @@ commanded the same way; see ``rollout.Rollout(state_reader=...)``).
 
 Training frames are blurred and noised at random so that the network also reads a world model's softer frames.
 Reproduce the shipped weights (see docs/sweep.md): ``python -m sc3_jax.evaluate.perception --store
-runs/bussing/demos runs/bussing/scorer_data --generate 300 --out sc3_jax/evaluate/perception.npz``.
+runs/bussing/demos runs/bussing/scorer_data runs/bussing/scorer_zoo --generate 300 --generate-policies 140 --out
+sc3_jax/evaluate/perception.npz``.
 """
 from __future__ import annotations
 
@@ -141,10 +142,12 @@ SCORER_KNOBS = ({}, {"grasp_noise": 0.04}, {"release_noise": 0.08}, {"wrong_dest
 
 
 def generate_scorer_data(out: str | Path, episodes: int, seed: int = 50, image_size=(64, 64),
-                         progress: bool = True) -> Path:
-    """Expert episodes of *both* tasks with a rotating mixture of failure knobs, written as an episode store with
-    ``meta['object_pos']``. The scorer is a measuring instrument, not the world model: it may see reverse bussing
-    (utensils in the can, trash in the bin), which the world model's data must not contain."""
+                         progress: bool = True, policies: bool = False) -> Path:
+    """Episodes of *both* tasks written as an episode store with ``meta['object_pos']``: the scripted expert with a
+    rotating mixture of failure knobs, or (``policies=True``) the zoo's policies in turn, 12 s each. The scorer is a
+    measuring instrument, not the world model: it may see reverse bussing (utensils in the can, trash in the bin)
+    and the behaviours of the policies it will score (retries, hovering) -- on simulator seeds ``seed * 100000 + i``,
+    disjoint from the evaluation seeds it is validated on."""
     import dataclasses as dc
 
     from tqdm import tqdm
@@ -159,10 +162,20 @@ def generate_scorer_data(out: str | Path, episodes: int, seed: int = 50, image_s
         eid = f"ep{sim_seed:07d}"
         if eid in store:
             continue
-        knobs = ExpertKnobs(**SCORER_KNOBS[(i // 2) % len(SCORER_KNOBS)])
-        r = run_expert_episode(env, sim_seed, task, knobs, record=True)
+        if policies:
+            from sc3_jax.policies.base import as_host
+            from sc3_jax.sim.evaluate import run_policy_episode
+            from sc3_jax.sim.zoo import ZOO, load_policy
+            name = sorted(ZOO)[i % len(ZOO)]
+            task = ZOO[name].task
+            r = run_policy_episode(env, as_host(load_policy(name)), sim_seed, task, max_steps=240)
+            source = {"policy": name}
+        else:
+            knobs = ExpertKnobs(**SCORER_KNOBS[(i // 2) % len(SCORER_KNOBS)])
+            r = run_expert_episode(env, sim_seed, task, knobs, record=True)
+            source = {"knobs": dc.asdict(knobs)}
         store.write(Episode(eid, r.frames, r.actions, r.ee_pose, r.ic.prompt,
-                            {"task": task, "sim_seed": sim_seed, "knobs": dc.asdict(knobs),
+                            {"task": task, "sim_seed": sim_seed, **source,
                              "initial_condition": r.ic.to_json(), "object_pos": np.round(r.object_pos, 4).tolist()}))
     env.close()
     return Path(out)
@@ -259,8 +272,10 @@ def train(data, steps: int = 2500, batch: int = 64, lr: float = 1e-3, seed: int 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m sc3_jax.evaluate.perception", description=__doc__.split("\n")[0])
     ap.add_argument("--store", required=True, nargs="+", help="episode stores with meta['object_pos']")
-    ap.add_argument("--generate", type=int, default=0, help="first write this many scorer episodes (both tasks) "
-                                                               "to the last --store")
+    ap.add_argument("--generate", type=int, default=0, help="first write this many expert episodes (both tasks) "
+                                                               "to the second-to-last --store")
+    ap.add_argument("--generate-policies", type=int, default=0, help="and this many zoo-policy episodes (training "
+                                                                       "seeds) to the last --store")
     ap.add_argument("--out", default=str(DEFAULT_WEIGHTS))
     ap.add_argument("--steps", type=int, default=2500)
     ap.add_argument("--stride", type=int, default=2)
@@ -269,7 +284,9 @@ def main(argv: list[str] | None = None) -> int:
     a = ap.parse_args(argv)
     t0 = time.time()
     if a.generate:
-        generate_scorer_data(a.store[-1], a.generate)
+        generate_scorer_data(a.store[-2], a.generate)
+    if a.generate_policies:
+        generate_scorer_data(a.store[-1], a.generate_policies, seed=60, policies=True)
     data = load_training_data(a.store, a.stride, a.max_episodes)
     params, metrics = train(data, a.steps, seed=a.seed)
     metrics.update(seconds=round(time.time() - t0, 1), store=str(a.store), stride=a.stride)

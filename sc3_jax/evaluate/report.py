@@ -74,10 +74,18 @@ def _per_criterion(ev_rows, real_rows) -> dict:
     return out
 
 
-def compute(results: str | Path) -> dict:
-    """All report numbers from the results store at ``results`` (see the module docstring)."""
+def compute(results: str | Path, taus=None, tau_units: str | None = None) -> dict:
+    """All report numbers from the results store at ``results`` (see the module docstring). ``taus`` /
+    ``tau_units`` override the sweep's termination thresholds: every online record stores U_chunk and the outcomes
+    of every cut, so any threshold is evaluated without rolling out again."""
     store = ResultsStore(results)
     cfg = json.loads((store.root / "sweep.json").read_text())
+    if taus is not None:
+        cfg["taus"] = [str(float(t)) for t in taus]
+    if tau_units is not None:
+        if tau_units not in ("normalised", "raw"):
+            raise ValueError(f"tau_units {tau_units!r}: 'normalised' or 'raw'")
+        cfg["tau_units"] = tau_units
     recs = store.records()
     by_mode = {m: {(r["policy"], r["seed"]): r for r in recs if r["mode"] == m} for m in ("real", "offline", "online")}
     real = by_mode["real"]
@@ -283,12 +291,12 @@ def side_by_side(store: ResultsStore, policy: str, seed: int, path: Path, fps: i
     return True
 
 
-def render(results: str | Path, out: str | Path, videos: int = 3) -> Path:
+def render(results: str | Path, out: str | Path, videos: int = 3, taus=None, tau_units: str | None = None) -> Path:
     """Write report.md, report.html, report.json, plots and example videos to ``out``; returns report.md."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     store = ResultsStore(results)
-    t = compute(results)
+    t = compute(results, taus, tau_units)
     (out / "report.json").write_text(json.dumps(t, indent=1))
     images = []
     if t["main"]:

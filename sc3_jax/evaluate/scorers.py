@@ -8,7 +8,8 @@ One interface, three kinds, interchangeable in a sweep:
 * :class:`HumanScorer` -- annotations imported from a blinded CSV (``annotation.py``).
 
 Criteria from predicates, per object (a predicate "holds" when its probability is > 0.5 for ``min_run``
-consecutive frames, so one misread frame does not decide an outcome):
+consecutive frames, 3 at the world model's 10 Hz = 0.3 s, so a misread frame or two do not decide an outcome; real
+rollouts are scored at the same frame rate):
   language = it never held in the *wrong* container;
   lifting  = it was lifted at some point, or it was ever in a container (walls are taller than the lift clearance);
   placing  = it is in the instructed container in the last frame.
@@ -67,7 +68,7 @@ def held(p: np.ndarray, min_run: int) -> bool:
     return False
 
 
-def criteria_from_predicates(probs: np.ndarray, objects, destinations: dict, min_run: int = 2) -> list[dict]:
+def criteria_from_predicates(probs: np.ndarray, objects, destinations: dict, min_run: int = 3) -> list[dict]:
     """probs [T, 6, 3] (perception.TYPES x PREDICATES) -> one outcome per object (see the module docstring)."""
     on = np.asarray(probs) > 0.5
     out = []
@@ -86,7 +87,7 @@ def criteria_from_predicates(probs: np.ndarray, objects, destinations: dict, min
 class PerceptionScorer:
     name = "perception"
 
-    def __init__(self, params: dict | None = None, min_run: int = 2):
+    def __init__(self, params: dict | None = None, min_run: int = 3):
         self.params = perception.load() if params is None else params
         self.min_run = min_run
 
