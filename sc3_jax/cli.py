@@ -15,6 +15,7 @@ commands:
   sim            the simulated table-bussing benchmark: sc3 sim demos|eval ...
   serve-policy   serve one of our policies over the openpi websocket protocol
   configs        list the named configs with their parameter counts
+  plan           sc3 plan --config NAME --mesh data=..,fsdp=..,tensor=.. --device h100|h200|gb200|v5p: memory/FLOPs
 
 `sc3 <command> --help` for the arguments of each."""
 
@@ -131,6 +132,12 @@ def cmd_report(argv: list[str]) -> int:
     return 0
 
 
+def cmd_plan(argv: list[str]) -> int:
+    from sc3_jax import plan
+
+    return plan.main(argv) or 0
+
+
 def cmd_rollout(argv: list[str]) -> int:
     from sc3_jax import rollout_cli
 
@@ -139,7 +146,7 @@ def cmd_rollout(argv: list[str]) -> int:
 
 COMMANDS = {"demo": cmd_demo, "train": cmd_train, "rollout": cmd_rollout, "sweep": cmd_sweep, "report": cmd_report,
             "data": cmd_data, "sim": cmd_sim,
-            "serve-policy": cmd_serve_policy, "configs": cmd_configs}
+            "serve-policy": cmd_serve_policy, "configs": cmd_configs, "plan": cmd_plan}
 
 
 def main(argv: list[str] | None = None) -> int:

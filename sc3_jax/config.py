@@ -20,7 +20,8 @@ class ModelConfig:
     time_embed_dim: int = 256  # sinusoid channels of the noise-level embedding
     norm_eps: float = 1e-6
     # Tokenizer: "pixel" = non-overlapping p x p pixel patches (exact round trip).
-    tokenizer: str = "pixel"
+    tokenizer: str = "pixel"  # or "wan2.1" / "wan2.2" (Wan VAE; patch_size is then the latent patch)
+    tokenizer_path: str | None = None  # diffusers VAE directory for the Wan tokenizers (None: random weights)
     patch_size: int = 4
     channels: int = 3
     num_views: int = 3
@@ -59,6 +60,25 @@ class ModelConfig:
     # "ring" passes key/value blocks around the ring with an online softmax (scores [N/C, N/C] per device). Same
     # math and parameters as "dense"; without a context axis both fall back to the dense computation.
     attention_impl: str = "dense"
+    # Cosmos3 compatibility (diffusers ``Cosmos3OmniTransformer``; sc3_jax/model/cosmos3.py, convert.py). With the
+    # defaults below nothing changes. ``layout="cosmos3"`` computes what Cosmos3OmniTransformer computes for a packed
+    # [text | video | actions] sequence: its mRoPE position ids (text arange(L); then offset L + mrope_margin;
+    # video t = offset + frame * base_fps / fps, row/col = patch row/col; action i t = offset + (i + 1) *
+    # (base_fps / temporal_compression) / fps, row = col = 0), its timestep convention (sinusoid of
+    # floor(1000 t) * timestep_scale), its rotary inverse frequencies, and outputs zeroed at clean tokens. With
+    # ``text_pathway`` prompt token ids (``Inputs.text``) run through separate "understanding" weights (causal among
+    # text) whose per-layer keys/values every generation token also attends to. Cosmos3-compatible configs turn
+    # view_embedding and the shortcuts off and use prediction="velocity".
+    layout: str = "sc3"  # "sc3" | "cosmos3"
+    text_pathway: bool = False
+    vocab_size: int = 0  # text vocabulary (embed_tokens / lm_head rows) when text_pathway
+    base_fps: float = 24.0  # Cosmos3 position ids: time advances base_fps / fps per (latent) frame
+    fps: float = 24.0  # pixel frame rate of a window at stride 1 (a sample's fps is fps / stride)
+    temporal_compression: int = 4  # pixel frames per latent frame (Wan VAE: 4); actions per latent frame
+    mrope_margin: int = 15000  # gap between the text positions and the first video position
+    fps_modulation: bool = True  # False: integer time positions (frame index) as Cosmos3 without fps modulation
+    reset_spatial_ids: bool = True  # False: row/col positions also start at the offset
+    timestep_scale: float = 0.001
 
     def __post_init__(self):
         if 2 * sum(self.rope_axes_dim) != self.head_dim:
@@ -72,6 +92,10 @@ class ModelConfig:
         if self.attention_impl not in ("dense", "context_parallel", "ring"):
             raise ValueError(f"attention_impl must be 'dense', 'context_parallel' or 'ring', "
                              f"got {self.attention_impl!r}")
+        if self.layout not in ("sc3", "cosmos3"):
+            raise ValueError(f"layout must be 'sc3' or 'cosmos3', got {self.layout!r}")
+        if self.text_pathway and (self.layout != "cosmos3" or self.vocab_size <= 0):
+            raise ValueError("text_pathway needs layout='cosmos3' and vocab_size > 0")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -116,6 +140,9 @@ class TrainConfig:
     b1: float = 0.9
     b2: float = 0.99
     grad_clip: float = 1.0
+    # micro-batches per step (gradient accumulation): activations of batch_size / grad_accum samples at a time,
+    # same optimizer update as one big batch up to the per-micro-batch noise draws. sc3 plan says when it is needed.
+    grad_accum: int = 1
     seed: int = 0
     log_every: int = 10
     ckpt_every: int = 200

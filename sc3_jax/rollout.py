@@ -224,6 +224,10 @@ class Rollout:
         self.norm = jax.device_put(np.stack([norm_stats.mean, norm_stats.std]).astype(np.float32), self._repl)
         self.steps, self._init, self._observe, self._model_step_fn, self._scan_policy, self._scan_actions = \
             _compiled(cfg.model, cfg.flow, self.spec, use_cache, state_reader and state_reader.apply)
+        # context-parallel attention traces under the mesh; a no-op for meshes without a "context" axis
+        self._init, self._observe, self._model_step_fn, self._scan_policy, self._scan_actions = (
+            sharding.bind_mesh(f, self.mesh) for f in (self._init, self._observe, self._model_step_fn,
+                                                       self._scan_policy, self._scan_actions))
         # state_reader: anything with a pure ``apply(params, images uint8 [V, H, W, 3]) -> gripper width`` and
         # ``params`` (e.g. ``evaluate.scorers.PerceptionScorer.state_reader()``); see ``_Steps.observe``
         self.reader_params = None if state_reader is None else jax.device_put(state_reader.params, self._repl)

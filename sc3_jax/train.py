@@ -84,12 +84,33 @@ def make_train_step(cfg: Config):
     grid = tok.grid(cfg.data.image_size)
     opt = make_optimizer(cfg)
 
-    def train_step(state, batch):
-        rng = jax.random.fold_in(jax.random.wrap_key_data(state["rng"]), state["step"])
+    A, B = cfg.train.grad_accum, cfg.data.batch_size
+    if A < 1 or B % A:
+        raise ValueError(f"train.grad_accum = {A} must be >= 1 and divide data.batch_size = {B}")
+
+    def grads_and_metrics(params, batch, rng):
         video = tok.encode(batch["frames"])
         loss_fn = lambda p: flow.loss(p, cfg.model, video, batch["actions"], batch["stride"], rng,  # noqa: E731
                                       cfg.modes.probs, grid, cfg.flow)
-        (_, metrics), grads = jax.value_and_grad(loss_fn, has_aux=True)(state["params"])
+        (_, metrics), grads = jax.value_and_grad(loss_fn, has_aux=True)(params)
+        return grads, metrics
+
+    def accumulated(params, batch, rng):
+        """Mean of the micro-batches' gradients and metrics (the loss is a per-sample mean, so this is the big
+        batch's gradient). Micro-batch i takes samples i, i + A, ...: every device keeps its share of each one."""
+        micro = jax.tree.map(lambda x: x.reshape(B // A, A, *x.shape[1:]).swapaxes(0, 1), batch)
+
+        def body(acc, i):
+            out = grads_and_metrics(params, jax.tree.map(lambda x: x[i], micro), jax.random.fold_in(rng, i))
+            return jax.tree.map(lambda a, o: a + o.astype(a.dtype) / A, acc, out), None
+
+        shapes = jax.eval_shape(grads_and_metrics, params, jax.tree.map(lambda x: x[0], micro), rng)
+        zeros = jax.tree.map(lambda s: jnp.zeros(s.shape, jnp.float32 if s.dtype == jnp.bfloat16 else s.dtype), shapes)
+        return jax.lax.scan(body, zeros, jnp.arange(A))[0]
+
+    def train_step(state, batch):
+        rng = jax.random.fold_in(jax.random.wrap_key_data(state["rng"]), state["step"])
+        grads, metrics = (grads_and_metrics if A == 1 else accumulated)(state["params"], batch, rng)
         updates, opt_state = opt.update(grads, state["opt_state"], state["params"])
         params = optax.apply_updates(state["params"], updates)
         metrics["grad_norm"] = optax.tree.norm(grads)
@@ -112,7 +133,7 @@ def compile_train_step(cfg: Config, mesh):
     b_shard = {k: sharding.batch_sharding(mesh) for k in batch_shapes(cfg)}
     step = jax.jit(make_train_step(cfg), in_shardings=(st_shard, b_shard),
                    out_shardings=(st_shard, sharding.replicated(mesh)), donate_argnums=(0,))
-    return step, st_shard
+    return sharding.bind_mesh(step, mesh), st_shard
 
 
 def create_state(cfg: Config, mesh):
@@ -153,7 +174,10 @@ def load_params(workdir: str | Path, cfg: Config, step: int | None = None):
     if step is None:
         raise FileNotFoundError(f"no checkpoint under {workdir}/checkpoints")
     abstract = jax.eval_shape(lambda: init_state(cfg))
-    out = mngr.restore(step, args=ocp.args.Composite(state=ocp.args.StandardRestore(abstract)))
+    # an explicit one-device target: the checkpoint may have been written from a mesh this process does not have
+    one = jax.sharding.SingleDeviceSharding(jax.devices()[0])
+    target = jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=one), abstract)
+    out = mngr.restore(step, args=ocp.args.Composite(state=ocp.args.StandardRestore(target)))
     return out["state"]["params"]
 
 

@@ -54,3 +54,35 @@ def test_mesh_shape_errors():
         sharding.mesh_shape(MeshConfig(3, 2, 1), 8)
     with pytest.raises(ValueError, match="at most one"):
         sharding.mesh_shape(MeshConfig(-1, -1, 1), 8)
+
+
+def test_gradient_accumulation_is_the_mean_of_micro_batch_gradients():
+    """grad_accum = 2 on a 4-device data mesh: the update equals one computed by hand from the two micro-batches
+    (samples 0, 2, 4, .. and 1, 3, 5, ..; noise keys fold_in(step key, i)) with the mean of their gradients."""
+    import optax
+
+    from sc3_jax import flow
+    from sc3_jax.config import replace
+    from sc3_jax.model.tokenizer import make_tokenizer
+
+    cfg = replace(small_config((4, 1, 1)), train=dict(grad_accum=2))
+    batch = random_batch(cfg)
+    _, params, state = one_step(cfg, jax.devices()[:4])
+    init = jax.device_get(train.init_state(cfg))
+    rng = jax.random.fold_in(jax.random.wrap_key_data(init["rng"]), 0)
+    tok = make_tokenizer(cfg.model)
+
+    def grads(i):
+        mb = {k: v[i::2] for k, v in batch.items()}
+        loss = lambda p: flow.loss(p, cfg.model, tok.encode(mb["frames"]), mb["actions"], mb["stride"],  # noqa
+                                   jax.random.fold_in(rng, i), cfg.modes.probs, (2, 2), cfg.flow)[0]
+        return jax.grad(loss)(init["params"])
+
+    g = jax.tree.map(lambda a, b: (a + b) / 2, grads(0), grads(1))
+    opt = train.make_optimizer(cfg)
+    updates, _ = opt.update(g, init["opt_state"], init["params"])
+    expected = optax.apply_updates(init["params"], updates)
+    for a, b in zip(jax.tree.leaves(params), jax.tree.leaves(expected)):
+        np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-6)
+    with pytest.raises(ValueError, match="grad_accum = 3"):
+        train.make_train_step(replace(cfg, train=dict(grad_accum=3)))

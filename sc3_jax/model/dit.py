@@ -21,7 +21,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from sc3_jax.config import ModelConfig
-from sc3_jax.model import layers
+from sc3_jax.model import context_parallel, cosmos3, layers
 
 
 @dataclasses.dataclass(frozen=True)
@@ -33,7 +33,7 @@ class ParamSpec:
 
 
 def param_specs(cfg: ModelConfig, token_dim: int, grid: tuple[int, int] | None = None) -> dict:
-    d, L, hq, hkv, hd, m = cfg.dim, cfg.depth, cfg.num_heads, cfg.num_kv_heads, cfg.head_dim, cfg.mlp_dim
+    d = cfg.dim
     out_init = "zeros" if cfg.prediction == "residual" else "normal"  # residual: start as "copy the last frame"
     specs = {
         "proj_in": {"w": ParamSpec((token_dim, d), ("patch", "embed")), "b": ParamSpec((d,), ("embed",), "zeros")},
@@ -45,19 +45,7 @@ def param_specs(cfg: ModelConfig, token_dim: int, grid: tuple[int, int] | None =
                        "b1": ParamSpec((d,), ("embed",), "zeros"),
                        "w2": ParamSpec((d, d), ("embed_in", "embed")),
                        "b2": ParamSpec((d,), ("embed",), "zeros")},
-        "layers": {
-            "attn_norm": ParamSpec((L, d), ("layers", "embed"), "ones"),
-            "wq": ParamSpec((L, d, hq, hd), ("layers", "embed", "heads", "head_dim"), fan_in=d),
-            "wk": ParamSpec((L, d, hkv, hd), ("layers", "embed", "kv_heads", "head_dim"), fan_in=d),
-            "wv": ParamSpec((L, d, hkv, hd), ("layers", "embed", "kv_heads", "head_dim"), fan_in=d),
-            "q_norm": ParamSpec((L, hd), ("layers", "head_dim"), "ones"),
-            "k_norm": ParamSpec((L, hd), ("layers", "head_dim"), "ones"),
-            "wo": ParamSpec((L, hq, hd, d), ("layers", "heads", "head_dim", "embed"), fan_in=hq * hd * 2 * L),
-            "mlp_norm": ParamSpec((L, d), ("layers", "embed"), "ones"),
-            "w_gate": ParamSpec((L, d, m), ("layers", "embed", "mlp"), fan_in=d),
-            "w_up": ParamSpec((L, d, m), ("layers", "embed", "mlp"), fan_in=d),
-            "w_down": ParamSpec((L, m, d), ("layers", "mlp", "embed"), fan_in=m * 2 * L),
-        },
+        "layers": _layer_specs(cfg),
         "final_norm": ParamSpec((d,), ("embed",), "ones"),
         "proj_out": {"w": ParamSpec((d, token_dim), ("embed", "patch"), out_init),
                      "b": ParamSpec((token_dim,), ("patch",), "zeros")},
@@ -76,7 +64,29 @@ def param_specs(cfg: ModelConfig, token_dim: int, grid: tuple[int, int] | None =
             raise ValueError("action_reads_frames needs the token grid (rows, cols) of a frame")
         n = cfg.num_views * grid[0] * grid[1] * token_dim
         specs["frames_to_action"] = ParamSpec((n, d), ("frame_features", "embed"))
+    if cfg.text_pathway:  # Cosmos3 understanding pathway: its own layer stack, final norm, embeddings, LM head
+        specs["text_layers"] = _layer_specs(cfg)
+        specs["text_norm"] = ParamSpec((d,), ("embed",), "ones")
+        specs["embed_tokens"] = ParamSpec((cfg.vocab_size, d), ("vocab", "embed"), fan_in=d)
+        specs["lm_head"] = ParamSpec((cfg.vocab_size, d), ("vocab", "embed"), fan_in=d)
     return specs
+
+
+def _layer_specs(cfg: ModelConfig) -> dict:
+    d, L, hq, hkv, hd, m = cfg.dim, cfg.depth, cfg.num_heads, cfg.num_kv_heads, cfg.head_dim, cfg.mlp_dim
+    return {
+        "attn_norm": ParamSpec((L, d), ("layers", "embed"), "ones"),
+        "wq": ParamSpec((L, d, hq, hd), ("layers", "embed", "heads", "head_dim"), fan_in=d),
+        "wk": ParamSpec((L, d, hkv, hd), ("layers", "embed", "kv_heads", "head_dim"), fan_in=d),
+        "wv": ParamSpec((L, d, hkv, hd), ("layers", "embed", "kv_heads", "head_dim"), fan_in=d),
+        "q_norm": ParamSpec((L, hd), ("layers", "head_dim"), "ones"),
+        "k_norm": ParamSpec((L, hd), ("layers", "head_dim"), "ones"),
+        "wo": ParamSpec((L, hq, hd, d), ("layers", "heads", "head_dim", "embed"), fan_in=hq * hd * 2 * L),
+        "mlp_norm": ParamSpec((L, d), ("layers", "embed"), "ones"),
+        "w_gate": ParamSpec((L, d, m), ("layers", "embed", "mlp"), fan_in=d),
+        "w_up": ParamSpec((L, d, m), ("layers", "embed", "mlp"), fan_in=d),
+        "w_down": ParamSpec((L, m, d), ("layers", "mlp", "embed"), fan_in=m * 2 * L),
+    }
 
 
 def _is_spec(x):
@@ -130,6 +140,7 @@ class Inputs(NamedTuple):
     action_t: jax.Array  # [B, T]
     action_noisy: jax.Array  # bool [B, T]
     stride: jax.Array  # int [B] frame stride (multi-FPS)
+    text: jax.Array | None = None  # int [B, L] prompt token ids (only read by text_pathway configs)
 
 
 def positions(stride: jax.Array, V: int, F: int, grid: tuple[int, int], T: int, K: int) -> jax.Array:
@@ -163,17 +174,17 @@ def _neighbourhood(frame: jax.Array, grid: tuple[int, int]) -> jax.Array:
     return jnp.concatenate(shifts, axis=-1).reshape(B, V, P, 9 * D)
 
 
-def _embed(params, cfg: ModelConfig, inp: Inputs, grid, domain: int):
+def _embed(params, cfg: ModelConfig, inp: Inputs, grid, domain: int, K: int | None = None):
     """Token embeddings [B, N, D] in packed order, plus per-token noisy flags."""
     dt = jnp.dtype(cfg.dtype)
     B, V, F, P, _ = inp.video.shape
     T = inp.actions.shape[1]
-    K = F - T
+    K = F - T if K is None else K
     xv = inp.video.astype(dt) @ params["proj_in"]["w"].astype(dt) + params["proj_in"]["b"].astype(dt)
     if cfg.view_embedding:
         xv = xv + params["view_embed"].astype(dt)[None, :, None, None, :]
     # Timestep embedding per (view, frame) and per action, added to noisy tokens only.
-    temb_v = _time_mlp(params, inp.video_t).astype(dt)  # [B, V, F, D]
+    temb_v = _time_mlp(params, inp.video_t, cfg).astype(dt)  # [B, V, F, D]
     xv = xv + jnp.where(inp.video_noisy[..., None, None], temb_v[:, :, :, None, :], 0)
     future = jnp.zeros_like(xv[:, :, K:])
     if cfg.anchor_conditioning:  # the 3x3 neighbourhood of the same patch in the last context frame
@@ -185,7 +196,7 @@ def _embed(params, cfg: ModelConfig, inp: Inputs, grid, domain: int):
     xv = xv.at[:, :, K:].add(future)
     xa = jnp.einsum("bta,ad->btd", inp.actions.astype(dt), params["action_in"]["w"][domain].astype(dt))
     xa = xa + params["action_in"]["b"][domain].astype(dt) + params["action_modality_embed"].astype(dt)
-    temb_a = _time_mlp(params, inp.action_t).astype(dt)
+    temb_a = _time_mlp(params, inp.action_t, cfg).astype(dt)
     xa = xa + jnp.where(inp.action_noisy[..., None], temb_a, 0)
     if cfg.action_reads_frames:  # action j: frame K+j minus frame K-1+j, every view (when both are clean)
         clean = ~inp.video_noisy[:, :, K:] & ~inp.video_noisy[:, :, K - 1:-1]  # [B, V, T]
@@ -197,9 +208,12 @@ def _embed(params, cfg: ModelConfig, inp: Inputs, grid, domain: int):
     return x
 
 
-def _time_mlp(params, t):
+def _time_mlp(params, t, cfg: ModelConfig | None = None):
     p = params["time_embed"]
-    e = layers.timestep_embedding(t, p["w1"].shape[0])
+    if cfg is not None and cfg.layout == "cosmos3":
+        e = cosmos3.timestep_embedding(t, p["w1"].shape[0], cfg.timestep_scale)
+    else:
+        e = layers.timestep_embedding(t, p["w1"].shape[0])
     h = jax.nn.silu(e @ p["w1"].astype(jnp.float32) + p["b1"].astype(jnp.float32))
     return h @ p["w2"].astype(jnp.float32) + p["b2"].astype(jnp.float32)
 
@@ -212,15 +226,19 @@ def _block(cfg: ModelConfig, x, p, cos, sin, mask, prefix_kv=None):
     if prefix_kv is not None:
         k = jnp.concatenate([prefix_kv[0].astype(k.dtype), k], axis=1)
         v = jnp.concatenate([prefix_kv[1].astype(v.dtype), v], axis=1)
-    o = layers.attention(q, k, v, mask)
+    if cfg.attention_impl == "dense":
+        o = layers.attention(q, k, v, mask)
+    else:  # sequence split over the mesh's "context" axis (mask: a context_parallel.SegmentMask or None)
+        o = context_parallel.attention(q, k, v, mask, ring=cfg.attention_impl == "ring")
     x = x + jnp.einsum("bnhk,hkd->bnd", o, p["wo"].astype(x.dtype))
     h = layers.rms_norm(x, p["mlp_norm"], cfg.norm_eps)
     x = x + layers.swiglu(h, p["w_gate"], p["w_up"], p["w_down"])
     return x, kv
 
 
-def _run_layers(cfg: ModelConfig, params, x, cos, sin, mask, prefix_kv=None):
-    """lax.scan over the stacked layers. Returns the final hidden states and each layer's (k, v)."""
+def _run_layers(cfg: ModelConfig, params, x, cos, sin, mask, prefix_kv=None, stack: str = "layers"):
+    """lax.scan over the stacked layers (``params[stack]``). Returns the final hidden states and each layer's
+    (k, v)."""
 
     def body(x, layer):
         p, pkv = layer
@@ -228,14 +246,14 @@ def _run_layers(cfg: ModelConfig, params, x, cos, sin, mask, prefix_kv=None):
 
     if cfg.remat:
         body = jax.checkpoint(body, policy=jax.checkpoint_policies.nothing_saveable)
-    return jax.lax.scan(body, x, (params["layers"], prefix_kv), unroll=not cfg.scan_layers)
+    return jax.lax.scan(body, x, (params[stack], prefix_kv), unroll=not cfg.scan_layers)
 
 
-def token_noisy(inp: Inputs, P: int) -> jax.Array:
+def token_noisy(inp: Inputs, P: int, K: int | None = None) -> jax.Array:
     """Per-token noisy flags [B, N] in packed order (context video, future video, actions)."""
     B, V, F = inp.video_noisy.shape
     T = inp.actions.shape[1]
-    K = F - T
+    K = F - T if K is None else K
     per_frame = jnp.broadcast_to(inp.video_noisy[..., None], (B, V, F, P))
     return jnp.concatenate([per_frame[:, :, :K].reshape(B, -1), per_frame[:, :, K:].reshape(B, -1),
                             inp.action_noisy], axis=1)
@@ -250,6 +268,9 @@ def _attention_mask(cfg: ModelConfig, noisy: jax.Array, n_ctx: int, q_start: int
     the action tokens for each sampler step."""
     if cfg.context_attention == "full":
         return None
+    if cfg.attention_impl != "dense":  # the same mask as per-token segments: each device builds only its block
+        seg = context_parallel.causal_segments(noisy, n_ctx)
+        return context_parallel.SegmentMask(seg[:, q_start:], seg, context_parallel.CAUSAL_TABLE)
     n = noisy.shape[1]
     is_ctx = jnp.arange(n) < n_ctx
     q_ctx, q_noisy = is_ctx[q_start:][None, :, None], noisy[:, q_start:, None]
@@ -257,77 +278,146 @@ def _attention_mask(cfg: ModelConfig, noisy: jax.Array, n_ctx: int, q_start: int
     return mask[:, None]
 
 
-def _outputs(params, cfg: ModelConfig, h, V, T, P, domain):
+def _outputs(params, cfg: ModelConfig, h, V, T, P, domain, T_video: int | None = None):
     """h: hidden states of the future video then the action tokens, or of the action tokens only (then the video
-    outputs are zeros: a video-prefix cache is only used when no video token is a target)."""
+    outputs are zeros: a video-prefix cache is only used when no video token is a target). ``T_video``: future
+    frames when not T (Cosmos3 layout: any number of actions)."""
     B = h.shape[0]
+    T_video = T if T_video is None else T_video
     h = layers.rms_norm(h, params["final_norm"], cfg.norm_eps)
     hv, ha = h[:, : h.shape[1] - T], h[:, h.shape[1] - T:]
     dp = params["proj_out"]["w"].shape[1]
     if hv.shape[1] == 0:
-        out_v = jnp.zeros((B, V, T, P, dp), jnp.float32)
+        out_v = jnp.zeros((B, V, T_video, P, dp), jnp.float32)
     else:
         out_v = hv @ params["proj_out"]["w"].astype(h.dtype) + params["proj_out"]["b"].astype(h.dtype)
-        out_v = out_v.reshape(B, V, T, P, dp).astype(jnp.float32)
+        out_v = out_v.reshape(B, V, T_video, P, dp).astype(jnp.float32)
     out_a = jnp.einsum("btd,da->bta", ha, params["action_out"]["w"][domain].astype(h.dtype))
     out_a = (out_a + params["action_out"]["b"][domain].astype(h.dtype)).astype(jnp.float32)
     return out_v, out_a
 
 
-def apply(params, cfg: ModelConfig, inp: Inputs, grid: tuple[int, int], domain: int = 0):
-    """Raw network outputs for the future-video tokens [B, V, T, P, Dp] and action tokens [B, T, Da].
-    (Context-frame outputs are never used, so they are not projected.) See ``flow.predict`` for what the raw
-    outputs mean under each ``cfg.prediction``."""
+def _layout(cfg: ModelConfig, inp: Inputs, context_frames: int | None):
+    """(B, V, F, P, T, K): T action tokens, K context frames (F - T unless ``context_frames`` is given, which only
+    the Cosmos3 layout allows: there the number of actions is independent of the number of frames)."""
     B, V, F, P, _ = inp.video.shape
     T = inp.actions.shape[1]
-    K = F - T
-    x = _embed(params, cfg, inp, grid, domain)
-    cos, sin = layers.rope_cos_sin(positions(inp.stride, V, F, grid, T, K), cfg.head_dim, cfg.rope_axes_dim,
-                                   cfg.rope_theta)
-    mask = _attention_mask(cfg, token_noisy(inp, P), V * K * P)
-    h, _ = _run_layers(cfg, params, x, cos, sin, mask)
-    return _outputs(params, cfg, h[:, V * K * P:], V, T, P, domain)
+    if context_frames is None:
+        K = F - T
+    else:
+        if cfg.layout != "cosmos3" and context_frames != F - T:
+            raise ValueError(f"layout {cfg.layout!r} needs context_frames = frames - actions = {F - T}")
+        K = context_frames
+    if not 0 <= K <= F:
+        raise ValueError(f"context frames {K} out of range for {F} frames (pass context_frames)")
+    return B, V, F, P, T, K
 
 
-def prefix_length(inp: Inputs, P: int, prefix: str) -> int:
+def _text_prefix(params, cfg: ModelConfig, inp: Inputs, text_kv):
+    """The per-layer text keys/values generation tokens attend to (text_pathway configs), else None."""
+    if not cfg.text_pathway:
+        if text_kv is not None:
+            raise ValueError("text_kv given but this config has no text pathway")
+        return None
+    if cfg.attention_impl != "dense":
+        raise NotImplementedError("the text pathway runs with attention_impl='dense' only")
+    if text_kv is None:
+        if inp.text is None:
+            raise ValueError("a text_pathway config needs Inputs.text (prompt token ids) or text_kv")
+        text_kv = cosmos3.encode_text(params, cfg, inp.text)
+    return text_kv
+
+
+def _rope(cfg: ModelConfig, inp: Inputs, V, F, grid, T, K, L: int, sl=slice(None)):
+    if cfg.layout == "cosmos3":
+        return cosmos3.rope_cos_sin(cfg, cosmos3.positions(cfg, inp.stride, L, V, F, K, grid, T)[:, sl])
+    return layers.rope_cos_sin(positions(inp.stride, V, F, grid, T, K)[:, sl], cfg.head_dim, cfg.rope_axes_dim,
+                               cfg.rope_theta)
+
+
+def _prefix_columns(mask, n: int):
+    """Let every query also see ``n`` prefix keys (the text) in front of a [B, 1, Nq, N] mask."""
+    if mask is None or n == 0:
+        return mask
+    return jnp.concatenate([jnp.ones(mask.shape[:3] + (n,), bool), mask], axis=-1)
+
+
+def _finish(params, cfg: ModelConfig, inp: Inputs, h, V, T, P, domain, K):
+    F = inp.video.shape[2]
+    out_v, out_a = _outputs(params, cfg, h, V, T, P, domain, F - K)
+    if cfg.layout == "cosmos3":  # Cosmos3 returns zeros at clean (conditioning) tokens
+        out_v = jnp.where(inp.video_noisy[:, :, K:, None, None], out_v, 0.0)
+        out_a = jnp.where(inp.action_noisy[..., None], out_a, 0.0)
+    return out_v, out_a
+
+
+def apply(params, cfg: ModelConfig, inp: Inputs, grid: tuple[int, int], domain: int = 0, *,
+          context_frames: int | None = None, text_kv=None):
+    """Raw network outputs for the future-video tokens [B, V, T, P, Dp] and action tokens [B, T, Da].
+    (Context-frame outputs are never used, so they are not projected.) See ``flow.predict`` for what the raw
+    outputs mean under each ``cfg.prediction``.
+
+    Cosmos3 layout (``cfg.layout="cosmos3"``): ``context_frames`` K may be given (the future frames F - K need not
+    equal the number of actions), outputs at clean tokens are zero, and with ``cfg.text_pathway`` the tokens attend
+    to the prompt ``inp.text`` (or to precomputed ``text_kv = cosmos3.encode_text(...)``)."""
+    _, V, F, P, T, K = _layout(cfg, inp, context_frames)
+    text_kv = _text_prefix(params, cfg, inp, text_kv)
+    L = 0 if text_kv is None else text_kv[0].shape[2]
+    x = _embed(params, cfg, inp, grid, domain, K)
+    if cfg.attention_impl != "dense":
+        x = context_parallel.shard_tokens(x)
+    cos, sin = _rope(cfg, inp, V, F, grid, T, K, L)
+    mask = _prefix_columns(_attention_mask(cfg, token_noisy(inp, P, K), V * K * P), L)
+    h, _ = _run_layers(cfg, params, x, cos, sin, mask, text_kv)
+    return _finish(params, cfg, inp, h[:, V * K * P:], V, T, P, domain, K)
+
+
+def prefix_length(inp: Inputs, P: int, prefix: str, context_frames: int | None = None) -> int:
     """Tokens in a cacheable prefix: "context" = the context video (exact whenever context_attention="causal"),
     "video" = all video tokens (exact when every frame is clean and every action noisy: inverse mode)."""
     B, V, F = inp.video_noisy.shape
     T = inp.actions.shape[1]
     if prefix == "context":
-        return V * (F - T) * P
+        return V * (F - T if context_frames is None else context_frames) * P
     if prefix == "video":
         return V * F * P
     raise ValueError(f"prefix must be 'context' or 'video', got {prefix!r}")
 
 
-def encode_context(params, cfg: ModelConfig, inp: Inputs, grid, domain: int = 0, prefix: str = "context"):
+def encode_context(params, cfg: ModelConfig, inp: Inputs, grid, domain: int = 0, prefix: str = "context", *,
+                   context_frames: int | None = None, text_kv=None):
     """Per-layer keys/values of a clean prefix (``prefix_length``), [L, B, n_prefix, Hkv, hd] each. Only valid with
-    ``context_attention="causal"`` (then clean tokens never see targets, so this is exact)."""
+    ``context_attention="causal"`` (then clean tokens never see targets, so this is exact). With a text pathway
+    the prefix tokens attend to the text, whose keys/values are not part of the result."""
     if cfg.context_attention != "causal":
         raise ValueError("context caching needs context_attention='causal'")
-    B, V, F, P, _ = inp.video.shape
-    T = inp.actions.shape[1]
-    K = F - T
-    n = prefix_length(inp, P, prefix)
-    x = _embed(params, cfg, inp, grid, domain)[:, :n]
-    cos, sin = layers.rope_cos_sin(positions(inp.stride, V, F, grid, T, K)[:, :n], cfg.head_dim,
-                                   cfg.rope_axes_dim, cfg.rope_theta)
-    mask = _attention_mask(cfg, token_noisy(inp, P)[:, :n], V * K * P)
-    _, kv = _run_layers(cfg, params, x, cos, sin, mask)
+    _, V, F, P, T, K = _layout(cfg, inp, context_frames)
+    text_kv = _text_prefix(params, cfg, inp, text_kv)
+    L = 0 if text_kv is None else text_kv[0].shape[2]
+    n = prefix_length(inp, P, prefix, K)
+    x = _embed(params, cfg, inp, grid, domain, K)[:, :n]
+    if cfg.attention_impl != "dense":
+        x = context_parallel.shard_tokens(x)
+    cos, sin = _rope(cfg, inp, V, F, grid, T, K, L, slice(None, n))
+    mask = _prefix_columns(_attention_mask(cfg, token_noisy(inp, P, K)[:, :n], V * K * P), L)
+    _, kv = _run_layers(cfg, params, x, cos, sin, mask, text_kv)
     return kv
 
 
-def apply_cached(params, cfg: ModelConfig, inp: Inputs, grid, context_kv, domain: int = 0):
+def apply_cached(params, cfg: ModelConfig, inp: Inputs, grid, context_kv, domain: int = 0, *,
+                 context_frames: int | None = None, text_kv=None):
     """Same outputs as ``apply`` under causal context attention, computing only the tokens after the cached
     prefix (its length is read off ``context_kv``)."""
-    B, V, F, P, _ = inp.video.shape
-    T = inp.actions.shape[1]
-    K = F - T
+    _, V, F, P, T, K = _layout(cfg, inp, context_frames)
+    text_kv = _text_prefix(params, cfg, inp, text_kv)
+    L = 0 if text_kv is None else text_kv[0].shape[2]
     n = context_kv[0].shape[2]
-    x = _embed(params, cfg, inp, grid, domain)[:, n:]
-    cos, sin = layers.rope_cos_sin(positions(inp.stride, V, F, grid, T, K)[:, n:], cfg.head_dim,
-                                   cfg.rope_axes_dim, cfg.rope_theta)
-    mask = _attention_mask(cfg, token_noisy(inp, P), V * K * P, q_start=n)
-    h, _ = _run_layers(cfg, params, x, cos, sin, mask, context_kv)
-    return _outputs(params, cfg, h, V, T, P, domain)
+    x = _embed(params, cfg, inp, grid, domain, K)[:, n:]
+    if cfg.attention_impl != "dense":
+        x = context_parallel.shard_tokens(x)
+    cos, sin = _rope(cfg, inp, V, F, grid, T, K, L, slice(n, None))
+    mask = _prefix_columns(_attention_mask(cfg, token_noisy(inp, P, K), V * K * P, q_start=n), L)
+    prefix_kv = context_kv if text_kv is None else tuple(
+        jnp.concatenate([t.astype(c.dtype), c], axis=2) for t, c in zip(text_kv, context_kv))
+    h, _ = _run_layers(cfg, params, x, cos, sin, mask, prefix_kv)
+    return _finish(params, cfg, inp, h, V, T, P, domain, K)

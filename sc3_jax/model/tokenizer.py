@@ -1,4 +1,5 @@
-"""Video <-> tokens. One interface; the pixel-patch tokenizer now, the Wan VAE later behind the same methods.
+"""Video <-> tokens. One interface: the pixel-patch tokenizer (exact, no time compression) and the Wan VAE
+(``model/wan_vae.py``; 4x time compression, so the training/rollout frame bookkeeping still assumes "pixel").
 
 Patch order is (row, col) over the frame with features ordered (pi, pj, c), as Cosmos3 patchifies latents."""
 from __future__ import annotations
@@ -67,4 +68,8 @@ class PixelPatchTokenizer:
 def make_tokenizer(model_cfg) -> Tokenizer:
     if model_cfg.tokenizer == "pixel":
         return PixelPatchTokenizer(model_cfg.patch_size, model_cfg.channels)
-    raise ValueError(f"unknown tokenizer {model_cfg.tokenizer!r} (available: 'pixel')")
+    if model_cfg.tokenizer in ("wan2.1", "wan2.2"):
+        from sc3_jax.model.wan_vae import make_wan_tokenizer  # lazy: the VAE module is large and optional
+
+        return make_wan_tokenizer(model_cfg.tokenizer, model_cfg.tokenizer_path, patch_size=model_cfg.patch_size)
+    raise ValueError(f"unknown tokenizer {model_cfg.tokenizer!r} (available: 'pixel', 'wan2.1', 'wan2.2')")

@@ -1,0 +1,373 @@
+"""``sc3 plan``: what a config costs on a mesh of accelerators, without allocating the model.
+
+    sc3 plan --config paper --mesh data=4,fsdp=8 --device gb200 [--mfu 0.4] [--compile] [--set data.batch_size=256]
+
+Everything starts from abstract shapes (``jax.eval_shape``): nothing of the model is allocated, so a 2B-parameter
+config plans on a laptop in seconds.
+
+* Parameters / optimizer: every state leaf's per-device shard shape from the logical-axis rules
+  (``sharding.RULES``) on an ``AbstractMesh`` of the requested sizes (no devices needed).
+* FLOPs: XLA's cost analysis of the train step of ``train.compile_train_step`` on one device with the layer scan
+  unrolled (``scan_layers=False``, as bench/train_step.py counts: the cost analysis counts a loop body once). By
+  default the *lowered* (not compiled) module is analysed, which works at any scale; ``--compile`` compiles it and
+  reads the compiled module's cost analysis, bench/train_step.py's exact number (the two differ by a few percent
+  on tiny configs, < 0.3% at cpu_medium size). The count is global (every sample, every token); per-device numbers
+  are the global count divided by the number of devices, i.e. assume a perfect split.
+* One rollout chunk (one episode: forward-dynamics sampling of l' frames and inverse-dynamics sampling of their
+  actions, S Euler steps each, with context caching as the config does): the lowered cost of the rollout's
+  per-chunk model step (``rollout._Steps.model_step``) with S = 1, plus (S - 1) x the cost of one forward and one
+  inverse network evaluation (the sampler's ``fori_loop`` body would otherwise be counted once).
+* Activations: with ``--compile`` and a mesh that fits on this machine's devices, the compiled train step's
+  memory analysis (``temp_size_in_bytes`` per device); otherwise an analytic estimate, printed as such.
+* Times: FLOPs / (devices x peak x MFU). Peaks are approximate vendor dense-BF16 figures per chip (``DEVICES``).
+"""
+from __future__ import annotations
+
+import argparse
+import ast
+import dataclasses
+import functools
+import math
+import sys
+
+# device: (approximate vendor peak dense BF16 FLOP/s per chip, HBM bytes per chip)
+DEVICES: dict[str, tuple[float, float]] = {
+    "h100": (989e12, 80e9),  # H100 SXM: 989 TFLOP/s dense BF16, 80 GB HBM3
+    "h200": (989e12, 141e9),  # H200 SXM: same compute as H100, 141 GB HBM3e
+    "gb200": (2.5e15, 186e9),  # one Blackwell GPU of a GB200 NVL72: ~2.5 PFLOP/s dense BF16, ~186 GB HBM3e
+    "v5p": (459e12, 95e9),  # TPU v5p chip: 459 TFLOP/s BF16, 95 GB HBM2e
+}
+MESH_KEYS = ("data", "fsdp", "tensor", "context")
+
+
+def parse_mesh(text: str):
+    """"data=4,fsdp=8[,tensor=1][,context=1]" -> MeshConfig (missing axes = 1)."""
+    from sc3_jax.config import MeshConfig
+
+    sizes = {k: 1 for k in MESH_KEYS}
+    for part in filter(None, (p.strip() for p in text.split(","))):
+        key, sep, value = part.partition("=")
+        if not sep or key.strip() not in sizes:
+            raise ValueError(f"--mesh: expected AXIS=SIZE with AXIS in {MESH_KEYS}, got {part!r}")
+        sizes[key.strip()] = int(value)
+    if any(v < 1 for v in sizes.values()):
+        raise ValueError(f"--mesh: every axis size must be >= 1 (the planner needs explicit sizes), got {sizes}")
+    return MeshConfig(**sizes)
+
+
+def apply_overrides(cfg, assignments: list[str]):
+    """``section.field=value`` (value a Python literal, else a string) -> a new Config."""
+    from sc3_jax.config import replace
+
+    for a in assignments:
+        key, sep, value = a.partition("=")
+        section, dot, field = key.strip().partition(".")
+        if not (sep and dot):
+            raise ValueError(f"--set: expected SECTION.FIELD=VALUE, got {a!r}")
+        try:
+            value = ast.literal_eval(value)
+        except (ValueError, SyntaxError):
+            pass
+        if isinstance(value, list):
+            value = tuple(value)
+        cfg = replace(cfg, **{section: {field.replace("-", "_"): value}})
+    return cfg
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Pieces
+# ----------------------------------------------------------------------------------------------------------------
+def _flops(lowered, compiled: bool) -> float:
+    cost = lowered.compile().cost_analysis() if compiled else lowered.cost_analysis()
+    cost = cost[0] if isinstance(cost, (list, tuple)) else cost
+    return float(cost["flops"])
+
+
+def _counting_cfg(cfg):
+    """The config whose single-device program XLA can count: layers unrolled, one micro-batch (a loop body is
+    counted once; gradient accumulation does not change the FLOPs of a step), dense attention (context-parallel
+    attention has the same FLOPs, but inside ``shard_map`` a lowered module holds one device's share)."""
+    from sc3_jax.config import MeshConfig, replace
+
+    return replace(cfg, model=dict(scan_layers=False, attention_impl="dense"), train=dict(grad_accum=1),
+                   mesh=MeshConfig(1, 1, 1))
+
+
+def tokens_per_sample(cfg) -> int:
+    from sc3_jax import train
+
+    rows, cols = train.token_geometry(cfg)[1]
+    d = cfg.data
+    return len(d.views) * (d.context_frames + d.future_frames) * rows * cols + d.future_frames
+
+
+def train_step_flops(cfg, compiled: bool = False) -> float:
+    """Global FLOPs of one train step: bench/train_step.py's count (``compiled=True``) or the lowered module's."""
+    import jax
+
+    from sc3_jax import sharding, train
+
+    c = _counting_cfg(cfg)
+    mesh = sharding.make_mesh(c.mesh, jax.devices()[:1])
+    step, _ = train.compile_train_step(c, mesh)
+    abstract = jax.eval_shape(lambda: train.init_state(c))
+    return _flops(step.lower(abstract, train.batch_shapes(c)), compiled)
+
+
+def chunk_flops(cfg) -> dict[str, float]:
+    """FLOPs of one rollout chunk of one episode: {"total", "first_step" (everything with S = 1: caches, one FD and
+    one ID Euler step, decode), "per_step" (one FD + one ID network evaluation), "steps"}."""
+    import jax
+    import jax.numpy as jnp
+
+    from sc3_jax import modes, rollout
+    from sc3_jax.model import dit
+
+    c = _counting_cfg(cfg)
+    m = c.model
+    spec = rollout.make_spec(c, num_chunks=1)
+    st = rollout._Steps(m, c.flow, dataclasses.replace(spec, steps=1), None)
+    sds = jax.ShapeDtypeStruct
+    params = jax.eval_shape(lambda: dit.init_params(m, st.tok.token_dim, jax.random.key(0), st.grid))
+    V, K, T, H, W = spec.views, spec.context, spec.predict, *spec.image_size
+    ctx = jax.eval_shape(st.tok.encode, sds((V, K, H, W, 3), jnp.uint8))
+    carry = rollout.Carry(ctx, sds((7,), jnp.float32), sds((), bool), sds((), jnp.int32))
+    key = jax.eval_shape(lambda: jax.random.key_data(jax.random.key(0)))
+    first = _flops(jax.jit(st.model_step).trace(params, sds((2, 7), jnp.float32), carry,
+                                                sds((spec.policy_chunk, 7), jnp.float32), key,
+                                                sds((), jnp.float32)).lower(), False)
+    P, Dt = ctx.shape[-2:]
+    per_step = 0.0
+    for mode, prefix in ((modes.FD, "context"), (modes.ID, "video")):
+        vn, an = jax.eval_shape(lambda mode=mode: modes.fixed(mode, 1, V, K, T))
+        inp = dit.Inputs(sds((1, V, K + T, P, Dt), jnp.float32), sds((1, T, 7), jnp.float32),
+                         sds((1, V, K + T), jnp.float32), vn, sds((1, T), jnp.float32), an, sds((1,), jnp.int32))
+        kv = None
+        if m.context_attention == "causal":  # the rollout caches this prefix's keys/values for all S steps
+            kv = jax.eval_shape(lambda p, i, prefix=prefix: dit.encode_context(p, m, i, st.grid, prefix=prefix),
+                                params, inp)
+        per_step += _flops(jax.jit(functools.partial(_predict, m=m, grid=st.grid)).trace(params, inp, kv).lower(),
+                           False)
+    S = cfg.sample.steps
+    return {"total": first + (S - 1) * per_step, "first_step": first, "per_step": per_step, "steps": S}
+
+
+def _predict(params, inp, kv, *, m, grid):
+    from sc3_jax import flow
+
+    return flow.predict(params, m, inp, grid, kv)
+
+
+def state_bytes(cfg, mesh_cfg) -> dict[str, float]:
+    """Per-device bytes of params, optimizer state and the rest of the train state, from the sharding rules on an
+    abstract mesh of the requested sizes (a dimension that does not divide by its mesh axes is replicated, as in
+    ``sharding.logical_spec``)."""
+    import jax
+    from jax.sharding import AbstractMesh, AxisType
+
+    from sc3_jax import sharding, train
+
+    names = sharding.mesh_axes(mesh_cfg)
+    sizes = dict(zip(names, sharding.mesh_shape(mesh_cfg, math.prod(_sizes(mesh_cfg).values()))))
+    mesh = AbstractMesh(tuple(sizes.values()), names, axis_types=(AxisType.Auto,) * len(names))
+    abstract = jax.eval_shape(lambda: train.init_state(cfg))
+    flat, _ = jax.tree_util.tree_flatten_with_path(abstract)
+    out = {"params": 0.0, "optimizer": 0.0, "other": 0.0}
+    for (path, x), axes in zip(flat, train.state_axes(cfg, abstract)):
+        spec = sharding.logical_spec(axes, x.shape, mesh)
+        shard = list(x.shape)
+        for i, entry in enumerate(tuple(spec) + (None,) * (x.ndim - len(spec))):
+            names_i = (entry,) if isinstance(entry, str) else tuple(entry or ())
+            shard[i] = -(-shard[i] // math.prod(sizes[n] for n in names_i))
+        top = getattr(path[0], "key", None)
+        kind = "params" if top == "params" else "optimizer" if top == "opt_state" else "other"
+        out[kind] += math.prod(shard) * x.dtype.itemsize
+    return out
+
+
+def _sizes(mesh_cfg) -> dict[str, int]:
+    return {k: getattr(mesh_cfg, k) for k in MESH_KEYS}
+
+
+def activation_estimate(cfg, mesh_cfg) -> float:
+    """Analytic per-device activation bytes of one train step (an estimate, not a measurement):
+    tokens per device = (batch / (data x fsdp)) x (tokens per sample / context) [the sequence is split only by the
+    context-parallel attention impls]; per layer and token the block's saved tensors (norm outputs, q/k/v before and
+    after norm+rope, attention output, residuals, the MLP's gate/up/product: ~4 D + 3 hd (Hq + 2 Hkv) + 3 mlp
+    elements, heads and mlp divided by "tensor"); per layer the fp32 scores, their softmax gradient and the
+    probabilities [Hq, Nq, Nk] (Nk = all keys, or one ring block). With remat only each layer's input is kept, plus
+    one layer's working set during its backward."""
+    import jax.numpy as jnp
+
+    m, s = cfg.model, _sizes(mesh_cfg)
+    a = jnp.dtype(m.dtype).itemsize
+    N = tokens_per_sample(cfg)
+    Bl = -(-(cfg.data.batch_size // cfg.train.grad_accum) // (s["data"] * s["fsdp"]))  # one micro-batch
+    C = s["context"] if m.attention_impl != "dense" else 1
+    Nl = -(-N // C)
+    t = s["tensor"]
+    split = m.num_kv_heads % t == 0
+    hq, hkv = (m.num_heads // t, m.num_kv_heads // t) if split else (m.num_heads, m.num_kv_heads)
+    mlp = m.mlp_dim // t if m.mlp_dim % t == 0 else m.mlp_dim
+    Nk = -(-N // C) if m.attention_impl == "ring" else N
+    per_token = a * (4 * m.dim + 3 * m.head_dim * (hq + 2 * hkv) + 3 * mlp)
+    scores = Bl * hq * Nl * Nk * (4 + 4 + a)
+    layer = Bl * Nl * per_token + scores
+    if m.remat:
+        return m.depth * Bl * Nl * m.dim * a + layer
+    kept_scores = 0 if m.attention_impl == "ring" else Bl * hq * Nl * Nk * (4 + a)
+    return m.depth * (Bl * Nl * per_token + kept_scores) + scores
+
+
+def _microbatches(cfg, mesh_cfg, free: float) -> int | None:
+    """The fewest micro-batches (a divisor of the per-device batch) whose estimated activations fit in ``free``
+    bytes; None if even one sample per device does not fit."""
+    s = _sizes(mesh_cfg)
+    per_device = cfg.data.batch_size // (s["data"] * s["fsdp"])
+    for k in range(1, per_device + 1):
+        if per_device % k == 0:
+            smaller = dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, grad_accum=k))
+            if activation_estimate(smaller, mesh_cfg) <= free:
+                return k
+    return None
+
+
+def compiled_memory(cfg, mesh_cfg):
+    """The compiled train step's per-device memory analysis on this machine's devices (None if they are too
+    few)."""
+    import jax
+
+    from sc3_jax import sharding, train
+
+    n = math.prod(_sizes(mesh_cfg).values())
+    if n > jax.device_count():
+        return None
+    mesh = sharding.make_mesh(mesh_cfg, jax.devices()[:n])
+    step, _ = train.compile_train_step(cfg, mesh)
+    abstract = jax.eval_shape(lambda: train.init_state(cfg))
+    return step.lower(abstract, train.batch_shapes(cfg)).compile().memory_analysis()
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# The plan
+# ----------------------------------------------------------------------------------------------------------------
+def plan(cfg, mesh_cfg, device: str, mfu: float = 0.4, compile: bool = False, chunk: bool = True) -> dict:
+    import jax
+
+    from sc3_jax.model import dit
+
+    if device not in DEVICES:
+        raise ValueError(f"unknown device {device!r}; known: {', '.join(DEVICES)}")
+    if not 0 < mfu <= 1:
+        raise ValueError(f"--mfu must be in (0, 1], got {mfu}")
+    peak, hbm = DEVICES[device]
+    sizes = _sizes(mesh_cfg)
+    n = math.prod(sizes.values())
+    if cfg.data.batch_size % (sizes["data"] * sizes["fsdp"]):
+        raise ValueError(f"global batch {cfg.data.batch_size} does not divide over data x fsdp = "
+                         f"{sizes['data'] * sizes['fsdp']}")
+    from sc3_jax import train
+
+    cfg = dataclasses.replace(cfg, mesh=mesh_cfg)
+    params = jax.eval_shape(lambda: train.init_state(cfg)["params"])
+    out = {"config": cfg.name, "mesh": sizes, "devices": n, "device": device, "peak_flops": peak, "hbm_bytes": hbm,
+           "mfu": mfu, "params": dit.count_params(params), "param_dtype": cfg.model.param_dtype,
+           "tokens_per_sample": tokens_per_sample(cfg), "batch": cfg.data.batch_size, "steps": cfg.train.steps,
+           "attention_impl": cfg.model.attention_impl, "notes": []}
+    out.update({f"{k}_bytes": v for k, v in state_bytes(cfg, mesh_cfg).items()})
+    out["grads_bytes"] = out["params_bytes"]  # gradients: one more param-sized, param-sharded tree during the step
+    mem = compiled_memory(cfg, mesh_cfg) if compile else None
+    if mem is not None:
+        out["activations_bytes"], out["activations_source"] = float(mem.temp_size_in_bytes), "compiled"
+    else:
+        out["activations_bytes"], out["activations_source"] = activation_estimate(cfg, mesh_cfg), "estimate"
+        if compile:
+            out["notes"].append(f"mesh of {n} devices > {jax.device_count()} local devices: activations estimated")
+    out["total_bytes"] = sum(out[f"{k}_bytes"] for k in ("params", "optimizer", "other", "grads", "activations"))
+    if sizes["context"] > 1 and cfg.model.attention_impl == "dense":
+        out["notes"].append("mesh has context > 1 but model.attention_impl is 'dense': the sequence is not split "
+                            "(use --set model.attention_impl=ring)")
+    out["fits"] = out["total_bytes"] <= 0.9 * hbm
+    out["microbatches"] = None if out["fits"] else _microbatches(cfg, mesh_cfg, 0.9 * hbm - (
+        out["total_bytes"] - out["activations_bytes"]))
+    out["flops_source"] = "compiled" if compile else "lowered"
+    out["step_flops"] = train_step_flops(cfg, compiled=compile)
+    out["step_seconds"] = out["step_flops"] / (n * peak * mfu)
+    out["train_seconds"] = out["step_seconds"] * cfg.train.steps
+    if chunk:
+        c = chunk_flops(cfg)
+        out["chunk_flops"], out["chunk_steps"] = c["total"], c["steps"]
+        out["chunk_predict"] = cfg.data.future_frames
+        out["chunk_seconds"] = c["total"] / (peak * mfu)
+    return out
+
+
+def _gb(x: float) -> str:
+    return f"{x / 1e9:9.2f} GB"
+
+
+def format_plan(p: dict) -> str:
+    s = p["mesh"]
+    mesh = " ".join(f"{k}={v}" for k, v in s.items())
+    peak_note = "approximate vendor dense-BF16 peak"
+    lines = [
+        (f"plan: config {p['config']}, mesh {mesh} ({p['devices']} devices), device {p['device']} "
+         f"({p['peak_flops'] / 1e12:.0f} TFLOP/s {peak_note}, {p['hbm_bytes'] / 1e9:.0f} GB HBM), MFU {p['mfu']:.2f}"),
+        f"parameters: {p['params']:,} ({p['params'] / 1e9:.3f} B, {p['param_dtype']})",
+        (f"tokens: {p['tokens_per_sample']:,} per sample x global batch {p['batch']} = "
+         f"{p['tokens_per_sample'] * p['batch']:,} per step; attention {p['attention_impl']}"),
+        "per-device memory (train step):",
+        f"  params       {_gb(p['params_bytes'])}",
+        f"  optimizer    {_gb(p['optimizer_bytes'])}",
+        f"  gradients    {_gb(p['grads_bytes'])}  (param-sized, param-sharded)",
+        f"  activations  {_gb(p['activations_bytes'])}  ("
+        + ("compiled memory analysis: temp buffers per device" if p["activations_source"] == "compiled"
+           else "ESTIMATE, analytic: plan.activation_estimate") + ")",
+        f"  total        {_gb(p['total_bytes'])}  of {p['hbm_bytes'] / 1e9:.0f} GB: "
+        + ("fits (<= 90%)" if p["fits"] else "DOES NOT FIT"
+           + (f"; would fit with {p['microbatches']} micro-batches per step (--train.grad-accum "
+              f"{p['microbatches']})"
+              if p["microbatches"] else "; not even one sample per device fits: split the sequence (context axis "
+              "with attention_impl ring) or shard more")),
+        (f"train step: {p['step_flops']:.4g} FLOPs ({p['flops_source']} XLA cost analysis, global), "
+         f"{p['step_flops'] / p['devices']:.4g} per device (global / {p['devices']} devices, perfect split)"),
+        (f"  at MFU {p['mfu']:.2f}: {p['step_seconds']:.3g} s/step; {p['steps']:,} steps = "
+         f"{p['train_seconds'] / 3600:.1f} h = {p['train_seconds'] / 86400:.2f} days on {p['devices']} x "
+         f"{p['device']}"),
+    ]
+    if "chunk_flops" in p:
+        lines.append(f"rollout chunk (1 episode, {p['chunk_predict']} frames, FD + ID sampling, {p['chunk_steps']} "
+                     f"Euler steps each): {p['chunk_flops']:.4g} FLOPs (lowered XLA cost analysis)")
+        lines.append(f"  at MFU {p['mfu']:.2f} on one {p['device']}: {p['chunk_seconds']:.3g} s/chunk")
+    lines += [f"note: {n}" for n in p["notes"]]
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="sc3 plan", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--config", default="tiny", help="config name or path (NAME[:ARG])")
+    ap.add_argument("--mesh", default="data=1", help="AXIS=SIZE,... over data, fsdp, tensor, context (missing = 1)")
+    ap.add_argument("--device", default="h100", choices=sorted(DEVICES))
+    ap.add_argument("--mfu", type=float, default=0.4, help="assumed fraction of the device's peak FLOP/s")
+    ap.add_argument("--compile", action="store_true",
+                    help="compile (CPU-cheap configs only): exact bench/train_step.py FLOPs and, if the mesh fits on "
+                         "local devices, measured per-device activation memory")
+    ap.add_argument("--no-chunk", action="store_true", help="skip the rollout-chunk estimate")
+    ap.add_argument("--set", action="append", default=[], metavar="SECTION.FIELD=VALUE",
+                    help="config override, e.g. --set data.batch_size=256 --set model.attention_impl=ring")
+    args = ap.parse_args(argv)
+    from sc3_jax.config import load_config
+
+    try:
+        cfg = apply_overrides(load_config(args.config), args.set)
+        p = plan(cfg, parse_mesh(args.mesh), args.device, args.mfu, args.compile, not args.no_chunk)
+    except ValueError as e:
+        print(f"sc3 plan: error: {e}", file=sys.stderr)
+        return 2
+    print(format_plan(p))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,75 @@
+"""`sc3 plan`: FLOPs agree with bench/train_step.py's XLA cost analysis, per-device state bytes agree with the real
+shardings, and the paper-scale plan runs from abstract shapes without allocating the model."""
+import resource
+
+import jax
+import numpy as np
+import pytest
+
+from sc3_jax import plan, sharding, train
+from sc3_jax.config import MeshConfig, load_config, replace
+
+
+def test_tiny_flops_match_bench_cost_analysis():
+    cfg = load_config("tiny")
+    # bench/train_step.py StepBench: one device, layers unrolled, compiled step's cost analysis
+    bench_cfg = replace(cfg, mesh=MeshConfig(1, 1, 1))
+    mesh = sharding.make_mesh(bench_cfg.mesh, jax.devices()[:1])
+    counted, _ = train.compile_train_step(replace(bench_cfg, model=dict(scan_layers=False)), mesh)
+    state = train.create_state(bench_cfg, mesh)
+    shapes = train.batch_shapes(bench_cfg)
+    rng = np.random.default_rng(0)
+    batch = sharding.global_batch(mesh, {
+        "frames": rng.integers(0, 256, shapes["frames"].shape, dtype=np.uint8),
+        "actions": rng.normal(size=shapes["actions"].shape).astype(np.float32),
+        "stride": np.ones(shapes["stride"].shape, np.int32)})
+    cost = counted.lower(state, batch).compile().cost_analysis()
+    bench_flops = float((cost[0] if isinstance(cost, (list, tuple)) else cost)["flops"])
+
+    assert plan.train_step_flops(cfg, compiled=True) == pytest.approx(bench_flops, rel=1e-9)  # --compile: exact
+    assert plan.train_step_flops(cfg) == pytest.approx(bench_flops, rel=0.05)  # lowered (the default): a few %
+
+
+def test_state_bytes_match_real_shardings():
+    cfg = load_config("tiny")
+    mesh_cfg = MeshConfig(data=2, fsdp=2, tensor=2)
+    got = plan.state_bytes(cfg, mesh_cfg)
+    abstract, shards = train.state_shardings(cfg, sharding.make_mesh(mesh_cfg))
+    real = {"params": 0, "opt_state": 0}
+    for key in real:
+        for x, s in zip(jax.tree.leaves(abstract[key]), jax.tree.leaves(shards[key])):
+            real[key] += int(np.prod(s.shard_shape(x.shape))) * x.dtype.itemsize
+    assert got["params"] == real["params"] and got["optimizer"] == real["opt_state"]
+
+
+def test_parse_mesh_and_overrides():
+    assert plan.parse_mesh("data=4,fsdp=8") == MeshConfig(4, 8, 1, 1)
+    assert plan.parse_mesh("fsdp=2, context=4") == MeshConfig(1, 2, 1, 4)
+    with pytest.raises(ValueError):
+        plan.parse_mesh("pipeline=2")
+    cfg = plan.apply_overrides(load_config("tiny"), ["data.batch_size=16", "model.attention_impl=ring",
+                                                     "data.image_size=[8, 8]"])
+    assert (cfg.data.batch_size, cfg.model.attention_impl, cfg.data.image_size) == (16, "ring", (8, 8))
+
+
+def test_paper_plan_from_abstract_shapes(capsys):
+    assert plan.main(["--config", "paper", "--mesh", "data=4,fsdp=8", "--device", "gb200", "--mfu", "0.4"]) == 0
+    out = capsys.readouterr().out
+    assert "parameters: 2,030,756,871" in out and "32 devices" in out and "2500 TFLOP/s" in out
+    p = plan.plan(load_config("paper"), MeshConfig(4, 8, 1, 1), "gb200", 0.4, chunk=False)
+    assert 5.0e17 < p["step_flops"] < 6.0e17  # ~ (6 + 2 remat) x 2.0e9 x 12.9M tokens + attention
+    assert p["params_bytes"] == pytest.approx(p["params"] * 4 / 8, rel=1e-3)  # fp32, split over fsdp=8
+    assert p["step_seconds"] == pytest.approx(p["step_flops"] / (32 * 2.5e15 * 0.4))
+    # nothing of the 8 GB (fp32) model was ever allocated
+    assert resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024 < 6e9
+    # the same 32 devices with the sequence split 4 ways by ring attention: same tokens per device, score blocks of
+    # (N/4)^2 instead of N^2 per sample, 4x the samples per device: ~4x less attention-score memory
+    ring = plan.plan(replace(load_config("paper"), model=dict(attention_impl="ring")), MeshConfig(4, 2, 1, 4),
+                     "gb200", 0.4, chunk=False)
+    assert ring["step_flops"] == p["step_flops"] and ring["activations_bytes"] < p["activations_bytes"] / 3
+
+
+def test_chunk_flops_tiny():
+    c = plan.chunk_flops(load_config("tiny"))
+    assert c["steps"] == 10 and c["per_step"] > 0
+    assert c["total"] == pytest.approx(c["first_step"] + 9 * c["per_step"])
