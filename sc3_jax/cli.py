@@ -15,6 +15,7 @@ commands:
   sim            the simulated table-bussing benchmark: sc3 sim demos|eval ...
   serve-policy   serve one of our policies over the openpi websocket protocol
   configs        list the named configs with their parameter counts
+  convert        Cosmos3 weights: sc3 convert --from diffusers DIR --to OUT | --from sc3 RUN --to DIR
   plan           sc3 plan --config NAME --mesh data=..,fsdp=..,tensor=.. --device h100|h200|gb200|v5p: memory/FLOPs
 
 `sc3 <command> --help` for the arguments of each."""
@@ -138,6 +139,12 @@ def cmd_plan(argv: list[str]) -> int:
     return plan.main(argv) or 0
 
 
+def cmd_convert(argv: list[str]) -> int:
+    from sc3_jax import convert_cli
+
+    return convert_cli.main(argv)
+
+
 def cmd_rollout(argv: list[str]) -> int:
     from sc3_jax import rollout_cli
 
@@ -146,7 +153,8 @@ def cmd_rollout(argv: list[str]) -> int:
 
 COMMANDS = {"demo": cmd_demo, "train": cmd_train, "rollout": cmd_rollout, "sweep": cmd_sweep, "report": cmd_report,
             "data": cmd_data, "sim": cmd_sim,
-            "serve-policy": cmd_serve_policy, "configs": cmd_configs, "plan": cmd_plan}
+            "serve-policy": cmd_serve_policy, "configs": cmd_configs, "plan": cmd_plan,
+            "convert": cmd_convert}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -162,7 +170,7 @@ def main(argv: list[str] | None = None) -> int:
 
     try:
         return cmd(argv[1:])
-    except (FileNotFoundError, EpisodeError) as e:  # user-facing input problems: the message says it all
+    except (FileNotFoundError, FileExistsError, EpisodeError) as e:  # user-facing input problems: the message says it all
         print(f"sc3 {argv[0]}: error: {e}", file=sys.stderr)
         return 2
 

@@ -143,6 +143,10 @@ class TrainConfig:
     # micro-batches per step (gradient accumulation): activations of batch_size / grad_accum samples at a time,
     # same optimizer update as one big batch up to the per-micro-batch noise draws. sc3 plan says when it is needed.
     grad_accum: int = 1
+    # start from these params instead of a random init (a `sc3 train` workdir, an exported world model or a
+    # `sc3 convert` output); fresh optimizer, step 0, and the source's action normalisation. Ignored once this
+    # run has a checkpoint of its own (resume wins).
+    init_from: str | None = None
     seed: int = 0
     log_every: int = 10
     ckpt_every: int = 200

@@ -29,14 +29,14 @@ def noise_inputs(video, actions, stride, video_noisy, action_noisy, t, eps_video
     return dit.Inputs(xv, xa, tv, video_noisy, ta, action_noisy, stride)
 
 
-def predict(params, cfg: ModelConfig, inp: dit.Inputs, grid, context_kv=None):
-    """Velocity and clean-target estimates for the future video [B, V, T, P, D] and the actions [B, T, Da]."""
-    T = inp.actions.shape[1]
-    K = inp.video.shape[2] - T
+def predict(params, cfg: ModelConfig, inp: dit.Inputs, grid, context_kv=None, context_frames: int | None = None):
+    """Velocity and clean-target estimates for the future video [B, V, F - K, P, D] and the actions [B, T, Da].
+    K = F - T (one action per future frame) unless ``context_frames`` is given (Cosmos3 layout only)."""
+    K = inp.video.shape[2] - inp.actions.shape[1] if context_frames is None else context_frames
     if context_kv is None:
-        out_v, out_a = dit.apply(params, cfg, inp, grid)
+        out_v, out_a = dit.apply(params, cfg, inp, grid, context_frames=context_frames)
     else:
-        out_v, out_a = dit.apply_cached(params, cfg, inp, grid, context_kv)
+        out_v, out_a = dit.apply_cached(params, cfg, inp, grid, context_kv, context_frames=context_frames)
     xt_v, xt_a = inp.video[:, :, K:], inp.actions
     tv = inp.video_t[:, :, K:, None, None]
     ta = inp.action_t[..., None]
@@ -66,23 +66,26 @@ def draw_t(rng, batch: int, fcfg: FlowConfig) -> jax.Array:
     return jnp.clip(t, 1e-3, 1.0)
 
 
-def loss(params, cfg: ModelConfig, video, actions, stride, rng, probs, grid, fcfg: FlowConfig = FlowConfig()):
-    """The training loss for a batch of clean tokens; modes, noise levels and noise drawn from ``rng``."""
+def loss(params, cfg: ModelConfig, video, actions, stride, rng, probs, grid, fcfg: FlowConfig = FlowConfig(),
+         context_frames: int | None = None):
+    """The training loss for a batch of clean tokens; modes, noise levels and noise drawn from ``rng``.
+    ``context_frames``: see ``predict`` (token frames; default: frames - actions)."""
     B, V, F = video.shape[:3]
     T = actions.shape[1]
+    K = F - T if context_frames is None else context_frames
     k_mode, k_t, k_ev, k_ea = jax.random.split(rng, 4)
     mode, kept = modes_lib.draw(k_mode, B, V, probs)
-    video_noisy, action_noisy = modes_lib.masks(mode, kept, V, F - T, T)
+    video_noisy, action_noisy = modes_lib.masks(mode, kept, V, K, F - K, T)
     t = draw_t(k_t, B, fcfg)
     eps_v = jax.random.normal(k_ev, video.shape, video.dtype)
     eps_a = jax.random.normal(k_ea, actions.shape, actions.dtype)
     inp = noise_inputs(video, actions, stride, video_noisy, action_noisy, t, eps_v, eps_a)
-    (v_v, v_a), (x0_v, x0_a) = predict(params, cfg, inp, grid)
+    (v_v, v_a), (x0_v, x0_a) = predict(params, cfg, inp, grid, context_frames=context_frames)
     if cfg.prediction == "velocity":
-        preds, targets = (v_v, v_a), (eps_v[:, :, F - T:] - video[:, :, F - T:], eps_a - actions)
+        preds, targets = (v_v, v_a), (eps_v[:, :, K:] - video[:, :, K:], eps_a - actions)
     else:
-        preds, targets = (x0_v, x0_a), (video[:, :, F - T:], actions)
-    total, per_sample = masked_loss(*preds, *targets, video_noisy[:, :, F - T:], action_noisy,
+        preds, targets = (x0_v, x0_a), (video[:, :, K:], actions)
+    total, per_sample = masked_loss(*preds, *targets, video_noisy[:, :, K:], action_noisy,
                                     (fcfg.video_loss_weight, fcfg.action_loss_weight))
     metrics = {"loss": total}
     for m, name in enumerate(modes_lib.NAMES):
@@ -103,15 +106,14 @@ def time_grid(steps: int, fcfg: FlowConfig = FlowConfig()) -> jax.Array:
 
 
 def sample(params, cfg: ModelConfig, video, actions, stride, video_noisy, action_noisy, rng, steps: int, grid,
-           use_cache: bool | str | None = None, fcfg: FlowConfig = FlowConfig()):
+           use_cache: bool | str | None = None, fcfg: FlowConfig = FlowConfig(), context_frames: int | None = None):
     """Euler from t = 1 to t = 0 in ``steps`` steps (``time_grid``); clean tokens held fixed. Returns (video,
     actions) with the noisy positions filled in.
 
     With ``context_attention="causal"`` a clean prefix's keys/values are computed once and reused by every step:
     ``use_cache`` None/True = the context frames, "video" = every frame (only for inverse mode: all frames clean,
-    all actions noisy), False = no cache (for checks)."""
-    T = actions.shape[1]
-    K = video.shape[2] - T
+    all actions noisy), False = no cache (for checks). ``context_frames``: see ``predict``."""
+    K = video.shape[2] - actions.shape[1] if context_frames is None else context_frames
     k_v, k_a = jax.random.split(rng)
     video = jnp.where(video_noisy[..., None, None], jax.random.normal(k_v, video.shape, video.dtype), video)
     actions = jnp.where(action_noisy[..., None], jax.random.normal(k_a, actions.shape, actions.dtype), actions)
@@ -122,7 +124,7 @@ def sample(params, cfg: ModelConfig, video, actions, stride, video_noisy, action
         clean = dit.Inputs(video, actions, jnp.zeros(video_noisy.shape), video_noisy,
                            jnp.zeros(action_noisy.shape), action_noisy, stride)
         prefix = "video" if use_cache == "video" else "context"
-        context_kv = dit.encode_context(params, cfg, clean, grid, prefix=prefix)
+        context_kv = dit.encode_context(params, cfg, clean, grid, prefix=prefix, context_frames=context_frames)
 
     ts = time_grid(steps, fcfg)
 
@@ -131,7 +133,7 @@ def sample(params, cfg: ModelConfig, video, actions, stride, video_noisy, action
         t, t_next = ts[i], ts[i + 1]
         inp = dit.Inputs(xv, xa, jnp.where(video_noisy, t, 0.0), video_noisy, jnp.where(action_noisy, t, 0.0),
                          action_noisy, stride)
-        (v_v, v_a), _ = predict(params, cfg, inp, grid, context_kv)
+        (v_v, v_a), _ = predict(params, cfg, inp, grid, context_kv, context_frames)
         fut = xv[:, :, K:] + (t_next - t) * v_v
         xv = xv.at[:, :, K:].set(jnp.where(video_noisy[:, :, K:, None, None], fut, xv[:, :, K:]))
         xa = jnp.where(action_noisy[..., None], xa + (t_next - t) * v_a, xa)

@@ -25,15 +25,18 @@ def draw(rng: jax.Array, batch: int, num_views: int, probs) -> tuple[jax.Array, 
     return mode.astype(jnp.int32), kept_view.astype(jnp.int32)
 
 
-def masks(mode: jax.Array, kept_view: jax.Array, num_views: int, context_frames: int, future_frames: int):
-    """Noisy-token masks: video [B, V, K+T] and actions [B, T] (True = noisy target, False = clean condition)."""
+def masks(mode: jax.Array, kept_view: jax.Array, num_views: int, context_frames: int, future_frames: int,
+          num_actions: int | None = None):
+    """Noisy-token masks: video [B, V, K+T] and actions [B, A] (True = noisy target, False = clean condition).
+    A = T (one action per future frame) unless ``num_actions`` says otherwise (time-compressed latents: the
+    Cosmos3 layout has ``time_compression`` actions per future token frame)."""
     B = mode.shape[0]
     is_future = jnp.arange(context_frames + future_frames) >= context_frames  # [F]
     view = jnp.arange(num_views)
     fd = mode[:, None, None] == FD
     cvi = (mode[:, None, None] == CVI) & (view[None, :, None] != kept_view[:, None, None])
     video_noisy = (fd | cvi) & is_future[None, None, :]
-    action_noisy = jnp.broadcast_to((mode == ID)[:, None], (B, future_frames))
+    action_noisy = jnp.broadcast_to((mode == ID)[:, None], (B, future_frames if num_actions is None else num_actions))
     return video_noisy, action_noisy
 
 

@@ -134,6 +134,9 @@ class _Steps:
     def __init__(self, model_cfg, flow_cfg, spec: RolloutSpec, use_cache: bool | None):
         self.model_cfg, self.flow_cfg, self.spec, self.use_cache = model_cfg, flow_cfg, spec, use_cache
         self.tok = make_tokenizer(model_cfg)
+        if self.tok.time_compression != 1:  # the chunk bookkeeping (keep l of l' frames) counts frames = tokens
+            raise NotImplementedError(f"rollouts with a {self.tok.time_compression}x time-compressing tokenizer are "
+                                      "not wired yet (training is; see docs/cosmos3.md)")
         self.grid = self.tok.grid(spec.image_size)
 
     def init(self, frames, state) -> Carry:

@@ -34,6 +34,25 @@ def make_optimizer(cfg: Config) -> optax.GradientTransformation:
                        optax.adamw(schedule, b1=t.b1, b2=t.b2, weight_decay=t.weight_decay, mask=decay))
 
 
+def token_frames(cfg: Config) -> int | None:
+    """Context *token* frames when the tokenizer compresses time (None: one token frame per frame, K = F - T).
+    A causal Wan VAE turns frame 0 into token frame 0 and every later 4 frames into one, so a window of
+    1 + 4 (k - 1) context and 4 t future frames is k context and t future token frames with 4 t actions: the
+    Cosmos3 layout (actions independent of frames); the sc3 layout needs one action per token frame."""
+    tok = make_tokenizer(cfg.model)
+    c = tok.time_compression
+    if c == 1:
+        return None
+    K, T = cfg.data.context_frames, cfg.data.future_frames
+    if (K - 1) % c or T % c or K < 1:
+        raise ValueError(f"a tokenizer with {c}x time compression needs data.context_frames = 1 + {c} k and "
+                         f"data.future_frames = {c} t frames, got {K} and {T}")
+    if cfg.model.layout != "cosmos3":
+        raise ValueError(f"{c}x time-compressed tokens need model.layout='cosmos3' (several actions per token "
+                         "frame); the sc3 layout has one action per future frame")
+    return tok.latent_frames(K)
+
+
 def token_geometry(cfg: Config) -> tuple[int, tuple[int, int]]:
     """(token_dim, (rows, cols) tokens per frame) of this config's tokenizer and image size."""
     tok = make_tokenizer(cfg.model)
@@ -78,11 +97,22 @@ def state_shardings(cfg: Config, mesh):
 # Step
 # ================================================================================================================
 def make_train_step(cfg: Config):
+    """One optimizer step. dtype policy (as MaxText's weight_dtype/dtype): params, gradients and Adam moments are
+    float32 -- the master weights -- and ``model.dtype`` (e.g. bfloat16) is the compute dtype every matmul casts
+    its weights and activations to; norms' variances, attention softmax and the loss stay float32."""
+    if jnp.dtype(cfg.model.param_dtype) != jnp.float32:
+        raise ValueError(f"model.param_dtype = {cfg.model.param_dtype}: train with float32 params (the master "
+                         "weights) and set model.dtype = 'bfloat16' for bf16 compute; bf16 is a storage format "
+                         "(sc3 convert --dtype bfloat16, exported models), and init_from casts it back")
     if len(cfg.data.views) == 1 and cfg.modes.probs[1] > 0:
         raise ValueError("cross-view inpainting needs two or more views: set modes.probs[1] = 0 for one view")
+    if cfg.model.text_pathway:
+        raise NotImplementedError("training a text_pathway model needs prompt token ids in the batch (a text "
+                                  "tokenizer); not wired yet -- see docs/cosmos3.md")
     tok = make_tokenizer(cfg.model)
     grid = tok.grid(cfg.data.image_size)
     opt = make_optimizer(cfg)
+    K_tok = token_frames(cfg)
 
     A, B = cfg.train.grad_accum, cfg.data.batch_size
     if A < 1 or B % A:
@@ -91,7 +121,7 @@ def make_train_step(cfg: Config):
     def grads_and_metrics(params, batch, rng):
         video = tok.encode(batch["frames"])
         loss_fn = lambda p: flow.loss(p, cfg.model, video, batch["actions"], batch["stride"], rng,  # noqa: E731
-                                      cfg.modes.probs, grid, cfg.flow)
+                                      cfg.modes.probs, grid, cfg.flow, context_frames=K_tok)
         (_, metrics), grads = jax.value_and_grad(loss_fn, has_aux=True)(params)
         return grads, metrics
 
@@ -137,8 +167,16 @@ def compile_train_step(cfg: Config, mesh):
 
 
 def create_state(cfg: Config, mesh):
+    """A fresh state; with ``cfg.train.init_from`` its params come from there (fresh optimizer, step 0)."""
     _, st_shard = state_shardings(cfg, mesh)
-    return jax.jit(lambda: init_state(cfg), out_shardings=st_shard)()
+    if not cfg.train.init_from:
+        return jax.jit(lambda: init_state(cfg), out_shardings=st_shard)()
+    params = init_params(cfg)
+
+    def fresh(params):
+        state = init_state(cfg)  # the random init is dead code under jit: only its optimizer/rng are kept
+        return {**state, "params": params, "opt_state": make_optimizer(cfg).init(params)}
+    return jax.jit(fresh, in_shardings=(st_shard["params"],), out_shardings=st_shard)(params)
 
 
 # ================================================================================================================
@@ -168,17 +206,60 @@ def restore(mngr: ocp.CheckpointManager, cfg: Config, mesh, step: int | None = N
 
 
 def load_params(workdir: str | Path, cfg: Config, step: int | None = None):
-    """Params of a trained run (for rollouts and evaluation), on one device."""
-    mngr = ocp.CheckpointManager(Path(workdir).absolute() / "checkpoints")
-    step = mngr.latest_step() if step is None else step
-    if step is None:
-        raise FileNotFoundError(f"no checkpoint under {workdir}/checkpoints")
+    """Params of a trained run (latest orbax checkpoint) or of an exported world model (``params.npz``, any float
+    dtype, read back as float32), on one device: for rollouts, evaluation and ``init_from``."""
+    workdir = Path(workdir)
+    if (workdir / "params.npz").exists():
+        return load_params_npz(workdir / "params.npz")
     abstract = jax.eval_shape(lambda: init_state(cfg))
     # an explicit one-device target: the checkpoint may have been written from a mesh this process does not have
     one = jax.sharding.SingleDeviceSharding(jax.devices()[0])
     target = jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=one), abstract)
+    if (workdir / "params").is_dir():  # a `sc3 convert` output: params only
+        return ocp.StandardCheckpointer().restore((workdir / "params").absolute(), target["params"])
+    mngr = ocp.CheckpointManager(workdir.absolute() / "checkpoints")
+    step = mngr.latest_step() if step is None else step
+    if step is None:
+        raise FileNotFoundError(f"no checkpoint under {workdir}/checkpoints (and no params.npz or params/)")
     out = mngr.restore(step, args=ocp.args.Composite(state=ocp.args.StandardRestore(target)))
     return out["state"]["params"]
+
+
+def load_params_npz(path: str | Path) -> dict:
+    """``{"a/b/c": array}`` (written by ``sweep.save_world_model``) -> nested float32 params."""
+    params: dict = {}
+    with np.load(path) as z:
+        for k in z.files:
+            *parents, leaf = k.split("/")
+            node = params
+            for p in parents:
+                node = node.setdefault(p, {})
+            node[leaf] = jnp.asarray(z[k], jnp.float32)
+    return params
+
+
+def init_params(cfg: Config) -> dict:
+    """Params that ``cfg.train.init_from`` names, checked leaf by leaf against this config's shapes and cast to its
+    param dtype (their norm stats are picked up by ``prepare_data``). ``init_from`` is a ``sc3 train`` workdir, an exported world model
+    (``sweep.export_world_model``) or an orbax checkpoint that ``sc3 convert`` wrote from a diffusers directory."""
+    src = Path(cfg.train.init_from)
+    if not (src / "config.json").exists():
+        raise FileNotFoundError(f"init_from {src}: no config.json (expected a `sc3 train` workdir, an exported "
+                                "world model or a `sc3 convert` output)")
+    from sc3_jax.rollout_cli import config_from_dict
+    src_cfg = config_from_dict(json.loads((src / "config.json").read_text()))
+    params = load_params(src, src_cfg)
+    want = jax.eval_shape(lambda: init_state(cfg))["params"]
+    flat_have = {jax.tree_util.keystr(k): v.shape for k, v in jax.tree_util.tree_flatten_with_path(params)[0]}
+    flat_want = {jax.tree_util.keystr(k): v.shape for k, v in jax.tree_util.tree_flatten_with_path(want)[0]}
+    problems = [f"missing {k}" for k in sorted(flat_want.keys() - flat_have.keys())]
+    problems += [f"unexpected {k}" for k in sorted(flat_have.keys() - flat_want.keys())]
+    problems += [f"{k}: {flat_have[k]} there, {flat_want[k]} here" for k in sorted(flat_want.keys() & flat_have.keys())
+                 if tuple(flat_have[k]) != tuple(flat_want[k])]
+    if problems:
+        raise ValueError(f"init_from {src}: params do not fit this model config ({len(problems)} problems):\n  "
+                         + "\n  ".join(problems[:20]))
+    return jax.tree.map(lambda h, w: jnp.asarray(h, w.dtype), params, want)
 
 
 # ================================================================================================================
@@ -240,8 +321,14 @@ def prepare_data(cfg: Config):
         raise FileNotFoundError(f"{e}. Make a dataset first (`sc3 demo` writes synthetic episodes, `sc3 sim demos "
                                 f"--out DIR` simulator demonstrations) and pass --data.path DIR") from None
     stats_path = workdir / "norm_stats.json"
+    src_stats = Path(cfg.train.init_from) / "norm_stats.json" if cfg.train.init_from else None
     if stats_path.exists():
         stats = pipeline.NormStats.load(stats_path)
+    elif src_stats is not None and src_stats.exists():
+        # a fine-tuned model must read actions in the units its params learned, not in this dataset's
+        stats = pipeline.NormStats.load(src_stats)
+        if jax.process_index() == 0:
+            stats.save(stats_path)
     else:
         stats = pipeline.NormStats.from_store(store)
         if jax.process_index() == 0:

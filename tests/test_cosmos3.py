@@ -6,6 +6,7 @@ neither."""
 import ast
 import copy
 import hashlib
+import json
 import math
 import os
 
@@ -368,3 +369,73 @@ def test_full_size_key_map_matches_diffusers_shapes():
     assert ours == theirs
     shapes = jax.eval_shape(lambda: dit.init_params(cfg, convert.token_dim(cfg), jax.random.key(0)))
     assert dit.count_params(shapes) == sum(math.prod(s) for s in theirs.values())
+
+
+@pytest.mark.interop
+def test_sc3_convert_cli_round_trip(tiny_diffusers, tmp_path):
+    """`sc3 convert --from diffusers` writes an orbax params checkpoint that training/rollouts read (the same
+    params as the library import), `--from sc3` writes it back bit for bit, and an occupied --to is refused."""
+    from sc3_jax import cli, train
+    from sc3_jax.model.wan_vae_convert import read_safetensors
+    from sc3_jax.rollout_cli import config_from_dict
+
+    _, src = tiny_diffusers
+    ours, back = tmp_path / "ours", tmp_path / "back"
+    assert cli.main(["convert", "--from", "diffusers", src, "--to", str(ours)]) == 0
+    cfg = config_from_dict(json.loads((ours / "config.json").read_text()))
+    _, want = convert.load_diffusers(src)
+    assert cfg.model == convert.config_from_diffusers(json.loads(open(os.path.join(src, "config.json")).read()))
+    got = train.load_params(ours, cfg)
+    for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(want)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    assert cli.main(["convert", "--from", "sc3", str(ours), "--to", str(back)]) == 0
+    a = read_safetensors(os.path.join(src, convert.WEIGHTS_NAME))
+    b = read_safetensors(os.path.join(back, convert.WEIGHTS_NAME))
+    assert set(a) == set(b) and all(np.array_equal(a[k], b[k]) for k in a)
+    assert cli.main(["convert", "--from", "sc3", str(ours), "--to", str(back)]) == 2  # not overwritten
+    assert sorted(p.name for p in back.iterdir()) == sorted([convert.CONFIG_NAME, convert.WEIGHTS_NAME])
+
+
+def _tiny_wan_tokenizer():
+    from sc3_jax.model import wan_vae as wv
+    from sc3_jax.model import wan_vae_convert as wc
+    rng = np.random.default_rng(0)
+    vae = wc.config_from_diffusers({"base_dim": 4, "z_dim": 4, "dim_mult": [1, 1, 1, 1], "num_res_blocks": 1,
+                                    "attn_scales": [], "temperal_downsample": [False, True, True],
+                                    "latents_mean": rng.normal(size=4).tolist(),
+                                    "latents_std": rng.uniform(0.5, 2.0, size=4).tolist()})
+    return wv.WanTokenizer.random(vae, seed=0, patch_size=2)
+
+
+def test_training_drives_the_cosmos3_layout_on_time_compressed_latents(monkeypatch):
+    """A Cosmos3-layout model trains on Wan-VAE tokens: 5 context + 8 future frames are 2 + 2 token frames with 8
+    actions (4 per token frame), the train step fits one batch, and impossible bookkeeping is refused."""
+    from sc3_jax import train
+    from sc3_jax.config import Config, DataConfig, FlowConfig, TrainConfig, replace
+
+    tok = _tiny_wan_tokenizer()
+    monkeypatch.setattr(train, "make_tokenizer", lambda m: tok)
+    model = _tiny_cfg(text_pathway=False, tokenizer="wan2.1", action_dim=7, num_views=3)
+    cfg = Config(model=model, data=DataConfig(image_size=(16, 32), context_frames=5, future_frames=8, batch_size=2),
+                 flow=FlowConfig(t_logit_mean=0.0), train=TrainConfig(lr=3e-3, warmup_steps=1, steps=40))
+    assert train.token_frames(cfg) == 2
+    rng = np.random.default_rng(0)
+    batch = {"frames": rng.integers(0, 256, (2, 3, 13, 16, 32, 3)).astype(np.uint8),
+             "actions": rng.normal(size=(2, 8, 7)).astype(np.float32), "stride": np.ones(2, np.int32)}
+    step = jax.jit(train.make_train_step(cfg))
+    state = train.init_state(cfg)
+    losses = []
+    for _ in range(40):
+        state, m = step(state, batch)
+        losses.append(float(m["loss"]))
+    assert np.all(np.isfinite(losses)) and np.mean(losses[-5:]) < 0.7 * np.mean(losses[:5]), losses
+    with pytest.raises(ValueError, match="context_frames = 1 \\+ 4 k"):
+        train.token_frames(replace(cfg, data=dict(context_frames=4)))
+    with pytest.raises(ValueError, match="need model.layout='cosmos3'"):
+        train.token_frames(replace(cfg, model=dict(layout="sc3")))
+    with pytest.raises(NotImplementedError, match="prompt token ids"):
+        train.make_train_step(replace(cfg, model=dict(text_pathway=True)))
+    from sc3_jax import rollout
+    monkeypatch.setattr(rollout, "make_tokenizer", lambda m: tok)
+    with pytest.raises(NotImplementedError, match="time-compressing tokenizer"):
+        rollout._Steps(model, cfg.flow, None, None)

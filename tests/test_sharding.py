@@ -72,13 +72,15 @@ def test_gradient_accumulation_is_the_mean_of_micro_batch_gradients():
     rng = jax.random.fold_in(jax.random.wrap_key_data(init["rng"]), 0)
     tok = make_tokenizer(cfg.model)
 
-    def grads(i):
-        mb = {k: v[i::2] for k, v in batch.items()}
+    @jax.jit  # one compile for both micro-batches (eager op-by-op backward took minutes)
+    def grads(params, mb, key):
         loss = lambda p: flow.loss(p, cfg.model, tok.encode(mb["frames"]), mb["actions"], mb["stride"],  # noqa
-                                   jax.random.fold_in(rng, i), cfg.modes.probs, (2, 2), cfg.flow)[0]
-        return jax.grad(loss)(init["params"])
+                                   key, cfg.modes.probs, (2, 2), cfg.flow)[0]
+        return jax.grad(loss)(params)
 
-    g = jax.tree.map(lambda a, b: (a + b) / 2, grads(0), grads(1))
+    g0, g1 = (grads(init["params"], {k: v[i::2] for k, v in batch.items()}, jax.random.fold_in(rng, i))
+              for i in range(2))
+    g = jax.tree.map(lambda a, b: (a + b) / 2, g0, g1)
     opt = train.make_optimizer(cfg)
     updates, _ = opt.update(g, init["opt_state"], init["params"])
     expected = optax.apply_updates(init["params"], updates)

@@ -126,6 +126,24 @@ def test_demos_written_resumable_and_bussing_only(tmp_path):
         generate_demos(tmp_path / "r", 1, task="reverse", progress=False)
 
 
+def test_policy_demos_record_the_zoo_policy_and_refuse_reverse_policies(tmp_path):
+    """World-model data from a bussing zoo policy: the same episode as the sweep's real rollout of that seed."""
+    s = generate_demos(tmp_path / "p", 1, seed=7, policy="bus_bc_small", progress=False)
+    assert s["written"] == 1
+    store = EpisodeStore(tmp_path / "p")
+    ep = store.load(store.episode_ids()[0])
+    assert ep.meta["policy"] == "bus_bc_small" and "knobs" not in ep.meta and ep.meta["sim_seed"] == 700_000
+    env = BussingEnv(image_size=(64, 64))
+    r = run_policy_episode(env, zoo.load_policy("bus_bc_small"), 700_000, "bussing")
+    env.close()
+    np.testing.assert_array_equal(ep.actions, r.actions)
+    np.testing.assert_array_equal(ep.frames["left"], r.frames["left"])
+    assert ep.meta["labels"]["objects"] == [o.to_json() for o in r.outcomes]
+    for bad in ("rev_bc_full", "nope"):
+        with pytest.raises(ValueError, match="choose a bussing zoo policy"):
+            generate_demos(tmp_path / "q", 1, policy=bad, progress=False)
+
+
 def test_controller_routes_by_task():
     obj_xy = jnp.zeros((zoo.N_OBJ, 2)).at[0].set(jnp.array([-0.1, 0.0])).at[1].set(jnp.array([-0.2, 0.1]))
     present = jnp.full((zoo.N_OBJ,), -3.0).at[0].set(3.0)

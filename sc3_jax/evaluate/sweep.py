@@ -153,7 +153,7 @@ def load_world_model(path: str | Path):
         raise FileNotFoundError(f"{path}: no config.json (expected a `sc3 train` workdir or an exported world model)")
     cfg = config_from_dict(json.loads((path / "config.json").read_text()))
     stats = NormStats.load(path / "norm_stats.json")
-    params = load_exported(path / "params.npz") if (path / "params.npz").exists() else train.load_params(path, cfg)
+    params = train.load_params(path, cfg)
     return cfg, stats, params
 
 
@@ -178,19 +178,6 @@ def _flatten(tree, prefix=""):
             yield from _flatten(v, f"{prefix}{k}/")
         else:
             yield f"{prefix}{k}", v
-
-
-def load_exported(path: Path) -> dict:
-    import jax.numpy as jnp
-    params: dict = {}
-    with np.load(path) as z:
-        for k in z.files:
-            *parents, leaf = k.split("/")
-            node = params
-            for p in parents:
-                node = node.setdefault(p, {})
-            node[leaf] = jnp.asarray(z[k], jnp.float32)
-    return params
 
 
 # ================================================================================================================

@@ -1,5 +1,6 @@
 """Video <-> tokens. One interface: the pixel-patch tokenizer (exact, no time compression) and the Wan VAE
-(``model/wan_vae.py``; 4x time compression, so the training/rollout frame bookkeeping still assumes "pixel").
+(``model/wan_vae.py``; 4x causal time compression: ``latent_frames(F) = 1 + (F - 1) // 4``). Training reads the
+token-frame counts off ``latent_frames`` (``train.token_frames``); rollouts still assume no time compression.
 
 Patch order is (row, col) over the frame with features ordered (pi, pj, c), as Cosmos3 patchifies latents."""
 from __future__ import annotations
@@ -20,6 +21,11 @@ class Tokenizer(Protocol):
     def encode(self, frames: jax.Array) -> jax.Array: ...  # uint8 [..., F, H, W, 3] -> [..., F, P, D]
 
     def decode(self, tokens: jax.Array, image_size: tuple[int, int]) -> jax.Array: ...  # -> float [-1, 1]
+
+    @property
+    def time_compression(self) -> int: ...  # frames per token frame (after the first)
+
+    def latent_frames(self, num_frames: int) -> int: ...  # token frames that num_frames frames encode to
 
 
 def to_unit(frames: jax.Array) -> jax.Array:
@@ -46,6 +52,13 @@ class PixelPatchTokenizer:
     @property
     def token_dim(self) -> int:
         return self.patch_size * self.patch_size * self.channels
+
+    @property
+    def time_compression(self) -> int:
+        return 1
+
+    def latent_frames(self, num_frames: int) -> int:
+        return num_frames
 
     def encode(self, frames):
         x = to_unit(frames) if frames.dtype == jnp.uint8 else frames

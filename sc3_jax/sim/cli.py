@@ -2,6 +2,7 @@
 
     sc3 sim demos --out DIR --episodes N [--seed S] [--grasp-noise M] [--release-noise M]
                   [--wrong-destination-prob P] [--action-noise M] [--image-size H W] [--control-hz 20|10]
+                  [--policy BUSSING_ZOO_POLICY]
     sc3 sim eval --policy NAME --task bussing|reverse --episodes 36 --out DIR [--no-videos]
     sc3 sim zoo-train [--workdir /tmp/sc3_zoo]
     sc3 sim zoo-eval --out DIR [--episodes 36] [--no-videos]
@@ -17,11 +18,12 @@ import json
 
 def demos(out: str, episodes: int = 100, seed: int = 0, grasp_noise: float = 0.0, release_noise: float = 0.0,
           wrong_destination_prob: float = 0.0, action_noise: float = 0.0, image_size: tuple[int, int] = (64, 64),
-          control_hz: int = 20, n_objects: int = 3, progress: bool = True) -> dict:
+          control_hz: int = 20, n_objects: int = 3, progress: bool = True, policy: str | None = None) -> dict:
     from .demos import generate_demos
     from .expert import ExpertKnobs
     knobs = ExpertKnobs(grasp_noise, release_noise, wrong_destination_prob, action_noise)
-    return generate_demos(out, episodes, seed, knobs, tuple(image_size), control_hz, n_objects, progress=progress)
+    return generate_demos(out, episodes, seed, knobs, tuple(image_size), control_hz, n_objects, progress=progress,
+                          policy=policy)
 
 
 def eval(policy: str, task: str = "bussing", episodes: int = 36, out: str | None = None, videos: bool = True,
@@ -45,6 +47,7 @@ def main(argv: list[str] | None = None) -> int:
     d.add_argument("--image-size", type=int, nargs=2, default=(64, 64), metavar=("H", "W"))
     d.add_argument("--control-hz", type=int, default=20, choices=(10, 20))
     d.add_argument("--n-objects", type=int, default=3)
+    d.add_argument("--policy", default=None, help="record this bussing zoo policy instead of the scripted expert")
     e = sub.add_parser("eval", help="evaluate a zoo policy in the simulator")
     e.add_argument("--policy", required=True)
     e.add_argument("--task", default="bussing", choices=("bussing", "reverse"))
@@ -63,7 +66,7 @@ def main(argv: list[str] | None = None) -> int:
     a = ap.parse_args(argv)
     if a.cmd == "demos":
         res = demos(a.out, a.episodes, a.seed, a.grasp_noise, a.release_noise, a.wrong_destination_prob,
-                    a.action_noise, tuple(a.image_size), a.control_hz, a.n_objects)
+                    a.action_noise, tuple(a.image_size), a.control_hz, a.n_objects, policy=a.policy)
     elif a.cmd == "eval":
         res = eval(a.policy, a.task, a.episodes, a.out, not a.no_videos, tuple(a.image_size))
     elif a.cmd == "zoo-train":

@@ -7,6 +7,11 @@ prompt, and in ``meta``: ``labels`` (per-object ground-truth criteria and outcom
 Deterministic by seed: episode ``i`` of a run with ``seed`` uses simulator seed ``seed * 100_000 + i`` and is named
 ``ep{sim_seed:07d}``. Resumable: episodes already in the store are skipped. Reverse bussing is refused here: it
 never enters world-model training data.
+
+``policy=NAME`` records a *bussing* zoo policy instead of the expert (its retries, hovering and misses: the
+on-policy failures a world model must reproduce, which the expert's failure knobs only approximate). Use training
+seeds only: the sweep evaluates on simulator seeds from 10,000,000 (``SweepConfig.seed0``), far above
+``seed * 100_000 + i`` for any seed < 100.
 """
 from __future__ import annotations
 
@@ -29,10 +34,16 @@ def episode_seed(seed: int, i: int) -> int:
 
 def generate_demos(out: str | Path, n_episodes: int, seed: int = 0, knobs: ExpertKnobs = ExpertKnobs(),
                    image_size: tuple[int, int] = (64, 64), control_hz: int = 20, n_objects: int = 3,
-                   task: str = "bussing", progress: bool = True) -> dict:
-    """Write ``n_episodes`` expert episodes to the episode store at ``out``. Returns a summary dict."""
+                   task: str = "bussing", progress: bool = True, policy: str | None = None) -> dict:
+    """Write ``n_episodes`` expert (or zoo ``policy``) episodes to the episode store at ``out``. Returns a summary."""
     if task != "bussing":
         raise ValueError("demonstrations cover bussing only (reverse bussing never enters training data)")
+    if policy is not None:
+        from .zoo import ZOO
+        if policy not in ZOO or ZOO[policy].task != "bussing":
+            raise ValueError(f"policy {policy!r}: choose a bussing zoo policy "
+                             f"{sorted(n for n, e in ZOO.items() if e.task == 'bussing')}")
+    runner = _expert_runner(knobs) if policy is None else _policy_runner(policy)
     env = BussingEnv(image_size=image_size, control_hz=control_hz, n_objects=n_objects)
     store = EpisodeStore(out, views=list(env.views), fps=control_hz, image_size=tuple(image_size), create=True)
     outcomes, written, skipped, steps = [], 0, 0, 0
@@ -43,12 +54,13 @@ def generate_demos(out: str | Path, n_episodes: int, seed: int = 0, knobs: Exper
         if eid in store:
             skipped += 1
             continue
-        r = run_expert_episode(env, sim_seed, task, knobs, record=True)
-        meta = {"task": task, "sim_seed": sim_seed, "knobs": dataclasses.asdict(knobs),
+        r = runner(env, sim_seed, task)
+        source = {"knobs": dataclasses.asdict(knobs)} if policy is None else {"policy": policy}
+        meta = {"task": task, "sim_seed": sim_seed, **source,
                 "initial_condition": r.ic.to_json(), "control_hz": control_hz,
                 "labels": {"objects": [o.to_json() for o in r.outcomes],
                            "success": success_rates(r.outcomes)},
-                "intent": {k: np.round(v, 5).tolist() for k, v in r.intents.items()},
+                "intent": {k: np.round(v, 5).tolist() for k, v in (r.intents or {}).items()},
                 "object_pos": np.round(r.object_pos, 4).tolist()}
         store.write(Episode(eid, r.frames, r.actions, r.ee_pose, r.ic.prompt, meta))
         outcomes += r.outcomes
@@ -59,3 +71,15 @@ def generate_demos(out: str | Path, n_episodes: int, seed: int = 0, knobs: Exper
     return {"out": str(out), "written": written, "skipped": skipped, "steps": steps, "seconds": dt,
             "demos_per_hour": written / dt * 3600 if written and dt > 0 else None,
             "success": success_rates(outcomes) if outcomes else None}
+
+
+def _expert_runner(knobs: ExpertKnobs):
+    return lambda env, seed, task: run_expert_episode(env, seed, task, knobs, record=True)
+
+
+def _policy_runner(name: str):
+    from ..policies.base import as_host
+    from .evaluate import run_policy_episode
+    from .zoo import load_policy
+    host = as_host(load_policy(name))  # jitted once, reused for every episode
+    return lambda env, seed, task: run_policy_episode(env, host, seed, task, record=True)

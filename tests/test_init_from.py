@@ -1,0 +1,73 @@
+"""``train.init_from``: a run starts from another run's (or an exported model's) params with a fresh optimizer and
+the source's action normalisation; a shape mismatch is refused with every offending leaf named."""
+import dataclasses
+import json
+
+import jax
+import numpy as np
+import pytest
+
+from sc3_jax import sharding, train
+from sc3_jax.config import Config, DataConfig, ModelConfig, TrainConfig, replace
+from sc3_jax.data import synthetic
+from sc3_jax.data.pipeline import NormStats
+from sc3_jax.evaluate import sweep
+
+
+def _cfg(data, workdir, **model) -> Config:
+    m = dict(dim=32, depth=1, num_heads=2, num_kv_heads=1, head_dim=16, mlp_dim=64, rope_axes_dim=(2, 3, 3))
+    return Config(model=ModelConfig(**{**m, **model}),
+                  data=DataConfig(path=str(data), image_size=(8, 8), context_frames=1, future_frames=2, batch_size=8),
+                  train=TrainConfig(workdir=str(workdir), steps=3, ckpt_every=3, log_every=1, lr=1e-3, warmup_steps=1,
+                                    progress=False, tensorboard=False, async_checkpointing=False))
+
+
+@pytest.fixture(scope="module")
+def source(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("init_from")
+    data = tmp / "episodes"
+    synthetic.generate(str(data), 4, length=20, image_size=(8, 8), seed=0, progress=False)
+    cfg = _cfg(data, tmp / "src")
+    train.train(cfg)
+    return tmp, data, cfg
+
+
+def _leaves(tree):
+    return [np.asarray(x) for x in jax.tree.leaves(jax.device_get(tree))]
+
+
+@pytest.mark.parametrize("kind", ["workdir", "exported"])
+def test_init_from_loads_params_fresh_optimizer_and_source_stats(source, kind):
+    tmp, data, src_cfg = source
+    src = tmp / "src"
+    _, stats, params = sweep.load_world_model(src)
+    if kind == "exported":
+        # a different norm-stats file in the exported dir proves the fine-tune reads the *source's* stats
+        stats = NormStats(**{f.name: np.asarray(getattr(stats, f.name)) * 2 for f in dataclasses.fields(stats)})
+        src = sweep.save_world_model(tmp / "exported", src_cfg, stats, jax.device_get(params), np.float32)
+    cfg = replace(_cfg(data, tmp / f"ft_{kind}"), train=dict(init_from=str(src)))
+    state = train.create_state(cfg, sharding.make_mesh(cfg.mesh))  # all 8 host devices: placed sharded
+    assert int(state["step"]) == 0
+    for a, b in zip(_leaves(state["params"]), _leaves(params)):
+        np.testing.assert_array_equal(a, b)
+    # Adam moments start at zero, not at the source's
+    mu = [x for x in _leaves(state["opt_state"]) if x.ndim > 0]
+    assert mu and all(not np.any(x) for x in mu)
+    train.prepare_data(cfg)
+    assert json.loads((tmp / f"ft_{kind}" / "norm_stats.json").read_text()) == \
+        json.loads((src / "norm_stats.json").read_text())
+
+
+def test_init_from_refuses_other_shapes_naming_the_leaves(source):
+    tmp, data, _ = source
+    cfg = _cfg(data, tmp / "bad", dim=48, mlp_dim=96)
+    cfg = replace(cfg, train=dict(init_from=str(tmp / "src")))
+    with pytest.raises(ValueError, match=r"do not fit this model config.*\n.*there, .* here"):
+        train.create_state(cfg, sharding.make_mesh(cfg.mesh))
+
+
+def test_init_from_missing_dir_is_a_clear_error(tmp_path):
+    cfg = _cfg(tmp_path, tmp_path / "x")
+    cfg = replace(cfg, train=dict(init_from=str(tmp_path / "nowhere")))
+    with pytest.raises(FileNotFoundError, match="init_from .*no config.json"):
+        train.create_state(cfg, sharding.make_mesh(cfg.mesh))
