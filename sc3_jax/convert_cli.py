@@ -43,13 +43,7 @@ def to_diffusers(src: str, out: str, dtype: str = "float32") -> Path:
 
     from sc3_jax import train
     from sc3_jax.model import convert
-    from sc3_jax.rollout_cli import config_from_dict
-    src_p = Path(src)
-    if not (src_p / "config.json").exists():
-        raise FileNotFoundError(f"{src}: no config.json (expected a `sc3 train` workdir, an exported world model "
-                                "or a `sc3 convert` output)")
-    cfg = config_from_dict(json.loads((src_p / "config.json").read_text()))
-    params = train.load_params(src_p, cfg)
+    cfg, params = train.load_model(src)
     return _write_atomically(out, lambda tmp: convert.save_diffusers(cfg.model, params, str(tmp),
                                                                      dtype=jnp.dtype(dtype)))
 

@@ -18,6 +18,7 @@ import orbax.checkpoint as ocp
 from sc3_jax import flow, sharding
 from sc3_jax.config import Config
 from sc3_jax.model import dit
+from sc3_jax.model.shapes import check_shapes
 from sc3_jax.model.tokenizer import make_tokenizer
 
 
@@ -225,6 +226,17 @@ def load_params(workdir: str | Path, cfg: Config, step: int | None = None):
     return out["state"]["params"]
 
 
+def load_model(path: str | Path, what: str = "") -> tuple[Config, dict]:
+    """(config, params) of a ``sc3 train`` workdir, an exported world model or a ``sc3 convert`` output."""
+    from sc3_jax.rollout_cli import config_from_dict
+    path = Path(path)
+    if not (path / "config.json").exists():
+        raise FileNotFoundError(f"{what}{path}: no config.json (expected a `sc3 train` workdir, an exported world "
+                                "model or a `sc3 convert` output)")
+    cfg = config_from_dict(json.loads((path / "config.json").read_text()))
+    return cfg, load_params(path, cfg)
+
+
 def load_params_npz(path: str | Path) -> dict:
     """``{"a/b/c": array}`` (written by ``sweep.save_world_model``) -> nested float32 params."""
     params: dict = {}
@@ -243,22 +255,11 @@ def init_params(cfg: Config) -> dict:
     param dtype (their norm stats are picked up by ``prepare_data``). ``init_from`` is a ``sc3 train`` workdir, an exported world model
     (``sweep.export_world_model``) or an orbax checkpoint that ``sc3 convert`` wrote from a diffusers directory."""
     src = Path(cfg.train.init_from)
-    if not (src / "config.json").exists():
-        raise FileNotFoundError(f"init_from {src}: no config.json (expected a `sc3 train` workdir, an exported "
-                                "world model or a `sc3 convert` output)")
-    from sc3_jax.rollout_cli import config_from_dict
-    src_cfg = config_from_dict(json.loads((src / "config.json").read_text()))
-    params = load_params(src, src_cfg)
+    _, params = load_model(src, what="init_from ")
     want = jax.eval_shape(lambda: init_state(cfg))["params"]
-    flat_have = {jax.tree_util.keystr(k): v.shape for k, v in jax.tree_util.tree_flatten_with_path(params)[0]}
-    flat_want = {jax.tree_util.keystr(k): v.shape for k, v in jax.tree_util.tree_flatten_with_path(want)[0]}
-    problems = [f"missing {k}" for k in sorted(flat_want.keys() - flat_have.keys())]
-    problems += [f"unexpected {k}" for k in sorted(flat_have.keys() - flat_want.keys())]
-    problems += [f"{k}: {flat_have[k]} there, {flat_want[k]} here" for k in sorted(flat_want.keys() & flat_have.keys())
-                 if tuple(flat_have[k]) != tuple(flat_want[k])]
-    if problems:
-        raise ValueError(f"init_from {src}: params do not fit this model config ({len(problems)} problems):\n  "
-                         + "\n  ".join(problems[:20]))
+    flat = lambda tree: {jax.tree_util.keystr(k): v.shape  # noqa: E731
+                         for k, v in jax.tree_util.tree_flatten_with_path(tree)[0]}
+    check_shapes(flat(want), flat(params), f"init_from {src}: params do not fit this model config:")
     return jax.tree.map(lambda h, w: jnp.asarray(h, w.dtype), params, want)
 
 

@@ -147,14 +147,8 @@ def load_world_model(path: str | Path):
     """(config, norm stats, params) of a training run dir (latest orbax checkpoint) or an exported dir."""
     from sc3_jax import train
     from sc3_jax.data.pipeline import NormStats
-    from sc3_jax.rollout_cli import config_from_dict
-    path = Path(path)
-    if not (path / "config.json").exists():
-        raise FileNotFoundError(f"{path}: no config.json (expected a `sc3 train` workdir or an exported world model)")
-    cfg = config_from_dict(json.loads((path / "config.json").read_text()))
-    stats = NormStats.load(path / "norm_stats.json")
-    params = train.load_params(path, cfg)
-    return cfg, stats, params
+    cfg, params = train.load_model(path)
+    return cfg, NormStats.load(Path(path) / "norm_stats.json"), params
 
 
 def export_world_model(workdir: str | Path, out: str | Path, dtype=np.float16) -> Path:

@@ -28,6 +28,7 @@ import numpy as np
 
 from sc3_jax.config import ModelConfig
 from sc3_jax.model import dit
+from sc3_jax.model.shapes import check_shapes
 from sc3_jax.model.wan_vae_convert import read_diffusers_dir
 
 WEIGHTS_NAME = "diffusion_pytorch_model.safetensors"
@@ -220,24 +221,11 @@ def _to_torch(e: Entry, a: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(a.reshape(e.torch_shape))
 
 
-def _check(expected: dict[str, tuple], shapes: dict[str, tuple], what: str):
-    missing = sorted(set(expected) - set(shapes))
-    unexpected = sorted(set(shapes) - set(expected))
-    wrong = sorted(f"{k}: {tuple(shapes[k])} (expected {tuple(expected[k])})" for k in set(expected) & set(shapes)
-                   if tuple(shapes[k]) != tuple(expected[k]))
-    if missing or unexpected or wrong:
-        lines = [f"{what} does not match the {CLASS_NAME} config:"]
-        for name, items in (("missing", missing), ("unexpected", unexpected), ("wrong shape", wrong)):
-            if items:
-                lines.append(f"  {name} ({len(items)}):")
-                lines += [f"    {x}" for x in items]
-        raise ValueError("\n".join(lines))
-
-
 def params_from_state_dict(cfg: ModelConfig, sd: dict[str, np.ndarray], dtype=None) -> dict:
     """diffusers state dict (numpy arrays) -> our params (jnp arrays of ``dtype`` or cfg.param_dtype)."""
     emap = key_map(cfg)
-    _check({k: e.torch_shape for k, e in emap.items()}, {k: np.shape(v) for k, v in sd.items()}, "state dict")
+    check_shapes({k: e.torch_shape for k, e in emap.items()}, {k: np.shape(v) for k, v in sd.items()},
+                 f"state dict does not match the {CLASS_NAME} config:")
     dtype = jnp.dtype(dtype or cfg.param_dtype)
     stacked: dict[tuple, list] = {}
     params: dict = {}
@@ -268,7 +256,7 @@ def state_dict_from_params(cfg: ModelConfig, params: dict, dtype=None) -> dict[s
     for e in emap.values():
         name = "/".join(e.path)
         expected[name] = ((cfg.depth,) if e.layer is not None else ()) + e.shape
-    _check(expected, {k: np.shape(v) for k, v in flat.items()}, "params")
+    check_shapes(expected, {k: np.shape(v) for k, v in flat.items()}, f"params do not match the {CLASS_NAME} config:")
     host = {k: np.asarray(jax.device_get(v)) for k, v in flat.items()}
     out = {}
     for key, e in emap.items():

@@ -17,6 +17,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from sc3_jax.model.shapes import check_shapes
 from sc3_jax.model.wan_vae import ParamSpec, WanVAEConfig, param_specs
 
 WEIGHTS_NAME = "diffusion_pytorch_model.safetensors"
@@ -94,24 +95,11 @@ def _to_torch(spec: ParamSpec, a: np.ndarray) -> np.ndarray:
     return a
 
 
-def _check(specs: dict[str, ParamSpec], shapes: dict[str, tuple], what: str):
-    missing = sorted(set(specs) - set(shapes))
-    unexpected = sorted(set(shapes) - set(specs))
-    wrong = sorted(f"{k}: {tuple(shapes[k])} (expected {specs[k].torch_shape})" for k in set(specs) & set(shapes)
-                   if tuple(shapes[k]) != specs[k].torch_shape)
-    if missing or unexpected or wrong:
-        lines = [f"{what} does not match the AutoencoderKLWan config:"]
-        for name, items in (("missing", missing), ("unexpected", unexpected), ("wrong shape", wrong)):
-            if items:
-                lines.append(f"  {name} ({len(items)}):")
-                lines += [f"    {x}" for x in items]
-        raise ValueError("\n".join(lines))
-
-
 def params_from_state_dict(cfg: WanVAEConfig, sd: dict[str, np.ndarray], dtype=None) -> dict:
     """diffusers state dict (numpy arrays) -> our params (jnp arrays of ``dtype`` or cfg.param_dtype)."""
     specs = flat_specs(cfg)
-    _check(specs, {k: np.shape(v) for k, v in sd.items()}, "state dict")
+    check_shapes({k: s.torch_shape for k, s in specs.items()}, {k: np.shape(v) for k, v in sd.items()},
+                 "state dict does not match the AutoencoderKLWan config:")
     dtype = jnp.dtype(dtype or cfg.param_dtype)
     params: dict = {}
     for key, spec in specs.items():
@@ -137,9 +125,9 @@ def state_dict_from_params(cfg: WanVAEConfig, params: dict, dtype=None) -> dict[
                 flat[key] = v
 
     walk(params, "")
-    # Compare in our layout: a wrong-shaped leaf is reported with its (our-layout) shape.
-    ours = {k: ParamSpec(s.shape, s.shape, s.kind) for k, s in specs.items()}
-    _check(ours, {k: tuple(np.shape(v)) for k, v in flat.items()}, "params")
+    # compared in our layout: a wrong-shaped leaf is reported with its (our-layout) shape
+    check_shapes({k: s.shape for k, s in specs.items()}, {k: np.shape(v) for k, v in flat.items()},
+                 "params do not match the AutoencoderKLWan config:")
     out = {}
     for k, spec in specs.items():
         a = np.asarray(jax.device_get(flat[k]))
