@@ -72,6 +72,10 @@ class ModelConfig:
     layout: str = "sc3"  # "sc3" | "cosmos3"
     text_pathway: bool = False
     vocab_size: int = 0  # text vocabulary (embed_tokens / lm_head rows) when text_pathway
+    # the prompt's token ids (from the checkpoint's own text tokenizer, e.g. of "" or of the task family) that every
+    # sample is conditioned on when no ``Inputs.text`` is given: lets training and rollouts of a text_pathway model
+    # (a converted Cosmos3 checkpoint) run without a tokenizer in the loop. One fixed prompt: no padding, so exact.
+    prompt_ids: tuple[int, ...] = ()
     base_fps: float = 24.0  # Cosmos3 position ids: time advances base_fps / fps per (latent) frame
     fps: float = 24.0  # pixel frame rate of a window at stride 1 (a sample's fps is fps / stride)
     temporal_compression: int = 4  # pixel frames per latent frame (Wan VAE: 4); actions per latent frame
@@ -96,6 +100,8 @@ class ModelConfig:
             raise ValueError(f"layout must be 'sc3' or 'cosmos3', got {self.layout!r}")
         if self.text_pathway and (self.layout != "cosmos3" or self.vocab_size <= 0):
             raise ValueError("text_pathway needs layout='cosmos3' and vocab_size > 0")
+        if any(not 0 <= i < self.vocab_size for i in self.prompt_ids):
+            raise ValueError(f"prompt_ids must lie in [0, vocab_size={self.vocab_size}), got {self.prompt_ids}")
 
 
 @dataclasses.dataclass(frozen=True)

@@ -40,7 +40,8 @@ def masks(mode: jax.Array, kept_view: jax.Array, num_views: int, context_frames:
     return video_noisy, action_noisy
 
 
-def fixed(mode: int, batch: int, num_views: int, context_frames: int, future_frames: int, kept_view: int = 0):
+def fixed(mode: int, batch: int, num_views: int, context_frames: int, future_frames: int, kept_view: int = 0,
+          num_actions: int | None = None):
     """Masks for every sample in one given mode (sampling, evaluation)."""
     return masks(jnp.full((batch,), mode, jnp.int32), jnp.full((batch,), kept_view, jnp.int32), num_views,
-                 context_frames, future_frames)
+                 context_frames, future_frames, num_actions)

@@ -130,32 +130,33 @@ def chunk_flops(cfg) -> dict[str, float]:
     sds = jax.ShapeDtypeStruct
     params = jax.eval_shape(lambda: dit.init_params(m, st.tok.token_dim, jax.random.key(0), st.grid))
     V, K, T, H, W = spec.views, spec.context, spec.predict, *spec.image_size
-    ctx = jax.eval_shape(st.tok.encode, sds((V, K, H, W, 3), jnp.uint8))
+    ctx = sds((V, K, H, W, 3), jnp.float32)
     carry = rollout.Carry(ctx, sds((7,), jnp.float32), sds((), bool), sds((), jnp.int32))
+    Kt, Tt = st.window  # token frames (fewer than frames with a time-compressing tokenizer)
     key = jax.eval_shape(lambda: jax.random.key_data(jax.random.key(0)))
     first = _flops(jax.jit(st.model_step).trace(params, sds((2, 7), jnp.float32), carry,
                                                 sds((spec.policy_chunk, 7), jnp.float32), key,
                                                 sds((), jnp.float32)).lower(), False)
-    P, Dt = ctx.shape[-2:]
+    P, Dt = jax.eval_shape(st.tok.encode, ctx).shape[-2:]
     per_step = 0.0
     for mode, prefix in ((modes.FD, "context"), (modes.ID, "video")):
-        vn, an = jax.eval_shape(lambda mode=mode: modes.fixed(mode, 1, V, K, T))
-        inp = dit.Inputs(sds((1, V, K + T, P, Dt), jnp.float32), sds((1, T, 7), jnp.float32),
-                         sds((1, V, K + T), jnp.float32), vn, sds((1, T), jnp.float32), an, sds((1,), jnp.int32))
+        vn, an = jax.eval_shape(lambda mode=mode: modes.fixed(mode, 1, V, Kt, Tt, num_actions=T))
+        inp = dit.Inputs(sds((1, V, Kt + Tt, P, Dt), jnp.float32), sds((1, T, 7), jnp.float32),
+                         sds((1, V, Kt + Tt), jnp.float32), vn, sds((1, T), jnp.float32), an, sds((1,), jnp.int32))
         kv = None
         if m.context_attention == "causal":  # the rollout caches this prefix's keys/values for all S steps
-            kv = jax.eval_shape(lambda p, i, prefix=prefix: dit.encode_context(p, m, i, st.grid, prefix=prefix),
-                                params, inp)
-        per_step += _flops(jax.jit(functools.partial(_predict, m=m, grid=st.grid)).trace(params, inp, kv).lower(),
-                           False)
+            kv = jax.eval_shape(lambda p, i, prefix=prefix: dit.encode_context(p, m, i, st.grid, prefix=prefix,
+                                                                               context_frames=Kt), params, inp)
+        per_step += _flops(jax.jit(functools.partial(_predict, m=m, grid=st.grid, context_frames=Kt))
+                           .trace(params, inp, kv).lower(), False)
     S = cfg.sample.steps
     return {"total": first + (S - 1) * per_step, "first_step": first, "per_step": per_step, "steps": S}
 
 
-def _predict(params, inp, kv, *, m, grid):
+def _predict(params, inp, kv, *, m, grid, context_frames):
     from sc3_jax import flow
 
-    return flow.predict(params, m, inp, grid, kv)
+    return flow.predict(params, m, inp, grid, kv, context_frames)
 
 
 def state_bytes(cfg, mesh_cfg) -> dict[str, float]:

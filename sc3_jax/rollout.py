@@ -12,7 +12,8 @@ One chunk (per initial condition; ``vmap`` over a batch of them, the batch shard
     emit (decode(v[0:l]) as uint8, a[0:l], denormalise(â[0:l]), U, done')
 
 Decisions (see docs/rollout.md for more):
-* Static shapes: the context is a fixed [V, K, P, D] token buffer updated by a static concat + slice (the ring
+* Static shapes: the context is a fixed [V, K, H, W, 3] frame buffer, tokenised at every chunk (a causal VAE then
+  re-encodes the sliding window from its first frame, as in training), updated by a static concat + slice (the ring
   buffer, kept in temporal order because the model's RoPE positions are frame indices); termination is a mask.
   A chunk whose U exceeds tau is *not* pushed into the context and everything after it is marked invalid; the scan
   still computes the later chunks (on the frozen context) so shapes stay static. Their U values are emitted but are
@@ -47,7 +48,7 @@ import numpy as np
 from sc3_jax import flow, imagination_state, modes, sharding
 from sc3_jax.config import Config, MeshConfig
 from sc3_jax.model import dit
-from sc3_jax.model.tokenizer import make_tokenizer, to_uint8
+from sc3_jax.model.tokenizer import make_tokenizer, to_uint8, to_unit, window_tokens
 from sc3_jax.policies.base import JaxPolicy, as_host
 
 
@@ -104,7 +105,7 @@ class InitialConditions(NamedTuple):
 
 
 class Carry(NamedTuple):  # one episode (no batch axis); vmapped
-    context: jax.Array  # [V, K, P, D] tokens
+    context: jax.Array  # [V, K, H, W, 3] frames in [-1, 1] (tokenised at every chunk)
     state: jax.Array  # [7]
     done: jax.Array  # bool []
     chunk: jax.Array  # int32 []
@@ -134,14 +135,12 @@ class _Steps:
     def __init__(self, model_cfg, flow_cfg, spec: RolloutSpec, use_cache: bool | None):
         self.model_cfg, self.flow_cfg, self.spec, self.use_cache = model_cfg, flow_cfg, spec, use_cache
         self.tok = make_tokenizer(model_cfg)
-        if self.tok.time_compression != 1:  # the chunk bookkeeping (keep l of l' frames) counts frames = tokens
-            raise NotImplementedError(f"rollouts with a {self.tok.time_compression}x time-compressing tokenizer are "
-                                      "not wired yet (training is; see docs/cosmos3.md)")
         self.grid = self.tok.grid(spec.image_size)
+        # token frames of the (context, prediction) window; raises on impossible bookkeeping
+        self.window = window_tokens(self.tok, spec.context, spec.predict)
 
     def init(self, frames, state) -> Carry:
-        return Carry(self.tok.encode(frames), jnp.asarray(state, jnp.float32), jnp.zeros((), bool),
-                     jnp.zeros((), jnp.int32))
+        return Carry(to_unit(frames), jnp.asarray(state, jnp.float32), jnp.zeros((), bool), jnp.zeros((), jnp.int32))
 
     def keys(self, key_data, chunk):
         """(policy, forward, inverse) keys of this chunk."""
@@ -152,7 +151,7 @@ class _Steps:
         """What the policy sees: the last context frame of every view, the imagined state, the task. With a
         ``reader`` (a pure ``apply(params, images uint8 [V, H, W, 3]) -> gripper width``) the state's gripper entry
         is read from the frames: commanded actions cannot tell whether the fingers closed on an object or on air."""
-        images = to_uint8(self.tok.decode(carry.context[:, -1], self.spec.image_size))
+        images = to_uint8(carry.context[:, -1])
         state = carry.state
         if reader is not None:
             state = state.at[6].set(reader(reader_params, images).astype(state.dtype))
@@ -165,6 +164,7 @@ class _Steps:
         (offline replay). ``norm`` [2, 7]: the per-dimension action mean and std."""
         s, m = self.spec, self.model_cfg
         K, T, l, V = s.context, s.predict, s.keep, s.views
+        Kt, Tt = self.window  # token frames (= K, T unless the tokenizer compresses time)
         _, k_fd, k_id = self.keys(key_data, carry.chunk)
         mean, std = norm[0], norm[1]
         actions = actions.astype(jnp.float32)
@@ -172,27 +172,28 @@ class _Steps:
         model_actions = imagination_state.compose(actions[:T * r], r)  # [T, 7] raw units, model rate
         a = (model_actions - mean) / std  # normalised [T, 7]
         stride = jnp.full((1,), s.stride, jnp.int32)
-        ctx = carry.context[None]
-        video = jnp.concatenate([ctx, jnp.zeros((1, V, T) + ctx.shape[3:], ctx.dtype)], axis=2)
+        ctx = self.tok.encode(carry.context)[None]  # [1, V, Kt, P, D]
+        video = jnp.concatenate([ctx, jnp.zeros((1, V, Tt) + ctx.shape[3:], ctx.dtype)], axis=2)
+        sample = functools.partial(flow.sample, params, m, steps=s.steps, grid=self.grid, fcfg=self.flow_cfg,
+                                   context_frames=Kt)
         # forward dynamics: every view's future frames from the context and the commanded actions
-        vn, an = modes.fixed(modes.FD, 1, V, K, T)
-        video, _ = flow.sample(params, m, video, a[None], stride, vn, an, k_fd, s.steps, self.grid, self.use_cache,
-                               fcfg=self.flow_cfg)
+        vn, an = modes.fixed(modes.FD, 1, V, Kt, Tt, num_actions=T)
+        video, _ = sample(video, a[None], stride, vn, an, k_fd, use_cache=self.use_cache)
         # inverse dynamics: re-read the actions from the context and the predicted frames
-        vn, an = modes.fixed(modes.ID, 1, V, K, T)
+        vn, an = modes.fixed(modes.ID, 1, V, Kt, Tt, num_actions=T)
         id_cache = "video" if m.context_attention == "causal" and self.use_cache is not False else False
-        _, a_hat = flow.sample(params, m, video, jnp.zeros_like(a)[None], stride, vn, an, k_id, s.steps, self.grid,
-                               id_cache, fcfg=self.flow_cfg)
+        _, a_hat = sample(video, jnp.zeros_like(a)[None], stride, vn, an, k_id, use_cache=id_cache)
         a_hat = a_hat[0]
         u = jnp.mean(jnp.linalg.norm(a[:l] - a_hat[:l], axis=-1))
         done = carry.done | (u > tau)
-        kept = video[0, :, K:K + l]  # [V, l, P, D]
-        context = jnp.concatenate([carry.context, kept], axis=1)[:, -K:]
+        # back to frames (a causal VAE decodes the future given the context's latents), keep the first l
+        kept = self.tok.decode(video[0], s.image_size)[:, K:K + l]  # [V, l, H, W, 3] in [-1, 1]
+        context = jnp.concatenate([carry.context, kept.astype(carry.context.dtype)], axis=1)[:, -K:]
         # the l executed steps: l * r raw actions; the state at each kept frame is every r-th integrated state
         state, states = imagination_state.integrate(carry.state, actions[:l * r])
         new = Carry(jnp.where(done, carry.context, context), jnp.where(done, carry.state, state), done,
                     carry.chunk + 1)
-        emit = {"frames": to_uint8(self.tok.decode(kept, s.image_size)), "actions": model_actions[:l],
+        emit = {"frames": to_uint8(kept), "actions": model_actions[:l],
                 "reread": a_hat[:l] * std + mean, "states": states[r - 1::r], "u": u, "done": done}
         return new, emit
 

@@ -6,6 +6,7 @@ import dataclasses
 import json
 import signal
 import time
+import zipfile
 from pathlib import Path
 from typing import Any
 
@@ -19,7 +20,7 @@ from sc3_jax import flow, sharding
 from sc3_jax.config import Config
 from sc3_jax.model import dit
 from sc3_jax.model.shapes import check_shapes
-from sc3_jax.model.tokenizer import make_tokenizer
+from sc3_jax.model.tokenizer import make_tokenizer, window_tokens
 
 
 # ================================================================================================================
@@ -37,21 +38,17 @@ def make_optimizer(cfg: Config) -> optax.GradientTransformation:
 
 def token_frames(cfg: Config) -> int | None:
     """Context *token* frames when the tokenizer compresses time (None: one token frame per frame, K = F - T).
-    A causal Wan VAE turns frame 0 into token frame 0 and every later 4 frames into one, so a window of
-    1 + 4 (k - 1) context and 4 t future frames is k context and t future token frames with 4 t actions: the
-    Cosmos3 layout (actions independent of frames); the sc3 layout needs one action per token frame."""
+    A window of 1 + 4 k context and 4 t future frames is k + 1 context and t future token frames with 4 t actions
+    (``tokenizer.window_tokens``): the Cosmos3 layout (actions independent of frames); the sc3 layout needs one
+    action per token frame."""
     tok = make_tokenizer(cfg.model)
-    c = tok.time_compression
-    if c == 1:
+    if tok.time_compression == 1:
         return None
-    K, T = cfg.data.context_frames, cfg.data.future_frames
-    if (K - 1) % c or T % c or K < 1:
-        raise ValueError(f"a tokenizer with {c}x time compression needs data.context_frames = 1 + {c} k and "
-                         f"data.future_frames = {c} t frames, got {K} and {T}")
+    k, _ = window_tokens(tok, cfg.data.context_frames, cfg.data.future_frames)
     if cfg.model.layout != "cosmos3":
-        raise ValueError(f"{c}x time-compressed tokens need model.layout='cosmos3' (several actions per token "
-                         "frame); the sc3 layout has one action per future frame")
-    return tok.latent_frames(K)
+        raise ValueError(f"{tok.time_compression}x time-compressed tokens need model.layout='cosmos3' (several "
+                         "actions per token frame); the sc3 layout has one action per future frame")
+    return k
 
 
 def token_geometry(cfg: Config) -> tuple[int, tuple[int, int]]:
@@ -107,9 +104,10 @@ def make_train_step(cfg: Config):
                          "(sc3 convert --dtype bfloat16, exported models), and init_from casts it back")
     if len(cfg.data.views) == 1 and cfg.modes.probs[1] > 0:
         raise ValueError("cross-view inpainting needs two or more views: set modes.probs[1] = 0 for one view")
-    if cfg.model.text_pathway:
-        raise NotImplementedError("training a text_pathway model needs prompt token ids in the batch (a text "
-                                  "tokenizer); not wired yet -- see docs/cosmos3.md")
+    if cfg.model.text_pathway and not cfg.model.prompt_ids:
+        raise NotImplementedError("a text_pathway model trains on one fixed prompt: set model.prompt_ids (its token "
+                                  "ids from the checkpoint's tokenizer); per-episode prompts are not wired yet -- "
+                                  "see docs/cosmos3.md")
     tok = make_tokenizer(cfg.model)
     grid = tok.grid(cfg.data.image_size)
     opt = make_optimizer(cfg)
@@ -172,12 +170,12 @@ def create_state(cfg: Config, mesh):
     _, st_shard = state_shardings(cfg, mesh)
     if not cfg.train.init_from:
         return jax.jit(lambda: init_state(cfg), out_shardings=st_shard)()
-    params = init_params(cfg)
+    params = init_params(cfg, st_shard["params"])  # read straight into their shards
 
     def fresh(params):
         state = init_state(cfg)  # the random init is dead code under jit: only its optimizer/rng are kept
         return {**state, "params": params, "opt_state": make_optimizer(cfg).init(params)}
-    return jax.jit(fresh, in_shardings=(st_shard["params"],), out_shardings=st_shard)(params)
+    return jax.jit(fresh, in_shardings=(st_shard["params"],), out_shardings=st_shard, donate_argnums=(0,))(params)
 
 
 # ================================================================================================================
@@ -206,61 +204,94 @@ def restore(mngr: ocp.CheckpointManager, cfg: Config, mesh, step: int | None = N
     return out["state"], out["data"]
 
 
-def load_params(workdir: str | Path, cfg: Config, step: int | None = None):
-    """Params of a trained run (latest orbax checkpoint) or of an exported world model (``params.npz``, any float
-    dtype, read back as float32), on one device: for rollouts, evaluation and ``init_from``."""
-    workdir = Path(workdir)
-    if (workdir / "params.npz").exists():
-        return load_params_npz(workdir / "params.npz")
-    abstract = jax.eval_shape(lambda: init_state(cfg))
-    # an explicit one-device target: the checkpoint may have been written from a mesh this process does not have
-    one = jax.sharding.SingleDeviceSharding(jax.devices()[0])
-    target = jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=one), abstract)
-    if (workdir / "params").is_dir():  # a `sc3 convert` output: params only
-        return ocp.StandardCheckpointer().restore((workdir / "params").absolute(), target["params"])
-    mngr = ocp.CheckpointManager(workdir.absolute() / "checkpoints")
+def load_params(path: str | Path, cfg: Config, step: int | None = None, shardings=None):
+    """Params of a trained run (latest orbax checkpoint), an exported world model (``params.npz``, any float dtype)
+    or a ``sc3 convert`` output (orbax ``params/``), as ``cfg``'s param dtype. ``shardings``: a params-shaped tree of
+    shardings (default: all on the first device); every leaf is read straight into its shards, so a model larger
+    than one device's memory loads onto a mesh (orbax reads only each device's slice; an npz leaf passes through
+    host memory once). A run's optimizer state is not read."""
+    path = Path(path)
+    want = jax.eval_shape(lambda: init_state(cfg))["params"]
+    if shardings is None:
+        one = jax.sharding.SingleDeviceSharding(jax.devices()[0])
+        shardings = jax.tree.map(lambda _: one, want)
+    target = jax.tree.map(lambda w, s: jax.ShapeDtypeStruct(w.shape, w.dtype, sharding=s), want, shardings)
+    if (path / "params.npz").exists():
+        return _load_npz(path / "params.npz", target)
+    item, in_state = _orbax_item(path, step)
+    target = {"params": target} if in_state else target
+    out = ocp.PyTreeCheckpointer().restore(item, args=ocp.args.PyTreeRestore(
+        item=target, restore_args=ocp.checkpoint_utils.construct_restore_args(target), partial_restore=True))
+    return out["params"] if in_state else out
+
+
+def source_shapes(path: str | Path, step: int | None = None) -> dict[str, tuple[int, ...]]:
+    """``{keystr: shape}`` of the params that ``load_params`` would read, from metadata only (nothing loaded)."""
+    path = Path(path)
+    if (path / "params.npz").exists():
+        out = {}
+        with zipfile.ZipFile(path / "params.npz") as zf:
+            for name in zf.namelist():
+                with zf.open(name) as f:
+                    version = np.lib.format.read_magic(f)
+                    read = {(1, 0): np.lib.format.read_array_header_1_0, (2, 0): np.lib.format.read_array_header_2_0}
+                    shape = read[version](f)[0]
+                out["".join(f"['{k}']" for k in name.removesuffix(".npy").split("/"))] = tuple(shape)
+        return out
+    item, in_state = _orbax_item(path, step)
+    meta = ocp.PyTreeCheckpointer().metadata(item)
+    tree = getattr(meta, "item_metadata", meta)
+    tree = getattr(tree, "tree", tree)
+    tree = tree["params"] if in_state else tree
+    return {jax.tree_util.keystr(k): tuple(v.shape)
+            for k, v in jax.tree_util.tree_flatten_with_path(tree, is_leaf=lambda x: hasattr(x, "shape"))[0]}
+
+
+def _orbax_item(path: Path, step: int | None) -> tuple[Path, bool]:
+    """(orbax item directory, whether the params sit under "params" in a whole train state)."""
+    if (path / "params").is_dir():  # a `sc3 convert` output: params only
+        return (path / "params").absolute(), False
+    mngr = ocp.CheckpointManager(path.absolute() / "checkpoints")
     step = mngr.latest_step() if step is None else step
     if step is None:
-        raise FileNotFoundError(f"no checkpoint under {workdir}/checkpoints (and no params.npz or params/)")
-    out = mngr.restore(step, args=ocp.args.Composite(state=ocp.args.StandardRestore(target)))
-    return out["state"]["params"]
+        raise FileNotFoundError(f"no checkpoint under {path}/checkpoints (and no params.npz or params/)")
+    return path.absolute() / "checkpoints" / str(step) / "state", True
+
+
+def _load_npz(path: Path, target) -> dict:
+    """``{"a/b/c": array}`` (written by ``sweep.save_world_model``) -> params placed as ``target`` says."""
+    with np.load(path) as z:
+        def leaf(kp, t):
+            x = np.asarray(z["/".join(k.key for k in kp)]).astype(t.dtype)
+            return jax.make_array_from_callback(t.shape, t.sharding, lambda idx: x[idx])
+        return jax.tree_util.tree_map_with_path(leaf, target)
 
 
 def load_model(path: str | Path, what: str = "") -> tuple[Config, dict]:
     """(config, params) of a ``sc3 train`` workdir, an exported world model or a ``sc3 convert`` output."""
+    return (cfg := read_config(path, what)), load_params(path, cfg)
+
+
+def read_config(path: str | Path, what: str = "") -> Config:
     from sc3_jax.rollout_cli import config_from_dict
     path = Path(path)
     if not (path / "config.json").exists():
         raise FileNotFoundError(f"{what}{path}: no config.json (expected a `sc3 train` workdir, an exported world "
                                 "model or a `sc3 convert` output)")
-    cfg = config_from_dict(json.loads((path / "config.json").read_text()))
-    return cfg, load_params(path, cfg)
+    return config_from_dict(json.loads((path / "config.json").read_text()))
 
 
-def load_params_npz(path: str | Path) -> dict:
-    """``{"a/b/c": array}`` (written by ``sweep.save_world_model``) -> nested float32 params."""
-    params: dict = {}
-    with np.load(path) as z:
-        for k in z.files:
-            *parents, leaf = k.split("/")
-            node = params
-            for p in parents:
-                node = node.setdefault(p, {})
-            node[leaf] = jnp.asarray(z[k], jnp.float32)
-    return params
-
-
-def init_params(cfg: Config) -> dict:
-    """Params that ``cfg.train.init_from`` names, checked leaf by leaf against this config's shapes and cast to its
-    param dtype (their norm stats are picked up by ``prepare_data``). ``init_from`` is a ``sc3 train`` workdir, an exported world model
-    (``sweep.export_world_model``) or an orbax checkpoint that ``sc3 convert`` wrote from a diffusers directory."""
+def init_params(cfg: Config, shardings=None) -> dict:
+    """Params that ``cfg.train.init_from`` names -- a ``sc3 train`` workdir, an exported world model
+    (``sweep.export_world_model``) or a ``sc3 convert`` output --, checked leaf by leaf against this config's shapes
+    before anything is read, then loaded straight into ``shardings`` as this config's param dtype (their norm stats
+    are picked up by ``prepare_data``)."""
     src = Path(cfg.train.init_from)
-    _, params = load_model(src, what="init_from ")
+    read_config(src, what="init_from ")
     want = jax.eval_shape(lambda: init_state(cfg))["params"]
-    flat = lambda tree: {jax.tree_util.keystr(k): v.shape  # noqa: E731
-                         for k, v in jax.tree_util.tree_flatten_with_path(tree)[0]}
-    check_shapes(flat(want), flat(params), f"init_from {src}: params do not fit this model config:")
-    return jax.tree.map(lambda h, w: jnp.asarray(h, w.dtype), params, want)
+    have = {jax.tree_util.keystr(k): v.shape for k, v in jax.tree_util.tree_flatten_with_path(want)[0]}
+    check_shapes(have, source_shapes(src), f"init_from {src}: params do not fit this model config:")
+    return load_params(src, cfg, shardings=shardings)
 
 
 # ================================================================================================================

@@ -433,9 +433,71 @@ def test_training_drives_the_cosmos3_layout_on_time_compressed_latents(monkeypat
         train.token_frames(replace(cfg, data=dict(context_frames=4)))
     with pytest.raises(ValueError, match="need model.layout='cosmos3'"):
         train.token_frames(replace(cfg, model=dict(layout="sc3")))
-    with pytest.raises(NotImplementedError, match="prompt token ids"):
+    with pytest.raises(NotImplementedError, match="model.prompt_ids"):
         train.make_train_step(replace(cfg, model=dict(text_pathway=True)))
-    from sc3_jax import rollout
+    # a text_pathway model (a converted Cosmos3 checkpoint) trains on one fixed prompt: exactly the embedding rows
+    # of its tokens learn (embeddings are not weight-decayed, Adam moves nothing with zero gradient)
+    tcfg = replace(cfg, model=dict(text_pathway=True, prompt_ids=(3, 1, 4)))
+    tstate = train.init_state(tcfg)
+    emb0 = np.asarray(tstate["params"]["embed_tokens"])
+    tstep = jax.jit(train.make_train_step(tcfg))
+    for _ in range(2):
+        tstate, m = tstep(tstate, batch)
+    assert np.isfinite(float(m["loss"]))
+    moved = np.abs(np.asarray(tstate["params"]["embed_tokens"]) - emb0).max(-1) > 0
+    assert sorted(np.flatnonzero(moved)) == [1, 3, 4]
+    np.testing.assert_array_equal(tstate["params"]["lm_head"], train.init_state(tcfg)["params"]["lm_head"])
+    with pytest.raises(ValueError, match="prompt_ids must lie in"):
+        replace(tcfg, model=dict(prompt_ids=(10 ** 9,)))
+
+
+def test_rollout_on_time_compressed_latents(monkeypatch):
+    """Algorithm 1 with a 4x time-compressing VAE: the context is kept as frames and tokenised every chunk, the
+    model predicts t = 2 token frames (8 frames) from k = 2 (5 frames), the *decoded* frames 5..8 are kept. Chunk 0
+    equals a hand-written reference; scan, host loop and offline replay agree; bad windows are refused."""
+    from sc3_jax import flow, modes, rollout
+    from sc3_jax.config import Config, DataConfig, RolloutConfig, SampleConfig, replace
+    from sc3_jax.data.pipeline import NormStats
+    from sc3_jax.model.tokenizer import to_uint8
+    from sc3_jax.policies import simple
+    from sc3_jax.policies.base import as_host
+
+    tok = _tiny_wan_tokenizer()
     monkeypatch.setattr(rollout, "make_tokenizer", lambda m: tok)
-    with pytest.raises(NotImplementedError, match="time-compressing tokenizer"):
-        rollout._Steps(model, cfg.flow, None, None)
+    model = _tiny_cfg(text_pathway=False, tokenizer="wan2.1", action_dim=7, num_views=3)
+    B, N, K, T, l, size = 2, 2, 5, 8, 4, (16, 32)
+    cfg = Config(model=model, data=DataConfig(image_size=size, context_frames=K, future_frames=T),
+                 rollout=RolloutConfig(policy_chunk=T, keep_frames=l), sample=SampleConfig(steps=2))
+    stats = NormStats(np.full(7, 0.001, np.float32), np.full(7, 0.01, np.float32))
+    ro = rollout.Rollout(cfg, stats, num_chunks=N)
+    assert ro.steps.window == (2, 2)
+    params = dit.init_params(model, tok.token_dim, jax.random.key(0), tok.grid(size))
+    params = jax.tree.map(lambda x: x + 0.05 * jax.random.normal(jax.random.key(1), x.shape), params)
+    rng = np.random.default_rng(0)
+    ics = rollout.InitialConditions(rng.integers(0, 256, (B, 3, K) + size + (3,), dtype=np.uint8),
+                                    np.zeros((B, 7), np.float32), np.zeros(B, np.int32))
+    keys = rollout.episode_keys(0, B)
+    policy = simple.linear_policy(jax.random.key(7), 3, chunk=T)
+    ref = ro.run(ro.place_params(params), policy, ics, keys, tau=np.inf)
+    assert ref["frames"].shape == (B, 3, N * l) + size + (3,) and np.all(np.isfinite(ref["u"]))
+    host = ro.run_host(params, as_host(policy), ics, keys, tau=np.inf)
+    for k in ("actions", "reread", "u"):
+        np.testing.assert_allclose(ref[k], host[k], rtol=1e-5, atol=1e-5, err_msg=k)
+    assert np.abs(ref["frames"].astype(int) - host["frames"].astype(int)).max() <= 1
+
+    # chunk 0 by hand (offline replay, so the actions are known): encode 5 frames -> 2 token frames, sample 2
+    # more, decode all 4 token frames -> 13 frames, keep frames 5..8
+    actions = rng.normal(0.001, 0.01, (B, N, T, 7)).astype(np.float32)
+    off = ro.run_offline(params, ics, actions, keys)
+    for b in range(B):
+        _, k_fd, _ = ro.steps.keys(keys[b], 0)
+        ctx = tok.encode(ics.frames[b])[None]
+        video = jnp.concatenate([ctx, jnp.zeros_like(ctx)], axis=2)
+        vn, an = modes.fixed(modes.FD, 1, 3, 2, 2, num_actions=T)
+        video, _ = flow.sample(params, model, video, stats.normalize(actions[b, 0])[None], jnp.full((1,), 2),
+                               vn, an, k_fd, 2, tok.grid(size), fcfg=cfg.flow, context_frames=2)
+        want = np.asarray(to_uint8(tok.decode(video[0], size)))[:, K:K + l]
+        d = np.abs(off["frames"][b, :, :l].astype(int) - want.astype(int))
+        assert d.max() <= 1 and np.mean(d > 0) < 0.05, (d.max(), np.mean(d > 0))  # eager vs jit float rounding
+    with pytest.raises(ValueError, match="context_frames = 1 \\+ 4 k"):
+        rollout.Rollout(replace(cfg, data=dict(context_frames=4)), stats, num_chunks=N)

@@ -71,3 +71,28 @@ def test_init_from_missing_dir_is_a_clear_error(tmp_path):
     cfg = replace(cfg, train=dict(init_from=str(tmp_path / "nowhere")))
     with pytest.raises(FileNotFoundError, match="init_from .*no config.json"):
         train.create_state(cfg, sharding.make_mesh(cfg.mesh))
+
+
+@pytest.mark.parametrize("kind", ["workdir", "exported"])
+def test_init_from_reads_params_straight_into_their_shards(source, kind):
+    """With an FSDP mesh over the 8 host devices, every leaf arrives with the train state's sharding (big leaves
+    split, not a full copy per device) and the source's values; the optimizer state of a workdir is not read."""
+    tmp, data, src_cfg = source
+    src = tmp / "src"
+    _, _, params = sweep.load_world_model(src)
+    if kind == "exported":
+        src = sweep.save_world_model(tmp / "exported_fsdp", src_cfg, sweep.load_world_model(src)[1],
+                                     jax.device_get(params), np.float16)
+    cfg = replace(_cfg(data, tmp / f"fsdp_{kind}"), train=dict(init_from=str(src)), mesh=dict(data=1, fsdp=-1))
+    mesh = sharding.make_mesh(cfg.mesh)
+    _, st_shard = train.state_shardings(cfg, mesh)
+    got = train.init_params(cfg, st_shard["params"])
+    flat_got, flat_want = jax.tree.leaves(got), jax.tree.leaves(st_shard["params"])
+    assert all(g.sharding == w for g, w in zip(flat_got, flat_want))
+    split = [g for g in flat_got if not g.sharding.is_fully_replicated]
+    assert split and all(g.addressable_shards[0].data.size * 8 == g.size for g in split)
+    tol = 1e-3 if kind == "exported" else 0  # float16 storage
+    for a, b in zip(_leaves(got), _leaves(params)):
+        np.testing.assert_allclose(a, b, atol=tol * np.abs(b).max(), rtol=tol)
+    assert train.source_shapes(src) == {jax.tree_util.keystr(k): v.shape
+                                        for k, v in jax.tree_util.tree_flatten_with_path(params)[0]}

@@ -117,10 +117,12 @@ def param_axes(cfg: ModelConfig, token_dim: int, grid: tuple[int, int] | None = 
 
 def decay_mask(cfg: ModelConfig, token_dim: int, grid: tuple[int, int] | None = None) -> dict:
     """True for weight matrices: parameters with two or more axes besides the stacking axes (layers, domains,
-    views). Norm gains, biases and embeddings get no weight decay, however they are stacked."""
+    views). Norm gains, biases and embeddings get no weight decay, however they are stacked; nor do the text
+    vocabulary tables (``embed_tokens``: a lookup; ``lm_head``: unused by generation, so decay alone would shrink
+    it while fine-tuning)."""
     stacking = ("layers", "domains", "views")
-    return jax.tree.map(lambda s: sum(a not in stacking for a in s.axes) >= 2, param_specs(cfg, token_dim, grid),
-                        is_leaf=_is_spec)
+    return jax.tree.map(lambda s: "vocab" not in s.axes and sum(a not in stacking for a in s.axes) >= 2,
+                        param_specs(cfg, token_dim, grid), is_leaf=_is_spec)
 
 
 def count_params(params_or_shapes) -> int:
@@ -322,9 +324,13 @@ def _text_prefix(params, cfg: ModelConfig, inp: Inputs, text_kv):
     if cfg.attention_impl != "dense":
         raise NotImplementedError("the text pathway runs with attention_impl='dense' only")
     if text_kv is None:
-        if inp.text is None:
-            raise ValueError("a text_pathway config needs Inputs.text (prompt token ids) or text_kv")
-        text_kv = cosmos3.encode_text(params, cfg, inp.text)
+        text = inp.text
+        if text is None and cfg.prompt_ids:  # the config's fixed prompt for every sample
+            text = jnp.broadcast_to(jnp.asarray(cfg.prompt_ids, jnp.int32), (inp.video.shape[0], len(cfg.prompt_ids)))
+        if text is None:
+            raise ValueError("a text_pathway config needs Inputs.text (prompt token ids), text_kv or "
+                             "model.prompt_ids")
+        text_kv = cosmos3.encode_text(params, cfg, text)
     return text_kv
 
 

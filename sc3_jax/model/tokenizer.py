@@ -1,6 +1,6 @@
 """Video <-> tokens. One interface: the pixel-patch tokenizer (exact, no time compression) and the Wan VAE
-(``model/wan_vae.py``; 4x causal time compression: ``latent_frames(F) = 1 + (F - 1) // 4``). Training reads the
-token-frame counts off ``latent_frames`` (``train.token_frames``); rollouts still assume no time compression.
+(``model/wan_vae.py``; 4x causal time compression: ``latent_frames(F) = 1 + (F - 1) // 4``). Training and rollouts
+read the token-frame counts of a (context, future) window off ``window_tokens``.
 
 Patch order is (row, col) over the frame with features ordered (pi, pj, c), as Cosmos3 patchifies latents."""
 from __future__ import annotations
@@ -76,6 +76,19 @@ class PixelPatchTokenizer:
         x = tokens.reshape(*lead, rows, cols, p, p, self.channels)
         x = jnp.moveaxis(x, -3, -4)  # [..., rows, p, cols, p, c]
         return x.reshape(*lead, rows * p, cols * p, self.channels)
+
+
+def window_tokens(tok: Tokenizer, context: int, future: int) -> tuple[int, int]:
+    """(context, future) token frames of a window of ``context`` then ``future`` frames. A causal tokenizer with
+    c x time compression encodes frame 0 alone and every later c frames as one token frame, so the window must be
+    1 + c k context and c t future frames (k + 1 and t token frames): then the context's tokens do not depend on
+    the future and the future's are whole token frames."""
+    c = tok.time_compression
+    if c > 1 and ((context - 1) % c or future % c or context < 1):
+        raise ValueError(f"a tokenizer with {c}x time compression needs context_frames = 1 + {c} k and "
+                         f"future_frames = {c} t frames, got {context} and {future}")
+    k = tok.latent_frames(context)
+    return k, tok.latent_frames(context + future) - k
 
 
 def make_tokenizer(model_cfg) -> Tokenizer:
