@@ -9,12 +9,16 @@ import hashlib
 import json
 import math
 import os
+import subprocess
+import sys
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from conftest import optimised_env
 from sc3_jax.config import ModelConfig, available_configs, load_config
 from sc3_jax.model import convert, cosmos3, dit
 
@@ -62,9 +66,13 @@ def test_default_param_trees_unchanged():
         specs = dit.param_specs(cfg, 48, (4, 4))
         assert not {"text_layers", "text_norm", "embed_tokens", "lm_head"} & set(specs), name
     assert _spec_digest(ModelConfig(), 48, (4, 4)) == DEFAULT_SPECS_SHA256
-    if jax.default_backend() == "cpu":
-        params = dit.init_params(ModelConfig(), 48, jax.random.key(0), (4, 4))
-        assert _param_digest(params) == DEFAULT_PARAMS_SHA256
+    if jax.default_backend() == "cpu":  # the init values as a user's process compiles them (the suite uses -O0)
+        code = ("import jax, sys; from sc3_jax.config import ModelConfig; from sc3_jax.model import dit; "
+                "sys.path.insert(0, 'tests'); from test_cosmos3 import _param_digest; "
+                "print(_param_digest(dit.init_params(ModelConfig(), 48, jax.random.key(0), (4, 4))))")
+        out = subprocess.run([sys.executable, "-c", code], env=optimised_env(), check=True, capture_output=True,
+                             text=True, cwd=Path(__file__).parents[1])
+        assert out.stdout.split()[-1] == DEFAULT_PARAMS_SHA256
 
 
 def test_cosmos3_config_and_param_tree():
@@ -454,7 +462,7 @@ def test_training_drives_the_cosmos3_layout_on_time_compressed_latents(monkeypat
 def test_rollout_on_time_compressed_latents(monkeypatch):
     """Algorithm 1 with a 4x time-compressing VAE: the context is kept as frames and tokenised every chunk, the
     model predicts t = 2 token frames (8 frames) from k = 2 (5 frames), the *decoded* frames 5..8 are kept. Chunk 0
-    equals a hand-written reference; scan, host loop and offline replay agree; bad windows are refused."""
+    equals a hand-written reference; closed loop runs every chunk; bad windows are refused."""
     from sc3_jax import flow, modes, rollout
     from sc3_jax.config import Config, DataConfig, RolloutConfig, SampleConfig, replace
     from sc3_jax.data.pipeline import NormStats
@@ -478,25 +486,28 @@ def test_rollout_on_time_compressed_latents(monkeypatch):
                                     np.zeros((B, 7), np.float32), np.zeros(B, np.int32))
     keys = rollout.episode_keys(0, B)
     policy = simple.linear_policy(jax.random.key(7), 3, chunk=T)
-    ref = ro.run(ro.place_params(params), policy, ics, keys, tau=np.inf)
+    # closed loop (the host loop; its parity with the scan is tests/test_rollout.py's): every chunk runs
+    ref = ro.run_host(params, as_host(policy), ics, keys, tau=np.inf)
     assert ref["frames"].shape == (B, 3, N * l) + size + (3,) and np.all(np.isfinite(ref["u"]))
-    host = ro.run_host(params, as_host(policy), ics, keys, tau=np.inf)
-    for k in ("actions", "reread", "u"):
-        np.testing.assert_allclose(ref[k], host[k], rtol=1e-5, atol=1e-5, err_msg=k)
-    assert np.abs(ref["frames"].astype(int) - host["frames"].astype(int)).max() <= 1
+    assert not np.array_equal(ref["frames"][:, :, :l], ref["frames"][:, :, l:])
 
     # chunk 0 by hand (offline replay, so the actions are known): encode 5 frames -> 2 token frames, sample 2
     # more, decode all 4 token frames -> 13 frames, keep frames 5..8
     actions = rng.normal(0.001, 0.01, (B, N, T, 7)).astype(np.float32)
     off = ro.run_offline(params, ics, actions, keys)
-    for b in range(B):
-        _, k_fd, _ = ro.steps.keys(keys[b], 0)
-        ctx = tok.encode(ics.frames[b])[None]
+
+    @jax.jit
+    def by_hand(frames, a, key_data):
+        _, k_fd, _ = ro.steps.keys(key_data, 0)
+        ctx = tok.encode(frames)[None]
         video = jnp.concatenate([ctx, jnp.zeros_like(ctx)], axis=2)
         vn, an = modes.fixed(modes.FD, 1, 3, 2, 2, num_actions=T)
-        video, _ = flow.sample(params, model, video, stats.normalize(actions[b, 0])[None], jnp.full((1,), 2),
-                               vn, an, k_fd, 2, tok.grid(size), fcfg=cfg.flow, context_frames=2)
-        want = np.asarray(to_uint8(tok.decode(video[0], size)))[:, K:K + l]
+        video, _ = flow.sample(params, model, video, a[None], jnp.full((1,), 2), vn, an, k_fd, 2, tok.grid(size),
+                               fcfg=cfg.flow, context_frames=2)
+        return to_uint8(tok.decode(video[0], size))[:, K:K + l]
+
+    for b in range(B):
+        want = np.asarray(by_hand(ics.frames[b], stats.normalize(actions[b, 0]), keys[b]))
         d = np.abs(off["frames"][b, :, :l].astype(int) - want.astype(int))
         assert d.max() <= 1 and np.mean(d > 0) < 0.05, (d.max(), np.mean(d > 0))  # eager vs jit float rounding
     with pytest.raises(ValueError, match="context_frames = 1 \\+ 4 k"):
