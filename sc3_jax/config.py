@@ -20,8 +20,10 @@ class ModelConfig:
     time_embed_dim: int = 256  # sinusoid channels of the noise-level embedding
     norm_eps: float = 1e-6
     # Tokenizer: "pixel" = non-overlapping p x p pixel patches (exact round trip).
-    tokenizer: str = "pixel"  # or "wan2.1" / "wan2.2" (Wan VAE; patch_size is then the latent patch)
-    tokenizer_path: str | None = None  # diffusers VAE directory for the Wan tokenizers (None: random weights)
+    tokenizer: str = "pixel"  # or "conv_ae" (learned autoencoder) / "wan2.1" / "wan2.2" (Wan VAE); patch_size is then
+    # the latent patch
+    tokenizer_path: str | None = None  # conv_ae: a `sc3 train-tokenizer` output (workdir/tokenizer); Wan: diffusers
+    # VAE directory (None: random weights)
     patch_size: int = 4
     channels: int = 3
     num_views: int = 3
@@ -39,7 +41,17 @@ class ModelConfig:
     anchor_conditioning: bool = False
     action_to_frames: bool = False
     action_reads_frames: bool = False
-    # "residual": the network predicts clean future frames as (last context frame + zero-initialised output) and
+    # Pose conditioning (the robot's pose is given, not inferred, as in Ctrl-World): the absolute end-effector pose
+    # and gripper command of the last context frame and of every future frame -- integrated from the commanded
+    # actions by ``imagination_state`` in training and rollouts alike -- embedded and added to all of that frame's
+    # video tokens, plus a learned absolute (view, row, col) embedding so a token can tell whether the gripper is
+    # near it. Future poses are withheld (a learned "unknown" embedding) whenever the actions are targets (inverse
+    # mode), since they are integrated from those very actions.
+    pose_conditioning: bool = False
+    # Context-noise level embedding (anti-drift, as GameNGen): training noises the clean context frames with a
+    # random level (flow.context_noise_max) and tells the model that level; rollouts use a small fixed level
+    # (sample.context_noise). Off: context tokens are always exactly clean.
+    context_noise: bool = False    # "residual": the network predicts clean future frames as (last context frame + zero-initialised output) and
     # clean actions as (0 + output); the velocity is derived from it. "velocity": predicts eps - x directly
     # (what pretrained Cosmos3 checkpoints do). Residual is what made tiny CPU models learn (REFERENCE.md).
     prediction: str = "residual"
@@ -89,6 +101,10 @@ class ModelConfig:
             raise ValueError(f"rope_axes_dim {self.rope_axes_dim} must sum to head_dim/2 = {self.head_dim // 2}")
         if self.num_heads % self.num_kv_heads:
             raise ValueError("num_heads must be a multiple of num_kv_heads")
+        if self.tokenizer not in ("pixel", "conv_ae", "wan2.1", "wan2.2"):
+            raise ValueError(f"unknown tokenizer {self.tokenizer!r} (available: 'pixel', 'conv_ae', 'wan2.1', 'wan2.2')")
+        if self.pose_conditioning and self.layout != "sc3":
+            raise ValueError("pose_conditioning needs layout='sc3'")
         if self.prediction not in ("residual", "velocity"):
             raise ValueError(f"prediction must be 'residual' or 'velocity', got {self.prediction!r}")
         if self.context_attention not in ("full", "causal"):
@@ -134,6 +150,9 @@ class FlowConfig:
     # by 10x+ (residual video targets are small), Adam's shared second moments starve the smaller one.
     video_loss_weight: float = 1.0
     action_loss_weight: float = 1.0
+    # anti-drift: each sample's clean context frames get x = (1 - s) x + s eps with s ~ U(0, context_noise_max)
+    # (needs model.context_noise, which gives s to the model). Loss targets are never noised by it.
+    context_noise_max: float = 0.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -175,6 +194,7 @@ class MeshConfig:
 @dataclasses.dataclass(frozen=True)
 class SampleConfig:
     steps: int = 10  # Euler steps from t = 1 to t = 0
+    context_noise: float = 0.0  # noise level put on the context at inference (models trained with context noise)
 
 
 @dataclasses.dataclass(frozen=True)

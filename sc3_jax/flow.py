@@ -19,14 +19,25 @@ from sc3_jax.config import FlowConfig, ModelConfig
 from sc3_jax.model import dit
 
 
-def noise_inputs(video, actions, stride, video_noisy, action_noisy, t, eps_video, eps_actions):
+def noise_inputs(video, actions, stride, video_noisy, action_noisy, t, eps_video, eps_actions, pose=None,
+                 context_level=None):
     """Noised model inputs. ``t`` [B] is the sample's noise level, applied to its noisy tokens only."""
     tv = jnp.where(video_noisy, t[:, None, None], 0.0)
     ta = jnp.where(action_noisy, t[:, None], 0.0)
     xv = jnp.where(video_noisy[..., None, None], (1 - tv[..., None, None]) * video + tv[..., None, None] * eps_video,
                    video)
     xa = jnp.where(action_noisy[..., None], (1 - ta[..., None]) * actions + ta[..., None] * eps_actions, actions)
-    return dit.Inputs(xv, xa, tv, video_noisy, ta, action_noisy, stride)
+    return dit.Inputs(xv, xa, tv, video_noisy, ta, action_noisy, stride, pose=pose, context_level=context_level)
+
+
+def noise_context(video, level, key, context_frames: int):
+    """Anti-drift augmentation: the first ``context_frames`` frames of every view become (1 - s) x + s eps with
+    s = ``level`` [B]; later frames (the targets and any other condition) are returned untouched."""
+    K = context_frames
+    ctx = video[:, :, :K]
+    eps = jax.random.normal(key, ctx.shape, ctx.dtype)
+    s = level.astype(ctx.dtype)[:, None, None, None, None]
+    return video.at[:, :, :K].set((1 - s) * ctx + s * eps)
 
 
 def predict(params, cfg: ModelConfig, inp: dit.Inputs, grid, context_kv=None, context_frames: int | None = None):
@@ -67,24 +78,34 @@ def draw_t(rng, batch: int, fcfg: FlowConfig) -> jax.Array:
 
 
 def loss(params, cfg: ModelConfig, video, actions, stride, rng, probs, grid, fcfg: FlowConfig = FlowConfig(),
-         context_frames: int | None = None):
+         context_frames: int | None = None, pose=None):
     """The training loss for a batch of clean tokens; modes, noise levels and noise drawn from ``rng``.
-    ``context_frames``: see ``predict`` (token frames; default: frames - actions)."""
+    ``context_frames``: see ``predict`` (token frames; default: frames - actions). ``pose``: see ``dit.Inputs``.
+    With ``fcfg.context_noise_max > 0`` the context frames are noised (``noise_context``) before anything else;
+    the targets stay the clean frames."""
     B, V, F = video.shape[:3]
     T = actions.shape[1]
     K = F - T if context_frames is None else context_frames
     k_mode, k_t, k_ev, k_ea = jax.random.split(rng, 4)
+    clean = video
+    context_level = None
+    if fcfg.context_noise_max > 0:
+        if not cfg.context_noise:
+            raise ValueError("flow.context_noise_max > 0 needs model.context_noise (the model must be told the level)")
+        k_cl, k_cn = jax.random.split(jax.random.fold_in(rng, 7))
+        context_level = jax.random.uniform(k_cl, (B,), jnp.float32, 0.0, fcfg.context_noise_max)
+        video = noise_context(video, context_level, k_cn, K)
     mode, kept = modes_lib.draw(k_mode, B, V, probs)
     video_noisy, action_noisy = modes_lib.masks(mode, kept, V, K, F - K, T)
     t = draw_t(k_t, B, fcfg)
     eps_v = jax.random.normal(k_ev, video.shape, video.dtype)
     eps_a = jax.random.normal(k_ea, actions.shape, actions.dtype)
-    inp = noise_inputs(video, actions, stride, video_noisy, action_noisy, t, eps_v, eps_a)
+    inp = noise_inputs(video, actions, stride, video_noisy, action_noisy, t, eps_v, eps_a, pose, context_level)
     (v_v, v_a), (x0_v, x0_a) = predict(params, cfg, inp, grid, context_frames=context_frames)
     if cfg.prediction == "velocity":
-        preds, targets = (v_v, v_a), (eps_v[:, :, K:] - video[:, :, K:], eps_a - actions)
+        preds, targets = (v_v, v_a), (eps_v[:, :, K:] - clean[:, :, K:], eps_a - actions)
     else:
-        preds, targets = (x0_v, x0_a), (video[:, :, K:], actions)
+        preds, targets = (x0_v, x0_a), (clean[:, :, K:], actions)
     total, per_sample = masked_loss(*preds, *targets, video_noisy[:, :, K:], action_noisy,
                                     (fcfg.video_loss_weight, fcfg.action_loss_weight))
     metrics = {"loss": total}
@@ -106,14 +127,23 @@ def time_grid(steps: int, fcfg: FlowConfig = FlowConfig()) -> jax.Array:
 
 
 def sample(params, cfg: ModelConfig, video, actions, stride, video_noisy, action_noisy, rng, steps: int, grid,
-           use_cache: bool | str | None = None, fcfg: FlowConfig = FlowConfig(), context_frames: int | None = None):
+           use_cache: bool | str | None = None, fcfg: FlowConfig = FlowConfig(), context_frames: int | None = None,
+           pose=None, context_noise: float = 0.0):
     """Euler from t = 1 to t = 0 in ``steps`` steps (``time_grid``); clean tokens held fixed. Returns (video,
-    actions) with the noisy positions filled in.
+    actions) with the noisy positions filled in (the context frames as given, never their noised copy).
 
     With ``context_attention="causal"`` a clean prefix's keys/values are computed once and reused by every step:
     ``use_cache`` None/True = the context frames, "video" = every frame (only for inverse mode: all frames clean,
-    all actions noisy), False = no cache (for checks). ``context_frames``: see ``predict``."""
+    all actions noisy), False = no cache (for checks). ``context_frames``: see ``predict``. ``pose``: see
+    ``dit.Inputs``. ``context_noise``: the level the context is noised with (models trained with context noise
+    use a small one at inference, as GameNGen does)."""
     K = video.shape[2] - actions.shape[1] if context_frames is None else context_frames
+    context_level = None
+    given = video
+    if cfg.context_noise:
+        context_level = jnp.full((video.shape[0],), context_noise, jnp.float32)
+        if context_noise > 0:
+            video = noise_context(video, context_level, jax.random.fold_in(rng, 7), K)
     k_v, k_a = jax.random.split(rng)
     video = jnp.where(video_noisy[..., None, None], jax.random.normal(k_v, video.shape, video.dtype), video)
     actions = jnp.where(action_noisy[..., None], jax.random.normal(k_a, actions.shape, actions.dtype), actions)
@@ -122,7 +152,8 @@ def sample(params, cfg: ModelConfig, video, actions, stride, video_noisy, action
     context_kv = None
     if use_cache:
         clean = dit.Inputs(video, actions, jnp.zeros(video_noisy.shape), video_noisy,
-                           jnp.zeros(action_noisy.shape), action_noisy, stride)
+                           jnp.zeros(action_noisy.shape), action_noisy, stride, pose=pose,
+                           context_level=context_level)
         prefix = "video" if use_cache == "video" else "context"
         context_kv = dit.encode_context(params, cfg, clean, grid, prefix=prefix, context_frames=context_frames)
 
@@ -132,11 +163,12 @@ def sample(params, cfg: ModelConfig, video, actions, stride, video_noisy, action
         xv, xa = carry
         t, t_next = ts[i], ts[i + 1]
         inp = dit.Inputs(xv, xa, jnp.where(video_noisy, t, 0.0), video_noisy, jnp.where(action_noisy, t, 0.0),
-                         action_noisy, stride)
+                         action_noisy, stride, pose=pose, context_level=context_level)
         (v_v, v_a), _ = predict(params, cfg, inp, grid, context_kv, context_frames)
         fut = xv[:, :, K:] + (t_next - t) * v_v
         xv = xv.at[:, :, K:].set(jnp.where(video_noisy[:, :, K:, None, None], fut, xv[:, :, K:]))
         xa = jnp.where(action_noisy[..., None], xa + (t_next - t) * v_a, xa)
         return xv, xa
 
-    return jax.lax.fori_loop(0, steps, step, (video, actions))
+    xv, xa = jax.lax.fori_loop(0, steps, step, (video, actions))
+    return xv.at[:, :, :K].set(given[:, :, :K]), xa

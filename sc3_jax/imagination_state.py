@@ -85,3 +85,10 @@ def integrate(state, actions):
         return s, s
 
     return jax.lax.scan(body, state, actions)
+
+
+def frame_poses(state, actions):
+    """The pose condition of a chunk (``ModelConfig.pose_conditioning``): ``state`` [7] (the pose at the last
+    context frame) and the poses after each of ``actions`` [n, 7] (model-rate actions, one per predicted frame)
+    -> [n + 1, 7]. The data pipeline computes the same from recorded windows (``pipeline.integrate_poses``)."""
+    return jnp.concatenate([state[None], integrate(state, actions)[1]], axis=0)

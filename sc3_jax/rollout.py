@@ -67,6 +67,7 @@ class RolloutSpec:
     stride: int
     steps: int  # Euler steps per sampler call
     ratio: int = 1  # raw policy actions per model-rate action (policy_hz / control_hz)
+    context_noise: float = 0.0  # noise level on the context at inference (models trained with context noise)
 
     @property
     def raw_needed(self) -> int:
@@ -95,7 +96,8 @@ def make_spec(cfg: Config, data_fps: float = 20.0, num_chunks: int | None = None
     if num_chunks is None:
         num_chunks = math.ceil(r.episode_seconds * r.control_hz / r.keep_frames - 1e-9)
     return RolloutSpec(len(d.views), tuple(d.image_size), d.context_frames, d.future_frames, r.keep_frames,
-                       r.policy_chunk, int(num_chunks), int(round(stride)), cfg.sample.steps, ratio)
+                       r.policy_chunk, int(num_chunks), int(round(stride)), cfg.sample.steps, ratio,
+                       float(cfg.sample.context_noise))
 
 
 class InitialConditions(NamedTuple):
@@ -174,8 +176,11 @@ class _Steps:
         stride = jnp.full((1,), s.stride, jnp.int32)
         ctx = self.tok.encode(carry.context)[None]  # [1, V, Kt, P, D]
         video = jnp.concatenate([ctx, jnp.zeros((1, V, Tt) + ctx.shape[3:], ctx.dtype)], axis=2)
+        # pose condition: the pose at the last context frame, then integrated with the commanded actions
+        pose = (imagination_state.frame_poses(carry.state, model_actions) - norm[2]) / norm[3]
         sample = functools.partial(flow.sample, params, m, steps=s.steps, grid=self.grid, fcfg=self.flow_cfg,
-                                   context_frames=Kt)
+                                   context_frames=Kt, pose=pose[None] if m.pose_conditioning else None,
+                                   context_noise=s.context_noise)
         # forward dynamics: every view's future frames from the context and the commanded actions
         vn, an = modes.fixed(modes.FD, 1, V, Kt, Tt, num_actions=T)
         video, _ = sample(video, a[None], stride, vn, an, k_fd, use_cache=self.use_cache)
@@ -225,7 +230,7 @@ class Rollout:
         self._batch = sharding.batch_sharding(self.mesh)
         self._repl = sharding.replicated(self.mesh)
         self.batch_multiple = self.mesh.shape["data"] * self.mesh.shape["fsdp"]
-        self.norm = jax.device_put(np.stack([norm_stats.mean, norm_stats.std]).astype(np.float32), self._repl)
+        self.norm = jax.device_put(norm_stats.as_array(), self._repl)
         self.steps, self._init, self._observe, self._model_step_fn, self._scan_policy, self._scan_actions = \
             _compiled(cfg.model, cfg.flow, self.spec, use_cache, state_reader and state_reader.apply)
         # context-parallel attention traces under the mesh; a no-op for meshes without a "context" axis

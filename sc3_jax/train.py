@@ -118,9 +118,10 @@ def make_train_step(cfg: Config):
         raise ValueError(f"train.grad_accum = {A} must be >= 1 and divide data.batch_size = {B}")
 
     def grads_and_metrics(params, batch, rng):
-        video = tok.encode(batch["frames"])
+        video = tok.from_latents(batch["latents"]) if "latents" in batch else tok.encode(batch["frames"])
         loss_fn = lambda p: flow.loss(p, cfg.model, video, batch["actions"], batch["stride"], rng,  # noqa: E731
-                                      cfg.modes.probs, grid, cfg.flow, context_frames=K_tok)
+                                      cfg.modes.probs, grid, cfg.flow, context_frames=K_tok,
+                                      pose=batch.get("pose"))
         (_, metrics), grads = jax.value_and_grad(loss_fn, has_aux=True)(params)
         return grads, metrics
 
@@ -148,12 +149,26 @@ def make_train_step(cfg: Config):
     return train_step
 
 
+def uses_latent_cache(cfg: Config) -> bool:
+    """Training reads cached latents (data/latent_cache.py) instead of encoding frames in the step: the learned
+    autoencoder (whose encoder would cost more than the model)."""
+    return cfg.model.tokenizer == "conv_ae"
+
+
 def batch_shapes(cfg: Config) -> dict[str, jax.ShapeDtypeStruct]:
     d = cfg.data
     B, V, F = d.batch_size, len(d.views), d.context_frames + d.future_frames
-    return {"frames": jax.ShapeDtypeStruct((B, V, F, *d.image_size, 3), jnp.uint8),
-            "actions": jax.ShapeDtypeStruct((B, d.future_frames, cfg.model.action_dim), jnp.float32),
-            "stride": jax.ShapeDtypeStruct((B,), jnp.int32)}
+    shapes = {"actions": jax.ShapeDtypeStruct((B, d.future_frames, cfg.model.action_dim), jnp.float32),
+              "stride": jax.ShapeDtypeStruct((B,), jnp.int32)}
+    if uses_latent_cache(cfg):
+        tok = make_tokenizer(cfg.model)
+        h, w = tok.latent_size(d.image_size)
+        shapes["latents"] = jax.ShapeDtypeStruct((B, V, F, h, w, tok.cfg.latent_channels), jnp.float16)
+    else:
+        shapes["frames"] = jax.ShapeDtypeStruct((B, V, F, *d.image_size, 3), jnp.uint8)
+    if cfg.model.pose_conditioning:
+        shapes["pose"] = jax.ShapeDtypeStruct((B, d.future_frames + 1, cfg.model.action_dim), jnp.float32)
+    return shapes
 
 
 def compile_train_step(cfg: Config, mesh):
@@ -278,7 +293,11 @@ def read_config(path: str | Path, what: str = "") -> Config:
     if not (path / "config.json").exists():
         raise FileNotFoundError(f"{what}{path}: no config.json (expected a `sc3 train` workdir, an exported world "
                                 "model or a `sc3 convert` output)")
-    return config_from_dict(json.loads((path / "config.json").read_text()))
+    cfg = config_from_dict(json.loads((path / "config.json").read_text()))
+    tp = cfg.model.tokenizer_path
+    if tp and not Path(tp).is_absolute() and (path / tp).exists():  # a tokenizer shipped inside the model dir
+        cfg = dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, tokenizer_path=str((path / tp).absolute())))
+    return cfg
 
 
 def init_params(cfg: Config, shardings=None) -> dict:
@@ -365,7 +384,17 @@ def prepare_data(cfg: Config):
         stats = pipeline.NormStats.from_store(store)
         if jax.process_index() == 0:
             stats.save(stats_path)
-    it = pipeline.make_iterator(cfg.data, store, stats, jax.process_index(), jax.process_count())
+    dataset = None
+    if uses_latent_cache(cfg):
+        from sc3_jax.data import latent_cache
+        root = workdir / "latents"
+        if jax.process_index() == 0:
+            latent_cache.build(store, make_tokenizer(cfg.model), tuple(cfg.data.views), root,
+                               progress=cfg.train.progress)
+        index = pipeline.build_index(store, cfg.data)
+        dataset = pipeline.make_dataset(cfg.data, store, stats, jax.process_index(), jax.process_count(), index,
+                                        latents=latent_cache.LatentReader(root, index.episode_ids))
+    it = pipeline.make_iterator(cfg.data, store, stats, jax.process_index(), jax.process_count(), dataset)
     return store, stats, it
 
 
@@ -393,7 +422,7 @@ def train(cfg: Config, mesh=None, stop_at: int | None = None) -> dict:
     bar = _progress(start, end, cfg.train.progress and jax.process_index() == 0)
     t0, n_since = time.perf_counter(), 0
     for step in range(start, end):
-        batch = sharding.global_batch(mesh, _model_batch(next(data_iter)))
+        batch = sharding.global_batch(mesh, _model_batch(next(data_iter), cfg))
         state, metrics = step_fn(state, batch)
         pending.append((step + 1, metrics))
         n_since += 1
@@ -421,8 +450,8 @@ def train(cfg: Config, mesh=None, stop_at: int | None = None) -> dict:
     return last
 
 
-def _model_batch(batch: dict) -> dict:
-    return {k: batch[k] for k in ("frames", "actions", "stride")}
+def _model_batch(batch: dict, cfg: Config) -> dict:
+    return {k: batch[k] for k in batch_shapes(cfg)}
 
 
 def _progress(start: int, end: int, enabled: bool):

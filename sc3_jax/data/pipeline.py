@@ -7,9 +7,18 @@ view (K = ``cfg.context_frames`` clean context frames, T = ``cfg.future_frames``
 - recorded (stride 1): ``actions[t]``; stride s > 1: the s recorded deltas ``actions[t..t+s-1]`` composed
   (xyz summed, rotations composed exactly ``R(a_{t+s-1}) ... R(a_t)``, gripper = last target ``actions[t+s-1, 6]``);
 - pseudo (probability ``cfg.pseudo_action_prob`` per sample): from end-effector poses,
-  ``(xyz_{t+s} - xyz_t, rotvec(R_{t+s} R_t^T), gripper_{t+s})``.
+  ``(xyz_{t+s} - xyz_t, rotvec(R_{t+s} R_t^T), gripper target actions[t+s-1, 6])``.
+
+The gripper entry has one meaning everywhere: the *commanded* target width (what a policy outputs and what
+rollouts integrate), never the measured finger gap of ``ee_pose`` (which lags the command and stops on a grasped
+object: on an expert episode the two differ by up to 5.6 cm).
 
 Both are normalised with ``NormStats`` (per-dimension mean/std over all recorded actions of the store).
+
+Every window also carries the *pose condition* ``pose`` [T + 1, 7]: the end-effector pose of frame K-1 (its gripper
+entry the command in force, ``actions[t-1, 6]``) and of every future frame, integrated from that pose with the
+window's actions -- the numpy twin of ``imagination_state.frame_poses``, which rollouts use -- normalised with the
+pose statistics of ``NormStats``.
 
 Batch i of process p is a deterministic function of (cfg.seed, i, p, process_count): the index of all valid
 (episode, start) pairs (valid for the largest stride) is shuffled per epoch, repeated forever, per-sample draws
@@ -41,10 +50,17 @@ _OPEN_LOCK = threading.Lock()
 class NormStats:
     mean: np.ndarray  # float32 [7]
     std: np.ndarray  # float32 [7], floored at STD_FLOOR
+    pose_mean: np.ndarray | None = None  # float32 [7] of ee_pose (default 0: stats files from before poses)
+    pose_std: np.ndarray | None = None  # float32 [7], floored at STD_FLOOR (default 1)
 
     def __post_init__(self):
         object.__setattr__(self, "mean", np.asarray(self.mean, np.float32).reshape(-1))
         object.__setattr__(self, "std", np.maximum(np.asarray(self.std, np.float32).reshape(-1), STD_FLOOR))
+        n = self.mean.shape[0]
+        pm = np.zeros(n) if self.pose_mean is None else self.pose_mean
+        ps = np.ones(n) if self.pose_std is None else self.pose_std
+        object.__setattr__(self, "pose_mean", np.asarray(pm, np.float32).reshape(-1))
+        object.__setattr__(self, "pose_std", np.maximum(np.asarray(ps, np.float32).reshape(-1), STD_FLOOR))
 
     @classmethod
     def from_actions(cls, actions: np.ndarray) -> "NormStats":
@@ -55,16 +71,20 @@ class NormStats:
     def from_store(cls, store: EpisodeStore) -> "NormStats":
         """Over all recorded actions of every episode (each episode validated; EpisodeError names a bad one)."""
         total, total_sq, count = 0.0, 0.0, 0
+        p_total, p_sq = 0.0, 0.0
         for eid in store.episode_ids():
-            a = store.load(eid, mmap=True).actions.astype(np.float64)
+            ep = store.load(eid, mmap=True)
+            a, p = ep.actions.astype(np.float64), ep.ee_pose.astype(np.float64)
             total = total + a.sum(0)
             total_sq = total_sq + (a * a).sum(0)
+            p_total, p_sq = p_total + p.sum(0), p_sq + (p * p).sum(0)
             count += a.shape[0]
         if count == 0:
             raise ValueError(f"{store.root}: no episodes to compute action statistics from")
-        mean = total / count
+        mean, p_mean = total / count, p_total / count
         var = np.maximum(total_sq / count - mean * mean, 0.0)
-        return cls(mean, np.sqrt(var))
+        p_var = np.maximum(p_sq / count - p_mean * p_mean, 0.0)
+        return cls(mean, np.sqrt(var), p_mean, np.sqrt(p_var))
 
     def normalize(self, a: np.ndarray) -> np.ndarray:
         return ((np.asarray(a, np.float32) - self.mean) / self.std).astype(np.float32)
@@ -72,8 +92,16 @@ class NormStats:
     def denormalize(self, a: np.ndarray) -> np.ndarray:
         return (np.asarray(a, np.float32) * self.std + self.mean).astype(np.float32)
 
+    def normalize_pose(self, p: np.ndarray) -> np.ndarray:
+        return ((np.asarray(p, np.float32) - self.pose_mean) / self.pose_std).astype(np.float32)
+
+    def as_array(self) -> np.ndarray:
+        """float32 [4, 7]: action mean, action std, pose mean, pose std (what rollouts take on device)."""
+        return np.stack([self.mean, self.std, self.pose_mean, self.pose_std]).astype(np.float32)
+
     def to_dict(self) -> dict:
-        return {"mean": self.mean.tolist(), "std": self.std.tolist()}
+        return {"mean": self.mean.tolist(), "std": self.std.tolist(), "pose_mean": self.pose_mean.tolist(),
+                "pose_std": self.pose_std.tolist()}
 
     def save(self, path: str | os.PathLike) -> None:
         path = Path(path)
@@ -85,7 +113,8 @@ class NormStats:
     @classmethod
     def load(cls, path: str | os.PathLike) -> "NormStats":
         d = json.loads(Path(path).read_text())
-        return cls(np.array(d["mean"], np.float32), np.array(d["std"], np.float32))
+        pose = [np.array(d[k], np.float32) if k in d else None for k in ("pose_mean", "pose_std")]
+        return cls(np.array(d["mean"], np.float32), np.array(d["std"], np.float32), *pose)
 
 
 # -- window semantics (pure functions, also used by rollouts / tests) -------------------------------------------
@@ -116,14 +145,38 @@ def compose_actions(actions: np.ndarray, t: int, stride: int) -> np.ndarray:
     return out.astype(np.float32)
 
 
-def pseudo_actions(ee_pose: np.ndarray, frame_indices: np.ndarray) -> np.ndarray:
-    """Actions between consecutive given frames from end-effector poses: float32 [len(frame_indices) - 1, 7]."""
-    p = np.asarray(ee_pose, np.float64)[np.asarray(frame_indices)]
+def pseudo_actions(ee_pose: np.ndarray, frame_indices: np.ndarray, actions: np.ndarray | None = None) -> np.ndarray:
+    """Actions between consecutive given frames from end-effector poses: float32 [len(frame_indices) - 1, 7].
+    The gripper entry is the command in force at the end of each interval, ``actions[t_next - 1, 6]`` (the one
+    meaning the gripper entry has everywhere); without ``actions`` the measured gap ``ee_pose[t_next, 6]`` stands
+    in for it (data that recorded no commands)."""
+    idx = np.asarray(frame_indices)
+    p = np.asarray(ee_pose, np.float64)[idx]
     out = np.empty((len(p) - 1, 7))
     out[:, :3] = p[1:, :3] - p[:-1, :3]
     out[:, 3:6] = rotations.relative_rotvec(p[:-1, 3:6], p[1:, 3:6])
-    out[:, 6] = p[1:, 6]
+    out[:, 6] = p[1:, 6] if actions is None else np.asarray(actions)[idx[1:] - 1, 6]
     return out.astype(np.float32)
+
+
+def start_pose(actions: np.ndarray, ee_pose: np.ndarray, t: int) -> np.ndarray:
+    """The pose condition of frame t: the measured pose with the gripper command in force (``actions[t-1, 6]``;
+    at t = 0 none was given yet, so the measured gap)."""
+    p = np.asarray(ee_pose[t], np.float32).copy()
+    if t > 0:
+        p[6] = actions[t - 1, 6]
+    return p
+
+
+def integrate_poses(pose: np.ndarray, actions: np.ndarray) -> np.ndarray:
+    """float32 [n + 1, 7]: ``pose`` and the poses after each of ``actions`` [n, 7] (xyz summed, rotations composed
+    on the left, gripper = command); the numpy twin of ``imagination_state.frame_poses``."""
+    out = [np.asarray(pose, np.float64)]
+    for a in np.asarray(actions, np.float64):
+        p = out[-1]
+        rot = rotations.matrix_to_rotvec(rotations.rotvec_to_matrix(a[3:6]) @ rotations.rotvec_to_matrix(p[3:6]))
+        out.append(np.concatenate([p[:3] + a[:3], rot, a[6:7]]))
+    return np.stack(out).astype(np.float32)
 
 
 def window_actions(actions: np.ndarray, ee_pose: np.ndarray, start: int, stride: int, context_frames: int,
@@ -131,7 +184,7 @@ def window_actions(actions: np.ndarray, ee_pose: np.ndarray, start: int, stride:
     """Un-normalised float32 [T, 7] actions of a window (see the module docstring)."""
     idx = window_frame_indices(start, stride, context_frames, future_frames)[context_frames - 1:]
     if pseudo:
-        return pseudo_actions(ee_pose, idx)
+        return pseudo_actions(ee_pose, idx, actions)
     return np.stack([compose_actions(actions, int(t), stride) for t in idx[:-1]])
 
 
@@ -210,8 +263,8 @@ def build_index(store: EpisodeStore, cfg) -> WindowIndex:
 class _MakeWindow:
     """random_map transform: (episode number, start) + per-sample rng -> one training window."""
 
-    def __init__(self, reader: _EpisodeReader, cfg, stats: NormStats):
-        self.reader, self.stats = reader, stats
+    def __init__(self, reader: _EpisodeReader, cfg, stats: NormStats, latents=None):
+        self.reader, self.stats, self.latents = reader, stats, latents
         self.views = tuple(cfg.views)
         self.K, self.T = cfg.context_frames, cfg.future_frames
         self.strides = tuple(int(s) for s in cfg.strides)
@@ -223,10 +276,16 @@ class _MakeWindow:
         ep_num, start = int(pair[0]), int(pair[1])
         ep = self.reader.get(ep_num)
         idx = window_frame_indices(start, stride, self.K, self.T)
-        frames = np.stack([np.asarray(ep.frames[v][idx]) for v in self.views])  # only these frames are read
         acts = window_actions(ep.actions, ep.ee_pose, start, stride, self.K, self.T, pseudo)
-        return {"frames": frames, "actions": self.stats.normalize(acts), "stride": np.int32(stride),
-                "pseudo": np.bool_(pseudo), "episode": np.int32(ep_num), "start": np.int32(start)}
+        pose = integrate_poses(start_pose(ep.actions, ep.ee_pose, int(idx[self.K - 1])), acts)
+        out = {"actions": self.stats.normalize(acts), "pose": self.stats.normalize_pose(pose),
+               "stride": np.int32(stride), "pseudo": np.bool_(pseudo), "episode": np.int32(ep_num),
+               "start": np.int32(start)}
+        if self.latents is not None:  # cached tokenizer latents instead of frames (data/latent_cache.py)
+            out["latents"] = self.latents.window(ep_num, idx)
+        else:
+            out["frames"] = np.stack([np.asarray(ep.frames[v][idx]) for v in self.views])  # only these frames
+        return out
 
 
 class _LocalToGlobal:
@@ -253,11 +312,12 @@ def collate(samples: list[dict]) -> dict:
 
 
 def make_dataset(cfg, store: EpisodeStore, stats: NormStats, process_index: int = 0, process_count: int = 1,
-                 index: WindowIndex | None = None) -> grain.MapDataset:
+                 index: WindowIndex | None = None, latents=None) -> grain.MapDataset:
     """Infinite ``MapDataset`` of this process's local batches (``ds[i]`` = local batch i): dict with
-    ``frames`` uint8 [b, V, K+T, H, W, 3] (V in cfg.views order), ``actions`` float32 [b, T, 7] (normalised),
-    ``stride`` int32 [b], ``pseudo`` bool [b], plus ``episode``/``start`` int32 [b] (provenance, for debugging),
-    where b = cfg.batch_size // process_count."""
+    ``frames`` uint8 [b, V, K+T, H, W, 3] (V in cfg.views order; with ``latents``, a ``latent_cache.LatentReader``,
+    ``latents`` float16 [b, V, K+T, h, w, C] instead), ``actions`` float32 [b, T, 7] (normalised), ``pose``
+    float32 [b, T+1, 7] (normalised pose condition), ``stride`` int32 [b], ``pseudo`` bool [b], plus
+    ``episode``/``start`` int32 [b] (provenance, for debugging), where b = cfg.batch_size // process_count."""
     if cfg.batch_size % process_count:
         raise ValueError(f"batch_size {cfg.batch_size} is not divisible by process_count {process_count}")
     if not 0 <= process_index < process_count:
@@ -267,7 +327,7 @@ def make_dataset(cfg, store: EpisodeStore, stats: NormStats, process_index: int 
     samples = (grain.MapDataset.source(index.pairs)
                .shuffle(seed=int(cfg.seed))
                .repeat()
-               .random_map(_MakeWindow(reader, cfg, stats), seed=int(cfg.seed) + 1))
+               .random_map(_MakeWindow(reader, cfg, stats, latents), seed=int(cfg.seed) + 1))
     local_batch = cfg.batch_size // process_count
     num_local = (len(samples) // cfg.batch_size) * local_batch
     local = (grain.MapDataset.range(num_local)

@@ -158,8 +158,16 @@ def export_world_model(workdir: str | Path, out: str | Path, dtype=np.float16) -
 
 
 def save_world_model(out: str | Path, cfg, stats, params, dtype=np.float16) -> Path:
+    """A learned tokenizer (``conv_ae``) travels with the model: copied to ``out/tokenizer`` (float32: a few MB)
+    and referred to by that relative path, which ``train.read_config`` resolves against the model directory."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
+    if cfg.model.tokenizer == "conv_ae":
+        import shutil
+        src = Path(cfg.model.tokenizer_path)
+        if src.resolve() != (out / "tokenizer").resolve():
+            shutil.copytree(src, out / "tokenizer", dirs_exist_ok=True)
+        cfg = dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, tokenizer_path="tokenizer"))
     np.savez_compressed(out / "params.npz", **{k: np.asarray(v).astype(dtype) for k, v in _flatten(params)})
     (out / "config.json").write_text(json.dumps(dataclasses.asdict(cfg), indent=1))
     stats.save(out / "norm_stats.json")

@@ -64,6 +64,21 @@ def param_specs(cfg: ModelConfig, token_dim: int, grid: tuple[int, int] | None =
             raise ValueError("action_reads_frames needs the token grid (rows, cols) of a frame")
         n = cfg.num_views * grid[0] * grid[1] * token_dim
         specs["frames_to_action"] = ParamSpec((n, d), ("frame_features", "embed"))
+    if cfg.pose_conditioning:
+        if grid is None:
+            raise ValueError("pose_conditioning needs the token grid (rows, cols) of a frame")
+        specs["pose_in"] = {"w1": ParamSpec((cfg.action_dim, d), ("action", "embed")),
+                            "b1": ParamSpec((d,), ("embed",), "zeros"),
+                            "w2": ParamSpec((d, d), ("embed_in", "embed")),
+                            "b2": ParamSpec((d,), ("embed",), "zeros")}
+        specs["pose_unknown"] = ParamSpec((d,), ("embed",), fan_in=d)
+        specs["token_pos_embed"] = ParamSpec((cfg.num_views, grid[0] * grid[1], d), ("views", "tokens", "embed"),
+                                             fan_in=d)
+    if cfg.context_noise:
+        specs["context_noise_embed"] = {"w1": ParamSpec((cfg.time_embed_dim, d), ("time_embed", "embed")),
+                                        "b1": ParamSpec((d,), ("embed",), "zeros"),
+                                        "w2": ParamSpec((d, d), ("embed_in", "embed"), "zeros"),
+                                        "b2": ParamSpec((d,), ("embed",), "zeros")}
     if cfg.text_pathway:  # Cosmos3 understanding pathway: its own layer stack, final norm, embeddings, LM head
         specs["text_layers"] = _layer_specs(cfg)
         specs["text_norm"] = ParamSpec((d,), ("embed",), "ones")
@@ -120,7 +135,7 @@ def decay_mask(cfg: ModelConfig, token_dim: int, grid: tuple[int, int] | None = 
     views). Norm gains, biases and embeddings get no weight decay, however they are stacked; nor do the text
     vocabulary tables (``embed_tokens``: a lookup; ``lm_head``: unused by generation, so decay alone would shrink
     it while fine-tuning)."""
-    stacking = ("layers", "domains", "views")
+    stacking = ("layers", "domains", "views", "tokens")  # "tokens": per-position embedding tables
     return jax.tree.map(lambda s: "vocab" not in s.axes and sum(a not in stacking for a in s.axes) >= 2,
                         param_specs(cfg, token_dim, grid), is_leaf=_is_spec)
 
@@ -143,6 +158,10 @@ class Inputs(NamedTuple):
     action_noisy: jax.Array  # bool [B, T]
     stride: jax.Array  # int [B] frame stride (multi-FPS)
     text: jax.Array | None = None  # int [B, L] prompt token ids (only read by text_pathway configs)
+    # normalised end-effector poses of the last context frame and the T future frames [B, T + 1, 7] (only read by
+    # pose_conditioning configs; see imagination_state.frame_poses)
+    pose: jax.Array | None = None
+    context_level: jax.Array | None = None  # [B] noise level on the context frames (context_noise configs)
 
 
 def positions(stride: jax.Array, V: int, F: int, grid: tuple[int, int], T: int, K: int) -> jax.Array:
@@ -196,6 +215,12 @@ def _embed(params, cfg: ModelConfig, inp: Inputs, grid, domain: int, K: int | No
         feats = jnp.concatenate([a, jnp.cumsum(a, axis=1)], axis=-1) @ params["action_to_frames"].astype(dt)
         future = future + feats[:, None, :, None, :]
     xv = xv.at[:, :, K:].add(future)
+    if cfg.pose_conditioning:
+        xv = xv + _pose_features(params, inp, K, T, dt)
+    if cfg.context_noise:  # the level the context frames were noised with (0 = exactly clean)
+        level = jnp.zeros((B,), jnp.float32) if inp.context_level is None else inp.context_level
+        emb = _mlp_embed(params["context_noise_embed"], level, cfg).astype(dt)
+        xv = xv.at[:, :, :K].add(emb[:, None, None, None, :])
     xa = jnp.einsum("bta,ad->btd", inp.actions.astype(dt), params["action_in"]["w"][domain].astype(dt))
     xa = xa + params["action_in"]["b"][domain].astype(dt) + params["action_modality_embed"].astype(dt)
     temb_a = _time_mlp(params, inp.action_t, cfg).astype(dt)
@@ -210,14 +235,34 @@ def _embed(params, cfg: ModelConfig, inp: Inputs, grid, domain: int, K: int | No
     return x
 
 
-def _time_mlp(params, t, cfg: ModelConfig | None = None):
-    p = params["time_embed"]
+def _pose_features(params, inp: Inputs, K: int, T: int, dt):
+    """[B, V, F, P, D] additions: absolute (view, token) position embeddings on every video token; the pose
+    embedding of frame K-1 (the last context frame) and of future frames K..K+T-1 on their tokens. Future poses are
+    integrated from the actions, so they are replaced by ``pose_unknown`` in samples whose actions are targets."""
+    if inp.pose is None:
+        raise ValueError("a pose_conditioning model needs Inputs.pose [B, T + 1, 7]")
+    p = params["pose_in"]
+    B, V, F, P, _ = inp.video.shape
+    h = jax.nn.silu(inp.pose.astype(jnp.float32) @ p["w1"].astype(jnp.float32) + p["b1"].astype(jnp.float32))
+    pe = (h @ p["w2"].astype(jnp.float32) + p["b2"].astype(jnp.float32)).astype(dt)  # [B, T + 1, D]
+    known = ~jnp.any(inp.action_noisy, axis=1)  # [B]
+    fut = jnp.where(known[:, None, None], pe[:, 1:], params["pose_unknown"].astype(dt))
+    per_frame = jnp.concatenate([jnp.zeros((B, K - 1) + pe.shape[2:], dt), pe[:, :1], fut], axis=1)  # [B, F, D]
+    return params["token_pos_embed"].astype(dt)[None, :, None] + per_frame[:, None, :, None, :]
+
+
+def _mlp_embed(p, t, cfg: ModelConfig | None = None):
+    """Sinusoid of a noise level through a two-layer MLP (``p``: w1, b1, w2, b2) -> [..., D] float32."""
     if cfg is not None and cfg.layout == "cosmos3":
         e = cosmos3.timestep_embedding(t, p["w1"].shape[0], cfg.timestep_scale)
     else:
         e = layers.timestep_embedding(t, p["w1"].shape[0])
     h = jax.nn.silu(e @ p["w1"].astype(jnp.float32) + p["b1"].astype(jnp.float32))
     return h @ p["w2"].astype(jnp.float32) + p["b2"].astype(jnp.float32)
+
+
+def _time_mlp(params, t, cfg: ModelConfig | None = None):
+    return _mlp_embed(params["time_embed"], t, cfg)
 
 
 def _block(cfg: ModelConfig, x, p, cos, sin, mask, prefix_kv=None):

@@ -1,4 +1,5 @@
-"""Video <-> tokens. One interface: the pixel-patch tokenizer (exact, no time compression) and the Wan VAE
+"""Video <-> tokens. One interface: the pixel-patch tokenizer (exact, no time compression), the learned
+convolutional autoencoder (``model/autoencoder.py``, per frame, trained with ``sc3 train-tokenizer``) and the Wan VAE
 (``model/wan_vae.py``; 4x causal time compression: ``latent_frames(F) = 1 + (F - 1) // 4``). Training and rollouts
 read the token-frame counts of a (context, future) window off ``window_tokens``.
 
@@ -6,6 +7,7 @@ Patch order is (row, col) over the frame with features ordered (pi, pj, c), as C
 from __future__ import annotations
 
 import dataclasses
+import functools
 from typing import Protocol
 
 import jax
@@ -78,6 +80,68 @@ class PixelPatchTokenizer:
         return x.reshape(*lead, rows * p, cols * p, self.channels)
 
 
+@dataclasses.dataclass(frozen=True, eq=False)
+class ConvAETokenizer:
+    """The learned per-frame autoencoder: frames -> standardised latents [h, w, C] -> ``patch_size`` x
+    ``patch_size`` latent patches as tokens. Training reads latents cached once per dataset (``data/latent_cache.py``)
+    and only patchifies them (``from_latents``), so the encoder never runs inside the train step."""
+    path: str
+    patch_size: int = 4
+
+    def __post_init__(self):
+        from sc3_jax.model import autoencoder as ae
+        cfg, image_size, params, stats = ae.load(self.path)
+        for k, v in (("cfg", cfg), ("image_size", image_size), ("params", params), ("stats", stats)):
+            object.__setattr__(self, k, v)
+
+    def __hash__(self):  # jit caches key on the tokenizer through the model config (path, patch): same weights
+        return hash((self.path, self.patch_size))
+
+    def __eq__(self, other):
+        return isinstance(other, ConvAETokenizer) and (self.path, self.patch_size) == (other.path, other.patch_size)
+
+    def latent_size(self, image_size) -> tuple[int, int]:
+        if tuple(image_size) != tuple(self.image_size):
+            raise ValueError(f"tokenizer {self.path} was trained on {tuple(self.image_size)} images, got {image_size}")
+        f = self.cfg.downsample
+        return image_size[0] // f, image_size[1] // f
+
+    def grid(self, image_size):
+        h, w = self.latent_size(image_size)
+        if h % self.patch_size or w % self.patch_size:
+            raise ValueError(f"latent size {(h, w)} is not a multiple of patch size {self.patch_size}")
+        return h // self.patch_size, w // self.patch_size
+
+    @property
+    def token_dim(self) -> int:
+        return self.patch_size * self.patch_size * self.cfg.latent_channels
+
+    @property
+    def time_compression(self) -> int:
+        return 1
+
+    def latent_frames(self, num_frames: int) -> int:
+        return num_frames
+
+    def encode_latents(self, frames):
+        """uint8 [..., H, W, 3] -> standardised latents [..., h, w, C]."""
+        from sc3_jax.model import autoencoder as ae
+        return ae.encode(self.params, self.stats, frames)
+
+    def from_latents(self, latents):
+        """Latents [..., h, w, C] -> tokens [..., P, p*p*C] (a reshape)."""
+        return PixelPatchTokenizer(self.patch_size, self.cfg.latent_channels).encode(latents.astype(jnp.float32))
+
+    def encode(self, frames):
+        return self.from_latents(self.encode_latents(frames))
+
+    def decode(self, tokens, image_size):
+        from sc3_jax.model import autoencoder as ae
+        latents = PixelPatchTokenizer(self.patch_size, self.cfg.latent_channels).decode(
+            tokens, self.latent_size(image_size))
+        return ae.decode(self.params, self.stats, latents)
+
+
 def window_tokens(tok: Tokenizer, context: int, future: int) -> tuple[int, int]:
     """(context, future) token frames of a window of ``context`` then ``future`` frames. A causal tokenizer with
     c x time compression encodes frame 0 alone and every later c frames as one token frame, so the window must be
@@ -94,8 +158,17 @@ def window_tokens(tok: Tokenizer, context: int, future: int) -> tuple[int, int]:
 def make_tokenizer(model_cfg) -> Tokenizer:
     if model_cfg.tokenizer == "pixel":
         return PixelPatchTokenizer(model_cfg.patch_size, model_cfg.channels)
+    if model_cfg.tokenizer == "conv_ae":
+        if not model_cfg.tokenizer_path:
+            raise ValueError("tokenizer 'conv_ae' needs model.tokenizer_path (a `sc3 train-tokenizer` output)")
+        return _conv_ae(model_cfg.tokenizer_path, model_cfg.patch_size)
     if model_cfg.tokenizer in ("wan2.1", "wan2.2"):
         from sc3_jax.model.wan_vae import make_wan_tokenizer  # lazy: the VAE module is large and optional
 
         return make_wan_tokenizer(model_cfg.tokenizer, model_cfg.tokenizer_path, patch_size=model_cfg.patch_size)
-    raise ValueError(f"unknown tokenizer {model_cfg.tokenizer!r} (available: 'pixel', 'wan2.1', 'wan2.2')")
+    raise ValueError(f"unknown tokenizer {model_cfg.tokenizer!r} (available: 'pixel', 'conv_ae', 'wan2.1', 'wan2.2')")
+
+
+@functools.lru_cache(maxsize=8)
+def _conv_ae(path: str, patch_size: int) -> ConvAETokenizer:
+    return ConvAETokenizer(path, patch_size)  # weights load once per (path, patch)

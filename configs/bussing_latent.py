@@ -1,0 +1,31 @@
+"""The world model of the simulated table-bussing benchmark on learned latents (the recipe of docs/world_model.md).
+
+Against ``bussing_sim`` (16-px pixel patches, linear read-out): frames are encoded by the convolutional autoencoder
+of ``sc3 train-tokenizer`` (64x64 -> 16x16x16 latents, 4x4 latent patches: still 16 tokens per view and frame) and
+decoded by its CNN decoder, so thin arms stay drawable; every frame is conditioned on the absolute end-effector
+pose integrated from the commanded actions (``model.pose_conditioning``); the context is noised in training with
+its level given to the model (``model.context_noise``, anti-drift) and lightly at inference; the model predicts
+l' = 10 frames and a rollout keeps l = 8 (the paper's horizon decoupling), from multi-FPS windows (strides 1-3 of
+the 20 Hz data; rollouts run at stride 2 = 10 Hz) with pseudo-actions half of the time.
+
+``--model.tokenizer-path`` must point at a trained tokenizer (default: the one of scripts/world_model.sh)."""
+from sc3_jax.config import (Config, DataConfig, FlowConfig, ModeConfig, ModelConfig, RolloutConfig, SampleConfig,
+                            TrainConfig)
+
+
+def get_config(arg: str | None = None) -> Config:
+    return Config(
+        name="bussing_latent",
+        model=ModelConfig(dim=192, depth=4, num_heads=4, num_kv_heads=2, head_dim=48, mlp_dim=576,
+                          rope_axes_dim=(8, 8, 8), tokenizer="conv_ae", tokenizer_path="runs/tokenizer/tokenizer",
+                          patch_size=4, anchor_conditioning=True, action_to_frames=True, action_reads_frames=True,
+                          pose_conditioning=True, context_noise=True),
+        data=DataConfig(path="runs/bussing/demos", image_size=(64, 64), context_frames=2, future_frames=10,
+                        strides=(1, 2, 2, 3), batch_size=12),
+        modes=ModeConfig(probs=(0.7, 0.1, 0.2)),
+        flow=FlowConfig(t_logit_mean=1.0, video_loss_weight=10.0, context_noise_max=0.3),
+        train=TrainConfig(workdir="runs/bussing_latent/train", lr=1.5e-3, warmup_steps=150, steps=6000,
+                          ckpt_every=250, log_every=25),
+        sample=SampleConfig(steps=8, context_noise=0.02),
+        rollout=RolloutConfig(policy_chunk=25, keep_frames=8, episode_seconds=20.0, control_hz=10.0, policy_hz=20.0),
+    )
