@@ -127,6 +127,14 @@ def test_copy_last_model_scores_exactly_the_copy_last_baseline(run):
     # inverse dynamics: zero output weights estimate the mean action: exactly the "zero" floor
     idr = result["inverse_dynamics"]
     assert idr["mse"] == pytest.approx(idr["zero"], rel=1e-6) and idr["ratio_to_floor"] >= 1.0 - 1e-6
+    # the floor recomputed from the recorded actions: the 8 model-rate actions of each chunk (pairs of 20 Hz
+    # actions composed, from the last context frame s + 2), normalised by the model's stats (mean 0, std 0.02)
+    from sc3_jax.data.pipeline import compose_actions
+    a = np.stack([compose_actions(store.load(eid).actions, s + 2 + 2 * i, 2) for eid in store.episode_ids()
+                  for s in (0, 16) for i in range(8)]) / 0.02
+    assert idr["n_steps"] == len(a) == 32
+    assert idr["zero"] == pytest.approx(np.mean(a ** 2), rel=1e-5)
+    assert idr["mean_floor"] == pytest.approx(np.mean(a.var(0)), rel=1e-4)
 
 
 def test_gates_evaluate(run):
@@ -149,3 +157,18 @@ def test_gates_evaluate(run):
     assert all(passed.values()), passed
     better["outcomes"]["imagined_vs_physics"]["outcome"] = 0.7
     assert not {x["gate"]: x["pass"] for x in dg.gates(better, dg.DiagnoseConfig())}[dg.GATES[3]]
+
+
+def test_outcome_agreement_compares_criteria_not_category_spellings():
+    """The simulator's labels spell the category "no failure", the scorers' metrics "no_failure": agreement is
+    decided on the criteria (and the category recomputed from them)."""
+    obj = lambda name, lifting, placing, outcome: {"name": name, "destination": "bin", "language": True,  # noqa: E731
+                                                   "lifting": lifting, "placing": placing, "outcome": outcome}
+    physics = [obj("cup", True, True, "no failure"), obj("bowl", False, False, "lifting")]
+    imagined = [obj("cup", True, True, "no_failure"), obj("bowl", True, False, "placing")]
+    sec = dg._outcome_section([{"episode": "e", "imagined": imagined, "real_perception": physics,
+                                "physics": physics, "covered": True}], None)
+    r = sec["imagined_vs_physics"]
+    assert sec["reference"] == "physics" and r["n_objects"] == 2
+    assert (r["lifting"], r["placing"], r["lifting_and_placing"], r["outcome"]) == (0.5, 1.0, 0.5, 0.5)
+    assert sec["real_perception_vs_physics"]["outcome"] == 1.0

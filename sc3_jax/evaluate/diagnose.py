@@ -53,7 +53,7 @@ AXES = {"+x": (1.0, 0.0, 0.0), "-x": (-1.0, 0.0, 0.0), "+y": (0.0, 1.0, 0.0), "-
 
 @dataclasses.dataclass(frozen=True)
 class DiagnoseConfig:
-    episodes: int | None = None  # the first N episodes of the store (sorted ids); None = all
+    episodes: int | None = None  # N episodes evenly spaced over the store's sorted ids; None = all
     seed: int = 0  # sampler noise (per sample / episode keys) and the action shuffle
     moving_threshold: float = 0.06  # [-1, 1] units, any channel (see the module docstring)
     horizons: tuple[float, ...] = (0.8, 2.0, 4.0, 6.0, 8.0)  # drift curve points (s)
@@ -176,6 +176,7 @@ def diagnose(world_model, heldout_store, config: DiagnoseConfig | None = None, *
     import jax
     from tqdm import tqdm
 
+    from sc3_jax import modes
     from sc3_jax import rollout as ro_mod
     from sc3_jax.config import replace
     from sc3_jax.data.episodes import EpisodeStore
@@ -195,7 +196,9 @@ def diagnose(world_model, heldout_store, config: DiagnoseConfig | None = None, *
     if tuple(store.image_size) != tuple(cfg.data.image_size):
         raise ValueError(f"{store.root}: images {tuple(store.image_size)}, the world model takes "
                          f"{tuple(cfg.data.image_size)}")
-    ids = store.episode_ids()[:dc.episodes]
+    ids = store.episode_ids()
+    if dc.episodes is not None and dc.episodes < len(ids):  # evenly spaced: stores are ordered by generation knob
+        ids = [ids[i] for i in np.linspace(0, len(ids) - 1, dc.episodes).round().astype(int)]
     if not ids:
         raise ValueError(f"{store.root}: no episodes")
     eps = [store.load(e, mmap=True) for e in ids]
@@ -225,13 +228,11 @@ def diagnose(world_model, heldout_store, config: DiagnoseConfig | None = None, *
 
     medians = [np.stack([temporal_median(ep.frames[v]) for v in views]) for ep in eps]  # [V, H, W, 3]
     first = [np.stack([np.asarray(ep.frames[v][0]) for v in views]) for ep in eps]
-    tf_sums, cf_rows, id_acc = ErrorSums(), [], {"mse": [], "zero": [], "n": 0}
+    tf_sums, cf_rows, id_acc = ErrorSums(), [], {"mse": [], "zero": [], "sum": [], "n": 0}
     u_tf = []
     ol_sums = ErrorSums()
     outcome_rows = []
     id_mean = make_sampler(cfg, steps=1)  # one step from pure noise = the model's conditional-mean estimate
-    held_mean = stats.normalize(np.concatenate([ep.actions for ep in eps])).mean(0)
-    id_acc["mean_floor"] = []
     third = [i for i, v in enumerate(views) if "wrist" not in v]
     calib = _calibrate(eps, views, third, medians, stride, dc)
     scorer, perception_note = _scorer(dc, views, cfg.data.image_size)
@@ -263,12 +264,12 @@ def diagnose(world_model, heldout_store, config: DiagnoseConfig | None = None, *
             a_norm = stats.normalize(acts[:, 0])
             strides = np.full((B,), stride, np.int32)
             k = jax.random.fold_in(jax.random.key(dc.seed), 10_000 + idx[a])
-            _, est = id_mean(params, window, np.zeros_like(a_norm), strides, k, 2, 0)
+            _, est = id_mean(params, window, np.zeros_like(a_norm), strides, k, modes.ID, 0)
             n = b - a
             est = np.asarray(est)[:n]
-            id_acc["mse"].append(((est - a_norm[:n]) ** 2).sum(0))
-            id_acc["zero"].append((a_norm[:n] ** 2).sum(0))
-            id_acc["mean_floor"].append(((a_norm[:n] - held_mean) ** 2).sum(0))
+            id_acc["mse"].append(((est - a_norm[:n]) ** 2).sum((0, 1)))  # per action dimension [7]
+            id_acc["zero"].append((a_norm[:n] ** 2).sum((0, 1)))
+            id_acc["sum"].append(a_norm[:n].sum((0, 1)))
             id_acc["n"] += n * a_norm.shape[1]
         # -- counterfactual: recorded chunk vs displaced ones from the same real start --------------------------------
         bar.set_postfix_str("counterfactual")
@@ -507,7 +508,8 @@ def _corr(a, b) -> float:
 # -- inverse dynamics -----------------------------------------------------------------------------------------------
 def _id_section(acc) -> dict:
     n = acc["n"]
-    per = {k: np.sum(acc[k], 0) / n for k in ("mse", "zero", "mean_floor")}
+    per = {k: np.sum(acc[k], 0) / n for k in ("mse", "zero")}  # per action dimension, over every step
+    per["mean_floor"] = per["zero"] - (np.sum(acc["sum"], 0) / n) ** 2  # the evaluated steps' own mean action
     out = {k: float(v.mean()) for k, v in per.items()}
     out["per_dim_mse"] = per["mse"].tolist()
     out["per_dim_floor"] = per["zero"].tolist()
@@ -552,8 +554,9 @@ def _outcome(scorer, ep, ctx, pred, tgt, valid, steps_in: int) -> dict | None:
 
 
 def _outcome_section(rows, note) -> dict:
-    from sc3_jax.evaluate.metrics import CRITERIA
+    from sc3_jax.evaluate.metrics import CRITERIA, outcome_category
     rows = [r for r in rows if r is not None]
+    category = lambda o: outcome_category({c: o[c] for c in CRITERIA})  # noqa: E731  (sim spells "no failure")
     if not rows:
         return {"available": False, "note": note or "no episode has object labels (meta.labels / "
                                                     "meta.initial_condition)"}
@@ -563,7 +566,8 @@ def _outcome_section(rows, note) -> dict:
                  for a, b in zip(r[a_key], r[b_key], strict=True)]
         if not pairs:
             return None
-        d = {c: float(np.mean([a[c] == b[c] for a, b in pairs])) for c in CRITERIA + ("outcome",)}
+        d = {c: float(np.mean([a[c] == b[c] for a, b in pairs])) for c in CRITERIA}
+        d["outcome"] = float(np.mean([category(a) == category(b) for a, b in pairs]))
         d["lifting_and_placing"] = float(np.mean([a["lifting"] == b["lifting"] and a["placing"] == b["placing"]
                                                   for a, b in pairs]))
         d["n_objects"] = len(pairs)
@@ -624,6 +628,10 @@ def _f(x, fmt="{:.2f}") -> str:
     return fmt.format(x)
 
 
+def _pct(x) -> str:
+    return "n/a" if x is None or math.isnan(x) else f"{100 * x:.1f}%"
+
+
 def render_table(result: dict) -> str:
     """Markdown of a :func:`diagnose` result (every number comes from ``result``)."""
     st = result["settings"]
@@ -641,7 +649,7 @@ def render_table(result: dict) -> str:
           "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for v, r in tf["views"].items():
         p = r["psnr"]
-        L.append(f"| {v} | {_f(100 * r['moving_fraction'], '{:.1f}')}% | " +
+        L.append(f"| {v} | {_pct(r['moving_fraction'])} | " +
                  " | ".join(_f(p[k]["whole"]) for k in PREDICTORS) + " | " +
                  " | ".join(_f(p[k]["moving"]) for k in PREDICTORS) +
                  f" | {_f(p['shuffled']['moving'])} | {_f(r['true_minus_shuffled_moving'], '{:+.2f}')} |")
@@ -651,8 +659,7 @@ def render_table(result: dict) -> str:
     for v, rows in result["drift"]["views"].items():
         for r in rows:
             p = r["psnr"]
-            L.append(f"| {v} | {r['horizon_s']:g} s | {r['n_episodes']} | "
-                     f"{_f(100 * r['moving_fraction'], '{:.1f}')}% | " +
+            L.append(f"| {v} | {r['horizon_s']:g} s | {r['n_episodes']} | {_pct(r['moving_fraction'])} | " +
                      " | ".join(_f(p[k]["whole"]) for k in PREDICTORS) + " | " +
                      " | ".join(_f(p[k]["moving"]) for k in PREDICTORS) + " |")
     cf = result["counterfactual"]
@@ -733,7 +740,10 @@ def main(argv: list[str] | None = None) -> int:
                                  "on held-out episodes (docs/world_model.md#diagnostics).")
     ap.add_argument("world_model", help="a `sc3 train` workdir or an exported world model dir")
     ap.add_argument("--data", required=True, help="held-out episode store")
-    ap.add_argument("--episodes", type=int, default=None, help="the first N episodes (default: all)")
+    ap.add_argument("--episodes", type=int, default=None, help="N episodes evenly spaced over the store (default: "
+                    "all)")
+    ap.add_argument("--cf-starts", type=int, default=DiagnoseConfig.cf_starts, help="counterfactual starts per "
+                    "episode")
     ap.add_argument("--out", default=None, help="write the result as JSON here (the table goes to stdout)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--max-seconds", type=float, default=None, help="cap on the open-loop horizon")
@@ -746,7 +756,7 @@ def main(argv: list[str] | None = None) -> int:
     a = ap.parse_args(argv)
     result = diagnose(a.world_model, a.data, DiagnoseConfig(
         episodes=a.episodes, seed=a.seed, max_seconds=a.max_seconds, batch=a.batch, sample_steps=a.sample_steps,
-        moving_threshold=a.moving_threshold, horizons=tuple(a.horizons), perception=a.perception,
+        moving_threshold=a.moving_threshold, cf_starts=a.cf_starts, horizons=tuple(a.horizons), perception=a.perception,
         progress=not a.no_progress))
     print(render_table(result))
     if a.out:
