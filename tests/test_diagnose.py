@@ -4,7 +4,6 @@ short simulated episodes, where every model figure must equal its copy-last base
 import contextlib
 import copy
 import io
-import json
 import math
 
 import jax

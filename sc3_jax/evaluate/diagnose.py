@@ -150,7 +150,7 @@ def load(world_model):
 
 
 class _Batcher:
-    """Runs a rollout function over a list of samples in fixed-size batches (one compiled shape)."""
+    """Fixed-size batches over a list of samples, the last one padded by repetition (one compiled shape)."""
 
     def __init__(self, size: int):
         self.size = size
