@@ -15,7 +15,7 @@ import numpy as np
 
 from sc3_jax import flow, modes
 from sc3_jax.config import Config
-from sc3_jax.model.tokenizer import make_tokenizer, to_uint8
+from sc3_jax.model.tokenizer import make_tokenizer, to_uint8, window_tokens
 
 
 def _psnr(pred_u8, true_u8) -> float:
@@ -27,14 +27,15 @@ def make_sampler(cfg: Config, steps: int | None = None):
     tok = make_tokenizer(cfg.model)
     grid = tok.grid(cfg.data.image_size)
     V, K, T = len(cfg.data.views), cfg.data.context_frames, cfg.data.future_frames
+    Kt, Tt = window_tokens(tok, K, T)  # token frames (= K, T unless the tokenizer compresses time)
 
     @jax.jit
     def run(params, frames, actions, stride, rng, mode, kept_view):
         video = tok.encode(frames)
         B = frames.shape[0]
-        vn, an = modes.masks(jnp.full((B,), mode), jnp.full((B,), kept_view), V, K, T)
+        vn, an = modes.masks(jnp.full((B,), mode), jnp.full((B,), kept_view), V, Kt, Tt, num_actions=T)
         out_v, out_a = flow.sample(params, cfg.model, video, actions, stride, vn, an, rng, steps or cfg.sample.steps,
-                                   grid, fcfg=cfg.flow)
+                                   grid, fcfg=cfg.flow, context_frames=Kt)
         return to_uint8(tok.decode(out_v, cfg.data.image_size)), out_a
 
     return run

@@ -1,0 +1,173 @@
+"""sc3 diagnose (sc3_jax/evaluate/diagnose.py): the metric pieces on hand-built frames, and the whole table on a tiny
+"copy the last frame" world model (residual prediction with zero output weights, i.e. an untrained one) over two
+short simulated episodes, where every model figure must equal its copy-last baseline exactly."""
+import contextlib
+import copy
+import io
+import math
+
+import jax
+import numpy as np
+import pytest
+
+import sc3_jax.sim  # noqa: F401  (picks the GL backend before mujoco is imported)
+from sc3_jax import train
+from sc3_jax.config import load_config, replace
+from sc3_jax.data.episodes import Episode, EpisodeStore
+from sc3_jax.data.pipeline import NormStats
+from sc3_jax.evaluate import diagnose as dg
+from sc3_jax.evaluate import sweep
+
+
+def test_moving_mask_and_pooled_psnr_on_a_constructed_pair():
+    ref = np.full((8, 8, 3), 100, np.uint8)
+    tgt = ref.copy()
+    tgt[2:4, 3:6, 1] += 10  # 10 / 127.5 = 0.078 > 0.06: moving
+    tgt[6, 6, 0] += 7  # 7 / 127.5 = 0.055 <= 0.06: flicker, not moving
+    mask = dg.moving_mask(tgt, ref, 0.06)
+    want = np.zeros((8, 8), bool)
+    want[2:4, 3:6] = True
+    np.testing.assert_array_equal(mask, want)
+    s = dg.squared_errors(ref, tgt, mask)  # "copy last" against the target
+    np.testing.assert_allclose(s, [6 * 100 + 49, 8 * 8 * 3, 6 * 100, 6 * 3])
+    assert dg.psnr_from_sums(s[2], s[3]) == pytest.approx(10 * math.log10(255 ** 2 * 18 / 600))
+    assert dg.psnr_from_sums(0.0, 5) == math.inf and math.isnan(dg.psnr_from_sums(0.0, 0))
+    # the threshold is a parameter: at 0.05 the flickering pixel moves too
+    assert dg.moving_mask(tgt, ref, 0.05).sum() == 7
+
+
+def test_temporal_median_erases_a_moving_arm_and_the_centroid_finds_it():
+    bg = np.random.default_rng(0).integers(0, 200, (16, 16, 3), dtype=np.uint8)
+    frames = np.repeat(bg[None], 9, 0)
+    for t in range(9):  # a bright 3x3 "arm" crossing the image: on any pixel in at most 3 of the 9 frames
+        frames[t, 5:8, t:t + 3] = 250
+    med = dg.temporal_median(frames)
+    np.testing.assert_array_equal(med, bg)
+    c = dg.arm_centroid(frames[4], med, 0.12, 4)
+    np.testing.assert_allclose(c, [6.0, 5.0])  # rows 5..7, cols 4..6
+    assert np.all(np.isnan(dg.arm_centroid(bg, med, 0.12, 4)))
+
+
+def _tiny_store(root, n=2, steps=40):
+    from sc3_jax.sim.env import BussingEnv
+    from sc3_jax.sim.expert import run_expert_episode
+    env = BussingEnv(image_size=(64, 64))
+    store = EpisodeStore(root, views=list(env.views), fps=env.control_hz, image_size=(64, 64), create=True)
+    for i in range(n):
+        r = run_expert_episode(env, 7 + i, "bussing", record=True, max_steps=steps)
+        store.write(Episode(f"ep{i:02d}", r.frames, r.actions, r.ee_pose, r.ic.prompt,
+                            {"initial_condition": r.ic.to_json(),
+                             "labels": {"objects": [o.to_json() for o in r.outcomes]}}))
+    env.close()
+    return store
+
+
+def _copy_last_model(root):
+    cfg = load_config("bussing_sim")
+    assert cfg.model.prediction == "residual"  # zero-initialised output: predicts the last context frame
+    cfg = replace(cfg, model=dict(dim=32, depth=1, num_heads=2, num_kv_heads=1, head_dim=16, mlp_dim=64,
+                                  rope_axes_dim=(4, 2, 2)), sample=dict(steps=2))
+    params = jax.device_get(train.init_state(cfg)["params"])
+    stats = NormStats(np.zeros(7, np.float32), np.full(7, 0.02, np.float32))
+    return sweep.save_world_model(root / "wm", cfg, stats, params, np.float32)
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    root = tmp_path_factory.mktemp("diagnose")
+    store = _tiny_store(root / "heldout")
+    wm = _copy_last_model(root)
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out):
+        rc = dg.main([str(wm), "--data", str(store.root), "--out", str(root / "result.json"), "--no-progress"])
+    assert rc == 0
+    return store, dg.load_result(root / "result.json"), out.getvalue()
+
+
+def test_table_prints_every_section(run):
+    _, result, text = run
+    for heading in ("One chunk ahead from real context", "Drift", "Counterfactual actions",
+                    "Inverse dynamics on real frames", "Offline outcome reproduction", "Gates"):
+        assert f"### {heading}" in text
+    for view in ("left", "right", "wrist"):
+        assert f"| {view} | 0.8 s |" in text and f"| {view} | 8 s | 0 |" in text  # 2 s episodes: no 8 s point
+    assert text == dg.render_table(result) + "\n"  # the CLI prints exactly the rendering of the saved result
+    assert len(result["gates"]) == len(dg.GATES)
+
+
+def test_copy_last_model_scores_exactly_the_copy_last_baseline(run):
+    store, result, _ = run
+    tf = result["teacher_forced"]
+    assert tf["n_chunks"] == 4  # 40-frame episodes: chunks from frames 0 and 16 (the next would need frame 50)
+    for v in ("left", "right", "wrist"):
+        p = tf["views"][v]["psnr"]
+        assert p["model"] == p["copy_last"] == p["shuffled"]  # actions cannot matter to it either
+        assert tf["views"][v]["true_minus_shuffled_moving"] == 0.0
+        assert p["copy_last"]["moving"] < p["copy_last"]["whole"]  # the moving pixels are where it is wrong
+        for row in result["drift"]["views"][v]:
+            if row["n_episodes"]:
+                assert row["psnr"]["model"] == row["psnr"]["copy_last"]
+    # the copy-last, copy-first and median figures recomputed independently for the first teacher-forced chunk
+    # pool (both episodes' chunk from frame 0, target = frame 2 + 2 * 8 = 18, context = frame 2)
+    # over both episodes' chunks from frames 0 and 16: context frame s + 2, target at 0.8 s = frame s + 2 + 2 * 8
+    sums = {k: np.zeros(4) for k in ("copy_last", "copy_first", "median")}
+    for eid in store.episode_ids():
+        f = np.asarray(store.load(eid).frames["left"]).astype(np.float64)
+        for s in (0, 16):
+            ctx, tgt = f[s + 2], f[s + 18]
+            mask = np.any(np.abs(tgt - ctx) / 127.5 > 0.06, -1)[..., None]
+            for k, pred in (("copy_last", ctx), ("copy_first", f[0]), ("median", np.median(f, 0))):
+                e = (pred - tgt) ** 2
+                sums[k] += [e.sum(), e.size, (e * mask).sum(), mask.sum() * 3]
+    for k, (a, n, am, nm) in sums.items():
+        got = tf["views"]["left"]["psnr"][k]
+        assert got["whole"] == pytest.approx(10 * np.log10(255 ** 2 * n / a), abs=1e-9)
+        assert got["moving"] == pytest.approx(10 * np.log10(255 ** 2 * nm / am), abs=1e-9)
+    # inverse dynamics: zero output weights estimate the mean action: exactly the "zero" floor
+    idr = result["inverse_dynamics"]
+    assert idr["mse"] == pytest.approx(idr["zero"], rel=1e-6) and idr["ratio_to_floor"] >= 1.0 - 1e-6
+    # the floor recomputed from the recorded actions: the 8 model-rate actions of each chunk (pairs of 20 Hz
+    # actions composed, from the last context frame s + 2), normalised by the model's stats (mean 0, std 0.02)
+    from sc3_jax.data.pipeline import compose_actions
+    a = np.stack([compose_actions(store.load(eid).actions, s + 2 + 2 * i, 2) for eid in store.episode_ids()
+                  for s in (0, 16) for i in range(8)]) / 0.02
+    assert idr["n_steps"] == len(a) == 32
+    assert idr["zero"] == pytest.approx(np.mean(a ** 2), rel=1e-5)
+    assert idr["mean_floor"] == pytest.approx(np.mean(a.var(0)), rel=1e-4)
+
+
+def test_gates_evaluate(run):
+    _, result, _ = run
+    g = {x["gate"]: x for x in result["gates"]}
+    assert g[dg.GATES[0]]["value"] == 0.0 and not g[dg.GATES[0]]["pass"]  # copy-last is not 3 dB above itself
+    assert g[dg.GATES[2]]["value"] == 0.0 and not g[dg.GATES[2]]["pass"]
+    assert g[dg.GATES[4]]["pass"]
+    oc = result["outcomes"]
+    assert oc["available"] and oc["reference"] == "physics" and oc["imagined_vs_physics"]["n_objects"] == 6
+    assert g[dg.GATES[3]]["value"] == oc["imagined_vs_physics"]["outcome"]
+    # a result whose model beats both baselines by 4 dB and its shuffled actions by 3 dB passes those gates
+    better = copy.deepcopy(result)
+    for v in better["views"]:
+        r = better["teacher_forced"]["views"][v]
+        r["psnr"]["model"]["moving"] = max(r["psnr"]["copy_last"]["moving"], r["psnr"]["median"]["moving"]) + 4
+        r["true_minus_shuffled_moving"] = 3.0
+    better["outcomes"]["imagined_vs_physics"]["outcome"] = 0.8
+    passed = {x["gate"]: x["pass"] for x in dg.gates(better, dg.DiagnoseConfig())}
+    assert all(passed.values()), passed
+    better["outcomes"]["imagined_vs_physics"]["outcome"] = 0.7
+    assert not {x["gate"]: x["pass"] for x in dg.gates(better, dg.DiagnoseConfig())}[dg.GATES[3]]
+
+
+def test_outcome_agreement_compares_criteria_not_category_spellings():
+    """The simulator's labels spell the category "no failure", the scorers' metrics "no_failure": agreement is
+    decided on the criteria (and the category recomputed from them)."""
+    obj = lambda name, lifting, placing, outcome: {"name": name, "destination": "bin", "language": True,  # noqa: E731
+                                                   "lifting": lifting, "placing": placing, "outcome": outcome}
+    physics = [obj("cup", True, True, "no failure"), obj("bowl", False, False, "lifting")]
+    imagined = [obj("cup", True, True, "no_failure"), obj("bowl", True, False, "placing")]
+    sec = dg._outcome_section([{"episode": "e", "imagined": imagined, "real_perception": physics,
+                                "physics": physics, "covered": True}], None)
+    r = sec["imagined_vs_physics"]
+    assert sec["reference"] == "physics" and r["n_objects"] == 2
+    assert (r["lifting"], r["placing"], r["lifting_and_placing"], r["outcome"]) == (0.5, 1.0, 0.5, 0.5)
+    assert sec["real_perception_vs_physics"]["outcome"] == 1.0
