@@ -8,6 +8,8 @@ USAGE = """usage: sc3 <command> [args]
 commands:
   demo           generate the synthetic multi-view data, train the tiny model, report how far it got
   train          sc3 train --config NAME_OR_PATH[:ARG] [--section.field VALUE ...]
+  train-tokenizer  sc3 train-tokenizer --data STORE --workdir DIR: the learned latent tokenizer (conv autoencoder)
+  diagnose       sc3 diagnose WORLD_MODEL --data HELDOUT_STORE: checkpoint gates (PSNR vs baselines, drift, actions)
   rollout        closed-loop / offline rollouts of a policy inside a trained world model
   sweep          policies x initial conditions x {real, offline, online} on the simulated benchmark -> report
   report         sc3 report RESULTS --out DIR: tables, plots and videos from a sweep's results store
@@ -145,6 +147,18 @@ def cmd_convert(argv: list[str]) -> int:
     return convert_cli.main(argv)
 
 
+def cmd_train_tokenizer(argv: list[str]) -> int:
+    from sc3_jax import tokenizer_train
+
+    return tokenizer_train.main(argv)
+
+
+def cmd_diagnose(argv: list[str]) -> int:
+    from sc3_jax.evaluate import diagnose
+
+    return diagnose.main(argv) or 0
+
+
 def cmd_rollout(argv: list[str]) -> int:
     from sc3_jax import rollout_cli
 
@@ -154,7 +168,7 @@ def cmd_rollout(argv: list[str]) -> int:
 COMMANDS = {"demo": cmd_demo, "train": cmd_train, "rollout": cmd_rollout, "sweep": cmd_sweep, "report": cmd_report,
             "data": cmd_data, "sim": cmd_sim,
             "serve-policy": cmd_serve_policy, "configs": cmd_configs, "plan": cmd_plan,
-            "convert": cmd_convert}
+            "convert": cmd_convert, "train-tokenizer": cmd_train_tokenizer, "diagnose": cmd_diagnose}
 
 
 def main(argv: list[str] | None = None) -> int:

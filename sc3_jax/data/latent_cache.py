@@ -22,7 +22,13 @@ from sc3_jax.data.episodes import EpisodeStore
 
 
 def tokenizer_digest(path: str | Path) -> str:
-    return hashlib.sha1((Path(path) / "ae_params.npz").read_bytes()).hexdigest()[:16]
+    """Hash of the tokenizer's arrays (not the file's bytes: a re-export of the same weights keeps its cache)."""
+    h = hashlib.sha1()
+    with np.load(Path(path) / "ae_params.npz") as z:
+        for k in sorted(z.files):
+            h.update(k.encode())
+            h.update(np.ascontiguousarray(z[k]).tobytes())
+    return h.hexdigest()[:16]
 
 
 def build(store: EpisodeStore, tok, views: tuple[str, ...], root: str | Path, batch: int = 256,
