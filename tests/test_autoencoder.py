@@ -134,3 +134,27 @@ def test_latent_cache_matches_encoder_and_refuses_other_tokenizer(trained, store
         latent_cache.build(store, ConvAETokenizer(str(tmp_path / "other"), 2), views, root, progress=False)
     with pytest.raises(FileNotFoundError, match="no cached latents"):
         latent_cache.LatentReader(tmp_path / "empty", ids)
+
+
+def test_exported_world_model_carries_its_tokenizer(trained, tmp_path):
+    """An exported conv_ae world model holds its tokenizer and finds it wherever the directory is moved."""
+    import shutil
+
+    from sc3_jax import train
+    from sc3_jax.config import Config
+    from sc3_jax.evaluate import sweep
+
+    _, work, _ = trained
+    cfg = Config(model=ModelConfig(dim=32, depth=1, num_heads=2, num_kv_heads=1, head_dim=16, mlp_dim=64,
+                                   rope_axes_dim=(4, 2, 2), tokenizer="conv_ae",
+                                   tokenizer_path=str(work / "tokenizer"), patch_size=2),
+                 data=DataConfig(image_size=(16, 16)))
+    params = train.init_state(cfg)["params"]
+    stats = pipeline.NormStats(np.zeros(7), np.ones(7))
+    sweep.save_world_model(tmp_path / "wm", cfg, stats, params)
+    assert json.loads((tmp_path / "wm" / "config.json").read_text())["model"]["tokenizer_path"] == "tokenizer"
+    shutil.move(tmp_path / "wm", tmp_path / "moved")
+    cfg2, _, params2 = sweep.load_world_model(tmp_path / "moved")
+    assert cfg2.model.tokenizer_path == str((tmp_path / "moved" / "tokenizer").absolute())
+    assert make_tokenizer(cfg2.model).token_dim == 2 * 2 * 4
+    assert jax.tree.structure(params2) == jax.tree.structure(params)
