@@ -224,9 +224,10 @@ def activation_estimate(cfg, mesh_cfg) -> float:
     D, hd = m.dim, m.head_dim
     flash = m.attention_impl in FLASH_IMPLS
     per_token = a * (5 * D + 4 * hd * (hq + 2 * hkv) + 5 * mlp) + (8 * hq if flash else 0)
-    if flash:  # fp32 dq [Hq, Nl, hd] (carry + one key block's contribution) and a few [bq, bk] fp32 tiles
+    if flash:  # fp32 dq [Hq, Nl, hd] (carry + one key block's contribution) and ~12 [bq, bk] fp32 tiles (scores,
+        # probabilities, their gradients, ... in the backward's loops; the count fitted to compiled CPU memory)
         b = m.attention_block
-        transient = Bl * hq * (2 * Nl * hd * 4 + 4 * min(b, Nl) * min(b, N) * 4)
+        transient = Bl * hq * (2 * Nl * hd * 4 + 12 * min(b, Nl) * min(b, N) * 4)
         kept_scores = 0
     else:
         transient = Bl * hq * Nl * N * (4 + 4 + a)
