@@ -321,6 +321,7 @@ def plan(cfg, mesh_cfg, device: str, mfu: float = 0.4, compile: bool = False, ch
     mem = compiled_memory(cfg, mesh_cfg) if compile else None
     if mem is not None:
         out["activations_bytes"], out["activations_source"] = float(mem.temp_size_in_bytes), "compiled"
+        out["activations_estimate"] = activation_estimate(cfg, mesh_cfg)  # printed beside it: the estimate's check
     else:
         out["activations_bytes"], out["activations_source"] = activation_estimate(cfg, mesh_cfg), "estimate"
         if compile:
@@ -372,7 +373,8 @@ def format_plan(p: dict) -> str:
         f"  optimizer    {_gb(p['optimizer_bytes'])}",
         f"  gradients    {_gb(p['grads_bytes'])}  (param-sized, param-sharded)",
         f"  activations  {_gb(p['activations_bytes'])}  ("
-        + ("compiled memory analysis: temp buffers per device" if p["activations_source"] == "compiled"
+        + (f"compiled memory analysis: temp buffers per device; estimate {p['activations_estimate'] / 1e9:.3g} GB"
+           if p["activations_source"] == "compiled"
            else "ESTIMATE, analytic: plan.activation_estimate") + ")",
         f"  total        {_gb(p['total_bytes'])}  of {p['hbm_bytes'] / 1e9:.0f} GB: "
         + ("fits (<= 90%)" if p["fits"] else "DOES NOT FIT"

@@ -1,0 +1,54 @@
+"""Compiled train-step temp memory of dense vs blockwise attention at ~2k / 4k / 8k tokens per sample, next to
+``plan.activation_estimate`` (small width, one sample, this machine's first device; nothing is run, only compiled).
+
+    python bench/attention_memory.py [--impls dense:none blockwise:none blockwise:dots blockwise:block]
+
+The ``tiny`` config at patch 4 (3 views x 6 frames of 32x56 / 56x64 / 64x112 pixels: 2,020 / 4,036 / 8,068
+tokens), dim 128, 4 layers. Prints a markdown table (measured = ``memory_analysis().temp_size_in_bytes``) and,
+last, ``attention_memory: growth_dense=<x> growth_blockwise=<y>``: the measured factor per doubling of the
+sequence (4 = quadratic, 2 = linear), geometric mean over the two doublings, remat "none"."""
+from __future__ import annotations
+
+import argparse
+import math
+
+from sc3_jax import plan
+from sc3_jax.config import MeshConfig, load_config
+
+SIZES = {2020: (32, 56), 4036: (56, 64), 8068: (64, 112)}
+
+
+def config(image, impl: str, remat: str):
+    return plan.apply_overrides(load_config("tiny"), [
+        f"data.image_size={list(image)}", "data.batch_size=1", "model.patch_size=4",
+        "model.action_reads_frames=False", f"model.attention_impl={impl}", f"model.remat={remat}"])
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--impls", nargs="+", default=["dense:none", "blockwise:none", "blockwise:dots",
+                                                   "blockwise:block", "dense:block"])
+    args = ap.parse_args(argv)
+    mesh = MeshConfig(1, 1, 1, 1)
+    measured = {}
+    print("| tokens | attention | remat | compiled temp | estimate | compiled / estimate |\n|---|---|---|---|---|---|")
+    for n, image in SIZES.items():
+        for spec in args.impls:
+            impl, remat = spec.split(":")
+            cfg = config(image, impl, remat)
+            assert plan.tokens_per_sample(cfg) == n
+            m = plan.compiled_memory(cfg, mesh).temp_size_in_bytes
+            e = plan.activation_estimate(cfg, mesh)
+            measured[n, impl, remat] = m
+            print(f"| {n:,} | {impl} | {remat} | {m / 1e6:,.0f} MB | {e / 1e6:,.0f} MB | {m / e:.2f} |", flush=True)
+    growth = {}
+    for impl in ("dense", "blockwise"):
+        r = [measured.get((b, impl, "none"), math.nan) / measured.get((a, impl, "none"), math.nan)
+             for a, b in ((2020, 4036), (4036, 8068))]
+        growth[impl] = math.sqrt(r[0] * r[1])
+    print(f"attention_memory: growth_dense={growth['dense']:.2f} growth_blockwise={growth['blockwise']:.2f}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
