@@ -18,7 +18,10 @@ config plans on a laptop in seconds.
   per-chunk model step (``rollout._Steps.model_step``) with S = 1, plus (S - 1) x the cost of one forward and one
   inverse network evaluation (the sampler's ``fori_loop`` body would otherwise be counted once).
 * Activations: with ``--compile`` and a mesh that fits on this machine's devices, the compiled train step's
-  memory analysis (``temp_size_in_bytes`` per device); otherwise an analytic estimate, printed as such.
+  memory analysis (``temp_size_in_bytes`` per device, the estimate beside it); otherwise an analytic estimate for
+  the config's attention kernel and remat policy, printed as such.
+* A plan that fits, when the config does not: the memory-efficient attention kernel for the device, the lightest
+  remat and the fewest micro-batches whose estimate fits (``fitting_plan``), with its own step FLOPs.
 * Times: FLOPs / (devices x peak x MFU). Peaks are approximate vendor dense-BF16 figures per chip (``DEVICES``).
 """
 from __future__ import annotations
