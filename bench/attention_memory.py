@@ -6,7 +6,10 @@
 The ``tiny`` config at patch 4 (3 views x 6 frames of 32x56 / 56x64 / 64x112 pixels: 2,020 / 4,036 / 8,068
 tokens), dim 128, 4 layers. Prints a markdown table (measured = ``memory_analysis().temp_size_in_bytes``) and,
 last, ``attention_memory: growth_dense=<x> growth_blockwise=<y>``: the measured factor per doubling of the
-sequence (4 = quadratic, 2 = linear), geometric mean over the two doublings, remat "none"."""
+sequence (4 = quadratic, 2 = linear), geometric mean over the two doublings, remat "none".
+
+``--kernel`` instead compares the blockwise kernel's backward alone (2 heads, head_dim 32, 512-token tiles) with
+its custom_vjp (flash backward) and with plain autodiff through its scans, at 2,048 and 4,096 tokens."""
 from __future__ import annotations
 
 import argparse
@@ -24,11 +27,32 @@ def config(image, impl: str, remat: str):
         "model.action_reads_frames=False", f"model.attention_impl={impl}", f"model.remat={remat}"])
 
 
+def kernel_backward():
+    import jax
+    import jax.numpy as jnp
+
+    from sc3_jax.model import attention
+
+    def temp(f, *a):
+        return jax.jit(jax.grad(f, argnums=(0, 1, 2))).lower(*a).compile().memory_analysis().temp_size_in_bytes
+
+    for n in (2048, 4096):
+        q, k = jnp.ones((1, 2, 2, n, 32)), jnp.ones((1, 2, n, 32))
+        args = (None, None, False, 0, n, 512, 512)
+        custom = temp(lambda q, k, v: jnp.sum(attention._flash(q, k, v, *args)[0] ** 2), q, k, k)
+        plain = temp(lambda q, k, v: jnp.sum(attention._flash_fwd(q, k, v, *args)[0][0] ** 2), q, k, k)
+        print(f"{n} tokens: backward temp custom_vjp {custom / 1e6:.0f} MB, plain autodiff {plain / 1e6:.0f} MB")
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--impls", nargs="+", default=["dense:none", "blockwise:none", "blockwise:dots",
                                                    "blockwise:block", "dense:block"])
+    ap.add_argument("--kernel", action="store_true", help="the kernel's backward: custom_vjp vs plain autodiff")
     args = ap.parse_args(argv)
+    if args.kernel:
+        kernel_backward()
+        return 0
     mesh = MeshConfig(1, 1, 1, 1)
     measured = {}
     print("| tokens | attention | remat | compiled temp | estimate | compiled / estimate |\n|---|---|---|---|---|---|")
