@@ -392,7 +392,8 @@ def format_plan(p: dict) -> str:
     if p["fit"]:
         f = p["fit"]
         sets = " ".join(f"--set {k}={v}" for k, v in (("model.attention_impl", f["attention_impl"]),
-                                                        ("model.remat", f["remat"]), ("train.grad_accum", f["microbatches"])))
+                                                        ("model.remat", f["remat"]),
+                                                        ("train.grad_accum", f["microbatches"])))
         lines += [f"plan that fits: attention {f['attention_impl']}, remat {f['remat']}, {f['microbatches']} "
                   f"micro-batch{'es' if f['microbatches'] > 1 else ''} per step ({sets})",
                   f"  activations  {_gb(f['activations_bytes'])}  (ESTIMATE), total {_gb(f['total_bytes']).strip()} "

@@ -15,10 +15,10 @@ Why: the dense form (``layers.attention``) materialises fp32 scores [B, Hq, N, M
   flag is its ``CausalMask``; the segment table is a small ``MultiHeadMask``-style lookup evaluated per tile.
 * **Blockwise** (:func:`blockwise`): ``lax.map`` over query blocks, ``lax.scan`` over key blocks with an online
   softmax (running max, normaliser, fp32 accumulator), under a ``jax.custom_vjp`` whose backward pass is the
-  flash-attention backward (recompute each tile's probabilities from the saved log-sum-exp; dq carried over key
-  blocks, dk/dv accumulated over query blocks). Saved for the backward: q, k, v, the output and the log-sum-exp,
-  so memory is O(N) per layer, not O(N M); plain autodiff through the scans would save every tile's
-  probabilities, O(N M) again. Runs on any backend (the CPU tests use it). Returns the log-sum-exp too
+  flash-attention backward (recompute each tile's probabilities from the saved softmax statistics; dq carried
+  over key blocks, dk/dv accumulated over query blocks). Saved for the backward: q, k, v, the output and each
+  row's running max and normaliser, so memory is O(N) per layer, not O(N M); plain autodiff through the scans
+  saves every tile's probabilities, O(N M) again (``python bench/attention_memory.py --kernel`` measures both). Runs on any backend (the CPU tests use it). Returns the log-sum-exp too
   (differentiable), which is how ring attention merges the per-device partial results.
 * **Fused** (:func:`fused_ok`, ``jax.nn.dot_product_attention(implementation="cudnn")``): selected only on GPU, for
   bf16/fp16, head_dim a multiple of 8 and <= 128, and a mask that is full or purely causal (cuDNN cannot read a
@@ -37,7 +37,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-IMPLS = ("dense", "blockwise", "fused", "context_parallel", "ring")
+from sc3_jax.config import ATTENTION_IMPLS as IMPLS
+
 MASKED = float(jnp.finfo(jnp.float32).min)  # the score of a masked (query, key) pair, as layers.attention
 _MIN = MASKED
 
@@ -49,8 +50,8 @@ _MIN = MASKED
 @dataclasses.dataclass(frozen=True)
 class SegmentMask:
     """mask[b, i, j] = table[q[b, i]][k[b, j]] (and j <= i + M - N if ``causal``). ``q`` int [B, N], ``k`` int
-    [B, M] or both None (no segment table: only the causal flag, if any); ``table`` a static tuple of tuples of
-    bools."""
+    [B, M] (a key segment < 0 marks padding: never attended, even by a fully masked row) or both None (no segment
+    table: only the causal flag, if any); ``table`` a static tuple of tuples of bools."""
     q: jax.Array | None
     k: jax.Array | None
     table: tuple[tuple[bool, ...], ...] | None
