@@ -7,6 +7,10 @@ import importlib.util
 from pathlib import Path
 
 
+ATTENTION_IMPLS = ("dense", "blockwise", "fused", "context_parallel", "ring")
+REMAT_POLICIES = ("none", "dots", "block")  # lightest to heaviest recompute
+
+
 @dataclasses.dataclass(frozen=True)
 class ModelConfig:
     dim: int = 128
@@ -61,17 +65,24 @@ class ModelConfig:
     context_attention: str = "full"
     dtype: str = "float32"  # activation dtype
     param_dtype: str = "float32"
-    remat: bool = False
+    # Rematerialisation of each layer in the backward pass: "none" (keep every activation), "dots" (keep only the
+    # layer's weight matmul outputs, jax.checkpoint_policies.dots_with_no_batch_dims_saveable: recompute norms,
+    # rotary, attention and activations), "block" (keep only each layer's input, recompute the whole block).
+    # True / False are read as "block" / "none". sc3 plan picks the lightest one that fits.
+    remat: str = "none"
     # lax.scan over the stacked layers (one compiled block, fast compiles at any depth). False unrolls the scan:
     # same math; XLA's cost analysis counts a loop body once, so FLOP counting compiles the unrolled form.
     scan_layers: bool = True
-    # Attention over the packed token sequence. "dense": one device holds every query and key (the default; the
-    # only mode before context parallelism existed). With a mesh that has a ``context`` axis (MeshConfig.context > 1)
-    # the token sequence is split over that axis and attention runs under ``jax.shard_map``
-    # (sc3_jax/model/context_parallel.py): "context_parallel" all-gathers keys/values (scores [N/C, N] per device),
-    # "ring" passes key/value blocks around the ring with an online softmax (scores [N/C, N/C] per device). Same
-    # math and parameters as "dense"; without a context axis both fall back to the dense computation.
+    # Attention over the packed token sequence (sc3_jax/model/attention.py). "dense": fp32 scores [Hq, N, M] written
+    # out per layer (the default; the only mode before the others existed). "blockwise": flash attention in plain
+    # JAX (lax.scan over key blocks, online softmax, flash backward): O(N) memory, any backend. "fused": the cuDNN
+    # kernel (jax.nn.dot_product_attention) on GPU where the mask and dtype allow it, else "blockwise". With a mesh
+    # that has a ``context`` axis (MeshConfig.context > 1) the token sequence is split over that axis and attention
+    # runs under ``jax.shard_map`` (sc3_jax/model/context_parallel.py): "context_parallel" all-gathers keys/values,
+    # "ring" passes key/value blocks around the ring; each device runs the blockwise kernel. Same math and
+    # parameters in every mode; without a context axis the last two fall back to "blockwise".
     attention_impl: str = "dense"
+    attention_block: int = 512  # tokens per query / key tile of the blockwise kernel (static; last tile padded)
     # Cosmos3 compatibility (diffusers ``Cosmos3OmniTransformer``; sc3_jax/model/cosmos3.py, convert.py). With the
     # defaults below nothing changes. ``layout="cosmos3"`` computes what Cosmos3OmniTransformer computes for a packed
     # [text | video | actions] sequence: its mRoPE position ids (text arange(L); then offset L + mrope_margin;
@@ -109,9 +120,14 @@ class ModelConfig:
             raise ValueError(f"prediction must be 'residual' or 'velocity', got {self.prediction!r}")
         if self.context_attention not in ("full", "causal"):
             raise ValueError(f"context_attention must be 'full' or 'causal', got {self.context_attention!r}")
-        if self.attention_impl not in ("dense", "context_parallel", "ring"):
-            raise ValueError(f"attention_impl must be 'dense', 'context_parallel' or 'ring', "
-                             f"got {self.attention_impl!r}")
+        if self.attention_impl not in ATTENTION_IMPLS:
+            raise ValueError(f"attention_impl must be one of {ATTENTION_IMPLS}, got {self.attention_impl!r}")
+        if self.attention_block < 1:
+            raise ValueError(f"attention_block must be >= 1, got {self.attention_block}")
+        if isinstance(self.remat, bool):  # backward compatible: remat=True / False
+            object.__setattr__(self, "remat", "block" if self.remat else "none")
+        if self.remat not in REMAT_POLICIES:
+            raise ValueError(f"remat must be one of {REMAT_POLICIES} (or a bool), got {self.remat!r}")
         if self.layout not in ("sc3", "cosmos3"):
             raise ValueError(f"layout must be 'sc3' or 'cosmos3', got {self.layout!r}")
         if self.text_pathway and (self.layout != "cosmos3" or self.vocab_size <= 0):

@@ -18,7 +18,10 @@ config plans on a laptop in seconds.
   per-chunk model step (``rollout._Steps.model_step``) with S = 1, plus (S - 1) x the cost of one forward and one
   inverse network evaluation (the sampler's ``fori_loop`` body would otherwise be counted once).
 * Activations: with ``--compile`` and a mesh that fits on this machine's devices, the compiled train step's
-  memory analysis (``temp_size_in_bytes`` per device); otherwise an analytic estimate, printed as such.
+  memory analysis (``temp_size_in_bytes`` per device, the estimate beside it); otherwise an analytic estimate for
+  the config's attention kernel and remat policy, printed as such.
+* A plan that fits, when the config does not: the memory-efficient attention kernel for the device, the lightest
+  remat and the fewest micro-batches whose estimate fits (``fitting_plan``), with its own step FLOPs.
 * Times: FLOPs / (devices x peak x MFU). Peaks are approximate vendor dense-BF16 figures per chip (``DEVICES``).
 """
 from __future__ import annotations
@@ -190,34 +193,53 @@ def _sizes(mesh_cfg) -> dict[str, int]:
     return {k: getattr(mesh_cfg, k) for k in MESH_KEYS}
 
 
+FLASH_IMPLS = ("blockwise", "fused", "context_parallel", "ring")  # no [N, M] scores (context parallel: per device)
+
+
 def activation_estimate(cfg, mesh_cfg) -> float:
-    """Analytic per-device activation bytes of one train step (an estimate, not a measurement):
-    tokens per device = (batch / (data x fsdp)) x (tokens per sample / context) [the sequence is split only by the
-    context-parallel attention impls]; per layer and token the block's saved tensors (norm outputs, q/k/v before and
-    after norm+rope, attention output, residuals, the MLP's gate/up/product: ~4 D + 3 hd (Hq + 2 Hkv) + 3 mlp
-    elements, heads and mlp divided by "tensor"); per layer the fp32 scores, their softmax gradient and the
-    probabilities [Hq, Nq, Nk] (Nk = all keys, or one ring block). With remat only each layer's input is kept, plus
-    one layer's working set during its backward."""
+    """Analytic per-device activation bytes of one train step (an estimate; checked against compiled memory
+    analysis in docs/plan.md). Tokens per device = (micro-batch / (data x fsdp)) x (tokens per sample / context)
+    [the sequence is split only by the context-parallel impls]; heads and mlp divided by "tensor".
+
+    Kept for the backward pass, per layer and token, by ``model.remat``:
+      "none":  the block's saved tensors (norm inputs and outputs, q/k/v before and after norm and rotary,
+               attention output, residuals, the MLP's gate/up/activation/product: 5 D + 4 hd (Hq + 2 Hkv) + 5 mlp
+               elements, counts fitted to the compiled CPU step's memory analysis, docs/plan.md) and, with dense
+               attention, the fp32 scores and probabilities [Hq, Nq, Nk] (with the blockwise / fused kernels:
+               only the softmax statistics, 2 fp32 per head);
+      "dots":  the weight matmul outputs: layer input, q/k/v projections, attention and MLP projections
+               (2 D + hd (Hq + 2 Hkv) + mlp elements, fitted likewise) -- the attention kernel is recomputed;
+      "block": the layer input (D).
+    Plus one layer's working set during its backward: its saved tensors and the attention transients (dense:
+    scores, their gradient, probabilities; blockwise: fp32 dq and the per-tile scores)."""
     import jax.numpy as jnp
 
     m, s = cfg.model, _sizes(mesh_cfg)
     a = jnp.dtype(m.dtype).itemsize
     N = tokens_per_sample(cfg)
     Bl = -(-(cfg.data.batch_size // cfg.train.grad_accum) // (s["data"] * s["fsdp"]))  # one micro-batch
-    C = s["context"] if m.attention_impl != "dense" else 1
+    C = s["context"] if m.attention_impl in ("context_parallel", "ring") else 1
     Nl = -(-N // C)
     t = s["tensor"]
     split = m.num_kv_heads % t == 0
     hq, hkv = (m.num_heads // t, m.num_kv_heads // t) if split else (m.num_heads, m.num_kv_heads)
     mlp = m.mlp_dim // t if m.mlp_dim % t == 0 else m.mlp_dim
-    Nk = -(-N // C) if m.attention_impl == "ring" else N
-    per_token = a * (4 * m.dim + 3 * m.head_dim * (hq + 2 * hkv) + 3 * mlp)
-    scores = Bl * hq * Nl * Nk * (4 + 4 + a)
-    layer = Bl * Nl * per_token + scores
-    if m.remat:
-        return m.depth * Bl * Nl * m.dim * a + layer
-    kept_scores = 0 if m.attention_impl == "ring" else Bl * hq * Nl * Nk * (4 + a)
-    return m.depth * (Bl * Nl * per_token + kept_scores) + scores
+    D, hd = m.dim, m.head_dim
+    flash = m.attention_impl in FLASH_IMPLS
+    per_token = a * (5 * D + 4 * hd * (hq + 2 * hkv) + 5 * mlp) + (8 * hq if flash else 0)
+    if flash:  # fp32 dq [Hq, Nl, hd] (carry + one key block's contribution) and ~12 [bq, bk] fp32 tiles (scores,
+        # probabilities, their gradients, ... in the backward's loops; the count fitted to compiled CPU memory)
+        b = m.attention_block
+        transient = Bl * hq * (2 * Nl * hd * 4 + 12 * min(b, Nl) * min(b, N) * 4)
+        kept_scores = 0
+    else:
+        transient = Bl * hq * Nl * N * (4 + 4 + a)
+        kept_scores = Bl * hq * Nl * N * (4 + a)
+    working = Bl * Nl * per_token + transient
+    kept = {"none": Bl * Nl * per_token + kept_scores,
+            "dots": Bl * Nl * a * (2 * D + hd * (hq + 2 * hkv) + mlp),
+            "block": Bl * Nl * a * D}[m.remat]
+    return m.depth * kept + working
 
 
 def _microbatches(cfg, mesh_cfg, free: float) -> int | None:
@@ -230,6 +252,28 @@ def _microbatches(cfg, mesh_cfg, free: float) -> int | None:
             smaller = dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, grad_accum=k))
             if activation_estimate(smaller, mesh_cfg) <= free:
                 return k
+    return None
+
+
+def fitting_plan(cfg, mesh_cfg, device: str, free: float) -> dict | None:
+    """The cheapest (attention_impl, remat, micro-batches) whose estimated activations fit in ``free`` bytes:
+    dense attention is replaced by the memory-efficient kernel for the device ("fused": cuDNN on GPUs,
+    "blockwise" on TPU until splash attention is wired in; other impls are kept); the lightest remat
+    (none < dots < block: each recomputes more of the forward pass); then the fewest micro-batches. None if
+    nothing fits."""
+    from sc3_jax.config import REMAT_POLICIES
+
+    m = cfg.model
+    impl = m.attention_impl
+    if impl == "dense":  # never worth keeping when memory binds: same math, no [N, N] scores
+        impl = "blockwise" if device == "v5p" else "fused"
+    for remat in REMAT_POLICIES:
+        c = dataclasses.replace(cfg, model=dataclasses.replace(m, attention_impl=impl, remat=remat))
+        k = _microbatches(c, mesh_cfg, free)
+        if k is not None:
+            c = dataclasses.replace(c, train=dataclasses.replace(c.train, grad_accum=k))
+            return {"attention_impl": impl, "remat": remat, "microbatches": k,
+                    "activations_bytes": activation_estimate(c, mesh_cfg), "cfg": c}
     return None
 
 
@@ -280,6 +324,7 @@ def plan(cfg, mesh_cfg, device: str, mfu: float = 0.4, compile: bool = False, ch
     mem = compiled_memory(cfg, mesh_cfg) if compile else None
     if mem is not None:
         out["activations_bytes"], out["activations_source"] = float(mem.temp_size_in_bytes), "compiled"
+        out["activations_estimate"] = activation_estimate(cfg, mesh_cfg)  # printed beside it: the estimate's check
     else:
         out["activations_bytes"], out["activations_source"] = activation_estimate(cfg, mesh_cfg), "estimate"
         if compile:
@@ -289,12 +334,21 @@ def plan(cfg, mesh_cfg, device: str, mfu: float = 0.4, compile: bool = False, ch
         out["notes"].append("mesh has context > 1 but model.attention_impl is 'dense': the sequence is not split "
                             "(use --set model.attention_impl=ring)")
     out["fits"] = out["total_bytes"] <= 0.9 * hbm
-    out["microbatches"] = None if out["fits"] else _microbatches(cfg, mesh_cfg, 0.9 * hbm - (
-        out["total_bytes"] - out["activations_bytes"]))
     out["flops_source"] = "compiled" if compile else "lowered"
     out["step_flops"] = train_step_flops(cfg, compiled=compile)
     out["step_seconds"] = out["step_flops"] / (n * peak * mfu)
     out["train_seconds"] = out["step_seconds"] * cfg.train.steps
+    out["fit"] = None
+    if not out["fits"]:
+        fit = fitting_plan(cfg, mesh_cfg, device, 0.9 * hbm - (out["total_bytes"] - out["activations_bytes"]))
+        if fit is not None:
+            fit["total_bytes"] = out["total_bytes"] - out["activations_bytes"] + fit["activations_bytes"]
+            # remat changes the recomputed FLOPs (attention impl and micro-batches do not: same counted program)
+            fit["step_flops"] = (out["step_flops"] if fit["remat"] == cfg.model.remat
+                                 else train_step_flops(fit["cfg"], compiled=compile))
+            fit["step_seconds"] = fit["step_flops"] / (n * peak * mfu)
+            fit["train_seconds"] = fit["step_seconds"] * cfg.train.steps
+        out["fit"] = fit
     if chunk:
         c = chunk_flops(cfg)
         out["chunk_flops"], out["chunk_steps"] = c["total"], c["steps"]
@@ -322,20 +376,30 @@ def format_plan(p: dict) -> str:
         f"  optimizer    {_gb(p['optimizer_bytes'])}",
         f"  gradients    {_gb(p['grads_bytes'])}  (param-sized, param-sharded)",
         f"  activations  {_gb(p['activations_bytes'])}  ("
-        + ("compiled memory analysis: temp buffers per device" if p["activations_source"] == "compiled"
+        + (f"compiled memory analysis: temp buffers per device; estimate {p['activations_estimate'] / 1e9:.3g} GB"
+           if p["activations_source"] == "compiled"
            else "ESTIMATE, analytic: plan.activation_estimate") + ")",
         f"  total        {_gb(p['total_bytes'])}  of {p['hbm_bytes'] / 1e9:.0f} GB: "
         + ("fits (<= 90%)" if p["fits"] else "DOES NOT FIT"
-           + (f"; would fit with {p['microbatches']} micro-batches per step (--train.grad-accum "
-              f"{p['microbatches']})"
-              if p["microbatches"] else "; not even one sample per device fits: split the sequence (context axis "
-              "with attention_impl ring) or shard more")),
+           + ("" if p["fit"] else "; nothing fits, not even one sample per device with every remat and the "
+              "memory-efficient attention: split the sequence (context axis, attention_impl ring) or shard more")),
         (f"train step: {p['step_flops']:.4g} FLOPs ({p['flops_source']} XLA cost analysis, global), "
          f"{p['step_flops'] / p['devices']:.4g} per device (global / {p['devices']} devices, perfect split)"),
         (f"  at MFU {p['mfu']:.2f}: {p['step_seconds']:.3g} s/step; {p['steps']:,} steps = "
          f"{p['train_seconds'] / 3600:.1f} h = {p['train_seconds'] / 86400:.2f} days on {p['devices']} x "
          f"{p['device']}"),
     ]
+    if p["fit"]:
+        f = p["fit"]
+        sets = " ".join(f"--set {k}={v}" for k, v in (("model.attention_impl", f["attention_impl"]),
+                                                        ("model.remat", f["remat"]),
+                                                        ("train.grad_accum", f["microbatches"])))
+        lines += [f"plan that fits: attention {f['attention_impl']}, remat {f['remat']}, {f['microbatches']} "
+                  f"micro-batch{'es' if f['microbatches'] > 1 else ''} per step ({sets})",
+                  f"  activations  {_gb(f['activations_bytes'])}  (ESTIMATE), total {_gb(f['total_bytes']).strip()} "
+                  f"of {p['hbm_bytes'] / 1e9:.0f} GB",
+                  f"  train step: {f['step_flops']:.4g} FLOPs; at MFU {p['mfu']:.2f}: {f['step_seconds']:.3g} s/step; "
+                  f"{p['steps']:,} steps = {f['train_seconds'] / 86400:.2f} days on {p['devices']} x {p['device']}"]
     if "chunk_flops" in p:
         lines.append(f"rollout chunk (1 episode, {p['chunk_predict']} frames, FD + ID sampling, {p['chunk_steps']} "
                      f"Euler steps each): {p['chunk_flops']:.4g} FLOPs (lowered XLA cost analysis)")

@@ -99,12 +99,15 @@ def encode_text(params, cfg: ModelConfig, text: jax.Array):
 
     if not cfg.text_pathway:
         raise ValueError("this config has no text pathway (text_pathway=False)")
-    if cfg.attention_impl != "dense":
-        raise NotImplementedError("the text pathway runs with attention_impl='dense' only")
+    if cfg.attention_impl in ("context_parallel", "ring"):
+        raise NotImplementedError("the text pathway does not run with context parallelism")
     B, L = text.shape
     dt = jnp.dtype(cfg.dtype)
     x = jnp.take(params["embed_tokens"], text, axis=0).astype(dt)
     cos, sin = rope_cos_sin(cfg, jnp.broadcast_to(text_positions(L)[None], (B, L, 3)))
-    causal = jnp.tril(jnp.ones((L, L), bool))[None, None]
+    from sc3_jax.model import attention
+
+    dense = cfg.attention_impl == "dense"
+    causal = jnp.tril(jnp.ones((L, L), bool))[None, None] if dense else attention.causal_mask()
     _, kv = dit._run_layers(cfg, params, x, cos, sin, causal, stack="text_layers")
     return kv

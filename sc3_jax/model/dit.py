@@ -21,7 +21,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from sc3_jax.config import ModelConfig
-from sc3_jax.model import context_parallel, cosmos3, layers
+from sc3_jax.model import attention, context_parallel, cosmos3, layers
 
 
 @dataclasses.dataclass(frozen=True)
@@ -273,10 +273,7 @@ def _block(cfg: ModelConfig, x, p, cos, sin, mask, prefix_kv=None):
     if prefix_kv is not None:
         k = jnp.concatenate([prefix_kv[0].astype(k.dtype), k], axis=1)
         v = jnp.concatenate([prefix_kv[1].astype(v.dtype), v], axis=1)
-    if cfg.attention_impl == "dense":
-        o = layers.attention(q, k, v, mask)
-    else:  # sequence split over the mesh's "context" axis (mask: a context_parallel.SegmentMask or None)
-        o = context_parallel.attention(q, k, v, mask, ring=cfg.attention_impl == "ring")
+    o = attention.attend(cfg.attention_impl, q, k, v, mask, cfg.attention_block)
     x = x + jnp.einsum("bnhk,hkd->bnd", o, p["wo"].astype(x.dtype))
     h = layers.rms_norm(x, p["mlp_norm"], cfg.norm_eps)
     x = x + layers.swiglu(h, p["w_gate"], p["w_up"], p["w_down"])
@@ -291,8 +288,10 @@ def _run_layers(cfg: ModelConfig, params, x, cos, sin, mask, prefix_kv=None, sta
         p, pkv = layer
         return _block(cfg, x, p, cos, sin, mask, pkv)
 
-    if cfg.remat:
-        body = jax.checkpoint(body, policy=jax.checkpoint_policies.nothing_saveable)
+    if cfg.remat != "none":  # "block": keep only each layer's input; "dots": also its weight matmul outputs
+        policy = (jax.checkpoint_policies.nothing_saveable if cfg.remat == "block"
+                  else jax.checkpoint_policies.dots_with_no_batch_dims_saveable)
+        body = jax.checkpoint(body, policy=policy)
     return jax.lax.scan(body, x, (params[stack], prefix_kv), unroll=not cfg.scan_layers)
 
 
@@ -315,9 +314,9 @@ def _attention_mask(cfg: ModelConfig, noisy: jax.Array, n_ctx: int, q_start: int
     the action tokens for each sampler step."""
     if cfg.context_attention == "full":
         return None
-    if cfg.attention_impl != "dense":  # the same mask as per-token segments: each device builds only its block
-        seg = context_parallel.causal_segments(noisy, n_ctx)
-        return context_parallel.SegmentMask(seg[:, q_start:], seg, context_parallel.CAUSAL_TABLE)
+    if cfg.attention_impl != "dense":  # the same mask as per-token segments: only ever built one tile at a time
+        seg = attention.causal_segments(noisy, n_ctx)
+        return attention.SegmentMask(seg[:, q_start:], seg, attention.CAUSAL_TABLE)
     n = noisy.shape[1]
     is_ctx = jnp.arange(n) < n_ctx
     q_ctx, q_noisy = is_ctx[q_start:][None, :, None], noisy[:, q_start:, None]
@@ -366,8 +365,9 @@ def _text_prefix(params, cfg: ModelConfig, inp: Inputs, text_kv):
         if text_kv is not None:
             raise ValueError("text_kv given but this config has no text pathway")
         return None
-    if cfg.attention_impl != "dense":
-        raise NotImplementedError("the text pathway runs with attention_impl='dense' only")
+    if cfg.attention_impl in ("context_parallel", "ring"):
+        raise NotImplementedError("the text pathway does not run with context parallelism (attention_impl "
+                                  f"{cfg.attention_impl!r}); use 'dense', 'blockwise' or 'fused'")
     if text_kv is None:
         text = inp.text
         if text is None and cfg.prompt_ids:  # the config's fixed prompt for every sample
@@ -387,9 +387,11 @@ def _rope(cfg: ModelConfig, inp: Inputs, V, F, grid, T, K, L: int, sl=slice(None
 
 
 def _prefix_columns(mask, n: int):
-    """Let every query also see ``n`` prefix keys (the text) in front of a [B, 1, Nq, N] mask."""
+    """Let every query also see ``n`` prefix keys (the text) in front of a [B, 1, Nq, N] mask or a SegmentMask."""
     if mask is None or n == 0:
         return mask
+    if isinstance(mask, attention.SegmentMask):
+        return attention.with_prefix(mask, n)
     return jnp.concatenate([jnp.ones(mask.shape[:3] + (n,), bool), mask], axis=-1)
 
 
