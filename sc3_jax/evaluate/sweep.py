@@ -46,12 +46,10 @@ class SweepConfig:
     # --calibration-episodes 6 --ceiling-episodes 36 --batch 6
     episodes: int = 4  # evaluation initial conditions per policy (simulator seeds seed0 + i)
     seed0: int = 10_000_000
-    # held-out block for choosing tau (real + online rollouts; never evaluated on), and a second independent set of
-    # real rollouts for the noise ceiling (0: the report falls back to the split-half ceiling)
-    calibration_episodes: int = 2
-    calibration_seed0: int = 20_000_000
-    ceiling_episodes: int = 4
-    ceiling_seed0: int = 30_000_000
+    calibration_episodes: int = 2  # held-out conditions per policy for choosing tau (real + online; never evaluated)
+    calibration_seed0: int = 20_000_000  # first calibration seed (disjoint from every other block)
+    ceiling_episodes: int = 4  # second independent real set per policy, the noise ceiling (0: split-half estimate)
+    ceiling_seed0: int = 30_000_000  # first ceiling seed
     modes: tuple[str, ...] = MODES
     # candidate U_chunk thresholds (the calibration picks one; the report's post-hoc table lists them all). In raw
     # units (m, rad, gripper m) the paper's 0.02-0.05 is in the range our models' U takes; in normalised units
