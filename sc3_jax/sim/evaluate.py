@@ -44,8 +44,9 @@ def _all_settled(env: BussingEnv) -> bool:
 
 def run_policy_episode(env: BussingEnv, policy, seed: int, task: str = "bussing", execute: int = EXECUTE,
                        max_steps: int | None = None, record: bool = True) -> EpisodeResult:
-    """Closed-loop rollout of ``policy`` from initial condition ``(seed, task)``. Deterministic for a
-    deterministic policy; a JaxPolicy's rng is ``fold_in(key(0), seed)``, split once per chunk. ``policy``: a JaxPolicy (jitted via ``as_host``) or a host policy."""
+    """Closed-loop rollout of ``policy`` from initial condition ``(seed, task)``. Deterministic: a JaxPolicy's rng
+    is ``fold_in(key(0), seed)``, split once per chunk. ``policy``: a JaxPolicy (jitted via ``as_host``) or a host
+    policy."""
     host = as_host(policy) if isinstance(policy, JaxPolicy) else policy
     if isinstance(host, JaxAsHost):
         # the policy's per-chunk draws come from a key of this initial condition: an episode's result does not

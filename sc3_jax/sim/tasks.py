@@ -84,8 +84,8 @@ _TEMPLATES: dict[int, tuple[tuple[str, tuple[tuple[str, str], ...], str], ...]] 
          " and "),
         ("Do it the other way round: ", (("u", "{objs} into the trash can"), ("t", "{objs} into the utensil bin")),
          ", "),
-        ("Swap the usual places: ", (("t", "{objs} {goes} in the utensil bin"), ("u", "{objs} {goes} in the trash can")),
-         " and ")),
+        ("Swap the usual places: ",
+         (("t", "{objs} {goes} in the utensil bin"), ("u", "{objs} {goes} in the trash can")), " and ")),
 }
 N_TEMPLATES = 3
 
