@@ -227,8 +227,6 @@ ZOO: dict[str, ZooEntry] = {e.name: e for e in (
     ZooEntry("bus_grasp_high", "bussing", "run_clean_final.npz",
              f"{_CLEAN}, 5000 steps; grasps 1.5 cm high, greedy routing (|y| > 10 cm)",
              ControlKnobs(grasp_dz=0.015, greedy_y=0.1)),
-    ZooEntry("bus_bc_biased", "bussing", "run_biased_final.npz",
-             "150 demos of a biased demonstrator (bags, cups to the wrong container), 3000 steps; no knobs"),
     # reverse bussing: their own estimators (trained on reverse demos) and their own knobs
     ZooEntry("rev_bc_full", "reverse", "run_reverse_final.npz", f"{_REV}, 3000 steps; no knobs",
              ControlKnobs(dest_frame=1)),
@@ -349,13 +347,11 @@ def train_net(data, steps: int, checkpoints: dict[int, Path], seed: int = 0, bat
 RUNS = {
     "clean": ("clean", None, 5000, {1500: "mid", 5000: "final"}),
     "small": ("clean", 30, 1500, {1500: "final"}),
-    "biased": ("biased", None, 3000, {3000: "final"}),
     "reverse": ("reverse", None, 3000, {1000: "mid", 3000: "final"}),
 }
 # the reverse set trains the reverse-bussing policies' own estimator; it is zoo training data only (written with
 # ``demos.write_episodes``: ``generate_demos``, the world-model data path, refuses reverse bussing)
-DEMO_SETS = {"clean": dict(n=300, seed=1, task="bussing"), "biased": dict(n=150, seed=2, task="bussing"),
-             "reverse": dict(n=300, seed=3, task="reverse")}
+DEMO_SETS = {"clean": dict(n=300, seed=1, task="bussing"), "reverse": dict(n=300, seed=3, task="reverse")}
 
 
 def train_zoo(workdir: str | Path, out_dir: str | Path = ZOO_DIR, runs: list[str] | None = None,
@@ -365,7 +361,7 @@ def train_zoo(workdir: str | Path, out_dir: str | Path = ZOO_DIR, runs: list[str
     from .expert import ExpertKnobs
     workdir, out_dir = Path(workdir), Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    knobs = {"clean": ExpertKnobs(), "biased": ExpertKnobs(swap_types=("bag", "cup")), "reverse": ExpertKnobs()}
+    knobs = {"clean": ExpertKnobs(), "reverse": ExpertKnobs()}
     summary = {}
     runs = runs or list(RUNS)
     for name, cfg in DEMO_SETS.items():
@@ -399,7 +395,7 @@ def write_manifest(out_dir: str | Path = ZOO_DIR, seconds: dict | None = None) -
         "pick_x_max": PICK_X_MAX,
         "runs": {k: {"demo_set": v[0], "max_episodes": v[1], "steps": v[2], "checkpoints": v[3]}
                  for k, v in RUNS.items()},
-        "demo_sets": DEMO_SETS, "biased_demonstrator": {"swap_types": ["bag", "cup"]},
+        "demo_sets": DEMO_SETS,
         "command": "python -m sc3_jax.sim.zoo train --workdir /tmp/sc3_zoo",
         "dtype": "float16 (cast to float32 on load)",
         "training_seconds_measured": measured}, indent=1))
