@@ -127,10 +127,11 @@ def cmd_report(argv: list[str]) -> int:
     ap.add_argument("--out", default=None, help="report directory (default RESULTS/report)")
     ap.add_argument("--videos", type=int, default=3, help="side-by-side example videos")
     ap.add_argument("--taus", type=float, nargs="+", default=None, help="termination thresholds (default: the "
-                    "sweep's); evaluated from the stored U_chunk, no new rollouts")
-    ap.add_argument("--tau-units", choices=("normalised", "raw"), default=None)
+                    "sweep's candidates); evaluated from the stored U_chunk, no new rollouts. U_chunk is in the "
+                    "sweep's units (rollout.tau_units)")
+    ap.add_argument("--draws", type=int, default=2000, help="paired bootstrap draws for the 95%% intervals")
     a = ap.parse_args(argv)
-    md = report.render(a.results, a.out or f"{a.results}/report", a.videos, a.taus, a.tau_units)
+    md = report.render(a.results, a.out or f"{a.results}/report", a.videos, a.taus, a.draws)
     print(f"report: {md}")
     return 0
 

@@ -222,7 +222,11 @@ class RolloutConfig:
     # the policy's action rate (None = control_hz). When higher, each group of policy_hz / control_hz raw actions is
     # composed into one model-rate action (as the data pipeline composes recorded actions for strided windows).
     policy_hz: float | None = None
-    tau: float = 0.02  # stop once U_chunk > tau
+    tau: float = 0.02  # stop once U_chunk > tau (in tau_units)
+    # U_chunk's units, the one convention of `sc3 rollout`, `sc3 sweep` and the report: "raw" (metres / radians /
+    # gripper metres, the paper's units for tau = 0.02) or "normalised" (per-dimension unit variance, the model's
+    # units; with per-dimension stds of a few mm, U there is ~50-100x the raw value)
+    tau_units: str = "raw"
 
 
 @dataclasses.dataclass(frozen=True)

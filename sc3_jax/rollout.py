@@ -6,7 +6,7 @@ One chunk (per initial condition; ``vmap`` over a batch of them, the batch shard
     a[0:C]   = policy(obs, k_policy)                      raw actions, C = policy chunk (25) >= l' (24)
     v[0:l']  = FD-sample(context, normalise(a[0:l']))     S Euler steps (flow.sample), every view
     â[0:l']  = ID-sample(context, v[0:l'])                re-read the actions from the predicted frames
-    U        = mean_{i<l} ||normalise(a_i) - â_i||_2      l = kept frames (16), NORMALISED action units
+    U        = mean_{i<l} ||a_i - denormalise(â_i)||_2    l = kept frames (16), in rollout.tau_units (raw by default)
     done'    = done | (U > tau)
     if not done': context = last K frames of [context, v[0:l]];  state = integrate(state, a[0:l])
     emit (decode(v[0:l]) as uint8, a[0:l], denormalise(â[0:l]), U, done')
@@ -19,8 +19,9 @@ Decisions (see docs/rollout.md for more):
   still computes the later chunks (on the frozen context) so shapes stay static. Their U values are emitted but are
   not those of an untruncated rollout: to sweep tau after the fact run once with ``tau=inf`` and cut with
   :func:`terminated_at` -- identical, up to the termination chunk, to a run with that tau.
-* U is the mean over the l kept steps of the L2 norm over the 7 action dimensions, in the model's normalised units
-  (per-dimension unit variance), so tau is comparable across dimensions and robots.
+* U is the mean over the l kept steps of the L2 norm over the 7 action dimensions, in ``cfg.rollout.tau_units``:
+  "raw" (the paper's units, in which its tau = 0.02 is set; the default) or "normalised" (per-dimension unit
+  variance). Both are emitted (``u_raw``, ``u``); the one in tau_units decides termination.
 * Frames advance at ``control_hz``: the model runs with frame stride ``round(data_fps / control_hz)`` (20 Hz data,
   10 Hz control -> 2) and one policy action per predicted frame.
 * State: no simulator, so the commanded actions are integrated onto the initial end-effector pose
@@ -68,6 +69,7 @@ class RolloutSpec:
     steps: int  # Euler steps per sampler call
     ratio: int = 1  # raw policy actions per model-rate action (policy_hz / control_hz)
     context_noise: float = 0.0  # noise level on the context at inference (models trained with context noise)
+    tau_units: str = "raw"  # the units U_chunk is compared with tau in (RolloutConfig.tau_units)
 
     @property
     def raw_needed(self) -> int:
@@ -93,11 +95,13 @@ def make_spec(cfg: Config, data_fps: float = 20.0, num_chunks: int | None = None
     stride = data_fps / r.control_hz
     if abs(stride - round(stride)) > 1e-6 or round(stride) < 1:
         raise ValueError(f"data fps {data_fps} / control_hz {r.control_hz} is not a positive integer frame stride")
+    if r.tau_units not in ("raw", "normalised"):
+        raise ValueError(f"rollout.tau_units {r.tau_units!r}: 'raw' or 'normalised'")
     if num_chunks is None:
         num_chunks = math.ceil(r.episode_seconds * r.control_hz / r.keep_frames - 1e-9)
     return RolloutSpec(len(d.views), tuple(d.image_size), d.context_frames, d.future_frames, r.keep_frames,
                        r.policy_chunk, int(num_chunks), int(round(stride)), cfg.sample.steps, ratio,
-                       float(cfg.sample.context_noise))
+                       float(cfg.sample.context_noise), r.tau_units)
 
 
 class InitialConditions(NamedTuple):
@@ -189,8 +193,9 @@ class _Steps:
         id_cache = "video" if m.context_attention == "causal" and self.use_cache is not False else False
         _, a_hat = sample(video, jnp.zeros_like(a)[None], stride, vn, an, k_id, use_cache=id_cache)
         a_hat = a_hat[0]
-        u = jnp.mean(jnp.linalg.norm(a[:l] - a_hat[:l], axis=-1))
-        done = carry.done | (u > tau)
+        u = jnp.mean(jnp.linalg.norm(a[:l] - a_hat[:l], axis=-1))  # normalised units
+        u_raw = jnp.mean(jnp.linalg.norm(model_actions[:l] - (a_hat[:l] * std + mean), axis=-1))
+        done = carry.done | ((u_raw if s.tau_units == "raw" else u) > tau)
         # back to frames (a causal VAE decodes the future given the context's latents), keep the first l
         kept = self.tok.decode(video[0], s.image_size)[:, K:K + l]  # [V, l, H, W, 3] in [-1, 1]
         context = jnp.concatenate([carry.context, kept.astype(carry.context.dtype)], axis=1)[:, -K:]
@@ -199,7 +204,8 @@ class _Steps:
         new = Carry(jnp.where(done, carry.context, context), jnp.where(done, carry.state, state), done,
                     carry.chunk + 1)
         emit = {"frames": to_uint8(kept), "actions": model_actions[:l],
-                "reread": a_hat[:l] * std + mean, "states": states[r - 1::r], "u": u, "done": done}
+                "reread": a_hat[:l] * std + mean, "states": states[r - 1::r], "u": u, "u_raw": u_raw,
+                "done": done}
         return new, emit
 
 
@@ -218,7 +224,8 @@ class Rollout:
         reread  float32 [B, N*l, 7]         raw actions re-read by the inverse mode
         states  float32 [B, N*l, 7]         imagined end-effector pose after each commanded action
         u float32 [B, N], done bool [B, N]  U_chunk (normalised units) and done' after each chunk; valid = ~done
-        u_raw float32 [B, N]                the same mean L2 distance in raw action units (host-side, reference)
+        u_raw float32 [B, N]                the same mean L2 distance in raw action units
+        tau_units str                       which of the two decided termination (rollout.tau_units)
         frame_valid bool [B, N*l], terminated_at int32 [B] (-1 never), termination_rate float, tau float
     """
 
@@ -352,10 +359,9 @@ class Rollout:
         flat = lambda x: x.reshape(B, s.num_frames, *x.shape[3:])  # noqa: E731  [B, N, l, ...] -> [B, N*l, ...]
         done = e["done"].astype(bool)
         actions, reread = flat(e["actions"]), flat(e["reread"])
-        u_raw = np.linalg.norm(actions - reread, axis=-1).reshape(B, s.num_chunks, s.keep).mean(-1)
         return {"frames": frames, "initial_frames": np.asarray(ics.frames), "actions": actions,
                 "reread": reread, "states": flat(e["states"]), "u": e["u"].astype(np.float32),
-                "u_raw": u_raw.astype(np.float32),
+                "u_raw": e["u_raw"].astype(np.float32), "tau_units": s.tau_units,
                 "done": done, "frame_valid": np.repeat(~done, s.keep, axis=1),
                 "terminated_at": np.where(done.any(-1), done.argmax(-1), -1).astype(np.int32),
                 "termination_rate": float(done.any(-1).mean()), "tau": float(tau)}

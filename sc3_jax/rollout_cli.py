@@ -157,7 +157,10 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--episodes", type=int, default=None, help="use the first N initial conditions")
     p.add_argument("--start", type=int, default=0, help="first frame of the initial context in each episode")
     p.add_argument("--task", type=int, default=0, help="task id given to the policy (stores carry no task id)")
-    p.add_argument("--tau", type=float, default=None, help="termination threshold (default: config; 'inf' never)")
+    p.add_argument("--tau", type=float, default=None, help="termination threshold (default: config rollout.tau; "
+                   "'inf' never), compared with U_chunk in rollout.tau_units")
+    p.add_argument("--tau-units", choices=("raw", "normalised"), default=None,
+                   help="override rollout.tau_units (default: the config's; raw action units unless set)")
     p.add_argument("--num-chunks", type=int, default=None, help="default: episode_seconds * control_hz / keep")
     p.add_argument("--keep-frames", type=int, default=None, help="override rollout.keep_frames (l)")
     p.add_argument("--policy-chunk", type=int, default=None, help="override rollout.policy_chunk")
@@ -182,8 +185,8 @@ def main(argv: list[str] | None = None) -> int:
     work = Path(args.checkpoint)
     cfg = config_from_dict(json.loads((work / "config.json").read_text())) if (work / "config.json").exists() \
         else load_config("tiny")
-    overrides = {k: v for k, v in (("keep_frames", args.keep_frames), ("policy_chunk", args.policy_chunk))
-                 if v is not None}
+    overrides = {k: v for k, v in (("keep_frames", args.keep_frames), ("policy_chunk", args.policy_chunk),
+                                   ("tau_units", args.tau_units)) if v is not None}
     cfg = replace(cfg, rollout=overrides)
     if args.sample_steps is not None:
         cfg = replace(cfg, sample=dict(steps=args.sample_steps))
@@ -211,11 +214,13 @@ def main(argv: list[str] | None = None) -> int:
     else:
         result = _run_batched(lambda sl: ro.run_host(params, policy, pick(sl), keys[sl], tau, progress=progress,
                                                      skip_done=True), n, size, False, "rollout")
-    meta = {"episodes": ids, "policy": args.policy, "tau": tau, "seed": args.seed, "num_chunks": ro.spec.num_chunks,
+    u_tau = result["u_raw" if cfg.rollout.tau_units == "raw" else "u"]
+    meta = {"episodes": ids, "policy": args.policy, "tau": tau, "tau_units": cfg.rollout.tau_units, "seed": args.seed,
+            "num_chunks": ro.spec.num_chunks,
             "keep_frames": ro.spec.keep, "stride": ro.spec.stride, "control_hz": cfg.rollout.control_hz}
     np.savez_compressed(out / "rollout.npz", **{k: v for k, v in result.items()}, episode_ids=np.asarray(ids))
     summary = {**meta, "termination_rate": result["termination_rate"],
-               "terminated_at": result["terminated_at"].tolist(), "mean_u": result["u"].mean(-1).tolist()}
+               "terminated_at": result["terminated_at"].tolist(), "mean_u": u_tau.mean(-1).tolist()}
     if not args.no_video:
         summary["videos"] = write_videos(out, ids, result, cfg.data.views, cfg.rollout.control_hz)
     if args.offline:
@@ -238,7 +243,7 @@ def main(argv: list[str] | None = None) -> int:
         summary["offline_chunks"] = n_off
     (out / "summary.json").write_text(json.dumps(summary, indent=1))
     print(f"rollout: {n} episodes x {ro.spec.num_chunks} chunks, termination rate {result['termination_rate']:.3f} "
-          f"(tau={tau}), mean U {float(result['u'].mean()):.4f} -> {out}")
+          f"(tau={tau} {cfg.rollout.tau_units}), mean U {float(u_tau.mean()):.4f} -> {out}")
     if args.offline:
         print("offline PSNR per view: " + ", ".join(f"{k} {v:.2f} dB"
                                                     for k, v in summary["offline_psnr_per_view"].items()))

@@ -111,7 +111,8 @@ def test_u_chunk_equals_numpy_recomputation(setup):
 
 def test_termination_at_first_chunk_above_tau(setup):
     cfg, ro, params, policy, ics, keys, ref = setup
-    u = ref["u"]
+    assert ref["tau_units"] == cfg.rollout.tau_units == "raw"  # the paper's units by default
+    u = ref["u_raw"]
     assert np.all(ref["terminated_at"] == -1) and ref["termination_rate"] == 0.0  # tau = inf never stops
     # a tau between two of episode 0's chunk values such that it stops after at least one valid chunk
     c_max = int(np.argmax(u[0]))
@@ -130,7 +131,7 @@ def test_termination_at_first_chunk_above_tau(setup):
         assert np.all(~out["done"][b, :c]) and np.all(out["done"][b, c:])
         assert np.all(out["frame_valid"][b] == (np.arange(N * 3) < c * 3))
         upto = min(c + 1, N)  # up to and including the terminating chunk the rollout equals the untruncated one
-        np.testing.assert_allclose(out["u"][b, :upto], u[b, :upto], atol=1e-5)
+        np.testing.assert_allclose(out["u_raw"][b, :upto], u[b, :upto], atol=1e-5)
         np.testing.assert_array_equal(out["frames"][b, :, :upto * 3], ref["frames"][b, :, :upto * 3])
         if c < N - 1:  # after termination the state (and context) is frozen: later chunks start from the same state
             base = out["states"][b, c * 3 - 1] if c > 0 else ics.state[b]
@@ -160,6 +161,25 @@ def test_termination_at_first_chunk_above_tau(setup):
     # tau = 0: every episode stops at chunk 0
     zero = ro.run(params, policy, ics, keys, tau=0.0)
     assert np.all(zero["terminated_at"] == 0) and zero["termination_rate"] == 1.0
+
+
+def test_tau_units_decide_which_u_is_compared(setup):
+    """rollout.tau_units picks the U that termination reads: a tau between the chunk's raw and normalised U stops the
+    chunk in exactly one of the two conventions."""
+    cfg, ro, params, policy, ics, keys, ref = setup
+    B_, frames, state, task, k = ro._inputs(ics, keys)
+    acts = ro._pad(np.random.default_rng(0).normal(0, 0.01, (len(k), 5, 7)).astype(np.float32), len(k))
+    params = ro.place_params(params)
+    _, emit = ro._model_step(params, ro._init(frames, state), acts, k, jnp.float32(math.inf))
+    u, u_raw = np.asarray(emit["u"])[:B_], np.asarray(emit["u_raw"])[:B_]
+    assert np.all(u > 10 * u_raw)  # std 0.01: normalised U is ~100x the raw one
+    tau = float(np.sqrt(u.min() * u_raw.max()))  # between every raw and every normalised U
+    norm = rollout.Rollout(replace(cfg, rollout=dict(tau_units="normalised")), STATS, num_chunks=N)
+    for r, stops in ((ro, False), (norm, True)):
+        c, _ = r._model_step(params, r._init(frames, state), acts, k, jnp.float32(tau))
+        assert np.all(np.asarray(c.done)[:B_] == stops)
+    with pytest.raises(ValueError, match="tau_units"):
+        rollout.make_spec(replace(cfg, rollout=dict(tau_units="metres")))
 
 
 def test_context_unchanged_by_terminating_chunk(setup):

@@ -28,8 +28,11 @@ def test_held_needs_a_run():
     # untouched: passes language, fails lifting and placing
     ({}, ("cup", True, False, False, "lifting")),
     # lifted and dropped in the right container
-    ({("cup", "lifted"): [0, 1, 1, 1, 0, 0], ("cup", "in_bin"): [0, 0, 0, 0, 1, 1]}, ("cup", True, True, True,
+    ({("cup", "lifted"): [1, 1, 1, 0, 0, 0], ("cup", "in_bin"): [0, 0, 0, 1, 1, 1]}, ("cup", True, True, True,
                                                                                      "no_failure")),
+    # placing is read over the settled tail (the last 3 frames), not from one frame: 2 final frames are not enough
+    ({("cup", "lifted"): [1, 1, 1, 0, 0, 0], ("cup", "in_bin"): [0, 0, 0, 0, 1, 1]}, ("cup", True, True, False,
+                                                                                     "placing")),
     # two misread frames of "lifted" do not count
     ({("cup", "lifted"): [0, 1, 1, 0, 0, 0]}, ("cup", True, False, False, "lifting")),
     # into the wrong container: language violated (lifting counts: it got into a container)

@@ -115,3 +115,31 @@ def test_evaluate_episode_uses_instruction():
     outs = C.evaluate_episode(ic, traj)
     assert [o.outcome for o in outs] == ["lifting"] * n
     assert [o.destination for o in outs] == [ic.destinations()[x] for x in ic.objects]
+
+
+def test_prompts_are_grammatical_for_every_template_and_object_count():
+    import itertools
+    import re
+
+    from sc3_jax.sim.tasks import N_TEMPLATES, OBJECT_NAMES, make_prompt
+    assert make_prompt(["spoon", "bottle", "lid"], "bussing", template=1) == (
+        "Clear the table. The yellow spoon goes in the bin; the blue bottle and the purple lid go in the trash.")
+    assert make_prompt(["cup", "bowl", "bag"], "reverse", template=2) == (
+        "Swap the usual places: the green bag goes in the utensil bin and the red cup and the orange bowl go in the "
+        "trash can.")
+    obj = "the (?:" + "|".join(OBJECT_BY_NAME[n].words for n in OBJECT_NAMES) + ")"
+    subject_verb = re.compile(rf"({obj}(?:(?:, | and ){obj})*) (goes|go) in")
+    checked = 0
+    for task in ("bussing", "reverse"):
+        for tpl in range(N_TEMPLATES):
+            for k in range(1, len(OBJECT_NAMES) + 1):
+                for names in itertools.combinations(OBJECT_NAMES, k):
+                    p = make_prompt(list(names), task, template=tpl)
+                    assert p[0].isupper() and p.endswith(".") and "  " not in p and "nothing" not in p, p
+                    for n in OBJECT_NAMES:  # every object on the table is named once, no other
+                        assert p.count(OBJECT_BY_NAME[n].words) == (n in names), (p, n)
+                    for subject, verb in subject_verb.findall(p.lower()):
+                        assert (verb == "goes") == (subject.count("the ") == 1), p
+                        checked += 1
+                    assert not re.search(r"[;,] [A-Z]", p), p  # no capital after a clause break
+    assert checked > 100  # the agreement check ran on the templates with a verb

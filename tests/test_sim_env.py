@@ -62,8 +62,11 @@ def test_knobs_produce_their_failure_category(env):
     assert grasp["outcome/lifting"] >= 0.4 and grasp["outcome/language"] == 0.0, grasp
     release = _rates(env, "bussing", ExpertKnobs(release_noise=0.1), seeds)
     assert release["outcome/placing"] >= 0.3 and release["lifting"] == 1.0, release
-    wrong = _rates(env, "bussing", ExpertKnobs(wrong_destination_prob=1.0), seeds)
+    wrong = _rates(env, "bussing", ExpertKnobs(wrong_destination_prob=1.0, never_swap_all=False), seeds)
     assert wrong["outcome/language"] == 1.0, wrong
+    # by default one object per episode stays right: no episode is a reverse-bussing episode
+    wrong = _rates(env, "bussing", ExpertKnobs(wrong_destination_prob=1.0), seeds)
+    assert abs(wrong["outcome/language"] - 2 / 3) < 1e-9 and wrong["outcome/no failure"] > 0.3, wrong
     noisy = _rates(env, "bussing", ExpertKnobs(action_noise=0.015), seeds)
     assert noisy["outcome/no failure"] < 0.9, noisy
 

@@ -21,7 +21,13 @@ from sc3_jax.data.pipeline import NormStats
 from sc3_jax.evaluate import annotation, metrics, perception, report, sweep
 from sc3_jax.evaluate.scorers import HumanScorer, RolloutView
 
-POLICIES = ("bus_bc_full", "rev_bc_small")
+def _one_per_split():
+    """The zoo's first policy of each task (names come from the zoo, which may change)."""
+    from sc3_jax.sim.zoo import ZOO, zoo_names
+    return tuple(next(n for n in zoo_names() if ZOO[n].task == task) for task in ("bussing", "reverse"))
+
+
+POLICIES = _one_per_split()
 
 
 def tiny_world_model(root):
@@ -40,7 +46,7 @@ def setup(tmp_path_factory):
     perception.save(root / "perception.npz", perception.init(jax.random.key(1)))
     cfg = sweep.SweepConfig(out=str(root / "full"), world_model=str(wm), perception=str(root / "perception.npz"),
                             policies=POLICIES, episodes=2, episode_seconds=1.6, batch=2, progress=False,
-                            taus=(math.inf, 1.0, 0.5))
+                            taus=(math.inf, 1.0, 0.5), calibration_episodes=1, ceiling_episodes=1)
     sweep.run_sweep(cfg)
     return root, cfg
 
@@ -48,8 +54,15 @@ def setup(tmp_path_factory):
 def test_sweep_writes_every_rollout(setup):
     root, cfg = setup
     recs = sweep.ResultsStore(cfg.out).records()
-    assert len(recs) == len(POLICIES) * 2 * 3
-    assert {r["mode"] for r in recs} == set(sweep.MODES)
+    # per policy: real on 2 evaluation + 1 calibration + 1 ceiling seed, offline on 2, online on 2 + 1 calibration
+    count = lambda m: sum(r["mode"] == m for r in recs)  # noqa: E731
+    assert (count("real"), count("offline"), count("online")) == (len(POLICIES) * 4, len(POLICIES) * 2,
+                                                                 len(POLICIES) * 3)
+    blocks = sweep.seed_blocks(cfg)
+    assert {r["seed"] for r in recs if r["mode"] == "online"} == set(blocks["evaluation"] + blocks["calibration"])
+    assert {r["seed"] for r in recs if r["mode"] == "offline"} == set(blocks["evaluation"])
+    real = [r for r in recs if r["mode"] == "real"]
+    assert all(set(r["perception_degraded"]) == {"blur", "patch_noise", "colour_shift"} for r in real)
     assert {r["split"] for r in recs} == {"in_distribution", "out_of_distribution"}
     for r in recs:
         assert len(r["objects"]) == 3 and all(set(metrics.CRITERIA) <= set(o) for o in r["objects"])
@@ -77,7 +90,8 @@ def test_report_numbers_come_from_compute(setup, tmp_path):
     t = report.compute(cfg.out)
     assert json.loads((tmp_path / "rep" / "report.json").read_text()) == json.loads(json.dumps(t))
     # recompute the main table independently from the raw records
-    recs = sweep.ResultsStore(cfg.out).records()
+    evaluation = set(sweep.seed_blocks(cfg)["evaluation"])
+    recs = [r for r in sweep.ResultsStore(cfg.out).records() if r["seed"] in evaluation]
     rows = lambda mode: [{"policy": r["policy"], "split": r["split"], "episode": r["seed"], "object": o["object"],  # noqa: E731
                           **{c: o[c] for c in metrics.CRITERIA}} for r in recs if r["mode"] == mode
                          for o in r["objects"]]
@@ -89,9 +103,12 @@ def test_report_numbers_come_from_compute(setup, tmp_path):
             for k in ("pearson", "mmrv"):
                 a, b = f[split][k], t["main"][mode][split][k]
                 assert (math.isnan(a) and math.isnan(b)) or a == pytest.approx(b)
+                c = t["faithfulness"]["physics"][mode]["splits"][split][k]["value"]  # the bootstrap's point
+                assert (math.isnan(a) and math.isnan(c)) or a == pytest.approx(c)
     text = md.read_text()
-    main_row = next(line for line in text.splitlines() if line.startswith("| overall"))
-    assert report._fmt(t["main"]["offline"]["overall"]["mmrv"]) in main_row
+    row = next(line for line in text.splitlines() if line.startswith("| offline |"))
+    assert report._ci(t["faithfulness"]["physics"]["offline"]["splits"]["overall"]["mmrv"]) in row
+    assert t["tau"]["chosen"] in ("inf", "1.0", "0.5") and t["protocol"]["calibration"]["n"] == 1
     assert (tmp_path / "rep" / "correlation.png").stat().st_size > 1000
     assert (tmp_path / "rep" / "u_chunk.png").exists() and (tmp_path / "rep" / "report.html").exists()
     assert len(list((tmp_path / "rep").glob("*.mp4"))) == 1
@@ -107,20 +124,20 @@ def test_sweep_resumes_after_sigkill_with_identical_results(setup):
     code = ("import math, sys; import sc3_jax.sim; from sc3_jax.evaluate import sweep; "
             f"sweep.run_sweep(sweep.SweepConfig(out={str(out)!r}, world_model={cfg.world_model!r}, "
             f"perception={cfg.perception!r}, policies={POLICIES!r}, episodes=2, episode_seconds=1.6, batch=2, "
-            "progress=False, taus=(math.inf, 1.0, 0.5)))")
+            "progress=False, taus=(math.inf, 1.0, 0.5), calibration_episodes=1, ceiling_episodes=1))")
     env = dict(os.environ)
     p = subprocess.Popen([sys.executable, "-c", code], env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     results = out / "results.jsonl"
     t0 = time.time()
     while time.time() - t0 < 300 and p.poll() is None:
-        if results.exists() and results.read_text().count("\n") >= 5:  # mid-way: inside the second policy
+        if results.exists() and results.read_text().count("\n") >= 11:  # mid-way: inside the second policy
             break
         time.sleep(0.05)
     assert p.poll() is None, f"the sweep finished or died before it could be killed: {p.communicate()[1][-2000:]}"
     os.kill(p.pid, signal.SIGKILL)
     p.wait()
     n_before = results.read_text().count("\n")
-    assert 5 <= n_before < 12
+    assert 11 <= n_before < 18
     sweep.run_sweep(dataclasses.replace(cfg, out=str(out)))
     by_id = lambda path: {r["id"]: r for r in sweep.ResultsStore(path).records()}  # noqa: E731
     assert by_id(out) == by_id(cfg.out)
@@ -135,7 +152,7 @@ def test_annotation_round_trip_reproduces_ground_truth(setup, tmp_path):
     clips = sorted((tmp_path / "annotate" / "clips").glob("*.mp4"))
     assert len(clips) == len(recs) and all(len(c.stem) == 8 for c in clips)
     listing = " ".join(c.name for c in clips) + csv_path.read_text()
-    assert not any(w in listing for w in ("real", "offline", "online", "bus_bc", "rev_bc"))
+    assert not any(w in listing for w in ("real", "offline", "online") + POLICIES)
     # fill the template from the scores in the store (ground truth for real rollouts)
     with open(csv_path) as fh:
         rows = list(csv.DictReader(fh))
@@ -201,16 +218,17 @@ def test_remote_policy_over_the_openpi_protocol(setup, tmp_path):
     from sc3_jax.policies.openpi import PolicyServer
     from sc3_jax.sim.zoo import load_policy
     root, cfg = setup
-    server = PolicyServer(load_policy("bus_bc_full"), host="127.0.0.1", port=0).start()
+    server = PolicyServer(load_policy(POLICIES[0]), host="127.0.0.1", port=0).start()
     try:
         remote = dataclasses.replace(cfg, out=str(tmp_path / "remote"), episodes=1, modes=("real", "online"),
+                                     calibration_episodes=0, ceiling_episodes=0,
                                      policies=(f"served=ws://127.0.0.1:{server.port}@bussing",))
         sweep.run_sweep(remote)
     finally:
         server.shutdown()
     recs = {r["mode"]: r for r in sweep.ResultsStore(remote.out).records()}
     local = {r["mode"]: r for r in sweep.ResultsStore(cfg.out).records()
-             if r["policy"] == "bus_bc_full" and r["seed"] == cfg.seed0}
+             if r["policy"] == POLICIES[0] and r["seed"] == cfg.seed0}
     assert set(recs) == {"real", "online"} and recs["real"]["policy"] == "served"
     assert recs["real"]["objects"] == local["real"]["objects"]  # same policy, same simulator: same outcomes
     assert len(recs["online"]["u"]) == 2

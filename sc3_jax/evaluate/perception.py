@@ -99,8 +99,11 @@ def predict(params: dict, frames: np.ndarray, batch: int = 256) -> tuple[np.ndar
     for i in range(0, len(x), batch):
         part = x[i:i + batch]
         n = len(part)
-        if n < batch and len(x) > batch:  # pad to one compiled shape
-            part = np.concatenate([part, np.repeat(part[-1:], batch - n, 0)])
+        # pad to a multiple of 64 frames: rollouts of every length share a few compiled shapes (one per length
+        # would recompile for most real rollouts, which end when the objects settle)
+        size = min(batch, -(-n // 64) * 64)
+        if n < size:
+            part = np.concatenate([part, np.repeat(part[-1:], size - n, 0)])
         p, w = _predict_batch(params, part)
         probs.append(np.asarray(p)[:n])
         widths.append(np.asarray(w)[:n])

@@ -18,40 +18,11 @@ from pathlib import Path
 
 import numpy as np
 
-from sc3_jax.evaluate import metrics
-from sc3_jax.evaluate.sweep import ResultsStore
+from sc3_jax.evaluate import calibrate, intervals, metrics
+from sc3_jax.evaluate.calibrate import object_rows as _object_rows
+from sc3_jax.evaluate.sweep import MODES, ResultsStore
 
 SPLIT_ORDER = ("in_distribution", "out_of_distribution", metrics.OVERALL)
-
-
-def _parse_tau(t) -> float:
-    return math.inf if str(t) in ("inf", "Infinity") else float(t)
-
-
-def _object_rows(rec: dict, objects: list[dict]) -> list[dict]:
-    return [{"policy": rec["policy"], "split": rec["split"], "episode": rec["seed"], "object": o["object"],
-             **{c: bool(o[c]) for c in metrics.CRITERIA}} for o in objects]
-
-
-def _cut(rec: dict, tau: float, units: str) -> int:
-    """Index into objects_by_cut for threshold tau: the first chunk with U > tau (its frames are dropped)."""
-    u = np.asarray(rec["u"] if units == "normalised" else rec["u_raw"])
-    above = np.flatnonzero(u > tau)
-    return int(above[0]) if len(above) else len(u)
-
-
-def _rates(rows: list[dict]) -> dict:
-    return {s: {f"{p}/{c}": v for (p, c), v in r.items()} for s, r in metrics.success_rates_by_split(rows).items()}
-
-
-def _faith(ev_rows, real_rows) -> dict:
-    return _faith_rates(metrics.success_rates_by_split(ev_rows), metrics.success_rates_by_split(real_rows))
-
-
-def _faith_rates(ev, re) -> dict:
-    splits = [s for s in SPLIT_ORDER if s in re]
-    out = metrics.faithfulness(ev, re, splits)
-    return {s: out[s] for s in SPLIT_ORDER if s in out}
 
 
 def _policy_blind(real_rates: dict) -> dict:
@@ -62,81 +33,115 @@ def _policy_blind(real_rates: dict) -> dict:
             for s, r in real_rates.items()}
 
 
-def _per_criterion(ev_rows, real_rows) -> dict:
-    """r and MMRV over the policies within one criterion (all splits pooled): free of the between-criteria spread
-    that inflates the pooled r."""
-    ev, re = metrics.success_rates(ev_rows), metrics.success_rates(real_rows)
-    out = {}
-    for c in metrics.CRITERIA:
-        keys = [k for k in re if k[1] == c]
-        s, r = [ev[k] for k in keys], [re[k] for k in keys]
-        out[c] = {"pearson": metrics.pearson(s, r), "mmrv": metrics.mmrv(s, r), "n": len(keys)}
+def _faith_rates(ev, re) -> dict:
+    out = metrics.faithfulness(ev, re, [s for s in SPLIT_ORDER if s in re])
+    return {s: out[s] for s in SPLIT_ORDER if s in out}
+
+
+def _rates(rows: list[dict]) -> dict:
+    return {s: {f"{p}/{c}": v for (p, c), v in r.items()} for s, r in metrics.success_rates_by_split(rows).items()}
+
+
+def seed_sets(cfg: dict) -> dict[str, list[int]]:
+    """The sweep's disjoint blocks of simulator seeds: evaluation, calibration (tau), ceiling (second real set)."""
+    block = lambda k0, kn: [cfg[k0] + i for i in range(cfg.get(kn) or 0)] if k0 in cfg else []  # noqa: E731
+    return {"evaluation": block("seed0", "episodes"), "calibration": block("calibration_seed0", "calibration_episodes"),
+            "ceiling": block("ceiling_seed0", "ceiling_episodes")}
+
+
+def _agreement(real: dict) -> dict:
+    """The perception scorer against physics on real frames, clean and degraded (as generated frames are)."""
+    from sc3_jax.evaluate.scorers import agreement
+    recs = list(real.values())
+    out = {"clean": agreement([r["perception"] for r in recs], [r["objects"] for r in recs])}
+    kinds = sorted(set.intersection(*(set(r.get("perception_degraded", {})) for r in recs))) if recs else []
+    for k in kinds:
+        out[k] = agreement([r["perception_degraded"][k] for r in recs], [r["objects"] for r in recs])
     return out
 
 
-def compute(results: str | Path, taus=None, tau_units: str | None = None) -> dict:
-    """All report numbers from the results store at ``results`` (see the module docstring). ``taus`` /
-    ``tau_units`` override the sweep's termination thresholds: every online record stores U_chunk and the outcomes
-    of every cut, so any threshold is evaluated without rolling out again."""
+def compute(results: str | Path, taus=None, draws: int = 2000, seed: int = 0) -> dict:
+    """All report numbers from the results store at ``results`` (see the module docstring). ``taus`` overrides
+    the sweep's candidate thresholds (every online record stores U_chunk and the outcomes of every cut, so any
+    threshold is evaluated without rolling out again). ``draws`` / ``seed``: the paired bootstrap's."""
     store = ResultsStore(results)
     cfg = json.loads((store.root / "sweep.json").read_text())
     if taus is not None:
         cfg["taus"] = [str(float(t)) for t in taus]
-    if tau_units is not None:
-        if tau_units not in ("normalised", "raw"):
-            raise ValueError(f"tau_units {tau_units!r}: 'normalised' or 'raw'")
-        cfg["tau_units"] = tau_units
+    units = cfg.get("tau_units", "raw")
+    sets = seed_sets(cfg)
     recs = store.records()
-    by_mode = {m: {(r["policy"], r["seed"]): r for r in recs if r["mode"] == m} for m in ("real", "offline", "online")}
-    real = by_mode["real"]
+    in_set = {name: set(seeds) for name, seeds in sets.items()}
+    by = {(s, m): {(r["policy"], r["seed"]): r for r in recs if r["mode"] == m and r["seed"] in in_set[s]}
+          for s in sets for m in MODES}
+    real = by["evaluation", "real"]
     if not real:
-        raise ValueError(f"{results}: no real rollouts yet: faithfulness needs the simulator's ground truth")
-    out: dict = {"config": cfg, "counts": {m: len(v) for m, v in by_mode.items()},
-                 "policies": sorted({(r["policy"], r["split"]) for r in real.values()}, key=lambda x: (x[1], x[0]))}
-    # ground truth and the scorer's agreement with it
+        raise ValueError(f"{results}: no real rollouts on the evaluation seeds yet: faithfulness needs the "
+                         "simulator's ground truth")
+    policies = sorted({(r["policy"], r["split"]) for r in real.values()}, key=lambda x: (x[1], x[0]))
+    out: dict = {"config": cfg, "counts": {m: len(by["evaluation", m]) for m in MODES},
+                 "policies": policies,
+                 "protocol": {s: {"n": len(v), "seeds": [v[0], v[-1]] if v else [],
+                                  "rollouts": {m: len(by[s, m]) for m in MODES}} for s, v in sets.items()},
+                 "bootstrap": {"draws": draws, "seed": seed, "level": 0.95,
+                               "resampled": "evaluation initial conditions, paired across policies and evaluators"}}
+    # ground truth, the scorer's agreement with it (clean and degraded frames)
     real_rows = [row for r in real.values() for row in _object_rows(r, r["objects"])]
-    out["rates"] = {"real": _rates(real_rows)}
-    from sc3_jax.evaluate.scorers import agreement
-    out["scorer_agreement"] = agreement([r["perception"] for r in real.values()], [r["objects"] for r in real.values()])
-    out["rates"]["real_perception"] = _rates([row for r in real.values() for row in _object_rows(r, r["perception"])])
+    out["rates"] = {"real": _rates(real_rows),
+                    "real_perception": _rates([row for r in real.values() for row in _object_rows(r, r["perception"])])}
+    out["scorer_agreement"] = _agreement(real)
+    # tau: chosen on the calibration block only, then applied once to the evaluation
+    calib = calibrate.tau_sweep(by["calibration", "real"], by["calibration", "online"], cfg["taus"], units)
+    out["tau"] = {"units": units, "rule": "max in-distribution r on the calibration seeds (ties: lower MMRV, then "
+                  "larger tau)", "calibration": calib, "chosen": None}
+    if calib:
+        out["tau"]["chosen"] = str(calibrate.choose_tau(calib))
+    # point estimates (metrics.faithfulness on per-object rows), the reproduction table, PSNR
     out["main"], out["reproduction"], out["cases"] = {}, {}, {}
     for mode in ("offline", "online"):
-        cases = sorted(set(by_mode[mode]) & set(real))
+        cases = sorted(set(by["evaluation", mode]) & set(real))
         if not cases:
             continue
-        ev_rows = [row for k in cases for row in _object_rows(by_mode[mode][k], by_mode[mode][k]["objects"])]
+        ev = by["evaluation", mode]
+        ev_rows = [row for k in cases for row in _object_rows(ev[k], ev[k]["objects"])]
         re_rows = [row for k in cases for row in _object_rows(real[k], real[k]["objects"])]
         out["cases"][mode] = len(cases)
         out["rates"][mode] = _rates(ev_rows)
-        out["main"][mode] = _faith(ev_rows, re_rows)
-        out.setdefault("per_criterion", {})[mode] = _per_criterion(ev_rows, re_rows)
+        out["main"][mode] = calibrate.faith(ev_rows, re_rows)
         counts = metrics.reproduction_counts(metrics.outcome_categories(re_rows), metrics.outcome_categories(ev_rows))
         out["reproduction"][mode] = {c: {"rate": m / n, "reproduced": m, "cases": n} for c, (m, n) in counts.items()}
     real_rates = metrics.success_rates_by_split(real_rows)
     out["baselines"] = {"policy_blind": _faith_rates(_policy_blind(real_rates), real_rates)}
-    if "online" in out["cases"]:
-        cases = sorted(set(by_mode["online"]) & set(real))
-        re_rows = [row for k in cases for row in _object_rows(real[k], real[k]["objects"])]
-        out["termination"] = []
-        for tau in (_parse_tau(t) for t in cfg["taus"]):
-            cut = {k: _cut(by_mode["online"][k], tau, cfg["tau_units"]) for k in cases}
-            ev_rows = [row for k in cases
-                       for row in _object_rows(by_mode["online"][k], by_mode["online"][k]["objects_by_cut"][cut[k]])]
-            faith = _faith(ev_rows, re_rows)
-            term = {}
-            for split in SPLIT_ORDER:
-                ks = [k for k in cases if split == metrics.OVERALL or real[k]["split"] == split]
-                if ks:
-                    term[split] = float(np.mean([cut[k] < by_mode["online"][k]["num_chunks"] for k in ks]))
-            out["termination"].append({"tau": str(tau), "termination_rate": term, "faithfulness": faith,
-                                       "mean_chunks_kept": float(np.mean(list(cut.values())))})
-        u = np.concatenate([by_mode["online"][k]["u" if cfg["tau_units"] == "normalised" else "u_raw"]
-                            for k in cases])
+    # every evaluator row with paired bootstrap intervals, against physics and against perception-scored real
+    out["faithfulness"] = _with_intervals(by, sets, policies, out["tau"]["chosen"], units, draws, seed)
+    if by["evaluation", "online"]:
+        online = by["evaluation", "online"]
+        out["termination"] = calibrate.tau_sweep(real, online, cfg["taus"], units)  # post hoc: on evaluation seeds
+        u = np.concatenate([r["u" if units == "normalised" else "u_raw"] for r in online.values()])
         out["u_quantiles"] = {q: float(np.quantile(u, float(q))) for q in ("0.1", "0.5", "0.9")}
-    if by_mode["offline"]:
-        pv = np.array([r["psnr_view"] for r in by_mode["offline"].values()])
+    if by["evaluation", "offline"]:
+        pv = np.array([r["psnr_view"] for r in by["evaluation", "offline"].values()])
         out["psnr"] = {"per_view": [float(x) for x in np.nanmean(pv, 0)], "mean": float(np.nanmean(pv)),
                        "rollouts": len(pv)}
+    return out
+
+
+def _with_intervals(by, sets, policies, chosen_tau, units, draws, seed) -> dict:
+    names, split_of = [p for p, _ in policies], [s for _, s in policies]
+    seeds = sets["evaluation"]
+    real = by["evaluation", "real"]
+    g = lambda recs, key="objects", s=seeds: intervals.grid(recs, names, s, lambda r: r[key])  # noqa: E731
+    evaluators = {m: g(by["evaluation", m]) for m in ("offline", "online") if by["evaluation", m]}
+    if chosen_tau is not None and by["evaluation", "online"]:
+        tau = calibrate.parse_tau(chosen_tau)
+        evaluators["online_tau"] = intervals.grid(by["evaluation", "online"], names, seeds,
+                                                  lambda r: r["objects_by_cut"][calibrate.cut(r, tau, units)])
+    second = by["ceiling", "real"]
+    out = {}
+    for ref, key in (("physics", "objects"), ("perception", "perception")):
+        extra = {"real_perception": g(real, "perception")} if ref == "physics" else {}
+        ceiling = g(second, key, sets["ceiling"]) if second else None
+        out[ref] = intervals.evaluator_rows(g(real, key), evaluators, split_of, draws, seed, ceiling, extra)
     return out
 
 
@@ -151,40 +156,76 @@ def _fmt(x, nd=3):
     return str(x)
 
 
+ROW_NAMES = {"offline": "offline", "online": "online (tau = inf)", "online_tau": "online (calibrated tau*)",
+             "real_perception": "real, perception-scored", "policy_blind": "policy-blind (floor)",
+             "ceiling": "noise ceiling"}
+REFERENCES = {"physics": "end to end: imagined (perception) vs real scored by physics",
+              "perception": "same instrument: imagined vs real, both scored by perception"}
+
+
+def _ci(cell: dict | None) -> str:
+    """value [lo, hi] of a bootstrap summary."""
+    if cell is None:
+        return "-"
+    return f"{_fmt(cell['value'])} [{_fmt(cell['lo'])}, {_fmt(cell['hi'])}]"
+
+
+def _interval_rows(rows: dict, pick, splits) -> list[list[str]]:
+    out = []
+    for name in ROW_NAMES:
+        if name not in rows:
+            continue
+        cells = [pick(rows[name], s) for s in splits]
+        out.append([ROW_NAMES[name]] + [_ci(c.get(k) if c else None) for c in cells for k in ("pearson", "mmrv")])
+    return out
+
+
 def tables(t: dict) -> list[tuple[str, list[str], list[list[str]]]]:
     """(title, header, rows) of every table in the report, formatted from :func:`compute`'s output."""
     out = []
     modes = [m for m in ("offline", "online") if m in t["main"]]
-    rows = []
-    for split in SPLIT_ORDER:
-        row = [split]
-        for m in modes:
-            f = t["main"][m].get(split)
-            row += [_fmt(f["pearson"]), _fmt(f["mmrv"])] if f else ["-", "-"]
-        rows.append(row)
-    for split in SPLIT_ORDER:
-        f = t["baselines"]["policy_blind"].get(split)
-        rows[SPLIT_ORDER.index(split)] += [_fmt(f["pearson"]), _fmt(f["mmrv"])] if f else ["-", "-"]
-    out.append(("Main table: faithfulness of imagined success rates (Pearson r higher is better, MMRV lower; "
-                "'policy-blind' = every policy gets its split's mean real rate per criterion, the floor to read "
-                "r against)",
-                ["split"] + [f"{m} {k}" for m in modes for k in ("r", "MMRV")] + ["policy-blind r", "policy-blind MMRV"],
-                rows))
-    if t.get("per_criterion"):
-        out.append(("Per criterion, over policies (both splits)", ["criterion"] +
-                    [f"{m} {k}" for m in modes for k in ("r", "MMRV")],
-                    [[c] + [_fmt(t["per_criterion"][m][c][k]) for m in modes for k in ("pearson", "mmrv")]
-                     for c in metrics.CRITERIA]))
+    b = t["bootstrap"]
+    rows = [[name, str(p["n"]), f"{p['seeds'][0]}-{p['seeds'][1]}" if p["seeds"] else "-",
+             ", ".join(f"{m} {k}" for m, k in p["rollouts"].items() if k)] for name, p in t["protocol"].items()]
+    out.append(("Protocol: initial conditions per policy and simulator seeds (disjoint blocks)",
+                ["set", "n per policy", "seeds", "rollouts"], rows))
+    ci = (f"value [95% paired bootstrap interval over initial conditions, {b['draws']} draws, seed {b['seed']}]; "
+          "r higher is better, MMRV lower")
+    splits = [s for s in SPLIT_ORDER if s in t["faithfulness"]["physics"]["policy_blind"]["splits"]]
+    for ref, what in REFERENCES.items():
+        f = t["faithfulness"][ref]
+        out.append((f"Faithfulness, {what}. {ci}; ceiling: {f['ceiling']['method']}",
+                    ["evaluator"] + [f"{s} {k}" for s in splits for k in ("r", "MMRV")],
+                    _interval_rows(f, lambda row, s: row["splits"].get(s), splits)))
+    for ref, what in REFERENCES.items():
+        f = t["faithfulness"][ref]
+        rows = []
+        for c in metrics.CRITERIA:
+            rows += [[c] + r for r in _interval_rows(f, lambda row, s: row["per_criterion"].get(s, {}).get(c), splits)]
+        out.append((f"Per criterion (points: the policies of a split), {what}. {ci}",
+                    ["criterion", "evaluator"] + [f"{s} {k}" for s in splits for k in ("r", "MMRV")], rows))
+    tau = t["tau"]
+    if tau["calibration"]:
+        rows = [[e["tau"] + (" (chosen)" if e["tau"] == tau["chosen"] else "")] +
+                [x for s in SPLIT_ORDER for x in (_fmt(e["termination_rate"].get(s)),
+                                                   _fmt(e["faithfulness"].get(s, {}).get("pearson")),
+                                                   _fmt(e["faithfulness"].get(s, {}).get("mmrv")))]
+                for e in tau["calibration"]]
+        n = t["protocol"]["calibration"]["n"]
+        out.append((f"tau calibration on the held-out calibration seeds ({n} per policy, {tau['calibration'][0]['cases']} "
+                    f"rollouts; U_chunk in {tau['units']} action units); rule: {tau['rule']}",
+                    ["tau"] + [f"{s} {k}" for s in SPLIT_ORDER for k in ("term. rate", "r", "MMRV")], rows))
     if "termination" in t:
         rows = []
         for e in t["termination"]:
-            row = [e["tau"]]
+            row = [e["tau"] + (" (calibrated)" if e["tau"] == tau["chosen"] else "")]
             for split in SPLIT_ORDER:
                 f = e["faithfulness"].get(split)
                 row += [_fmt(e["termination_rate"].get(split)), _fmt(f["pearson"]) if f else "-",
                         _fmt(f["mmrv"]) if f else "-"]
             rows.append(row)
-        out.append((f"Early termination (online, U_chunk in {t['config']['tau_units']} action units)",
+        out.append((f"Early termination on the evaluation seeds, every tau (POST HOC: choosing tau from this table "
+                    f"tunes on the evaluation; online, U_chunk in {tau['units']} action units, vs physics)",
                     ["tau"] + [f"{s} {k}" for s in SPLIT_ORDER for k in ("term. rate", "r", "MMRV")], rows))
     rows = [[c] + [(f"{_fmt(t['reproduction'][m][c]['rate'], 2)} ({t['reproduction'][m][c]['reproduced']}/"
                     f"{t['reproduction'][m][c]['cases']})") if c in t["reproduction"].get(m, {}) else "-"
@@ -195,24 +236,29 @@ def tables(t: dict) -> list[tuple[str, list[str], list[list[str]]]]:
                                                                  range(len(t["psnr"]["per_view"]))] + ["mean"],
                     [[_fmt(x, 2) for x in t["psnr"]["per_view"]] + [_fmt(t["psnr"]["mean"], 2)]]))
     a = t["scorer_agreement"]
-    out.append(("Perception scorer vs physics on real rollouts (agreement per criterion)",
-                list(metrics.CRITERIA) + ["outcome", "objects"],
-                [[_fmt(a[c]) for c in metrics.CRITERIA] + [_fmt(a["outcome"]), str(a["n_objects"])]]))
+    out.append(("Perception scorer vs physics on real rollouts of the evaluation seeds (agreement per criterion), "
+                "on clean frames and on frames degraded the way generated frames are",
+                ["frames"] + list(metrics.CRITERIA) + ["outcome", "objects"],
+                [[k] + [_fmt(v[c]) for c in metrics.CRITERIA] + [_fmt(v["outcome"]), str(v["n_objects"])]
+                 for k, v in a.items()]))
     rows = []
     for policy, split in t["policies"]:
         row = [policy, split]
-        for m in ("real", "offline", "online"):
+        for m in ("real", "real_perception", "offline", "online"):
             r = t["rates"].get(m, {}).get(split, {})
             row.append(" / ".join(_fmt(r.get(f"{policy}/{c}"), 2) for c in metrics.CRITERIA))
         rows.append(row)
     out.append(("Success rates per policy (language / lifting / placing, cumulative)",
-                ["policy", "split", "real", "offline", "online"], rows))
+                ["policy", "split", "real", "real (perception)", "offline", "online"], rows))
     return out
 
 
 def markdown(t: dict) -> str:
+    tau = t["tau"]["chosen"]
     parts = [f"# Sweep report\n\nResults: `{t['config']['out']}`; rollouts: {t['counts']}; compared cases: "
-             f"{t['cases']}. Recompute every number with `sc3_jax.evaluate.report.compute(RESULTS)`.\n"]
+             f"{t['cases']}. tau* = {tau if tau is not None else '- (no calibration seeds: online rows untruncated)'}"
+             f" ({t['tau']['units']} action units). Recompute every number with "
+             "`sc3_jax.evaluate.report.compute(RESULTS)`.\n"]
     for title, header, rows in tables(t):
         parts.append(f"## {title}\n\n| " + " | ".join(header) + " |\n|" + "---|" * len(header) + "\n" +
                      "".join("| " + " | ".join(r) + " |\n" for r in rows))
@@ -260,12 +306,12 @@ def u_plot(store: ResultsStore, t: dict, path: Path, examples: int = 4) -> None:
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    units = t["config"]["tau_units"]
+    units = t["tau"]["units"]
     recs = [r for r in store.records() if r["mode"] == "online"][:examples]
     fig, ax = plt.subplots(figsize=(6.4, 3.8))
     for r in recs:
         ax.plot(r["u"] if units == "normalised" else r["u_raw"], marker=".", label=f"{r['policy']} {r['seed']}")
-    for tau in (_parse_tau(x) for x in t["config"]["taus"]):
+    for tau in (calibrate.parse_tau(x) for x in t["config"]["taus"]):
         if math.isfinite(tau):
             ax.axhline(tau, ls="--", lw=1, color="grey")
             ax.text(0, tau, f"tau={tau}", fontsize=7, va="bottom")
@@ -291,12 +337,12 @@ def side_by_side(store: ResultsStore, policy: str, seed: int, path: Path, fps: i
     return True
 
 
-def render(results: str | Path, out: str | Path, videos: int = 3, taus=None, tau_units: str | None = None) -> Path:
+def render(results: str | Path, out: str | Path, videos: int = 3, taus=None, draws: int = 2000) -> Path:
     """Write report.md, report.html, report.json, plots and example videos to ``out``; returns report.md."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     store = ResultsStore(results)
-    t = compute(results, taus, tau_units)
+    t = compute(results, taus, draws)
     (out / "report.json").write_text(json.dumps(t, indent=1))
     images = []
     if t["main"]:

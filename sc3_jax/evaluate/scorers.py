@@ -11,8 +11,10 @@ Criteria from predicates, per object (a predicate "holds" when its probability i
 consecutive frames, 3 at the world model's 10 Hz = 0.3 s, so a misread frame or two do not decide an outcome; real
 rollouts are scored at the same frame rate):
   language = it never held in the *wrong* container;
-  lifting  = it was lifted at some point, or it was ever in a container (walls are taller than the lift clearance);
-  placing  = it is in the instructed container in the last frame.
+  lifting  = it was lifted for a run of ``min_run`` frames, or in a container for such a run (walls are taller than
+             the lift clearance);
+  placing  = it is in the instructed container in every one of the last ``min_run`` frames (the settled tail: a
+             real rollout ends once every object is at rest, an imagined one at its horizon), not in one frame.
 The physics criteria also require the object to be at rest and released at the end; frames show that only
 indirectly, which is the main source of disagreement (measured by the sweep: ``scorer_agreement``).
 """
@@ -79,7 +81,7 @@ def criteria_from_predicates(probs: np.ndarray, objects, destinations: dict, min
         right, wrong = (in_bin, in_can) if dest == "bin" else (in_can, in_bin)
         language = not held(wrong, min_run)
         lifting = held(lifted, min_run) or held(in_bin | in_can, min_run)
-        placing = bool(right[-1])
+        placing = bool(len(right) and right[-min_run:].all())
         out.append(outcome(name, dest, language, lifting, placing))
     return out
 

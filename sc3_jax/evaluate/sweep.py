@@ -7,6 +7,9 @@
     online   the policy acts inside the world model (closed loop, ``rollout.Rollout``), U_chunk per chunk, outcomes
              by the perception scorer for every possible termination point
 
+Seeds come in three disjoint blocks (``seed_blocks``): evaluation (all three modes), calibration (real + online:
+tau is chosen there, ``calibrate.py``) and ceiling (real only: a second independent set for the noise ceiling).
+
 Early termination is swept after the fact: each online rollout runs once untruncated (tau = inf) and stores the
 outcomes of the rollout cut after every chunk; a threshold tau keeps the chunks before the first one with
 U_chunk > tau, which are exactly the frames a rollout run with that tau would have produced.
@@ -39,15 +42,25 @@ class SweepConfig:
     world_model: str = str(SHIPPED_WORLD_MODEL)  # a training run dir (checkpoints/) or an exported dir (params.npz)
     perception: str | None = None  # perception weights (None: the shipped ones)
     policies: tuple[str, ...] = ()  # zoo names or NAME=ws://HOST:PORT@TASK (openpi server); () = the whole zoo
-    episodes: int = 10  # initial conditions per policy (simulator seeds seed0 + i)
+    # quick protocol by default (~20 min on 2 cores, docs/sweep.md); the full one: --episodes 36
+    # --calibration-episodes 6 --ceiling-episodes 36 --batch 6
+    episodes: int = 4  # evaluation initial conditions per policy (simulator seeds seed0 + i)
     seed0: int = 10_000_000
+    calibration_episodes: int = 2  # held-out conditions per policy for choosing tau (real + online; never evaluated)
+    calibration_seed0: int = 20_000_000  # first calibration seed (disjoint from every other block)
+    ceiling_episodes: int = 4  # second independent real set per policy, the noise ceiling (0: split-half estimate)
+    ceiling_seed0: int = 30_000_000  # first ceiling seed
     modes: tuple[str, ...] = MODES
-    # U_chunk thresholds. In raw units (m, rad, gripper m) the paper's 0.02-0.05 is in the range our models' U takes;
-    # in normalised units (per-dimension unit variance, what Rollout's tau uses) it would stop every rollout at once
+    # candidate U_chunk thresholds (the calibration picks one; the report's post-hoc table lists them all). In raw
+    # units (m, rad, gripper m) the paper's 0.02-0.05 is in the range our models' U takes; in normalised units
+    # (per-dimension unit variance) it would stop every rollout at once
     taus: tuple[float, ...] = (math.inf, 0.1, 0.07, 0.05, 0.02, 0.01)
-    tau_units: str = "raw"  # "raw" or "normalised"
-    batch: int = 5  # initial conditions per world-model batch (the resume unit for offline/online)
+    # U_chunk's units: written into the world model's rollout.tau_units, so the sweep, the report and `sc3 rollout`
+    # with the same config share one convention ("raw" or "normalised")
+    tau_units: str = "raw"
+    batch: int = 4  # initial conditions per world-model batch (the resume unit for offline/online)
     rollout_seed: int = 0
+    degradations: bool = True  # also score real frames blurred / patch-noised / colour-shifted (scorer robustness)
     # real and imagined horizon (None: the world model's rollout config). 12 s: a successful zoo episode takes 6.5-7.5 s,
     # a failing one retries until the limit; 12 s keeps every success and costs 60% of the 20 s default
     episode_seconds: float | None = 12.0
@@ -118,6 +131,21 @@ class ResultsStore:
     def load_arrays(self, rid: str) -> dict:
         with np.load(self.array_path(rid)) as z:
             return {k: z[k] for k in z.files}
+
+
+def seed_blocks(cfg: SweepConfig) -> dict[str, list[int]]:
+    """Disjoint simulator-seed blocks: evaluation, calibration (tau), ceiling (second real set). Raises if they
+    overlap: a calibration or ceiling rollout on an evaluation seed would leak the evaluation into its baseline."""
+    blocks = {"evaluation": [cfg.seed0 + i for i in range(cfg.episodes)],
+              "calibration": [cfg.calibration_seed0 + i for i in range(cfg.calibration_episodes)],
+              "ceiling": [cfg.ceiling_seed0 + i for i in range(cfg.ceiling_episodes)]}
+    names = list(blocks)
+    for i, a in enumerate(names):
+        for b in names[i + 1:]:
+            both = sorted(set(blocks[a]) & set(blocks[b]))
+            if both:
+                raise ValueError(f"{a} and {b} seeds overlap ({both[:3]}...): move calibration_seed0 / ceiling_seed0")
+    return blocks
 
 
 def rollout_id(policy: str, seed: int, mode: str) -> str:
@@ -192,9 +220,11 @@ def initial_observation(env, seed: int, task: str):
     return np.stack([f[v] for v in env.views]), env.ee_pose().astype(np.float32)
 
 
-def run_real(env, name, task, policy, seed, scorer, max_steps: int, score_stride: int) -> tuple[dict, dict]:
+def run_real(env, name, task, policy, seed, scorer, max_steps: int, score_stride: int,
+             degradations: bool = False) -> tuple[dict, dict]:
     """One simulated rollout, scored by physics and by perception (on every ``score_stride``-th frame and the last:
-    the world model's frame rate, so real and imagined rollouts are read alike)."""
+    the world model's frame rate, so real and imagined rollouts are read alike); with ``degradations`` also by
+    perception on degraded copies of the frames (``degrade.py``: how the scorer reads generated-looking frames)."""
     from sc3_jax.evaluate.scorers import RolloutView, SimScorer
     from sc3_jax.sim.evaluate import run_policy_episode
     r = run_policy_episode(env, policy, seed, task, record=True, max_steps=max_steps)
@@ -204,6 +234,10 @@ def run_real(env, name, task, policy, seed, scorer, max_steps: int, score_stride
                        [o.to_json() for o in r.outcomes])
     rec = {"objects": SimScorer().score(view), "perception": scorer.score(view), "length": int(r.length),
            "prompt": r.ic.prompt}
+    if degradations:
+        from sc3_jax.evaluate import degrade
+        rec["perception_degraded"] = {k: scorer.score(dataclasses.replace(view, frames=f))
+                                      for k, f in degrade.all_kinds(scored, seed).items()}
     return rec, {"frames": frames, "actions": r.actions.astype(np.float32), "ee_pose": r.ee_pose.astype(np.float32),
                  "object_pos": r.object_pos}
 
@@ -251,11 +285,15 @@ def run_sweep(cfg: SweepConfig) -> Path:
         raise ValueError("offline rollouts replay the real rollouts' actions: include 'real' in modes")
     if cfg.tau_units not in ("normalised", "raw"):
         raise ValueError(f"tau_units {cfg.tau_units!r}: 'normalised' or 'raw'")
+    blocks = seed_blocks(cfg)
     store = ResultsStore(cfg.out, cfg.to_json())
     p_params = perception.load(cfg.perception or perception.DEFAULT_WEIGHTS)
     scorer = PerceptionScorer(p_params)
     policies = [resolve_policy(p) for p in (cfg.policies or _zoo_names())]
-    seeds = [cfg.seed0 + i for i in range(cfg.episodes)]
+    seeds = blocks["evaluation"]
+    real_seeds = seeds + blocks["calibration"] + blocks["ceiling"]
+    # world-model rollouts per mode: (seed block, fold-in offset of its episode keys: blocks never share noise)
+    wm_blocks = {"offline": [(seeds, 0)], "online": [(seeds, 0), (blocks["calibration"], 1 << 20)]}
     wm_modes = [m for m in cfg.modes if m != "real"]
     ro = params = None
     if wm_modes:
@@ -265,36 +303,41 @@ def run_sweep(cfg: SweepConfig) -> Path:
             wcfg = replace(wcfg, sample=dict(steps=cfg.sample_steps))
         if cfg.episode_seconds:
             wcfg = replace(wcfg, rollout=dict(episode_seconds=cfg.episode_seconds))
+        wcfg = replace(wcfg, rollout=dict(tau_units=cfg.tau_units))  # one unit convention
         ro = ro_mod.Rollout(wcfg, stats, state_reader=perception.state_reader(p_params))
     env = make_env(tuple(ro.spec.image_size) if ro else (64, 64))
     seconds = cfg.episode_seconds or (wcfg.rollout.episode_seconds if ro else 20.0)
     max_steps = int(round(seconds * env.control_hz))
     done = store.done()
-    total = len(policies) * len(seeds) * len(cfg.modes)
+    total = len(policies) * sum(len(real_seeds) if m == "real" else sum(len(b) for b, _ in wm_blocks[m])
+                                for m in cfg.modes)
     bar = tqdm(total=total, initial=len(done), desc="sweep", unit="rollout", disable=not cfg.progress)
     t0 = time.time()
     for name, task, policy in policies:
         base = {"policy": name, "task": task, "split": SPLITS[task]}
         if "real" in cfg.modes:
-            for seed in seeds:
+            for seed in real_seeds:
                 rid = rollout_id(name, seed, "real")
                 if rid in done:
                     continue
-                rec, arrays = run_real(env, name, task, policy, seed, scorer, max_steps, ro.spec.stride if ro else 2)
+                rec, arrays = run_real(env, name, task, policy, seed, scorer, max_steps, ro.spec.stride if ro else 2,
+                                       cfg.degradations)
                 store.save_arrays(rid, **arrays)
                 store.append([{"id": rid, "mode": "real", "seed": seed, **base, **rec}])
                 bar.update(1)
         for mode in wm_modes:
-            for g in range(0, len(seeds), cfg.batch):
-                group = seeds[g:g + cfg.batch]
-                ids = [rollout_id(name, s, mode) for s in group]
-                if all(i in done for i in ids):
-                    continue
-                recs = _world_model_batch(mode, ro, params, env, name, task, policy, group,
-                                          list(range(g, g + len(group))), cfg, store, scorer, isinstance(
-                                              policy, JaxPolicy))
-                store.append([{"id": i, "mode": mode, "seed": s, **base, **r} for i, s, r in zip(ids, group, recs)])
-                bar.update(len(group))
+            for block, offset in wm_blocks[mode]:
+                for g in range(0, len(block), cfg.batch):
+                    group = block[g:g + cfg.batch]
+                    ids = [rollout_id(name, s, mode) for s in group]
+                    if all(i in done for i in ids):
+                        continue
+                    recs = _world_model_batch(mode, ro, params, env, name, task, policy, group,
+                                              list(range(offset + g, offset + g + len(group))), cfg, store, scorer,
+                                              isinstance(policy, JaxPolicy))
+                    store.append([{"id": i, "mode": mode, "seed": s, **base, **r}
+                                  for i, s, r in zip(ids, group, recs)])
+                    bar.update(len(group))
     bar.close()
     env.close()
     (store.root / "timing.json").write_text(json.dumps({"seconds_last_run": time.time() - t0,

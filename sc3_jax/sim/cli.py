@@ -2,10 +2,11 @@
 
     sc3 sim demos --out DIR --episodes N [--seed S] [--grasp-noise M] [--release-noise M]
                   [--wrong-destination-prob P] [--action-noise M] [--image-size H W] [--control-hz 20|10]
-                  [--policy BUSSING_ZOO_POLICY]
+                  [--policy BUSSING_ZOO_POLICY] [--allow-swap-all]
+    sc3 sim demos-stats --store DIR [DIR ...]       what a demo store holds (tasks, sources, objects swapped)
     sc3 sim eval --policy NAME --task bussing|reverse --episodes 36 --out DIR [--no-videos]
     sc3 sim zoo-train [--workdir /tmp/sc3_zoo]
-    sc3 sim zoo-eval --out DIR [--episodes 36] [--no-videos]
+    sc3 sim zoo-eval --out DIR [--episodes 36] [--no-videos] [--policies NAME ...]   (resumable)
     sc3 sim zoo-list
 
 Wiring into the main CLI is one line: ``from sc3_jax.sim.cli import main as sim_main; sim_main(argv)``.
@@ -18,10 +19,12 @@ import json
 
 def demos(out: str, episodes: int = 100, seed: int = 0, grasp_noise: float = 0.0, release_noise: float = 0.0,
           wrong_destination_prob: float = 0.0, action_noise: float = 0.0, image_size: tuple[int, int] = (64, 64),
-          control_hz: int = 20, n_objects: int = 3, progress: bool = True, policy: str | None = None) -> dict:
+          control_hz: int = 20, n_objects: int = 3, progress: bool = True, policy: str | None = None,
+          allow_swap_all: bool = False) -> dict:
     from .demos import generate_demos
     from .expert import ExpertKnobs
-    knobs = ExpertKnobs(grasp_noise, release_noise, wrong_destination_prob, action_noise)
+    knobs = ExpertKnobs(grasp_noise, release_noise, wrong_destination_prob, action_noise,
+                        never_swap_all=not allow_swap_all)
     return generate_demos(out, episodes, seed, knobs, tuple(image_size), control_hz, n_objects, progress=progress,
                           policy=policy)
 
@@ -48,6 +51,11 @@ def main(argv: list[str] | None = None) -> int:
     d.add_argument("--control-hz", type=int, default=20, choices=(10, 20))
     d.add_argument("--n-objects", type=int, default=3)
     d.add_argument("--policy", default=None, help="record this bussing zoo policy instead of the scripted expert")
+    d.add_argument("--allow-swap-all", action="store_true",
+                   help="let --wrong-destination-prob send every object of an episode to the other container (a "
+                        "reverse-bussing episode; off by default so that world-model data never holds one)")
+    ds = sub.add_parser("demos-stats", help="what demo stores hold: tasks, sources, objects in the other container")
+    ds.add_argument("--store", nargs="+", required=True)
     e = sub.add_parser("eval", help="evaluate a zoo policy in the simulator")
     e.add_argument("--policy", required=True)
     e.add_argument("--task", default="bussing", choices=("bussing", "reverse"))
@@ -62,11 +70,16 @@ def main(argv: list[str] | None = None) -> int:
     ze.add_argument("--out", required=True)
     ze.add_argument("--episodes", type=int, default=36)
     ze.add_argument("--no-videos", action="store_true")
+    ze.add_argument("--policies", nargs="*", default=None, help="zoo policies to evaluate (default: all)")
     sub.add_parser("zoo-list", help="list zoo policies")
     a = ap.parse_args(argv)
     if a.cmd == "demos":
         res = demos(a.out, a.episodes, a.seed, a.grasp_noise, a.release_noise, a.wrong_destination_prob,
-                    a.action_noise, tuple(a.image_size), a.control_hz, a.n_objects, policy=a.policy)
+                    a.action_noise, tuple(a.image_size), a.control_hz, a.n_objects, policy=a.policy,
+                    allow_swap_all=a.allow_swap_all)
+    elif a.cmd == "demos-stats":
+        from .demos import store_contents
+        res = store_contents(*a.store)
     elif a.cmd == "eval":
         res = eval(a.policy, a.task, a.episodes, a.out, not a.no_videos, tuple(a.image_size))
     elif a.cmd == "zoo-train":
@@ -74,7 +87,7 @@ def main(argv: list[str] | None = None) -> int:
         res = train_zoo(a.workdir, a.out or ZOO_DIR)
     elif a.cmd == "zoo-eval":
         from .evaluate import evaluate_zoo
-        print(evaluate_zoo(a.out, a.episodes, not a.no_videos))
+        print(evaluate_zoo(a.out, a.episodes, not a.no_videos, a.policies))
         return 0
     else:
         from .zoo import ZOO

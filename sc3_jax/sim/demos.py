@@ -44,6 +44,15 @@ def generate_demos(out: str | Path, n_episodes: int, seed: int = 0, knobs: Exper
             raise ValueError(f"policy {policy!r}: choose a bussing zoo policy "
                              f"{sorted(n for n, e in ZOO.items() if e.task == 'bussing')}")
     runner = _expert_runner(knobs) if policy is None else _policy_runner(policy)
+    source = {"knobs": dataclasses.asdict(knobs)} if policy is None else {"policy": policy}
+    return write_episodes(out, n_episodes, seed, runner, source, task, image_size, control_hz, n_objects, progress)
+
+
+def write_episodes(out: str | Path, n_episodes: int, seed: int, runner, source: dict, task: str,
+                   image_size: tuple[int, int] = (64, 64), control_hz: int = 20, n_objects: int = 3,
+                   progress: bool = True) -> dict:
+    """The store writer behind ``generate_demos`` (no task check: the zoo's reverse-bussing training demos use it
+    directly; world-model data goes through ``generate_demos``, which refuses reverse bussing)."""
     env = BussingEnv(image_size=image_size, control_hz=control_hz, n_objects=n_objects)
     store = EpisodeStore(out, views=list(env.views), fps=control_hz, image_size=tuple(image_size), create=True)
     outcomes, written, skipped, steps = [], 0, 0, 0
@@ -55,7 +64,6 @@ def generate_demos(out: str | Path, n_episodes: int, seed: int = 0, knobs: Exper
             skipped += 1
             continue
         r = runner(env, sim_seed, task)
-        source = {"knobs": dataclasses.asdict(knobs)} if policy is None else {"policy": policy}
         meta = {"task": task, "sim_seed": sim_seed, **source,
                 "initial_condition": r.ic.to_json(), "control_hz": control_hz,
                 "labels": {"objects": [o.to_json() for o in r.outcomes],
@@ -83,3 +91,32 @@ def _policy_runner(name: str):
     from .zoo import load_policy
     host = as_host(load_policy(name))  # jitted once, reused for every episode
     return lambda env, seed, task: run_policy_episode(env, host, seed, task, record=True)
+
+
+def store_contents(*roots: str | Path) -> dict:
+    """What an episode store holds, read from each episode's ``meta.json`` (no frames loaded): episodes per task and
+    per source (expert knobs / zoo policy), and how many of each episode's objects were carried into the *other*
+    container (ground-truth language failures). An episode with every object in the other container is a
+    reverse-bussing episode in all but name; ``all_objects_swapped`` counts them."""
+    import collections
+    import json
+    tasks, sources, swapped, n_obj = collections.Counter(), collections.Counter(), collections.Counter(), 0
+    all_swapped: list[str] = []
+    for root in roots:
+        for d in sorted(Path(root).iterdir()):
+            if not (d / "meta.json").exists():
+                continue
+            m = json.loads((d / "meta.json").read_text())
+            tasks[m.get("task", "?")] += 1
+            src = m.get("policy") or ",".join(f"{k}={v}" for k, v in sorted((m.get("knobs") or {}).items())
+                                              if v and k != "never_swap_all") or "clean expert"
+            sources[src] += 1
+            objs = m["labels"]["objects"]
+            w = sum(not o["language"] for o in objs)
+            swapped[f"{w} of {len(objs)}"] += 1
+            n_obj += len(objs)
+            if objs and w == len(objs):
+                all_swapped.append(d.name)
+    return {"episodes": sum(tasks.values()), "objects": n_obj, "tasks": dict(tasks), "sources": dict(sources),
+            "objects_in_other_container": dict(sorted(swapped.items())), "all_objects_swapped": len(all_swapped),
+            "all_objects_swapped_episodes": all_swapped}

@@ -13,9 +13,10 @@ import json
 import time
 from pathlib import Path
 
+import jax
 import numpy as np
 
-from ..policies.base import JaxPolicy, as_host
+from ..policies.base import JaxAsHost, JaxPolicy, as_host
 from .criteria import ObjectOutcome, inside_container, success_rates
 from .env import BussingEnv
 from .expert import MAX_STEPS_20HZ, EpisodeResult, finish
@@ -43,9 +44,14 @@ def _all_settled(env: BussingEnv) -> bool:
 
 def run_policy_episode(env: BussingEnv, policy, seed: int, task: str = "bussing", execute: int = EXECUTE,
                        max_steps: int | None = None, record: bool = True) -> EpisodeResult:
-    """Closed-loop rollout of ``policy`` from initial condition ``(seed, task)``. Deterministic for a
-    deterministic policy. ``policy``: a JaxPolicy (jitted via ``as_host``) or a host policy."""
+    """Closed-loop rollout of ``policy`` from initial condition ``(seed, task)``. Deterministic: a JaxPolicy's rng
+    is ``fold_in(key(0), seed)``, split once per chunk. ``policy``: a JaxPolicy (jitted via ``as_host``) or a host
+    policy."""
     host = as_host(policy) if isinstance(policy, JaxPolicy) else policy
+    if isinstance(host, JaxAsHost):
+        # the policy's per-chunk draws come from a key of this initial condition: an episode's result does not
+        # depend on which episodes ran before it with the same host
+        host._rng = jax.random.fold_in(jax.random.key(0), seed)
     max_steps = max_steps or MAX_STEPS_20HZ * env.control_hz // 20
     env.reset(seed, task)
     frames = {v: [] for v in env.views} if record else None
@@ -129,19 +135,30 @@ def evaluate_policy(policy, task: str = "bussing", episodes: int = 36, out: str 
 
 def evaluate_zoo(out: str | Path, episodes: int = 36, videos: bool = True, names: list[str] | None = None,
                  progress: bool = True) -> str:
-    """Evaluate every zoo policy on its own task; write ``out/<name>/...`` and ``out/zoo_table.md``; return the
-    markdown table (per-criterion success rates over all objects of ``episodes`` initial conditions)."""
+    """Evaluate every zoo policy (or ``names``) on its own task; write ``out/<name>/...`` and ``out/zoo_table.md``;
+    return the markdown table (per-criterion success rates over all objects of ``episodes`` initial conditions,
+    then each criterion's spread per task). Resumable: a policy whose ``summary.json`` in ``out`` has the same
+    number of episodes is read back, not re-run."""
     from .zoo import ZOO
     out = Path(out)
-    rows = []
+    rows, rates = [], {}
     for name in names or list(ZOO):
-        s = evaluate_policy(name, ZOO[name].task, episodes, out / name, videos=videos, progress=progress)
+        done = out / name / "summary.json"
+        s = json.loads(done.read_text()) if done.exists() else None
+        if s is None or s.get("episodes") != episodes:
+            s = evaluate_policy(name, ZOO[name].task, episodes, out / name, videos=videos, progress=progress)
         r = s["success"]
+        rates.setdefault(ZOO[name].task, []).append(r)
         rows.append(f"| {name} | {ZOO[name].task} | {r['language']:.2f} | {r['lifting']:.2f} | {r['placing']:.2f} | "
                     f"{r['outcome/language']:.2f} / {r['outcome/lifting']:.2f} / {r['outcome/placing']:.2f} / "
-                    f"{r['outcome/no failure']:.2f} | {r['n_objects']} | {ZOO[name].recipe} |")
+                    f"{r['outcome/no failure']:.2f} | {r['n_objects']} | {s['seconds']:.0f} | {ZOO[name].recipe} |")
     table = ("| policy | task | language | lifting | placing | outcomes (lang / lift / place / none) | objects | "
-             "training |\n|---|---|---|---|---|---|---|---|\n" + "\n".join(rows) + "\n")
+             "seconds | estimator and knobs |\n|---|---|---|---|---|---|---|---|---|\n" + "\n".join(rows) + "\n")
+    spread = ["", "| task | policies | language spread | lifting spread | placing spread |", "|---|---|---|---|---|"]
+    for task, rs in rates.items():
+        sp = [max(r[c] for r in rs) - min(r[c] for r in rs) for c in ("language", "lifting", "placing")]
+        spread.append(f"| {task} | {len(rs)} | " + " | ".join(f"{v:.2f}" for v in sp) + " |")
+    table += "\n".join(spread) + "\n"
     (out / "zoo_table.md").write_text(table)
     return table
 

@@ -41,6 +41,9 @@ class ExpertKnobs:
     wrong_destination_prob: float = 0.0
     action_noise: float = 0.0
     swap_types: tuple[str, ...] = ()
+    # an episode whose every object goes to the other container *is* a reverse-bussing episode; world-model data
+    # must not contain one (the OOD split's claim), so one object drawn wrong by chance is set right again
+    never_swap_all: bool = True
 
 
 @dataclasses.dataclass
@@ -72,8 +75,31 @@ class ScriptedExpert:
             release = slot + (self.rng.normal(0, k.release_noise, 2) if k.release_noise else np.zeros(2))
             self.plans.append(_Plan(name, self.rng.normal(0, k.grasp_noise, 2) if k.grasp_noise else np.zeros(2),
                                     release, dest))
+        if k.never_swap_all:
+            self._unswap_one(ic)
         self.k, self.phase, self.count = 0, "hover", 0
         self.done = False
+
+    def _unswap_one(self, ic) -> None:
+        """If every object was drawn for the wrong container, send one chance-drawn one (not a ``swap_types`` one)
+        to its instructed container, at that container's next free drop spot. Uses its own rng, so episodes that
+        need no change are bit-identical to ``never_swap_all=False``."""
+        right = {p.name: destination(OBJECT_BY_NAME[p.name].cls, ic.task) for p in self.plans}
+        if any(p.container == right[p.name] for p in self.plans):
+            return
+        chance = [i for i, p in enumerate(self.plans) if p.name not in self.knobs.swap_types]
+        if not chance:
+            return  # every object is of a swap type: the demonstrator's bias itself, nothing drawn by chance
+        i = chance[int(np.random.default_rng([self.seed, 15485863]).integers(len(chance)))]
+        p = self.plans[i]
+
+        def slot(container, index):
+            return SLOTS[index % len(SLOTS)] * (S.CONTAINER_GEOM[container][0] / S.BIN_INNER)
+
+        old = slot(p.container, sum(q.container == p.container for q in self.plans[:i]))
+        new = slot(right[p.name], sum(q.container == right[p.name] for q in self.plans))  # the next free spot
+        p.release_offset = p.release_offset - old + new  # keeps the drawn release noise
+        p.container = right[p.name]
 
     # -- intent (what the zoo clones) ------------------------------------------------------------------------
     def intent(self, env: BussingEnv) -> dict:

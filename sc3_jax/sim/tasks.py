@@ -72,31 +72,53 @@ def destination(obj_cls: str, task: str | int) -> str:
     return home
 
 
-_TEMPLATES = {
-    0: ("Bus the table: put {utensils} in the utensil bin and {trash} in the trash can.",
-        "Clear the table. {Utensils_cap} go in the bin; {trash} goes in the trash.",
-        "Put away the dishes and throw out the rubbish: {utensils} into the bin, {trash} into the trash can."),
-    1: ("Reverse bussing: put {utensils} in the trash can and {trash} in the utensil bin.",
-        "Do it the other way round: {utensils} into the trash can, {trash} into the utensil bin.",
-        "Swap the usual places: {trash} go in the utensil bin and {utensils} in the trash can."),
+# A template: opening, then one clause per non-empty object group, joined. Clause fields: {objs} the group's noun
+# phrase ("the red cup and the yellow spoon"), {goes} the verb agreeing with it. Groups: "u" utensils, "t" trash.
+# An empty group's clause is left out (no "nothing goes in the trash"); after an opening that ends a sentence the
+# body starts with a capital.
+_TEMPLATES: dict[int, tuple[tuple[str, tuple[tuple[str, str], ...], str], ...]] = {
+    0: (("Bus the table: ", (("u", "put {objs} in the utensil bin"), ("t", "put {objs} in the trash can")), " and "),
+        ("Clear the table. ", (("u", "{objs} {goes} in the bin"), ("t", "{objs} {goes} in the trash")), "; "),
+        ("Tidy up: ", (("u", "{objs} into the bin"), ("t", "{objs} into the trash can")), ", ")),
+    1: (("Reverse bussing: ", (("u", "put {objs} in the trash can"), ("t", "put {objs} in the utensil bin")),
+         " and "),
+        ("Do it the other way round: ", (("u", "{objs} into the trash can"), ("t", "{objs} into the utensil bin")),
+         ", "),
+        ("Swap the usual places: ",
+         (("t", "{objs} {goes} in the utensil bin"), ("u", "{objs} {goes} in the trash can")), " and ")),
 }
+N_TEMPLATES = 3
 
 
 def _join(words: list[str]) -> str:
-    if not words:
-        return "nothing"
     if len(words) == 1:
         return "the " + words[0]
     return "the " + ", the ".join(words[:-1]) + " and the " + words[-1]
 
 
-def make_prompt(object_names: list[str], task: str | int, rng: np.random.Generator) -> str:
+def make_prompt(object_names: list[str], task: str | int, rng: np.random.Generator | None = None,
+                template: int | None = None) -> str:
+    """The instruction naming every object with its destination; ``template`` (0..2) or one drawn from ``rng``.
+    Verbs agree with their subjects ("the spoon goes", "the cup and the bowl go")."""
     tid = task_id(task)
-    ut = [OBJECT_BY_NAME[n].words for n in object_names if OBJECT_BY_NAME[n].cls == "utensil"]
-    tr = [OBJECT_BY_NAME[n].words for n in object_names if OBJECT_BY_NAME[n].cls == "trash"]
-    tpl = _TEMPLATES[tid][int(rng.integers(len(_TEMPLATES[tid])))]
-    u = _join(ut)
-    return tpl.format(utensils=u, Utensils_cap=u[0].upper() + u[1:], trash=_join(tr))
+    if not object_names:
+        raise ValueError("a prompt needs at least one object")
+    if template is None:
+        if rng is None:
+            raise ValueError("give rng or template")
+        template = int(rng.integers(N_TEMPLATES))
+    opening, clauses, joiner = _TEMPLATES[tid][template]
+    groups = {"u": [OBJECT_BY_NAME[n].words for n in object_names if OBJECT_BY_NAME[n].cls == "utensil"],
+              "t": [OBJECT_BY_NAME[n].words for n in object_names if OBJECT_BY_NAME[n].cls == "trash"]}
+    parts = []
+    for g, fmt in clauses:
+        if groups[g]:
+            objs = _join(groups[g])
+            parts.append(fmt.format(objs=objs, goes="goes" if len(groups[g]) == 1 else "go"))
+    body = joiner.join(parts)
+    if opening.rstrip().endswith("."):
+        body = body[0].upper() + body[1:]
+    return opening + body + "."
 
 
 @dataclasses.dataclass(frozen=True)

@@ -1,19 +1,26 @@
-"""Policy zoo: pixel-input policies for bussing / reverse bussing, pure JAX, trained by cloning the expert's intent.
+"""Policy zoo: pixel-input policies for bussing / reverse bussing, pure JAX: a learned estimator + a scripted
+controller with per-policy failure knobs.
 
-What is learned and what is scripted (honestly):
+What is learned, what is scripted, what is a knob (honestly):
   * Learned: a small CNN (shared conv trunk over the three 64x64 views with coordinate channels, spatial-softmax
     keypoints + pooled features, then an MLP with the 7-D gripper state) that, from the pixels, estimates for each of
     the six object types where it is and whether it still has to be bussed, which container the demonstrator took
     objects of that type to (and the held object to), and where the two containers are. It is trained by supervised
-    learning on the expert's demonstrations (``demos.py``): positions/presence are read from the simulator state of
-    each demonstration frame, destinations are the demonstrator's own choices (so a biased demonstrator yields a
-    biased policy). Pure pixel-to-action BC did not fit the CPU budget.
+    learning on scripted-expert demonstrations: positions/presence are read from the simulator state of each
+    demonstration frame, destinations are the demonstrator's own choices (a biased demonstrator yields a biased
+    estimator; reverse-bussing demonstrations yield an estimator of reverse destinations). Pure pixel-to-action BC
+    did not fit the CPU budget.
   * Scripted: a stateless controller in ``jnp`` (``jnp.where`` phase logic from the observation only: the held-object
     state is read from the finger gap) turns those estimates into a 25-step chunk of raw delta-EE actions
     (largest-x object first: hover -> descend -> close -> lift -> carry -> lower -> release; a failed grasp, seen as a
-    fully closed empty gripper, is reopened and retried). For reverse bussing (``task == 1``) containers are swapped.
-Policies differ only by learned quality: training checkpoint, amount of data and quality of the demonstrator
-(a biased demonstrator that always takes some object types to the wrong container).
+    fully closed empty gripper, is reopened and retried; objects lying near the containers are not picked).
+  * Knobs (``ControlKnobs``, per policy, stored in its params next to the estimator weights and listed in
+    ``zoo/zoo.json``): grasp aim error and grasp height error (lifting), release point offset / noise / height
+    (placing after a successful lift), "greedy" routing to the container on the object's side of the table whatever
+    the instruction (language), and which task the estimator's destinations belong to. Per-chunk errors are drawn
+    from the policy's ``rng`` (pure, so they run inside ``lax.scan``).
+Policies differ by estimator (training data, amount, checkpoint, bussing or reverse demonstrations) and by knobs, so
+language, lifting and placing vary independently across the zoo (see docs/sim.md for the measured table).
 
 The policy sees only ``obs["images"]`` (uint8 [3, H, W, 3], resized to 64x64 inside), ``obs["state"]`` and
 ``obs["task"]``; ``apply(params, obs, rng)`` is pure, so it runs inside ``lax.scan`` and under ``vmap``.
@@ -72,34 +79,82 @@ def decode(out: jax.Array) -> dict:
             "bin_xy": out[..., 4 * n + 1:4 * n + 3] / XY_SCALE, "can_xy": out[..., 4 * n + 3:4 * n + 5] / XY_SCALE}
 
 
+# -- controller knobs (per policy; part of its params, so they travel into jit / scan like the weights) ----------
+@dataclasses.dataclass(frozen=True)
+class ControlKnobs:
+    """Scripted failure tendencies of one zoo policy. All distances in metres; 0 / ``inf`` = off.
+
+    * ``dest_frame``: 0 if the estimator was trained on bussing demonstrations (routes flip for ``task == 1``),
+      1 if on reverse-bussing demonstrations (routes flip for ``task == 0``).
+    * ``grasp_sigma``: std of a horizontal aim error at the grasp, drawn afresh per chunk -> lifting failures
+      (missed grasps are retried, so they mostly cost time and block the objects behind).
+    * ``grasp_dz``: height error of the grasp point -> flat objects (lid, spoon, then bowl) are never gripped.
+    * ``release_out``: the release point sits this far beyond the container centre, outwards (away from y = 0);
+      ``release_sigma``: std of a per-chunk release xy error; ``release_dz``: release this much higher. All act only
+      after a successful lift -> placing failures (an object that lands outside stays there: see ``PICK_X_MAX``).
+    * ``greedy_y``: language failures -- an object picked (or held) more than this far from the table's midline
+      (|y|) goes to the container on its own side, whatever the instruction says (the policy takes the short way).
+      The rule is consistent across chunks because the gripper never crosses the midline while carrying.
+    """
+    dest_frame: int = 0
+    grasp_sigma: float = 0.0
+    grasp_dz: float = 0.0
+    release_out: float = 0.0
+    release_sigma: float = 0.0
+    release_dz: float = 0.0
+    greedy_y: float = float("inf")
+
+    def arrays(self) -> dict:
+        return {k: jnp.asarray(v, jnp.float32) for k, v in dataclasses.asdict(self).items()}
+
+
+# objects whose estimate lies beyond this x (near the containers, outside the spawn area x <= 0.03) are not picked:
+# a stateless controller would otherwise re-grasp a dropped object forever; a real checkpoint rarely does
+PICK_X_MAX = 0.08
+
+
 # -- controller -----------------------------------------------------------------------------------------------
-def controller(est: dict, state: jax.Array, task: jax.Array) -> jax.Array:
+def controller(est: dict, state: jax.Array, task: jax.Array, knobs: dict | None = None,
+               rng: jax.Array | None = None) -> jax.Array:
     """Stateless chunk planner: estimates (one sample) + state [7] + task -> actions [CHUNK, 7].
 
     Picks the still-to-be-bussed object with the largest x (the expert's order), hovers over it, descends, closes;
     when holding (finger gap strictly between closed and open), lifts, carries to the container chosen for it
-    (swapped when ``task == 1``), lowers and releases; then goes on to the next object within the same chunk.
-    A fully closed gripper means a failed grasp: reopen and rise for the rest of the chunk."""
+    (swapped when ``task`` differs from the estimator's ``dest_frame``), lowers and releases; then goes on to the
+    next object within the same chunk. A fully closed gripper means a failed grasp: reopen and rise for the rest of
+    the chunk. ``knobs`` (``ControlKnobs.arrays()``) add the policy's failure tendencies, drawn with ``rng``."""
+    kn = knobs if knobs is not None else ControlKnobs().arrays()
+    rng = rng if rng is not None else jax.random.key(0)
+    k_grasp, k_rel = jax.random.split(rng)
+    grasp_off = kn["grasp_sigma"] * jax.random.normal(k_grasp, (2,))
+    rel_noise = kn["release_sigma"] * jax.random.normal(k_rel, (2,))
+    grasp_z = GRASP_Z + kn["grasp_dz"]
     pos0, rv0, width = state[:3], state[3:6], state[6]
     holding0 = (width > HOLD_LO) & (width < HOLD_HI)
     empty0 = width <= HOLD_LO
-    flip = task.astype(bool)
-    held_c = ((est["held_dest"] > 0) ^ flip).astype(jnp.int32)
-    obj_c = ((est["dest"] > 0) ^ flip).astype(jnp.int32)  # [N_OBJ]
+    flip = task.astype(jnp.int32) != kn["dest_frame"].astype(jnp.int32)
     containers = jnp.stack([est["bin_xy"], est["can_xy"]])
-    present = est["present"] > 0
+
+    def route(c, y):  # instructed container c, unless the policy is greedy at this y
+        near = jnp.argmin(jnp.abs(containers[:, 1] - y)).astype(jnp.int32)
+        return jnp.where(jnp.abs(y) > kn["greedy_y"], near, c)
+
+    held_c = route(((est["held_dest"] > 0) ^ flip).astype(jnp.int32), pos0[1])
+    obj_c = ((est["dest"] > 0) ^ flip).astype(jnp.int32)  # [N_OBJ]
+    present = (est["present"] > 0) & (est["obj_xy"][:, 0] < PICK_X_MAX)
 
     def step(carry, k):
         p, hold, empty, dest_c, done = carry
         todo = present & ~done
         left = jnp.any(todo)
         j = jnp.argmax(jnp.where(todo, est["obj_xy"][:, 0], -jnp.inf))
-        g = est["obj_xy"][j]
-        # holding: lift, carry, lower, release
-        dxy = containers[dest_c]
+        g = est["obj_xy"][j] + grasp_off
+        # holding: lift, carry, lower, release (release point pushed outwards by release_out, plus noise)
+        cxy = containers[dest_c]
+        dxy = cxy + jnp.array([0.0, 1.0]) * jnp.sign(cxy[1]) * kn["release_out"] + rel_noise
         far = jnp.linalg.norm(p[:2] - dxy) > 0.01
         low = p[2] < CARRY_Z - 0.03
-        rz = RELEASE_Z[dest_c]
+        rz = RELEASE_Z[dest_c] + kn["release_dz"]
         goal_hold = jnp.where(far, jnp.where(low, jnp.array([p[0], p[1], CARRY_Z]),
                                              jnp.array([dxy[0], dxy[1], CARRY_Z])), jnp.array([dxy[0], dxy[1], rz]))
         release = (~far) & (jnp.abs(p[2] - rz) < 0.008)
@@ -108,9 +163,9 @@ def controller(est: dict, state: jax.Array, task: jax.Array) -> jax.Array:
         gfar = gerr > 0.008
         # far: travel at hover height; close: hold the height while correcting xy (no bobbing up when the estimate
         # moves by a few mm between chunks); aligned: descend
-        goal_z = jnp.where(gerr > 0.03, HOVER_Z, jnp.where(gfar, p[2], GRASP_Z))
+        goal_z = jnp.where(gerr > 0.03, HOVER_Z, jnp.where(gfar, p[2], grasp_z))
         goal_pick = jnp.array([g[0], g[1], goal_z])
-        close = (~gfar) & (p[2] < GRASP_Z + 0.006)
+        close = (~gfar) & (p[2] < grasp_z + 0.006)
         goal_idle = jnp.array([p[0], p[1], HOVER_Z + 0.02])
         idle = empty | ~left
         goal = jnp.where(hold, goal_hold, jnp.where(idle, goal_idle, goal_pick))
@@ -123,7 +178,7 @@ def controller(est: dict, state: jax.Array, task: jax.Array) -> jax.Array:
         a = jnp.concatenate([d, rot, grip[None]])
         grasp = (~hold) & (~idle) & close
         new_hold = jnp.where(hold, ~release, grasp)
-        new_dest = jnp.where(hold, dest_c, obj_c[j])
+        new_dest = jnp.where(hold, dest_c, route(obj_c[j], g[1]))
         new_done = done | (grasp & (jnp.arange(N_OBJ) == j))
         return (p + d, new_hold, empty, new_dest, new_done), a
 
@@ -133,12 +188,14 @@ def controller(est: dict, state: jax.Array, task: jax.Array) -> jax.Array:
 
 
 def policy_apply(params: dict, obs: dict, rng: jax.Array) -> jax.Array:
-    """The zoo policy: pixels + state + task -> [25, 7] raw delta-EE actions. ``rng`` is unused (deterministic)."""
-    del rng
+    """The zoo policy: pixels + state + task -> [25, 7] raw delta-EE actions.
+
+    ``params = {"net": estimator weights, "knobs": ControlKnobs.arrays()}``; ``rng`` draws the knobs' per-chunk
+    errors (a policy whose knobs are all off is deterministic)."""
     images = jnp.asarray(obs["images"])[None]
     state = jnp.asarray(obs["state"], jnp.float32)
-    est = decode(net_apply(params, images, state[None])[0])
-    return controller(est, state, jnp.asarray(obs["task"], jnp.int32))
+    est = decode(net_apply(params["net"], images, state[None])[0])
+    return controller(est, state, jnp.asarray(obs["task"], jnp.int32), params["knobs"], rng)
 
 
 # -- registry -----------------------------------------------------------------------------------------------------
@@ -146,20 +203,46 @@ def policy_apply(params: dict, obs: dict, rng: jax.Array) -> jax.Array:
 class ZooEntry:
     name: str
     task: str  # the task the policy is meant for
-    weights: str  # file under sc3_jax/sim/zoo/
-    recipe: str  # how it was trained
+    weights: str  # estimator file under sc3_jax/sim/zoo/
+    recipe: str  # how the estimator was trained and which knobs are set
+    knobs: ControlKnobs = ControlKnobs()
 
 
+_CLEAN = "300 clean bussing demos"
+_REV = "300 clean reverse-bussing demos"
 ZOO: dict[str, ZooEntry] = {e.name: e for e in (
-    ZooEntry("bus_bc_full", "bussing", "run_clean_final.npz", "300 clean demos, final checkpoint (5000 steps)"),
-    ZooEntry("bus_bc_mid", "bussing", "run_clean_mid.npz", "300 clean demos, checkpoint at 1500 steps"),
-    ZooEntry("bus_bc_small", "bussing", "run_small_final.npz", "30 clean demos, final checkpoint (1500 steps)"),
-    ZooEntry("bus_bc_biased", "bussing", "run_biased_final.npz",
-             "150 demos of a biased demonstrator (bags and cups to the wrong container), 3000 steps"),
-    ZooEntry("rev_bc_full", "reverse", "run_clean_final.npz", "as bus_bc_full, task=1 routes to swapped containers"),
-    ZooEntry("rev_bc_small", "reverse", "run_small_mid.npz", "30 clean demos, checkpoint at 600 steps; task=1"),
-    ZooEntry("rev_bc_biased", "reverse", "run_biased_final.npz",
-             "as bus_bc_biased, task=1 routes to swapped containers"),
+    # bussing: estimator quality x scripted failure tendencies
+    ZooEntry("bus_bc_full", "bussing", "run_clean_final.npz", f"{_CLEAN}, 5000 steps; no knobs"),
+    ZooEntry("bus_grasp_sloppy", "bussing", "run_clean_mid.npz",
+             f"{_CLEAN}, checkpoint at 1500 steps; grasp aim error 1.5 cm", ControlKnobs(grasp_sigma=0.015)),
+    ZooEntry("bus_release_sloppy", "bussing", "run_clean_final.npz",
+             f"{_CLEAN}, 5000 steps; releases 8 cm outwards (+-3 cm), 6 cm higher",
+             ControlKnobs(release_out=0.08, release_sigma=0.03, release_dz=0.06)),
+    ZooEntry("bus_confused", "bussing", "run_clean_final.npz", f"{_CLEAN}, 5000 steps; greedy routing (any abs(y))",
+             ControlKnobs(greedy_y=0.0)),
+    ZooEntry("bus_bc_small", "bussing", "run_small_final.npz", "30 clean bussing demos, 1500 steps; no knobs"),
+    ZooEntry("bus_mid_confused", "bussing", "run_clean_mid.npz",
+             f"{_CLEAN}, checkpoint at 1500 steps; greedy routing (abs(y) > 8 cm), releases 10 cm higher",
+             ControlKnobs(greedy_y=0.08, release_dz=0.1)),
+    ZooEntry("bus_grasp_high", "bussing", "run_clean_final.npz",
+             f"{_CLEAN}, 5000 steps; grasps 1.5 cm high, greedy routing (abs(y) > 10 cm)",
+             ControlKnobs(grasp_dz=0.015, greedy_y=0.1)),
+    # reverse bussing: their own estimators (trained on reverse demos) and their own knobs
+    ZooEntry("rev_bc_full", "reverse", "run_reverse_final.npz", f"{_REV}, 3000 steps; no knobs",
+             ControlKnobs(dest_frame=1)),
+    ZooEntry("rev_bc_small", "reverse", "run_reverse_mid.npz", f"{_REV}, checkpoint at 1000 steps; no knobs",
+             ControlKnobs(dest_frame=1)),
+    ZooEntry("rev_release_sloppy", "reverse", "run_reverse_final.npz",
+             f"{_REV}, 3000 steps; releases 7 cm outwards (+-3 cm), greedy abs(y) > 12 cm",
+             ControlKnobs(dest_frame=1, release_out=0.07, release_sigma=0.03, greedy_y=0.12)),
+    ZooEntry("rev_grasp_sloppy", "reverse", "run_reverse_final.npz",
+             f"{_REV}, 3000 steps; grasp aim error 2 cm, releases 4 cm outwards",
+             ControlKnobs(dest_frame=1, grasp_sigma=0.02, release_out=0.04)),
+    ZooEntry("rev_transfer", "reverse", "run_clean_final.npz",
+             f"bussing estimator ({_CLEAN}, 5000 steps) flipped; greedy abs(y) > 14 cm", ControlKnobs(greedy_y=0.14)),
+    ZooEntry("rev_confused", "reverse", "run_clean_final.npz",
+             f"bussing estimator ({_CLEAN}, 5000 steps) flipped; greedy abs(y) > 2 cm, grasp aim error 1 cm",
+             ControlKnobs(greedy_y=0.02, grasp_sigma=0.01)),
 )}
 
 
@@ -183,12 +266,13 @@ def load_params(path: str | Path) -> dict:
 
 
 def load_policy(name: str, zoo_dir: str | Path | None = None) -> JaxPolicy:
+    """The zoo policy ``name``: its estimator weights (``sc3_jax/sim/zoo/<weights>``) and its control knobs."""
     if name not in ZOO:
         raise KeyError(f"unknown zoo policy {name!r}; known: {sorted(ZOO)}")
     path = Path(zoo_dir or ZOO_DIR) / ZOO[name].weights
     if not path.exists():
         raise FileNotFoundError(f"{path}: zoo weights missing; train them with `python -m sc3_jax.sim.zoo train`")
-    return JaxPolicy(name, policy_apply, load_params(path), chunk=CHUNK)
+    return JaxPolicy(name, policy_apply, {"net": load_params(path), "knobs": ZOO[name].knobs.arrays()}, chunk=CHUNK)
 
 
 # -- training -------------------------------------------------------------------------------------------------------
@@ -264,40 +348,60 @@ def train_net(data, steps: int, checkpoints: dict[int, Path], seed: int = 0, bat
 # run name -> (demo set, max episodes, steps, {checkpoint step: file suffix})
 RUNS = {
     "clean": ("clean", None, 5000, {1500: "mid", 5000: "final"}),
-    "small": ("clean", 30, 1500, {600: "mid", 1500: "final"}),
-    "biased": ("biased", None, 3000, {3000: "final"}),
+    "small": ("clean", 30, 1500, {1500: "final"}),
+    "reverse": ("reverse", None, 3000, {1000: "mid", 3000: "final"}),
 }
-DEMO_SETS = {"clean": dict(n=300, seed=1), "biased": dict(n=150, seed=2)}
+# the reverse set trains the reverse-bussing policies' own estimator; it is zoo training data only (written with
+# ``demos.write_episodes``: ``generate_demos``, the world-model data path, refuses reverse bussing)
+DEMO_SETS = {"clean": dict(n=300, seed=1, task="bussing"), "reverse": dict(n=300, seed=3, task="reverse")}
 
 
 def train_zoo(workdir: str | Path, out_dir: str | Path = ZOO_DIR, runs: list[str] | None = None,
               demo_scale: float = 1.0) -> dict:
     """Generate the demo sets (resumable) and train every run, saving its checkpoints as zoo weights."""
-    from .demos import generate_demos
+    from .demos import _expert_runner, write_episodes
     from .expert import ExpertKnobs
     workdir, out_dir = Path(workdir), Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    knobs = {"clean": ExpertKnobs(), "biased": ExpertKnobs(swap_types=("bag", "cup"))}
+    knobs = {"clean": ExpertKnobs(), "reverse": ExpertKnobs()}
     summary = {}
+    runs = runs or list(RUNS)
     for name, cfg in DEMO_SETS.items():
-        summary[f"demos_{name}"] = generate_demos(workdir / f"demos_{name}", max(1, int(cfg["n"] * demo_scale)),
-                                                  seed=cfg["seed"], knobs=knobs[name])
-    for run in runs or list(RUNS):
+        if not any(RUNS[r][0] == name for r in runs):
+            continue
+        summary[f"demos_{name}"] = write_episodes(
+            workdir / f"demos_{name}", max(1, int(cfg["n"] * demo_scale)), cfg["seed"], _expert_runner(knobs[name]),
+            {"knobs": dataclasses.asdict(knobs[name])}, cfg["task"])
+    for run in runs:
         dset, max_eps, steps, ckpts = RUNS[run]
         data = load_training_data(workdir / f"demos_{dset}", max_eps)
         print(f"run {run}: {len(data[0])} frames from demos_{dset}", flush=True)
         t0 = time.time()
         train_net(data, steps, {s: out_dir / f"run_{run}_{suffix}.npz" for s, suffix in ckpts.items()})
         summary[f"run_{run}_seconds"] = time.time() - t0
-    (out_dir / "zoo.json").write_text(json.dumps({
-        "policies": {n: dataclasses.asdict(e) for n, e in ZOO.items()},
+    write_manifest(out_dir, {k: round(v) for k, v in summary.items() if k.endswith("seconds")})
+    return summary
+
+
+def write_manifest(out_dir: str | Path = ZOO_DIR, seconds: dict | None = None) -> Path:
+    """``zoo.json``: every policy (estimator weights + control knobs + recipe), the training runs and demo sets.
+    Training times measured earlier are kept unless ``seconds`` replaces them."""
+    path = Path(out_dir) / "zoo.json"
+    old = json.loads(path.read_text()) if path.exists() else {}
+    measured = {**old.get("training_seconds_measured", {}), **(seconds or {})}
+    path.write_text(json.dumps({
+        "policies": {n: {**dataclasses.asdict(e), "knobs": {k: v for k, v in dataclasses.asdict(e.knobs).items()
+                                                            if v != getattr(ControlKnobs(), k)}}
+                     for n, e in ZOO.items()},
+        "knob_defaults": {k: str(v) for k, v in dataclasses.asdict(ControlKnobs()).items()},
+        "pick_x_max": PICK_X_MAX,
         "runs": {k: {"demo_set": v[0], "max_episodes": v[1], "steps": v[2], "checkpoints": v[3]}
                  for k, v in RUNS.items()},
-        "demo_sets": DEMO_SETS, "biased_demonstrator": {"swap_types": ["bag", "cup"]},
+        "demo_sets": DEMO_SETS,
         "command": "python -m sc3_jax.sim.zoo train --workdir /tmp/sc3_zoo",
         "dtype": "float16 (cast to float32 on load)",
-        "training_seconds_measured": {k: round(v) for k, v in summary.items() if k.endswith("seconds")}}, indent=1))
-    return summary
+        "training_seconds_measured": measured}, indent=1))
+    return path
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -308,12 +412,15 @@ def main(argv: list[str] | None = None) -> None:
     t.add_argument("--out", default=str(ZOO_DIR))
     t.add_argument("--runs", nargs="*", default=None)
     sub.add_parser("list", help="list the zoo")
+    sub.add_parser("manifest", help="rewrite sc3_jax/sim/zoo/zoo.json from the registry (no training)")
     a = ap.parse_args(argv)
     if a.cmd == "train":
         print(json.dumps(train_zoo(a.workdir, a.out, a.runs), indent=1, default=str))
+    elif a.cmd == "manifest":
+        print(write_manifest())
     else:
         for n, e in ZOO.items():
-            print(f"{n:16s} {e.task:8s} {e.recipe}")
+            print(f"{n:20s} {e.task:8s} {e.weights:22s} {e.recipe}")
 
 
 if __name__ == "__main__":

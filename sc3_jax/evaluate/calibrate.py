@@ -1,0 +1,86 @@
+"""The early-termination threshold tau, chosen the paper's way: on held-out initial conditions, then applied once.
+
+The paper tunes tau "on a held-out subset of 30 trajectories" and adopts the threshold at which in-distribution
+faithfulness is best (App. "Early-termination threshold" and "Sweet spot at tau_2 = 0.02"). Here the sweep rolls
+out a *calibration* block of initial conditions (simulator seeds disjoint from the evaluation seeds) in the
+simulator and in the world model; :func:`choose_tau` reads only that block's results:
+
+    tau* = the candidate with the highest in-distribution Pearson r (calibration rollouts vs physics),
+           ties broken by lower in-distribution MMRV, then by the larger tau (terminate less).
+
+A candidate whose r is nan (a constant side) ranks below every finite r. The evaluation's early-termination table
+still lists every candidate, marked post hoc: reading a tau off that table would tune on the evaluation itself.
+
+Every online rollout runs untruncated (tau = inf) and stores the outcomes of the rollout cut after every chunk, so a
+candidate tau is a lookup: the kept frames are the chunks before the first with U_chunk > tau (``rollout.
+terminated_at``), U_chunk in the sweep's one unit convention (``RolloutConfig.tau_units``).
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from sc3_jax.evaluate import metrics
+
+SELECT_SPLIT = "in_distribution"
+SPLIT_ORDER = ("in_distribution", "out_of_distribution", metrics.OVERALL)
+
+
+def parse_tau(t) -> float:
+    return math.inf if str(t) in ("inf", "Infinity") else float(t)
+
+
+def object_rows(rec: dict, objects: list[dict]) -> list[dict]:
+    """Per-object rows of one rollout record, as ``metrics.success_rates`` takes them."""
+    return [{"policy": rec["policy"], "split": rec["split"], "episode": rec["seed"], "object": o["object"],
+             **{c: bool(o[c]) for c in metrics.CRITERIA}} for o in objects]
+
+
+def cut(rec: dict, tau: float, units: str) -> int:
+    """Index into an online record's ``objects_by_cut`` for threshold tau: the first chunk with U > tau (its frames
+    and every later chunk's are dropped); ``num_chunks`` when no chunk exceeds tau."""
+    u = np.asarray(rec["u"] if units == "normalised" else rec["u_raw"])
+    above = np.flatnonzero(u > tau)
+    return int(above[0]) if len(above) else len(u)
+
+
+def faith(ev_rows: list[dict], real_rows: list[dict]) -> dict:
+    """Point r / MMRV per split (and overall) of two sets of per-object rows."""
+    re = metrics.success_rates_by_split(real_rows)
+    out = metrics.faithfulness(metrics.success_rates_by_split(ev_rows), re, [s for s in SPLIT_ORDER if s in re])
+    return {s: out[s] for s in SPLIT_ORDER if s in out}
+
+
+def tau_sweep(real: dict, online: dict, taus, units: str) -> list[dict]:
+    """For every tau: termination rate per split, r / MMRV of the cut online rollouts against physics, mean chunks
+    kept. ``real`` / ``online``: records keyed by (policy, seed); only keys in both are compared."""
+    cases = sorted(set(online) & set(real))
+    if not cases:
+        return []
+    re_rows = [row for k in cases for row in object_rows(real[k], real[k]["objects"])]
+    out = []
+    for tau in (parse_tau(t) for t in taus):
+        cuts = {k: cut(online[k], tau, units) for k in cases}
+        ev_rows = [row for k in cases for row in object_rows(online[k], online[k]["objects_by_cut"][cuts[k]])]
+        term = {}
+        for split in SPLIT_ORDER:
+            ks = [k for k in cases if split == metrics.OVERALL or real[k]["split"] == split]
+            if ks:
+                term[split] = float(np.mean([cuts[k] < online[k]["num_chunks"] for k in ks]))
+        out.append({"tau": str(tau), "termination_rate": term, "faithfulness": faith(ev_rows, re_rows),
+                    "mean_chunks_kept": float(np.mean(list(cuts.values()))), "cases": len(cases)})
+    return out
+
+
+def choose_tau(table: list[dict], split: str = SELECT_SPLIT) -> float:
+    """tau* from a :func:`tau_sweep` of the *calibration* rollouts (see the module docstring). Pure: the table is
+    all it reads."""
+    if not table:
+        raise ValueError("choose_tau: no calibration results (run the sweep with --calibration-episodes N)")
+
+    def key(e):
+        f = e["faithfulness"].get(split) or e["faithfulness"][metrics.OVERALL]
+        r = f["pearson"]
+        return (-math.inf if math.isnan(r) else r, -f["mmrv"], parse_tau(e["tau"]))
+    return parse_tau(max(table, key=key)["tau"])

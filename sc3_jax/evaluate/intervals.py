@@ -1,0 +1,137 @@
+"""Faithfulness of every evaluator row, each r and MMRV with a paired bootstrap 95% interval (``bootstrap.py``).
+
+Rows (evaluators), each compared with a *reference* -- the real rollouts scored by physics (end to end) or by the
+perception scorer (the same instrument that scores the imagined rollouts, the paper's protocol of one set of
+annotators for both sides):
+
+    offline        the world model replaying the real actions, scored by perception
+    online         the policy inside the world model, untruncated (tau = inf)
+    online_tau     the same rollouts cut at the calibrated tau* (``calibrate.py``), when the sweep calibrated one
+    real_perception  the real rollouts scored by perception (reference physics only): the scorer's own share
+    policy_blind   every policy gets its split's mean reference rate per criterion: the floor
+    ceiling        an independent second set of real rollouts on other seeds, scored like the reference: how well
+                   *the simulator itself* agrees with itself at this many conditions (the best any evaluator can
+                   expect). Without a second set: the split-half estimate -- the evaluation conditions split at
+                   random into halves, one half's rates against the other's, one split per draw -- which is the
+                   ceiling at n/2 conditions per side, i.e. conservative (lower than at n).
+
+Pairing: one resample of evaluation initial-condition indices per draw serves every policy, every split, every
+evaluator and the reference; a rollout missing on either side of a comparison is left out of both. The second
+real set is resampled independently (its seeds are other initial conditions).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from sc3_jax.evaluate import bootstrap, metrics
+
+SPLITS = ("in_distribution", "out_of_distribution")
+SPLIT_ORDER = SPLITS + (metrics.OVERALL,)
+
+
+def grid(recs: dict, policies: list[str], seeds: list[int], outcomes=lambda r: r["objects"]):
+    """Records keyed (policy, seed) -> (passes [P, n, C] cumulative per criterion, counts [P, n]; 0 = missing)."""
+    passes = np.zeros((len(policies), len(seeds), len(metrics.CRITERIA)))
+    counts = np.zeros((len(policies), len(seeds)))
+    for p, pol in enumerate(policies):
+        for i, seed in enumerate(seeds):
+            rec = recs.get((pol, seed))
+            if rec is None:
+                continue
+            objs = outcomes(rec)
+            counts[p, i] = len(objs)
+            for o in objs:
+                passes[p, i] += [metrics.cumulative_passes(o)[c] for c in metrics.CRITERIA]
+    return passes, counts
+
+
+def _points(rates: np.ndarray, split_of: list[str], split: str, criterion: int | None = None) -> np.ndarray:
+    """rates [B, P, C] -> the points of one split (all policies for overall) [B, K]."""
+    ps = [p for p, s in enumerate(split_of) if split == metrics.OVERALL or s == split]
+    x = rates[:, ps]
+    return (x if criterion is None else x[..., criterion:criterion + 1]).reshape(len(rates), -1)
+
+
+def compare(ev_point, re_point, ev_draws, re_draws, split_of: list[str], point_from_draws: bool = False) -> dict:
+    """r and MMRV with intervals, per split (all criteria pooled) and per (split, criterion).
+
+    ev/re_point [1, P, C] (the full sample), ev/re_draws [B, P, C]. ``point_from_draws``: the value is the median
+    of the draws (the split-half ceiling has no single full-sample value)."""
+    out: dict = {"splits": {}, "per_criterion": {}}
+    for split in SPLIT_ORDER:
+        if split != metrics.OVERALL and split not in split_of:
+            continue
+        for c in (None,) + tuple(range(len(metrics.CRITERIA))):
+            pts = [_points(x, split_of, split, c) for x in (ev_point, re_point, ev_draws, re_draws)]
+            if pts[0].shape[1] < 2:
+                continue
+            cell = {"n": int(pts[0].shape[1])}
+            for name, fn in (("pearson", bootstrap.pearson), ("mmrv", bootstrap.mmrv)):
+                draws = fn(pts[2], pts[3])
+                if point_from_draws:
+                    point = float(np.median(draws[~np.isnan(draws)])) if (~np.isnan(draws)).any() else np.nan
+                else:
+                    point = float(fn(pts[0], pts[1])[0])
+                cell[name] = bootstrap.summary(point, draws)
+            if c is None:
+                out["splits"][split] = cell
+            else:
+                out["per_criterion"].setdefault(split, {})[metrics.CRITERIA[c]] = cell
+    return out
+
+
+def policy_blind(rates: np.ndarray, split_of: list[str]) -> np.ndarray:
+    """[B, P, C] -> every policy gets its split's mean rate per criterion."""
+    out = np.empty_like(rates)
+    for s in set(split_of):
+        ps = [p for p, x in enumerate(split_of) if x == s]
+        out[:, ps] = np.nanmean(rates[:, ps], axis=1, keepdims=True)
+    return out
+
+
+def split_half(passes, counts, draws: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """Rates [B, P, C] of the two halves of a random split of the n conditions, one split per draw."""
+    n = counts.shape[1]
+    if n < 2:
+        raise ValueError("split-half ceiling: need at least 2 evaluation conditions")
+    order = np.argsort(np.random.default_rng(seed).random((draws, n)), axis=1)
+    a = np.zeros((draws, n))
+    np.put_along_axis(a, order[:, :n // 2], 1.0, axis=1)
+    b = np.zeros((draws, n))
+    np.put_along_axis(b, order[:, n // 2:2 * (n // 2)], 1.0, axis=1)  # equal halves (one left out when n is odd)
+    return bootstrap.rates(passes, counts, a), bootstrap.rates(passes, counts, b)
+
+
+def evaluator_rows(reference, evaluators: dict, split_of: list[str], draws: int, seed: int,
+                   ceiling=None, extra_vs_reference: dict | None = None) -> dict:
+    """Every evaluator row against one reference (see the module docstring).
+
+    reference: (passes, counts) of the real rollouts on the evaluation seeds, scored by the reference instrument;
+    evaluators: {name: (passes, counts)} on the same seeds; ceiling: (passes, counts) of the second real set scored
+    by the same instrument, or None (split-half); extra_vs_reference: more rows compared like evaluators."""
+    rp, rc = reference
+    n = rc.shape[1]
+    w = bootstrap.multiplicities(n, draws, seed)
+    one = np.ones((1, n))
+    rows = {}
+    for name, (ep, ec) in {**evaluators, **(extra_vs_reference or {})}.items():
+        both = (ec > 0) & (rc > 0)
+        if not both.any():
+            continue
+        ecm, rcm = ec * both, rc * both
+        rows[name] = compare(bootstrap.rates(ep, ecm, one), bootstrap.rates(rp, rcm, one),
+                             bootstrap.rates(ep, ecm, w), bootstrap.rates(rp, rcm, w), split_of)
+    re_point, re_draws = bootstrap.rates(rp, rc, one), bootstrap.rates(rp, rc, w)
+    rows["policy_blind"] = compare(policy_blind(re_point, split_of), re_point, policy_blind(re_draws, split_of),
+                                   re_draws, split_of)
+    if ceiling is not None:
+        cp, cc = ceiling
+        w2 = bootstrap.multiplicities(cc.shape[1], draws, seed + 1)
+        rows["ceiling"] = compare(bootstrap.rates(cp, cc, np.ones((1, cc.shape[1]))), re_point,
+                                  bootstrap.rates(cp, cc, w2), re_draws, split_of)
+        rows["ceiling"]["method"] = f"second real set, {cc.shape[1]} conditions per policy"
+    else:
+        a, b = split_half(rp, rc, draws, seed + 2)
+        rows["ceiling"] = compare(a[:1], b[:1], a, b, split_of, point_from_draws=True)
+        rows["ceiling"]["method"] = f"split-half: {n // 2} vs {n // 2} evaluation conditions (conservative)"
+    return rows
