@@ -158,3 +158,16 @@ def test_exported_world_model_carries_its_tokenizer(trained, tmp_path):
     assert cfg2.model.tokenizer_path == str((tmp_path / "moved" / "tokenizer").absolute())
     assert make_tokenizer(cfg2.model).token_dim == 2 * 2 * 4
     assert jax.tree.structure(params2) == jax.tree.structure(params)
+
+
+def test_tokenizer_first_built_inside_a_trace(trained):
+    """make_tokenizer caches the loaded weights; built first under a jit trace (as train.load_params does through
+    eval_shape), they must still be concrete arrays when used afterwards."""
+    from sc3_jax.model import tokenizer as T
+
+    _, work, _ = trained
+    mcfg = ModelConfig(tokenizer="conv_ae", tokenizer_path=str(work / "tokenizer"), patch_size=2)
+    T._conv_ae.cache_clear()
+    jax.eval_shape(lambda: make_tokenizer(mcfg).encode(jnp.zeros((1, 16, 16, 3), jnp.uint8)))
+    out = make_tokenizer(mcfg).encode(np.zeros((1, 16, 16, 3), np.uint8))  # UnexpectedTracerError before the fix
+    assert out.shape == (1, 4, 16) and bool(jnp.all(jnp.isfinite(out)))

@@ -176,7 +176,7 @@ def _unflatten(flat: dict, like):
             raise KeyError(f"autoencoder file lacks parameter {key!r}")
         if tuple(flat[key].shape) != tuple(t.shape):
             raise ValueError(f"autoencoder parameter {key!r}: shape {flat[key].shape}, config expects {t.shape}")
-        return jnp.asarray(flat[key], jnp.float32)
+        return np.asarray(flat[key], np.float32)
     return build(like, "")
 
 
@@ -196,7 +196,8 @@ def save(directory: str | Path, cfg: AEConfig, image_size, params: dict, stats: 
 
 
 def load(directory: str | Path) -> tuple[AEConfig, tuple[int, int], dict, dict]:
-    """(config, image_size, params, stats) of a saved autoencoder directory."""
+    """(config, image_size, params, stats) of a saved autoencoder directory, as numpy arrays: a tokenizer may first
+    be built while a jit is tracing (and is cached), so nothing here may become a traced value."""
     d = Path(directory)
     if not (d / "ae.json").exists():
         raise FileNotFoundError(f"{d}: no ae.json (train one with `sc3 train-tokenizer`)")
@@ -206,5 +207,5 @@ def load(directory: str | Path) -> tuple[AEConfig, tuple[int, int], dict, dict]:
         flat = {k: z[k] for k in z.files}
     like = jax.eval_shape(lambda: init(cfg, jax.random.key(0)))
     params = _unflatten(flat, like)
-    stats = {"mean": jnp.asarray(flat["stats/mean"]), "std": jnp.asarray(flat["stats/std"])}
+    stats = {"mean": np.asarray(flat["stats/mean"], np.float32), "std": np.asarray(flat["stats/std"], np.float32)}
     return cfg, tuple(meta["image_size"]), params, stats
