@@ -264,7 +264,12 @@ def diagnose(world_model, heldout_store, config: DiagnoseConfig | None = None, *
             a_norm = stats.normalize(acts[:, 0])
             strides = np.full((B,), stride, np.int32)
             k = jax.random.fold_in(jax.random.key(dc.seed), 10_000 + idx[a])
-            _, est = id_mean(params, window, np.zeros_like(a_norm), strides, k, modes.ID, 0)
+            pose = None
+            if cfg.model.pose_conditioning:  # frame K-1's pose counts; the future ones are withheld in ID mode
+                from sc3_jax.data.pipeline import integrate_poses
+                pose = stats.normalize_pose(np.stack([integrate_poses(s0, a0) for s0, a0 in
+                                                      zip(ics.state, acts[:, 0])]))
+            _, est = id_mean(params, window, np.zeros_like(a_norm), strides, k, modes.ID, 0, pose)
             n = b - a
             est = np.asarray(est)[:n]
             id_acc["mse"].append(((est - a_norm[:n]) ** 2).sum((0, 1)))  # per action dimension [7]

@@ -30,12 +30,14 @@ def make_sampler(cfg: Config, steps: int | None = None):
     Kt, Tt = window_tokens(tok, K, T)  # token frames (= K, T unless the tokenizer compresses time)
 
     @jax.jit
-    def run(params, frames, actions, stride, rng, mode, kept_view):
+    def run(params, frames, actions, stride, rng, mode, kept_view, pose=None):
+        """``pose``: the normalised pose condition [B, T + 1, 7] (pose-conditioned models only)."""
         video = tok.encode(frames)
         B = frames.shape[0]
         vn, an = modes.masks(jnp.full((B,), mode), jnp.full((B,), kept_view), V, Kt, Tt, num_actions=T)
         out_v, out_a = flow.sample(params, cfg.model, video, actions, stride, vn, an, rng, steps or cfg.sample.steps,
-                                   grid, fcfg=cfg.flow, context_frames=Kt)
+                                   grid, fcfg=cfg.flow, context_frames=Kt, pose=pose,
+                                   context_noise=cfg.sample.context_noise)
         return to_uint8(tok.decode(out_v, cfg.data.image_size)), out_a
 
     return run
