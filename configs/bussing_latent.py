@@ -8,16 +8,22 @@ its level given to the model (``model.context_noise``, anti-drift) and lightly a
 l' = 10 frames and a rollout keeps l = 8 (the paper's horizon decoupling), from multi-FPS windows (strides 1-3 of
 the 20 Hz data; rollouts run at stride 2 = 10 Hz) with pseudo-actions half of the time.
 
-``--model.tokenizer-path`` must point at a trained tokenizer (default: the one of scripts/world_model.sh)."""
+``--model.tokenizer-path`` names the trained tokenizer; the default is the one shipped with the exported model
+(``sc3_jax/evaluate/shipped/bussing_latent/tokenizer``), and scripts/world_model.sh passes the one it trains."""
+from pathlib import Path
+
+import sc3_jax
 from sc3_jax.config import (Config, DataConfig, FlowConfig, ModeConfig, ModelConfig, RolloutConfig, SampleConfig,
                             TrainConfig)
+
+SHIPPED_TOKENIZER = Path(sc3_jax.__file__).parent / "evaluate" / "shipped" / "bussing_latent" / "tokenizer"
 
 
 def get_config(arg: str | None = None) -> Config:
     return Config(
         name="bussing_latent",
         model=ModelConfig(dim=192, depth=4, num_heads=4, num_kv_heads=2, head_dim=48, mlp_dim=576,
-                          rope_axes_dim=(8, 8, 8), tokenizer="conv_ae", tokenizer_path="runs/tokenizer/tokenizer",
+                          rope_axes_dim=(8, 8, 8), tokenizer="conv_ae", tokenizer_path=str(SHIPPED_TOKENIZER),
                           patch_size=4, anchor_conditioning=True, action_to_frames=True, action_reads_frames=True,
                           pose_conditioning=True, context_noise=True),
         data=DataConfig(path="runs/bussing/demos", image_size=(64, 64), context_frames=2, future_frames=10,

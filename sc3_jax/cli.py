@@ -92,9 +92,13 @@ def cmd_configs(argv: list[str]) -> int:
     print(f"named configs in {configs_dir()}:")
     for name in available_configs():
         cfg = load_config(name)
-        n = dit.count_params(jax.eval_shape(lambda: train.init_state(cfg)["params"]))
+        try:  # a config whose tokenizer weights are missing here is listed, not fatal
+            n = dit.count_params(jax.eval_shape(lambda: train.init_state(cfg)["params"]))
+            rows, cols = train.token_geometry(cfg)[1]
+        except (FileNotFoundError, ValueError) as e:
+            print(f"  {name:24s} (not sized here: {e})")
+            continue
         d = cfg.data
-        rows, cols = train.token_geometry(cfg)[1]
         tokens = len(d.views) * (d.context_frames + d.future_frames) * rows * cols + d.future_frames
         print(f"  {name:24s} {n / 1e6:10.2f}M params  {tokens:6d} tokens/sample  batch {d.batch_size}")
     return 0
