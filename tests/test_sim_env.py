@@ -17,7 +17,7 @@ from sc3_jax.sim import zoo  # noqa: E402
 from sc3_jax.sim.criteria import success_rates  # noqa: E402
 from sc3_jax.sim.demos import generate_demos  # noqa: E402
 from sc3_jax.sim.env import BussingEnv  # noqa: E402
-from sc3_jax.sim.evaluate import run_policy_episode  # noqa: E402
+from sc3_jax.sim.policy_eval import run_policy_episode  # noqa: E402
 from sc3_jax.sim.expert import ExpertKnobs, run_expert_episode  # noqa: E402
 from sc3_jax.sim.scene import OPEN_WIDTH  # noqa: E402
 

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from sc3_jax.evaluate.metrics import CRITERIA
-from sc3_jax.evaluate.sweep import ResultsStore
+from sc3_jax.evaluate.results import ResultsStore
 
 COLUMNS = ("clip_id", "instruction", "object") + CRITERIA
 
@@ -42,8 +42,8 @@ def export_blinded(results: str | Path, out: str | Path, key_path: str | Path | 
                    fps: int = 10) -> tuple[Path, Path]:
     """Write ``out/clips/<id>.mp4``, ``out/annotations.csv`` (template) and the key (default ``<out>_key.json``,
     outside ``out``). Returns (csv path, key path)."""
-    from sc3_jax.sim.evaluate import write_mp4
     from sc3_jax.sim.tasks import make_initial_condition
+    from sc3_jax.video import write_mp4
     store = ResultsStore(results)
     recs = store.records()
     if not recs:

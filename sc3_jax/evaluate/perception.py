@@ -167,7 +167,7 @@ def generate_scorer_data(out: str | Path, episodes: int, seed: int = 50, image_s
             continue
         if policies:
             from sc3_jax.policies.base import as_host
-            from sc3_jax.sim.evaluate import run_policy_episode
+            from sc3_jax.sim.policy_eval import run_policy_episode
             from sc3_jax.sim.zoo import ZOO, load_policy
             name = sorted(ZOO)[i % len(ZOO)]
             task = ZOO[name].task

@@ -31,7 +31,7 @@ def demos(out: str, episodes: int = 100, seed: int = 0, grasp_noise: float = 0.0
 
 def eval(policy: str, task: str = "bussing", episodes: int = 36, out: str | None = None, videos: bool = True,
          image_size: tuple[int, int] = (64, 64), progress: bool = True) -> dict:  # noqa: A001 (CLI verb)
-    from .evaluate import evaluate_policy
+    from .policy_eval import evaluate_policy
     return evaluate_policy(policy, task, episodes, out, image_size=tuple(image_size), videos=videos,
                            progress=progress)
 
@@ -83,10 +83,11 @@ def main(argv: list[str] | None = None) -> int:
     elif a.cmd == "eval":
         res = eval(a.policy, a.task, a.episodes, a.out, not a.no_videos, tuple(a.image_size))
     elif a.cmd == "zoo-train":
-        from .zoo import ZOO_DIR, train_zoo
+        from .zoo import ZOO_DIR
+        from .zoo_train import train_zoo
         res = train_zoo(a.workdir, a.out or ZOO_DIR)
     elif a.cmd == "zoo-eval":
-        from .evaluate import evaluate_zoo
+        from .policy_eval import evaluate_zoo
         print(evaluate_zoo(a.out, a.episodes, not a.no_videos, a.policies))
         return 0
     else:

@@ -87,7 +87,7 @@ def _expert_runner(knobs: ExpertKnobs):
 
 def _policy_runner(name: str):
     from ..policies.base import as_host
-    from .evaluate import run_policy_episode
+    from .policy_eval import run_policy_episode
     from .zoo import load_policy
     host = as_host(load_policy(name))  # jitted once, reused for every episode
     return lambda env, seed, task: run_policy_episode(env, host, seed, task, record=True)

@@ -17,6 +17,7 @@ import jax
 import numpy as np
 
 from ..policies.base import JaxAsHost, JaxPolicy, as_host
+from ..video import write_mp4
 from .criteria import ObjectOutcome, inside_container, success_rates
 from .env import BussingEnv
 from .expert import MAX_STEPS_20HZ, EpisodeResult, finish
@@ -81,29 +82,18 @@ def run_policy_episode(env: BussingEnv, policy, seed: int, task: str = "bussing"
                          np.stack(traj).astype(np.float32))
 
 
-def write_mp4(path: str | Path, frames: np.ndarray, fps: int = 20) -> None:
-    import cv2
-    frames = np.asarray(frames)
-    h, w = frames.shape[1:3]
-    vw = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), fps, (w, h))
-    if not vw.isOpened():
-        raise RuntimeError(f"OpenCV could not open an mp4v writer for {path}")
-    for f in frames:
-        vw.write(np.ascontiguousarray(f[..., ::-1]))
-    vw.release()
-
-
 def evaluate_policy(policy, task: str = "bussing", episodes: int = 36, out: str | Path | None = None,
                     seed0: int = EVAL_SEED0, image_size: tuple[int, int] = (64, 64), videos: bool = True,
                     progress: bool = True) -> dict:
-    """Evaluate ``policy`` (a zoo name, a JaxPolicy or a host policy) on ``episodes`` initial conditions.
+    """Evaluate ``policy`` (a name ``policies.resolve`` takes, a JaxPolicy or a host policy) on ``episodes`` initial
+    conditions.
 
     Writes (if ``out``): ``episodes.jsonl`` (per-episode, per-object outcomes), ``summary.json`` (per-criterion
     success rates and outcome distribution), ``videos/ep<seed>_<view>.mp4`` (every view, if ``videos``)."""
     from tqdm import tqdm
-    if isinstance(policy, str):
-        from .zoo import load_policy
-        policy = load_policy(policy)
+    if isinstance(policy, str):  # any spelling of policies/resolve.py
+        from ..policies.resolve import resolve
+        policy = resolve(policy).policy
     name = getattr(policy, "name", type(policy).__name__)
     env = make_env(image_size)
     out = Path(out) if out is not None else None
@@ -163,4 +153,4 @@ def evaluate_zoo(out: str | Path, episodes: int = 36, videos: bool = True, names
     return table
 
 
-__all__ = ["evaluate_zoo", "make_env", "run_policy_episode", "evaluate_policy", "write_mp4", "ObjectOutcome"]
+__all__ = ["evaluate_zoo", "make_env", "run_policy_episode", "evaluate_policy", "ObjectOutcome"]
