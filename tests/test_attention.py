@@ -11,7 +11,7 @@ import pytest
 
 from sc3_jax import flow, modes
 from sc3_jax.config import ModelConfig
-from sc3_jax.model import attention, cosmos3, dit, layers, tokenizer
+from sc3_jax.model import attention, attention_impl, dit, layers, tokenizer
 
 
 def _qkv(B, N, M, hq=4, hkv=2, d=8, dtype=jnp.float32):
@@ -55,7 +55,7 @@ def test_blockwise_matches_dense(kind, N, M):
     grouped kv heads."""
     q, k, v, ct = _qkv(2, N, M)
     mask = _mask(kind, 2, N, M)
-    ref = _out_and_grads(lambda q, k, v: attention.attend("dense", q, k, v, mask), q, k, v, ct)
+    ref = _out_and_grads(lambda q, k, v: attention_impl.attend("dense", q, k, v, mask), q, k, v, ct)
     got = _out_and_grads(lambda q, k, v: attention.blockwise(q, k, v, mask, block=8), q, k, v, ct)
     for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(ref)):
         np.testing.assert_allclose(a, b, atol=2e-6, rtol=1e-5)
@@ -83,7 +83,7 @@ def test_log_sum_exp_and_padding_segment():
     for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(ref)):
         np.testing.assert_allclose(a, b, atol=1e-4, rtol=1e-5)
     out = attention.blockwise(q, k, v, padded, block=8)
-    np.testing.assert_allclose(out, attention.attend("dense", q[:, :], k[:, :M - 5], v[:, :M - 5],
+    np.testing.assert_allclose(out, attention_impl.attend("dense", q[:, :], k[:, :M - 5], v[:, :M - 5],
                                                      attention.SegmentMask(mask.q, mask.k[:, :M - 5], mask.table)),
                                atol=2e-6)
 
@@ -112,13 +112,13 @@ def test_fused_falls_back_to_blockwise_off_gpu(monkeypatch):
     ref = attention.blockwise(q, k, v, None, block=8)
     calls = []
     monkeypatch.setattr(attention, "fused", lambda *a: calls.append(a) or jnp.zeros_like(a[0]))
-    np.testing.assert_array_equal(attention.attend("fused", q, k, v, None, block=8), ref)  # CPU: blockwise
+    np.testing.assert_array_equal(attention_impl.attend("fused", q, k, v, None, block=8), ref)  # CPU: blockwise
     assert not calls
     monkeypatch.setattr(jax, "default_backend", lambda: "gpu")  # as on a GPU: the full mask goes to cuDNN ...
-    attention.attend("fused", q, k, v, None, block=8)
+    attention_impl.attend("fused", q, k, v, None, block=8)
     assert len(calls) == 1
     mask = _mask("causal_context", 2, 24, 24)  # ... a segment mask does not
-    np.testing.assert_array_equal(attention.attend("fused", q, k, v, mask, block=8),
+    np.testing.assert_array_equal(attention_impl.attend("fused", q, k, v, mask, block=8),
                                   attention.blockwise(q, k, v, mask, block=8))
     assert len(calls) == 1
 
@@ -190,7 +190,7 @@ def test_cached_context_and_inverse_mode_match_dense(cosmos):
     grid = tok.grid((H, H))
 
     def run(c, inp, prefix):
-        tkv = cosmos3.encode_text(params, c, inp.text) if cosmos else None
+        tkv = dit.encode_text(params, c, inp.text) if cosmos else None
         kv = dit.encode_context(params, c, inp, grid, prefix=prefix, text_kv=tkv)
         return kv, dit.apply_cached(params, c, inp, grid, kv, text_kv=tkv), tkv
 
@@ -220,7 +220,7 @@ def test_config_values():
 def _grad_temp_bytes(impl, N):
     q, k, v, _ = _qkv(1, N, N, hq=2, hkv=1, d=16)
     mask = _mask("causal_context", 1, N, N)
-    f = jax.grad(lambda q, k, v: jnp.sum(attention.attend(impl, q, k, v, mask, block=128) ** 2), argnums=(0, 1, 2))
+    f = jax.grad(lambda q, k, v: jnp.sum(attention_impl.attend(impl, q, k, v, mask, block=128) ** 2), argnums=(0, 1, 2))
     return jax.jit(f).lower(q, k, v).compile().memory_analysis().temp_size_in_bytes
 
 

@@ -7,6 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from sc3_jax.model import wan_tokenizer as wt
 from sc3_jax.model import wan_vae as wv
 from sc3_jax.model import wan_vae_convert as wc
 from sc3_jax.model.tokenizer import PixelPatchTokenizer
@@ -49,12 +50,12 @@ def test_sizes_and_presets():
     n21 = sum(int(np.prod(s.shape)) for s in wc.flat_specs(wv.wan21_config()).values())
     assert 120e6 < n21 < 135e6, n21
     with pytest.raises(ValueError, match="unknown Wan VAE"):
-        wv.make_wan_tokenizer("wan3")
+        wt.make_wan_tokenizer("wan3")
     with pytest.warns(UserWarning, match="randomly initialised"):
-        tok = wv.make_wan_tokenizer("wan2.2", patch_size=2, base_dim=4, decoder_base_dim=4, z_dim=4,
+        tok = wt.make_wan_tokenizer("wan2.2", patch_size=2, base_dim=4, decoder_base_dim=4, z_dim=4,
                                     latents_mean=(0.0,) * 4, latents_std=(1.0,) * 4)
     assert tok.grid((64, 96)) == (2, 3) and tok.token_dim == 16 and tok.cfg.is_residual
-    assert wv.make_wan_tokenizer("wan2.2", patch_size=2, base_dim=4, decoder_base_dim=4, z_dim=4,
+    assert wt.make_wan_tokenizer("wan2.2", patch_size=2, base_dim=4, decoder_base_dim=4, z_dim=4,
                                  latents_mean=(0.0,) * 4, latents_std=(1.0,) * 4) is tok  # cached
     with pytest.raises(ValueError, match="latents_mean"):
         wv.WanVAEConfig(z_dim=4)  # default stats have 16 entries
@@ -83,7 +84,7 @@ def test_patchify_inverse():
 
 def test_tokenizer_shapes_and_consistency():
     cfg = wc.config_from_diffusers(_with_stats(dict(TINY["wan2.1"], base_dim=4, dim_mult=[1, 1, 1, 1])))
-    tok = wv.WanTokenizer.random(cfg, seed=0, patch_size=2)
+    tok = wt.WanTokenizer.random(cfg, seed=0, patch_size=2)
     frames = jax.random.randint(jax.random.key(2), (1, 2, 6, 16, 32, 3), 0, 256).astype(jnp.uint8)  # 6 -> 5 used
     assert tok.grid((16, 32)) == (1, 2) and tok.token_dim == 16 and tok.latent_frames(6) == 2
     t = tok.encode(frames)
@@ -184,7 +185,7 @@ def _ncthw(x):  # ours [B, T, H, W, C] -> torch layout
 def test_parity_with_diffusers(diffusers_vae):
     import torch
     name, model, path = diffusers_vae
-    tok = wv.WanTokenizer.from_pretrained(path)
+    tok = wt.WanTokenizer.from_pretrained(path)
     cfg, params = tok.cfg, tok.params
     assert cfg.is_residual == (name == "wan2.2")
     gen = torch.Generator().manual_seed(1)
@@ -233,10 +234,10 @@ def test_checkpoint_roundtrip_is_identical(diffusers_vae, tmp_path):
     with open(os.path.join(path, "config.json")) as f:
         orig = json.load(f)
     assert all(reloaded.config[k] == v for k, v in orig.items() if not k.startswith("_"))
-    tok = wv.make_wan_tokenizer(name, path)
+    tok = wt.make_wan_tokenizer(name, path)
     assert tok.cfg == cfg and tok.token_dim == cfg.z_dim
     with pytest.raises(ValueError, match="style VAE"):
-        wv.make_wan_tokenizer("wan2.1" if name == "wan2.2" else "wan2.2", path)
+        wt.make_wan_tokenizer("wan2.1" if name == "wan2.2" else "wan2.2", path)
 
 
 @pytest.mark.interop

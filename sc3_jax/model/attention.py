@@ -37,7 +37,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from sc3_jax.config import ATTENTION_IMPLS as IMPLS
 
 MASKED = float(jnp.finfo(jnp.float32).min)  # the score of a masked (query, key) pair, as layers.attention
 _MIN = MASKED
@@ -117,29 +116,6 @@ def with_prefix(mask: SegmentMask, n: int) -> SegmentMask:
 def full_mask(B: int, N: int, M: int) -> SegmentMask:
     """One segment that sees itself (a segment-table form of "no mask")."""
     return SegmentMask(jnp.zeros((B, N), jnp.int32), jnp.zeros((B, M), jnp.int32), ((True,),))
-
-
-# ----------------------------------------------------------------------------------------------------------------
-# Dispatch
-# ----------------------------------------------------------------------------------------------------------------
-def attend(impl: str, q, k, v, mask=None, block: int = 512):
-    """q [B, N, Hq, hd], k/v [B, M, Hkv, hd] -> [B, N, Hq, hd] with ``ModelConfig.attention_impl`` ``impl``.
-    ``mask``: None, a dense bool [B, 1, N, M] (dense only) or a :class:`SegmentMask`."""
-    from sc3_jax.model import context_parallel, layers
-
-    if impl == "dense":
-        if isinstance(mask, SegmentMask):
-            mask = mask.dense(q.shape[1], k.shape[1])
-        return layers.attention(q, k, v, mask)
-    if mask is not None and not isinstance(mask, SegmentMask):
-        raise TypeError(f"attention_impl {impl!r} needs a SegmentMask (or None), got {type(mask).__name__}")
-    if impl in ("context_parallel", "ring"):
-        return context_parallel.attention(q, k, v, mask, ring=impl == "ring", block=block)
-    if impl == "fused" and fused_ok(q, k, mask):
-        return fused(q, k, v, mask)
-    if impl in ("blockwise", "fused"):
-        return blockwise(q, k, v, mask, block)
-    raise ValueError(f"unknown attention_impl {impl!r}; known: {', '.join(IMPLS)}")
 
 
 def fused_ok(q, k, mask: SegmentMask | None, backend: str | None = None) -> bool:

@@ -38,16 +38,11 @@ import jax.numpy as jnp
 from jax.sharding import PartitionSpec as P
 
 from sc3_jax.model import attention as attention_lib
+from sc3_jax.model.attention import SegmentMask
 
 AXIS = "context"
 BATCH_AXES = ("data", "fsdp")
 HEAD_AXIS = "tensor"
-
-
-# The mask description lives in attention.py (one concept); these names stay importable from here.
-SegmentMask = attention_lib.SegmentMask
-causal_segments = attention_lib.causal_segments
-CAUSAL_TABLE = attention_lib.CAUSAL_TABLE
 
 
 # ----------------------------------------------------------------------------------------------------------------

@@ -16,7 +16,7 @@ The transformer itself is ``dit.apply``; this module only holds the Cosmos3 conv
 * Text pathway: prompt token ids -> ``embed_tokens`` -> a separate stack of layers (``text_layers``, causal
   attention among text only). Its per-layer keys/values (after q/k norm and rotary) are a prefix that every
   generation token attends to; nothing in the text depends on the generation tokens, so they can be computed once
-  per prompt (``encode_text``) and reused for every sampler step.
+  per prompt (``dit.encode_text``, which runs that stack) and reused for every sampler step.
 """
 from __future__ import annotations
 
@@ -27,6 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from sc3_jax.config import ModelConfig
+from sc3_jax.model import layers
 
 
 def inv_freq(head_dim: int, theta: float) -> np.ndarray:
@@ -84,30 +85,7 @@ def positions(cfg: ModelConfig, stride: jax.Array, L: int, V: int, F: int, K: in
 
 def rope_cos_sin(cfg: ModelConfig, pos: jax.Array):
     """``layers.rope_cos_sin`` (same interleaved sections, rotate-half layout) with Cosmos3's frequency rounding."""
-    from sc3_jax.model import layers
-
     axis = layers.mrope_axis_index(cfg.head_dim, cfg.rope_axes_dim)
     freqs = jnp.take(pos.astype(jnp.float32), axis, axis=-1) * inv_freq(cfg.head_dim, cfg.rope_theta)
     emb = jnp.concatenate([freqs, freqs], axis=-1)
     return jnp.cos(emb), jnp.sin(emb)
-
-
-def encode_text(params, cfg: ModelConfig, text: jax.Array):
-    """Per-layer keys/values of the prompt tokens ``text`` (int [B, L]) through the understanding pathway:
-    ([layers, B, L, Hkv, hd], same) -- the prefix every generation token attends to."""
-    from sc3_jax.model import dit
-
-    if not cfg.text_pathway:
-        raise ValueError("this config has no text pathway (text_pathway=False)")
-    if cfg.attention_impl in ("context_parallel", "ring"):
-        raise NotImplementedError("the text pathway does not run with context parallelism")
-    B, L = text.shape
-    dt = jnp.dtype(cfg.dtype)
-    x = jnp.take(params["embed_tokens"], text, axis=0).astype(dt)
-    cos, sin = rope_cos_sin(cfg, jnp.broadcast_to(text_positions(L)[None], (B, L, 3)))
-    from sc3_jax.model import attention
-
-    dense = cfg.attention_impl == "dense"
-    causal = jnp.tril(jnp.ones((L, L), bool))[None, None] if dense else attention.causal_mask()
-    _, kv = dit._run_layers(cfg, params, x, cos, sin, causal, stack="text_layers")
-    return kv

@@ -21,7 +21,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from sc3_jax.config import ModelConfig
-from sc3_jax.model import attention, context_parallel, cosmos3, layers
+from sc3_jax.model import attention, attention_impl, context_parallel, cosmos3, layers
 
 
 @dataclasses.dataclass(frozen=True)
@@ -179,10 +179,6 @@ def positions(stride: jax.Array, V: int, F: int, grid: tuple[int, int], T: int, 
     return pos[None] * scale  # time axis scaled by the stride
 
 
-def context_length(V: int, K: int, P: int) -> int:
-    return V * K * P
-
-
 # ----------------------------------------------------------------------------------------------------------------
 # Forward
 # ----------------------------------------------------------------------------------------------------------------
@@ -273,7 +269,7 @@ def _block(cfg: ModelConfig, x, p, cos, sin, mask, prefix_kv=None):
     if prefix_kv is not None:
         k = jnp.concatenate([prefix_kv[0].astype(k.dtype), k], axis=1)
         v = jnp.concatenate([prefix_kv[1].astype(v.dtype), v], axis=1)
-    o = attention.attend(cfg.attention_impl, q, k, v, mask, cfg.attention_block)
+    o = attention_impl.attend(cfg.attention_impl, q, k, v, mask, cfg.attention_block)
     x = x + jnp.einsum("bnhk,hkd->bnd", o, p["wo"].astype(x.dtype))
     h = layers.rms_norm(x, p["mlp_norm"], cfg.norm_eps)
     x = x + layers.swiglu(h, p["w_gate"], p["w_up"], p["w_down"])
@@ -375,7 +371,7 @@ def _text_prefix(params, cfg: ModelConfig, inp: Inputs, text_kv):
         if text is None:
             raise ValueError("a text_pathway config needs Inputs.text (prompt token ids), text_kv or "
                              "model.prompt_ids")
-        text_kv = cosmos3.encode_text(params, cfg, text)
+        text_kv = encode_text(params, cfg, text)
     return text_kv
 
 
@@ -404,6 +400,22 @@ def _finish(params, cfg: ModelConfig, inp: Inputs, h, V, T, P, domain, K):
     return out_v, out_a
 
 
+def _prepare(params, cfg: ModelConfig, inp: Inputs, grid, domain: int, context_frames: int | None, text_kv,
+             start: int = 0, stop: int | None = None):
+    """What ``apply``, ``encode_context`` and ``apply_cached`` share: the tokens ``start:stop`` (packed order)
+    embedded, their rotary tables and their attention mask (keys: every token up to ``stop``, behind the text
+    prefix), and the text's keys/values. Returns (x, cos, sin, mask, text_kv, (V, P, T, K))."""
+    _, V, F, P, T, K = _layout(cfg, inp, context_frames)
+    text_kv = _text_prefix(params, cfg, inp, text_kv)
+    L = 0 if text_kv is None else text_kv[0].shape[2]
+    x = _embed(params, cfg, inp, grid, domain, K)[:, start:stop]
+    if cfg.attention_impl != "dense":
+        x = context_parallel.shard_tokens(x)
+    cos, sin = _rope(cfg, inp, V, F, grid, T, K, L, slice(start, stop))
+    mask = _prefix_columns(_attention_mask(cfg, token_noisy(inp, P, K)[:, :stop], V * K * P, q_start=start), L)
+    return x, cos, sin, mask, text_kv, (V, P, T, K)
+
+
 def apply(params, cfg: ModelConfig, inp: Inputs, grid: tuple[int, int], domain: int = 0, *,
           context_frames: int | None = None, text_kv=None):
     """Raw network outputs for the future-video tokens [B, V, T, P, Dp] and action tokens [B, T, Da].
@@ -412,15 +424,8 @@ def apply(params, cfg: ModelConfig, inp: Inputs, grid: tuple[int, int], domain: 
 
     Cosmos3 layout (``cfg.layout="cosmos3"``): ``context_frames`` K may be given (the future frames F - K need not
     equal the number of actions), outputs at clean tokens are zero, and with ``cfg.text_pathway`` the tokens attend
-    to the prompt ``inp.text`` (or to precomputed ``text_kv = cosmos3.encode_text(...)``)."""
-    _, V, F, P, T, K = _layout(cfg, inp, context_frames)
-    text_kv = _text_prefix(params, cfg, inp, text_kv)
-    L = 0 if text_kv is None else text_kv[0].shape[2]
-    x = _embed(params, cfg, inp, grid, domain, K)
-    if cfg.attention_impl != "dense":
-        x = context_parallel.shard_tokens(x)
-    cos, sin = _rope(cfg, inp, V, F, grid, T, K, L)
-    mask = _prefix_columns(_attention_mask(cfg, token_noisy(inp, P, K), V * K * P), L)
+    to the prompt ``inp.text`` (or to precomputed ``text_kv = encode_text(...)``)."""
+    x, cos, sin, mask, text_kv, (V, P, T, K) = _prepare(params, cfg, inp, grid, domain, context_frames, text_kv)
     h, _ = _run_layers(cfg, params, x, cos, sin, mask, text_kv)
     return _finish(params, cfg, inp, h[:, V * K * P:], V, T, P, domain, K)
 
@@ -444,15 +449,9 @@ def encode_context(params, cfg: ModelConfig, inp: Inputs, grid, domain: int = 0,
     the prefix tokens attend to the text, whose keys/values are not part of the result."""
     if cfg.context_attention != "causal":
         raise ValueError("context caching needs context_attention='causal'")
-    _, V, F, P, T, K = _layout(cfg, inp, context_frames)
-    text_kv = _text_prefix(params, cfg, inp, text_kv)
-    L = 0 if text_kv is None else text_kv[0].shape[2]
+    _, _, _, P, _, K = _layout(cfg, inp, context_frames)
     n = prefix_length(inp, P, prefix, K)
-    x = _embed(params, cfg, inp, grid, domain, K)[:, :n]
-    if cfg.attention_impl != "dense":
-        x = context_parallel.shard_tokens(x)
-    cos, sin = _rope(cfg, inp, V, F, grid, T, K, L, slice(None, n))
-    mask = _prefix_columns(_attention_mask(cfg, token_noisy(inp, P, K)[:, :n], V * K * P), L)
+    x, cos, sin, mask, text_kv, _ = _prepare(params, cfg, inp, grid, domain, context_frames, text_kv, stop=n)
     _, kv = _run_layers(cfg, params, x, cos, sin, mask, text_kv)
     return kv
 
@@ -461,16 +460,30 @@ def apply_cached(params, cfg: ModelConfig, inp: Inputs, grid, context_kv, domain
                  context_frames: int | None = None, text_kv=None):
     """Same outputs as ``apply`` under causal context attention, computing only the tokens after the cached
     prefix (its length is read off ``context_kv``)."""
-    _, V, F, P, T, K = _layout(cfg, inp, context_frames)
-    text_kv = _text_prefix(params, cfg, inp, text_kv)
-    L = 0 if text_kv is None else text_kv[0].shape[2]
     n = context_kv[0].shape[2]
-    x = _embed(params, cfg, inp, grid, domain, K)[:, n:]
-    if cfg.attention_impl != "dense":
-        x = context_parallel.shard_tokens(x)
-    cos, sin = _rope(cfg, inp, V, F, grid, T, K, L, slice(n, None))
-    mask = _prefix_columns(_attention_mask(cfg, token_noisy(inp, P, K), V * K * P, q_start=n), L)
+    x, cos, sin, mask, text_kv, (V, P, T, K) = _prepare(params, cfg, inp, grid, domain, context_frames, text_kv,
+                                                        start=n)
     prefix_kv = context_kv if text_kv is None else tuple(
         jnp.concatenate([t.astype(c.dtype), c], axis=2) for t, c in zip(text_kv, context_kv))
     h, _ = _run_layers(cfg, params, x, cos, sin, mask, prefix_kv)
     return _finish(params, cfg, inp, h, V, T, P, domain, K)
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# The text pathway (Cosmos3 layout; its conventions in cosmos3.py)
+# ----------------------------------------------------------------------------------------------------------------
+def encode_text(params, cfg: ModelConfig, text: jax.Array):
+    """Per-layer keys/values of the prompt tokens ``text`` (int [B, L]) through the understanding pathway:
+    ([layers, B, L, Hkv, hd], same) -- the prefix every generation token attends to."""
+    if not cfg.text_pathway:
+        raise ValueError("this config has no text pathway (text_pathway=False)")
+    if cfg.attention_impl in ("context_parallel", "ring"):
+        raise NotImplementedError("the text pathway does not run with context parallelism")
+    B, L = text.shape
+    dt = jnp.dtype(cfg.dtype)
+    x = jnp.take(params["embed_tokens"], text, axis=0).astype(dt)
+    cos, sin = cosmos3.rope_cos_sin(cfg, jnp.broadcast_to(cosmos3.text_positions(L)[None], (B, L, 3)))
+    dense = cfg.attention_impl == "dense"
+    causal = jnp.tril(jnp.ones((L, L), bool))[None, None] if dense else attention.causal_mask()
+    _, kv = _run_layers(cfg, params, x, cos, sin, causal, stack="text_layers")
+    return kv
