@@ -27,8 +27,9 @@ import numpy as np
 
 from sc3_jax import plan, rollout, sharding, train
 from sc3_jax.config import MeshConfig, load_config, replace
-from sc3_jax.data.pipeline import NormStats
+from sc3_jax.data.norm_stats import NormStats
 from sc3_jax.model import dit
+from sc3_jax.model import tokenizer
 from sc3_jax.model.tokenizer import make_tokenizer
 from sc3_jax.policies import simple
 
@@ -145,7 +146,7 @@ def main(argv=None) -> int:
     sec = train_step_seconds(cfg, args.repeats)
     n_params = dit.count_params(jax.eval_shape(lambda: train.init_state(cfg)["params"]))
     mfu = flops / sec / peak
-    print(f"train step ({size}: {n_params / 1e6:.1f}M params, {plan.tokens_per_sample(cfg)} tokens/sample x "
+    print(f"train step ({size}: {n_params / 1e6:.1f}M params, {tokenizer.tokens_per_sample(cfg)} tokens/sample x "
           f"batch {cfg.data.batch_size}, {cfg.model.dtype}, attention {cfg.model.attention_impl}, remat "
           f"{cfg.model.remat}): {sec * 1e3:.1f} ms, {flops / 1e9:.1f} GFLOP/step (lowered XLA cost analysis), "
           f"{flops / sec / 1e12:.3g} TFLOP/s = MFU {mfu:.3f} of the {peak_note}", flush=True)
@@ -153,7 +154,7 @@ def main(argv=None) -> int:
     ccfg = chunk_config(size, args.depth)
     csec = chunk_seconds(ccfg, args.repeats)
     m = ccfg.model
-    line = (f"rollout chunk ({size}: depth {m.depth}, dim {m.dim}, {plan.tokens_per_sample(ccfg)} tokens, "
+    line = (f"rollout chunk ({size}: depth {m.depth}, dim {m.dim}, {tokenizer.tokens_per_sample(ccfg)} tokens, "
             f"K={ccfg.data.context_frames} l'={ccfg.data.future_frames}, S={ccfg.sample.steps}, FD+ID, cached "
             f"context, 1 episode): {csec:.3f} s")
     if size != "tiny":

@@ -17,6 +17,7 @@ import math
 
 from sc3_jax import plan
 from sc3_jax.config import MeshConfig, load_config
+from sc3_jax.model import tokenizer
 
 SIZES = {2020: (32, 56), 4036: (56, 64), 8068: (64, 112)}
 
@@ -60,7 +61,7 @@ def main(argv=None) -> int:
         for spec in args.impls:
             impl, remat = spec.split(":")
             cfg = config(image, impl, remat)
-            assert plan.tokens_per_sample(cfg) == n
+            assert tokenizer.tokens_per_sample(cfg) == n
             m = plan.compiled_memory(cfg, mesh).temp_size_in_bytes
             e = plan.activation_estimate(cfg, mesh)
             measured[n, impl, remat] = m

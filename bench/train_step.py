@@ -18,7 +18,7 @@ import numpy as np
 
 from sc3_jax import sharding, train
 from sc3_jax.config import MeshConfig, load_config, replace
-from sc3_jax.model.tokenizer import make_tokenizer
+from sc3_jax.model.tokenizer import tokens_per_sample
 
 
 def timed(fn, *args, repeats: int) -> float:
@@ -37,12 +37,6 @@ def matmul_flops_per_s(n: int = 1024, repeats: int = 5) -> float:
     b = jax.random.normal(jax.random.key(1), (n, n), jnp.float32)
     f = jax.jit(lambda a, b: a @ b)
     return 2 * n ** 3 / timed(f, a, b, repeats=repeats)
-
-
-def tokens_per_sample(cfg) -> int:
-    rows, cols = make_tokenizer(cfg.model).grid(cfg.data.image_size)
-    d = cfg.data
-    return len(d.views) * (d.context_frames + d.future_frames) * rows * cols + d.future_frames
 
 
 class StepBench:

@@ -76,31 +76,28 @@ def cmd_sim(argv: list[str]) -> int:
 
 
 def cmd_serve_policy(argv: list[str]) -> int:
-    from sc3_jax.policies import openpi
+    from sc3_jax.policies import serve_cli
 
-    return openpi.serve_policy_main(argv) or 0
+    return serve_cli.serve_policy_main(argv) or 0
 
 
 def cmd_configs(argv: list[str]) -> int:
     """Each named config with its parameter count (from abstract shapes: nothing is allocated)."""
-    import jax
-
-    from sc3_jax import train
+    from sc3_jax import checkpoint
     from sc3_jax.config import available_configs, configs_dir, load_config
     from sc3_jax.model import dit
+    from sc3_jax.model.tokenizer import tokens_per_sample
 
     print(f"named configs in {configs_dir()}:")
     for name in available_configs():
         cfg = load_config(name)
         try:  # a config whose tokenizer weights are missing here is listed, not fatal
-            n = dit.count_params(jax.eval_shape(lambda: train.init_state(cfg)["params"]))
-            rows, cols = train.token_geometry(cfg)[1]
+            n = dit.count_params(checkpoint.param_shapes(cfg))
+            tokens = tokens_per_sample(cfg)
         except (FileNotFoundError, ValueError) as e:
             print(f"  {name:24s} (not sized here: {e})")
             continue
-        d = cfg.data
-        tokens = len(d.views) * (d.context_frames + d.future_frames) * rows * cols + d.future_frames
-        print(f"  {name:24s} {n / 1e6:10.2f}M params  {tokens:6d} tokens/sample  batch {d.batch_size}")
+        print(f"  {name:24s} {n / 1e6:10.2f}M params  {tokens:6d} tokens/sample  batch {cfg.data.batch_size}")
     return 0
 
 

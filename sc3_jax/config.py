@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import importlib.util
+import sys
 from pathlib import Path
 
 
@@ -57,7 +58,7 @@ class ModelConfig:
     # (sample.context_noise). Off: context tokens are always exactly clean.
     context_noise: bool = False    # "residual": the network predicts clean future frames as (last context frame + zero-initialised output) and
     # clean actions as (0 + output); the velocity is derived from it. "velocity": predicts eps - x directly
-    # (what pretrained Cosmos3 checkpoints do). Residual is what made tiny CPU models learn (REFERENCE.md).
+    # (what pretrained Cosmos3 checkpoints do). Residual is what made tiny CPU models learn.
     prediction: str = "residual"
     # "full": every token attends to every token. "causal": context tokens attend only to context, other clean
     # tokens only to clean tokens, noisy tokens to everything; so clean keys/values can be computed once per
@@ -277,3 +278,24 @@ def replace(cfg, **sections):
         else:
             updates[key] = value
     return dataclasses.replace(cfg, **updates)
+
+
+def config_from_dict(d: dict, default=None):
+    """Rebuild a Config from ``dataclasses.asdict`` output (``config.json``); lists become tuples, unknown keys are
+    dropped with a warning (configs evolve), missing keys keep their defaults."""
+    default = Config() if default is None else default
+    changes = {}
+    for f in dataclasses.fields(default):
+        if f.name not in d:
+            continue
+        cur, val = getattr(default, f.name), d[f.name]
+        if dataclasses.is_dataclass(cur):
+            changes[f.name] = config_from_dict(val, cur)
+        elif isinstance(cur, tuple):
+            changes[f.name] = tuple(tuple(v) if isinstance(v, list) else v for v in val)
+        else:
+            changes[f.name] = val
+    unknown = set(d) - {f.name for f in dataclasses.fields(default)}
+    if unknown:
+        print(f"config.json: ignoring unknown config fields {sorted(unknown)}", file=sys.stderr)
+    return dataclasses.replace(default, **changes)

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import shutil
 import tempfile
 from pathlib import Path
@@ -23,27 +22,21 @@ DTYPES = ("float32", "bfloat16", "float16")
 
 
 def from_diffusers(src: str, out: str, dtype: str = "float32") -> Path:
-    import orbax.checkpoint as ocp
-
+    from sc3_jax import checkpoint
     from sc3_jax.config import Config
     from sc3_jax.model import convert
     mcfg, params = convert.load_diffusers(src, dtype=dtype)
     cfg = Config(model=dataclasses.replace(mcfg, param_dtype=dtype))
-
-    def write(tmp: Path):
-        (tmp / "config.json").write_text(json.dumps(dataclasses.asdict(cfg), indent=1))
-        ckpt = ocp.StandardCheckpointer()
-        ckpt.save((tmp / "params").absolute(), params)
-        ckpt.wait_until_finished()
-    return _write_atomically(out, write)
+    return _write_atomically(out, lambda tmp: checkpoint.save_converted(tmp, cfg, params))
 
 
 def to_diffusers(src: str, out: str, dtype: str = "float32") -> Path:
     import jax.numpy as jnp
 
-    from sc3_jax import train
+    from sc3_jax import checkpoint
     from sc3_jax.model import convert
-    cfg, params = train.load_model(src)
+    cfg = checkpoint.read_config(src)
+    params = checkpoint.load_params(src, cfg)
     return _write_atomically(out, lambda tmp: convert.save_diffusers(cfg.model, params, str(tmp),
                                                                      dtype=jnp.dtype(dtype)))
 

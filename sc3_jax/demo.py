@@ -13,10 +13,11 @@ from sc3_jax.config import Config, load_config, replace
 
 def heldout_batches(cfg: Config, path: str, num_batches: int, batch_size: int = 16):
     """Deterministic held-out windows: stride 1, recorded actions (no pseudo-actions), the training stats."""
+    from sc3_jax import checkpoint
     from sc3_jax.data import pipeline
     from sc3_jax.data.episodes import EpisodeStore
 
-    stats = pipeline.NormStats.load(Path(cfg.train.workdir) / "norm_stats.json")
+    stats = checkpoint.read_norm_stats(cfg.train.workdir)
     dcfg = dataclasses.replace(cfg.data, path=path, strides=(1,), pseudo_action_prob=0.0, batch_size=batch_size,
                                seed=1234)
     it = pipeline.make_iterator(dcfg, EpisodeStore(path), stats)
@@ -24,11 +25,11 @@ def heldout_batches(cfg: Config, path: str, num_batches: int, batch_size: int = 
 
 
 def train_and_evaluate(cfg: Config, heldout: str, eval_batches: int = 4) -> dict:
-    from sc3_jax import train
+    from sc3_jax import checkpoint, train
     from sc3_jax.evaluate import world_model
 
     train.train(cfg)
-    params = train.load_params(cfg.train.workdir, cfg)
+    params = checkpoint.load_params(cfg.train.workdir, cfg)
     return world_model.evaluate(params, cfg, heldout_batches(cfg, heldout, eval_batches))
 
 

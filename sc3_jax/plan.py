@@ -15,7 +15,7 @@ config plans on a laptop in seconds.
   are the global count divided by the number of devices, i.e. assume a perfect split.
 * One rollout chunk (one episode: forward-dynamics sampling of l' frames and inverse-dynamics sampling of their
   actions, S Euler steps each, with context caching as the config does): the lowered cost of the rollout's
-  per-chunk model step (``rollout._Steps.model_step``) with S = 1, plus (S - 1) x the cost of one forward and one
+  per-chunk model step (``rollout.ChunkFns.model_step``) with S = 1, plus (S - 1) x the cost of one forward and one
   inverse network evaluation (the sampler's ``fori_loop`` body would otherwise be counted once).
 * Activations: with ``--compile`` and a mesh that fits on this machine's devices, the compiled train step's
   memory analysis (``temp_size_in_bytes`` per device, the estimate beside it); otherwise an analytic estimate for
@@ -96,14 +96,6 @@ def _counting_cfg(cfg):
                    mesh=MeshConfig(1, 1, 1))
 
 
-def tokens_per_sample(cfg) -> int:
-    from sc3_jax import train
-
-    rows, cols = train.token_geometry(cfg)[1]
-    d = cfg.data
-    return len(d.views) * (d.context_frames + d.future_frames) * rows * cols + d.future_frames
-
-
 def train_step_flops(cfg, compiled: bool = False) -> float:
     """Global FLOPs of one train step: bench/train_step.py's count (``compiled=True``) or the lowered module's."""
     import jax
@@ -129,7 +121,7 @@ def chunk_flops(cfg) -> dict[str, float]:
     c = _counting_cfg(cfg)
     m = c.model
     spec = rollout.make_spec(c, num_chunks=1)
-    st = rollout._Steps(m, c.flow, dataclasses.replace(spec, steps=1), None)
+    st = rollout.ChunkFns(m, c.flow, dataclasses.replace(spec, steps=1))
     sds = jax.ShapeDtypeStruct
     params = jax.eval_shape(lambda: dit.init_params(m, st.tok.token_dim, jax.random.key(0), st.grid))
     V, K, T, H, W = spec.views, spec.context, spec.predict, *spec.image_size
@@ -214,9 +206,11 @@ def activation_estimate(cfg, mesh_cfg) -> float:
     scores, their gradient, probabilities; blockwise: fp32 dq and the per-tile scores)."""
     import jax.numpy as jnp
 
+    from sc3_jax.model import tokenizer
+
     m, s = cfg.model, _sizes(mesh_cfg)
     a = jnp.dtype(m.dtype).itemsize
-    N = tokens_per_sample(cfg)
+    N = tokenizer.tokens_per_sample(cfg)
     Bl = -(-(cfg.data.batch_size // cfg.train.grad_accum) // (s["data"] * s["fsdp"]))  # one micro-batch
     C = s["context"] if m.attention_impl in ("context_parallel", "ring") else 1
     Nl = -(-N // C)
@@ -311,13 +305,15 @@ def plan(cfg, mesh_cfg, device: str, mfu: float = 0.4, compile: bool = False, ch
     if cfg.data.batch_size % (sizes["data"] * sizes["fsdp"]):
         raise ValueError(f"global batch {cfg.data.batch_size} does not divide over data x fsdp = "
                          f"{sizes['data'] * sizes['fsdp']}")
-    from sc3_jax import train
+    from sc3_jax import checkpoint
+    from sc3_jax.model import tokenizer
 
     cfg = dataclasses.replace(cfg, mesh=mesh_cfg)
-    params = jax.eval_shape(lambda: train.init_state(cfg)["params"])
+    params = checkpoint.param_shapes(cfg)
     out = {"config": cfg.name, "mesh": sizes, "devices": n, "device": device, "peak_flops": peak, "hbm_bytes": hbm,
            "mfu": mfu, "params": dit.count_params(params), "param_dtype": cfg.model.param_dtype,
-           "tokens_per_sample": tokens_per_sample(cfg), "batch": cfg.data.batch_size, "steps": cfg.train.steps,
+           "tokens_per_sample": tokenizer.tokens_per_sample(cfg), "batch": cfg.data.batch_size,
+           "steps": cfg.train.steps,
            "attention_impl": cfg.model.attention_impl, "notes": []}
     out.update({f"{k}_bytes": v for k, v in state_bytes(cfg, mesh_cfg).items()})
     out["grads_bytes"] = out["params_bytes"]  # gradients: one more param-sized, param-sharded tree during the step

@@ -6,7 +6,6 @@ import dataclasses
 import json
 import signal
 import time
-import zipfile
 from pathlib import Path
 from typing import Any
 
@@ -16,11 +15,10 @@ import numpy as np
 import optax
 import orbax.checkpoint as ocp
 
-from sc3_jax import flow, sharding
+from sc3_jax import checkpoint, flow, sharding
 from sc3_jax.config import Config
 from sc3_jax.model import dit
-from sc3_jax.model.shapes import check_shapes
-from sc3_jax.model.tokenizer import make_tokenizer, window_tokens
+from sc3_jax.model.tokenizer import context_token_frames, make_tokenizer, token_geometry
 
 
 # ================================================================================================================
@@ -34,27 +32,6 @@ def make_optimizer(cfg: Config) -> optax.GradientTransformation:
     decay = dit.decay_mask(cfg.model, *token_geometry(cfg))
     return optax.chain(optax.clip_by_global_norm(t.grad_clip),
                        optax.adamw(schedule, b1=t.b1, b2=t.b2, weight_decay=t.weight_decay, mask=decay))
-
-
-def token_frames(cfg: Config) -> int | None:
-    """Context *token* frames when the tokenizer compresses time (None: one token frame per frame, K = F - T).
-    A window of 1 + 4 k context and 4 t future frames is k + 1 context and t future token frames with 4 t actions
-    (``tokenizer.window_tokens``): the Cosmos3 layout (actions independent of frames); the sc3 layout needs one
-    action per token frame."""
-    tok = make_tokenizer(cfg.model)
-    if tok.time_compression == 1:
-        return None
-    k, _ = window_tokens(tok, cfg.data.context_frames, cfg.data.future_frames)
-    if cfg.model.layout != "cosmos3":
-        raise ValueError(f"{tok.time_compression}x time-compressed tokens need model.layout='cosmos3' (several "
-                         "actions per token frame); the sc3 layout has one action per future frame")
-    return k
-
-
-def token_geometry(cfg: Config) -> tuple[int, tuple[int, int]]:
-    """(token_dim, (rows, cols) tokens per frame) of this config's tokenizer and image size."""
-    tok = make_tokenizer(cfg.model)
-    return tok.token_dim, tok.grid(cfg.data.image_size)
 
 
 def init_state(cfg: Config) -> dict[str, Any]:
@@ -111,7 +88,7 @@ def make_train_step(cfg: Config):
     tok = make_tokenizer(cfg.model)
     grid = tok.grid(cfg.data.image_size)
     opt = make_optimizer(cfg)
-    K_tok = token_frames(cfg)
+    K_tok = context_token_frames(cfg)
 
     A, B = cfg.train.grad_accum, cfg.data.batch_size
     if A < 1 or B % A:
@@ -185,7 +162,7 @@ def create_state(cfg: Config, mesh):
     _, st_shard = state_shardings(cfg, mesh)
     if not cfg.train.init_from:
         return jax.jit(lambda: init_state(cfg), out_shardings=st_shard)()
-    params = init_params(cfg, st_shard["params"])  # read straight into their shards
+    params = checkpoint.load_init_from(cfg, st_shard["params"])  # read straight into their shards
 
     def fresh(params):
         state = init_state(cfg)  # the random init is dead code under jit: only its optimizer/rng are kept
@@ -194,7 +171,7 @@ def create_state(cfg: Config, mesh):
 
 
 # ================================================================================================================
-# Checkpoints
+# Train-state checkpoints (resuming: optimizer state and data position; checkpoint.py reads a model's params)
 # ================================================================================================================
 def checkpoint_manager(cfg: Config) -> ocp.CheckpointManager:
     options = ocp.CheckpointManagerOptions(max_to_keep=cfg.train.keep_checkpoints,
@@ -217,100 +194,6 @@ def restore(mngr: ocp.CheckpointManager, cfg: Config, mesh, step: int | None = N
     out = mngr.restore(step, args=ocp.args.Composite(state=ocp.args.StandardRestore(target),
                                                      data=ocp.args.JsonRestore()))
     return out["state"], out["data"]
-
-
-def load_params(path: str | Path, cfg: Config, step: int | None = None, shardings=None):
-    """Params of a trained run (latest orbax checkpoint), an exported world model (``params.npz``, any float dtype)
-    or a ``sc3 convert`` output (orbax ``params/``), as ``cfg``'s param dtype. ``shardings``: a params-shaped tree of
-    shardings (default: all on the first device); every leaf is read straight into its shards, so a model larger
-    than one device's memory loads onto a mesh (orbax reads only each device's slice; an npz leaf passes through
-    host memory once). A run's optimizer state is not read."""
-    path = Path(path)
-    want = jax.eval_shape(lambda: init_state(cfg))["params"]
-    if shardings is None:
-        one = jax.sharding.SingleDeviceSharding(jax.devices()[0])
-        shardings = jax.tree.map(lambda _: one, want)
-    target = jax.tree.map(lambda w, s: jax.ShapeDtypeStruct(w.shape, w.dtype, sharding=s), want, shardings)
-    if (path / "params.npz").exists():
-        return _load_npz(path / "params.npz", target)
-    item, in_state = _orbax_item(path, step)
-    target = {"params": target} if in_state else target
-    out = ocp.PyTreeCheckpointer().restore(item, args=ocp.args.PyTreeRestore(
-        item=target, restore_args=ocp.checkpoint_utils.construct_restore_args(target), partial_restore=True))
-    return out["params"] if in_state else out
-
-
-def source_shapes(path: str | Path, step: int | None = None) -> dict[str, tuple[int, ...]]:
-    """``{keystr: shape}`` of the params that ``load_params`` would read, from metadata only (nothing loaded)."""
-    path = Path(path)
-    if (path / "params.npz").exists():
-        out = {}
-        with zipfile.ZipFile(path / "params.npz") as zf:
-            for name in zf.namelist():
-                with zf.open(name) as f:
-                    version = np.lib.format.read_magic(f)
-                    read = {(1, 0): np.lib.format.read_array_header_1_0, (2, 0): np.lib.format.read_array_header_2_0}
-                    shape = read[version](f)[0]
-                out["".join(f"['{k}']" for k in name.removesuffix(".npy").split("/"))] = tuple(shape)
-        return out
-    item, in_state = _orbax_item(path, step)
-    meta = ocp.PyTreeCheckpointer().metadata(item)
-    tree = getattr(meta, "item_metadata", meta)
-    tree = getattr(tree, "tree", tree)
-    tree = tree["params"] if in_state else tree
-    return {jax.tree_util.keystr(k): tuple(v.shape)
-            for k, v in jax.tree_util.tree_flatten_with_path(tree, is_leaf=lambda x: hasattr(x, "shape"))[0]}
-
-
-def _orbax_item(path: Path, step: int | None) -> tuple[Path, bool]:
-    """(orbax item directory, whether the params sit under "params" in a whole train state)."""
-    if (path / "params").is_dir():  # a `sc3 convert` output: params only
-        return (path / "params").absolute(), False
-    mngr = ocp.CheckpointManager(path.absolute() / "checkpoints")
-    step = mngr.latest_step() if step is None else step
-    if step is None:
-        raise FileNotFoundError(f"no checkpoint under {path}/checkpoints (and no params.npz or params/)")
-    return path.absolute() / "checkpoints" / str(step) / "state", True
-
-
-def _load_npz(path: Path, target) -> dict:
-    """``{"a/b/c": array}`` (written by ``sweep.save_world_model``) -> params placed as ``target`` says."""
-    with np.load(path) as z:
-        def leaf(kp, t):
-            x = np.asarray(z["/".join(k.key for k in kp)]).astype(t.dtype)
-            return jax.make_array_from_callback(t.shape, t.sharding, lambda idx: x[idx])
-        return jax.tree_util.tree_map_with_path(leaf, target)
-
-
-def load_model(path: str | Path, what: str = "") -> tuple[Config, dict]:
-    """(config, params) of a ``sc3 train`` workdir, an exported world model or a ``sc3 convert`` output."""
-    return (cfg := read_config(path, what)), load_params(path, cfg)
-
-
-def read_config(path: str | Path, what: str = "") -> Config:
-    from sc3_jax.rollout_cli import config_from_dict
-    path = Path(path)
-    if not (path / "config.json").exists():
-        raise FileNotFoundError(f"{what}{path}: no config.json (expected a `sc3 train` workdir, an exported world "
-                                "model or a `sc3 convert` output)")
-    cfg = config_from_dict(json.loads((path / "config.json").read_text()))
-    tp = cfg.model.tokenizer_path
-    if tp and not Path(tp).is_absolute() and (path / tp).exists():  # a tokenizer shipped inside the model dir
-        cfg = dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, tokenizer_path=str((path / tp).absolute())))
-    return cfg
-
-
-def init_params(cfg: Config, shardings=None) -> dict:
-    """Params that ``cfg.train.init_from`` names -- a ``sc3 train`` workdir, an exported world model
-    (``sweep.export_world_model``) or a ``sc3 convert`` output --, checked leaf by leaf against this config's shapes
-    before anything is read, then loaded straight into ``shardings`` as this config's param dtype (their norm stats
-    are picked up by ``prepare_data``)."""
-    src = Path(cfg.train.init_from)
-    read_config(src, what="init_from ")
-    want = jax.eval_shape(lambda: init_state(cfg))["params"]
-    have = {jax.tree_util.keystr(k): v.shape for k, v in jax.tree_util.tree_flatten_with_path(want)[0]}
-    check_shapes(have, source_shapes(src), f"init_from {src}: params do not fit this model config:")
-    return load_params(src, cfg, shardings=shardings)
 
 
 # ================================================================================================================
@@ -364,6 +247,7 @@ def prepare_data(cfg: Config):
     process's batch iterator (its position is checkpointed)."""
     from sc3_jax.data import pipeline
     from sc3_jax.data.episodes import EpisodeStore
+    from sc3_jax.data.norm_stats import NormStats
 
     workdir = Path(cfg.train.workdir)
     try:
@@ -374,14 +258,14 @@ def prepare_data(cfg: Config):
     stats_path = workdir / "norm_stats.json"
     src_stats = Path(cfg.train.init_from) / "norm_stats.json" if cfg.train.init_from else None
     if stats_path.exists():
-        stats = pipeline.NormStats.load(stats_path)
+        stats = NormStats.load(stats_path)
     elif src_stats is not None and src_stats.exists():
         # a fine-tuned model must read actions in the units its params learned, not in this dataset's
-        stats = pipeline.NormStats.load(src_stats)
+        stats = NormStats.load(src_stats)
         if jax.process_index() == 0:
             stats.save(stats_path)
     else:
-        stats = pipeline.NormStats.from_store(store)
+        stats = NormStats.from_store(store)
         if jax.process_index() == 0:
             stats.save(stats_path)
     dataset = None

@@ -19,5 +19,5 @@ sc3 train --config bussing_sim --data.path $D --train.workdir $R/train --train.n
 python -m sc3_jax.evaluate.perception --store $D $R/scorer_data $R/scorer_zoo --generate 300 --generate-policies 140 \
     --steps 3000 --out $R/perception.npz
 # small copies to commit (params as float16)
-python -c "from sc3_jax.evaluate import sweep; sweep.export_world_model('$R/train', 'sc3_jax/evaluate/shipped/bussing_sim')"
+python -c "from sc3_jax import checkpoint; checkpoint.export('$R/train', 'sc3_jax/evaluate/shipped/bussing_sim')"
 cp $R/perception.npz sc3_jax/evaluate/perception.npz

@@ -9,7 +9,7 @@ import pytest
 
 from sc3_jax import tokenizer_train as tt
 from sc3_jax.config import DataConfig, ModelConfig
-from sc3_jax.data import latent_cache, pipeline
+from sc3_jax.data import latent_cache, norm_stats, pipeline
 from sc3_jax.data import synthetic as S
 from sc3_jax.model import autoencoder as ae
 from sc3_jax.model.tokenizer import ConvAETokenizer, make_tokenizer
@@ -123,7 +123,7 @@ def test_latent_cache_matches_encoder_and_refuses_other_tokenizer(trained, store
     np.testing.assert_allclose(got, want, atol=2e-2, rtol=2e-3)  # float16 storage
     # the pipeline serves cached latents instead of frames
     cfg = DataConfig(path=str(store.root), image_size=(16, 16), batch_size=4, context_frames=2, future_frames=3)
-    stats = pipeline.NormStats.from_store(store)
+    stats = norm_stats.NormStats.from_store(store)
     index = pipeline.build_index(store, cfg)
     b = pipeline.make_dataset(cfg, store, stats, index=index, latents=latent_cache.LatentReader(root, index.episode_ids))[0]
     assert "frames" not in b and b["latents"].shape == (4, 3, 5, 4, 4, 4)
@@ -140,9 +140,8 @@ def test_exported_world_model_carries_its_tokenizer(trained, tmp_path):
     """An exported conv_ae world model holds its tokenizer and finds it wherever the directory is moved."""
     import shutil
 
-    from sc3_jax import train
+    from sc3_jax import checkpoint, train
     from sc3_jax.config import Config
-    from sc3_jax.evaluate import sweep
 
     _, work, _ = trained
     cfg = Config(model=ModelConfig(dim=32, depth=1, num_heads=2, num_kv_heads=1, head_dim=16, mlp_dim=64,
@@ -150,18 +149,18 @@ def test_exported_world_model_carries_its_tokenizer(trained, tmp_path):
                                    tokenizer_path=str(work / "tokenizer"), patch_size=2),
                  data=DataConfig(image_size=(16, 16)))
     params = train.init_state(cfg)["params"]
-    stats = pipeline.NormStats(np.zeros(7), np.ones(7))
-    sweep.save_world_model(tmp_path / "wm", cfg, stats, params)
+    stats = norm_stats.NormStats(np.zeros(7), np.ones(7))
+    checkpoint.save(tmp_path / "wm", cfg, stats, params)
     assert json.loads((tmp_path / "wm" / "config.json").read_text())["model"]["tokenizer_path"] == "tokenizer"
     shutil.move(tmp_path / "wm", tmp_path / "moved")
-    cfg2, _, params2 = sweep.load_world_model(tmp_path / "moved")
+    cfg2, _, params2 = checkpoint.load(tmp_path / "moved")
     assert cfg2.model.tokenizer_path == str((tmp_path / "moved" / "tokenizer").absolute())
     assert make_tokenizer(cfg2.model).token_dim == 2 * 2 * 4
     assert jax.tree.structure(params2) == jax.tree.structure(params)
 
 
 def test_tokenizer_first_built_inside_a_trace(trained):
-    """make_tokenizer caches the loaded weights; built first under a jit trace (as train.load_params does through
+    """make_tokenizer caches the loaded weights; built first under a jit trace (as checkpoint.load_params does through
     eval_shape), they must still be concrete arrays when used afterwards."""
     from sc3_jax.model import tokenizer as T
 

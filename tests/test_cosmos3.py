@@ -306,7 +306,7 @@ def test_text_kv_cache_and_context_cache(tiny_diffusers):
     inp = dit.Inputs(video, actions, jnp.where(vn, 0.6, 0.0), vn, jnp.zeros((B, N_ACT)), an, jnp.array([1, 2]),
                      text=jnp.asarray(rng.integers(0, 50, (B, L_TEXT)), jnp.int32))
     ref = dit.apply(params, cfg, inp, (rows, cols), context_frames=K)
-    tkv = cosmos3.encode_text(params, cfg, inp.text)
+    tkv = dit.encode_text(params, cfg, inp.text)
     out = dit.apply(params, cfg, inp._replace(text=None), (rows, cols), context_frames=K, text_kv=tkv)
     ckv = dit.encode_context(params, cfg, inp, (rows, cols), context_frames=K, text_kv=tkv)
     cached = dit.apply_cached(params, cfg, inp, (rows, cols), ckv, context_frames=K, text_kv=tkv)
@@ -383,9 +383,9 @@ def test_full_size_key_map_matches_diffusers_shapes():
 def test_sc3_convert_cli_round_trip(tiny_diffusers, tmp_path):
     """`sc3 convert --from diffusers` writes an orbax params checkpoint that training/rollouts read (the same
     params as the library import), `--from sc3` writes it back bit for bit, and an occupied --to is refused."""
-    from sc3_jax import cli, train
+    from sc3_jax import checkpoint, cli
+    from sc3_jax.config import config_from_dict
     from sc3_jax.model.wan_vae_convert import read_safetensors
-    from sc3_jax.rollout_cli import config_from_dict
 
     _, src = tiny_diffusers
     ours, back = tmp_path / "ours", tmp_path / "back"
@@ -393,7 +393,7 @@ def test_sc3_convert_cli_round_trip(tiny_diffusers, tmp_path):
     cfg = config_from_dict(json.loads((ours / "config.json").read_text()))
     _, want = convert.load_diffusers(src)
     assert cfg.model == convert.config_from_diffusers(json.loads(open(os.path.join(src, "config.json")).read()))
-    got = train.load_params(ours, cfg)
+    got = checkpoint.load_params(ours, cfg)
     for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(want)):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     assert cli.main(["convert", "--from", "sc3", str(ours), "--to", str(back)]) == 0
@@ -405,14 +405,14 @@ def test_sc3_convert_cli_round_trip(tiny_diffusers, tmp_path):
 
 
 def _tiny_wan_tokenizer():
-    from sc3_jax.model import wan_vae as wv
+    from sc3_jax.model import wan_tokenizer as wt
     from sc3_jax.model import wan_vae_convert as wc
     rng = np.random.default_rng(0)
     vae = wc.config_from_diffusers({"base_dim": 4, "z_dim": 4, "dim_mult": [1, 1, 1, 1], "num_res_blocks": 1,
                                     "attn_scales": [], "temperal_downsample": [False, True, True],
                                     "latents_mean": rng.normal(size=4).tolist(),
                                     "latents_std": rng.uniform(0.5, 2.0, size=4).tolist()})
-    return wv.WanTokenizer.random(vae, seed=0, patch_size=2)
+    return wt.WanTokenizer.random(vae, seed=0, patch_size=2)
 
 
 def test_training_drives_the_cosmos3_layout_on_time_compressed_latents(monkeypatch):
@@ -420,13 +420,14 @@ def test_training_drives_the_cosmos3_layout_on_time_compressed_latents(monkeypat
     actions (4 per token frame), the train step fits one batch, and impossible bookkeeping is refused."""
     from sc3_jax import train
     from sc3_jax.config import Config, DataConfig, FlowConfig, TrainConfig, replace
+    from sc3_jax.model import tokenizer
 
     tok = _tiny_wan_tokenizer()
     monkeypatch.setattr(train, "make_tokenizer", lambda m: tok)
     model = _tiny_cfg(text_pathway=False, tokenizer="wan2.1", action_dim=7, num_views=3)
     cfg = Config(model=model, data=DataConfig(image_size=(16, 32), context_frames=5, future_frames=8, batch_size=2),
                  flow=FlowConfig(t_logit_mean=0.0), train=TrainConfig(lr=3e-3, warmup_steps=1, steps=40))
-    assert train.token_frames(cfg) == 2
+    assert tokenizer.context_token_frames(cfg) == 2
     rng = np.random.default_rng(0)
     batch = {"frames": rng.integers(0, 256, (2, 3, 13, 16, 32, 3)).astype(np.uint8),
              "actions": rng.normal(size=(2, 8, 7)).astype(np.float32), "stride": np.ones(2, np.int32)}
@@ -438,9 +439,9 @@ def test_training_drives_the_cosmos3_layout_on_time_compressed_latents(monkeypat
         losses.append(float(m["loss"]))
     assert np.all(np.isfinite(losses)) and np.mean(losses[-5:]) < 0.7 * np.mean(losses[:5]), losses
     with pytest.raises(ValueError, match="context_frames = 1 \\+ 4 k"):
-        train.token_frames(replace(cfg, data=dict(context_frames=4)))
+        tokenizer.context_token_frames(replace(cfg, data=dict(context_frames=4)))
     with pytest.raises(ValueError, match="need model.layout='cosmos3'"):
-        train.token_frames(replace(cfg, model=dict(layout="sc3")))
+        tokenizer.context_token_frames(replace(cfg, model=dict(layout="sc3")))
     with pytest.raises(NotImplementedError, match="model.prompt_ids"):
         train.make_train_step(replace(cfg, model=dict(text_pathway=True)))
     # a text_pathway model (a converted Cosmos3 checkpoint) trains on one fixed prompt: exactly the embedding rows
@@ -465,7 +466,7 @@ def test_rollout_on_time_compressed_latents(monkeypatch):
     equals a hand-written reference; closed loop runs every chunk; bad windows are refused."""
     from sc3_jax import flow, modes, rollout
     from sc3_jax.config import Config, DataConfig, RolloutConfig, SampleConfig, replace
-    from sc3_jax.data.pipeline import NormStats
+    from sc3_jax.data.norm_stats import NormStats
     from sc3_jax.model.tokenizer import to_uint8
     from sc3_jax.policies import simple
     from sc3_jax.policies.base import as_host
@@ -478,7 +479,7 @@ def test_rollout_on_time_compressed_latents(monkeypatch):
                  rollout=RolloutConfig(policy_chunk=T, keep_frames=l), sample=SampleConfig(steps=2))
     stats = NormStats(np.full(7, 0.001, np.float32), np.full(7, 0.01, np.float32))
     ro = rollout.Rollout(cfg, stats, num_chunks=N)
-    assert ro.steps.window == (2, 2)
+    assert ro.chunk_fns.window == (2, 2)
     params = dit.init_params(model, tok.token_dim, jax.random.key(0), tok.grid(size))
     params = jax.tree.map(lambda x: x + 0.05 * jax.random.normal(jax.random.key(1), x.shape), params)
     rng = np.random.default_rng(0)
@@ -498,7 +499,7 @@ def test_rollout_on_time_compressed_latents(monkeypatch):
 
     @jax.jit
     def by_hand(frames, a, key_data):
-        _, k_fd, _ = ro.steps.keys(key_data, 0)
+        _, k_fd, _ = ro.chunk_fns.keys(key_data, 0)
         ctx = tok.encode(frames)[None]
         video = jnp.concatenate([ctx, jnp.zeros_like(ctx)], axis=2)
         vn, an = modes.fixed(modes.FD, 1, 3, 2, 2, num_actions=T)

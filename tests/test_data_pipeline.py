@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from sc3_jax.config import DataConfig
+from sc3_jax.data import norm_stats
 from sc3_jax.data import pipeline as P
 from sc3_jax.data import rotations as R
 from sc3_jax.data import synthetic as S
@@ -32,7 +33,7 @@ def _cfg(store, **kw):
 
 @pytest.fixture(scope="module")
 def stats(store):
-    return P.NormStats.from_store(store)
+    return norm_stats.NormStats.from_store(store)
 
 
 # -- rotations --------------------------------------------------------------------------------------------------
@@ -70,18 +71,18 @@ def test_rotations_match_scipy():
 def test_norm_stats_round_trip(store, stats, tmp_path):
     all_actions = np.concatenate([store.load(e).actions for e in store.episode_ids()])
     np.testing.assert_allclose(stats.mean, all_actions.mean(0), atol=1e-6)
-    np.testing.assert_allclose(stats.std, np.maximum(all_actions.std(0), P.STD_FLOOR), rtol=1e-4)
+    np.testing.assert_allclose(stats.std, np.maximum(all_actions.std(0), norm_stats.STD_FLOOR), rtol=1e-4)
     z = stats.normalize(all_actions)
     np.testing.assert_allclose(z.mean(0), 0, atol=1e-3)
     np.testing.assert_allclose(z.std(0), 1, atol=1e-3)
     np.testing.assert_allclose(stats.denormalize(z), all_actions, atol=1e-6)
     stats.save(tmp_path / "norm.json")
-    loaded = P.NormStats.load(tmp_path / "norm.json")
+    loaded = norm_stats.NormStats.load(tmp_path / "norm.json")
     np.testing.assert_array_equal(loaded.mean, stats.mean)
     np.testing.assert_array_equal(loaded.std, stats.std)
     # the floor on a constant dimension
-    const = P.NormStats.from_actions(np.ones((10, 7)))
-    assert np.all(const.std == np.float32(P.STD_FLOOR))
+    const = norm_stats.NormStats.from_actions(np.ones((10, 7)))
+    assert np.all(const.std == np.float32(norm_stats.STD_FLOOR))
 
 
 # -- windows ----------------------------------------------------------------------------------------------------
@@ -143,7 +144,7 @@ def test_pseudo_actions_of_pure_translation(tmp_path):
     frames = {view: np.zeros((T, 16, 16, 3), np.uint8) for view in S.VIEWS}
     st = EpisodeStore(tmp_path, views=list(S.VIEWS), fps=20, image_size=(16, 16), create=True)
     st.write(Episode("trans", frames, actions, pose, "move"))
-    stats = P.NormStats(np.zeros(7), np.ones(7))
+    stats = norm_stats.NormStats(np.zeros(7), np.ones(7))
     for stride in (1, 2):
         cfg = DataConfig(path=str(tmp_path), batch_size=4, strides=(stride,), pseudo_action_prob=1.0)
         b = P.make_dataset(cfg, st, stats)[0]
@@ -277,7 +278,7 @@ def test_bad_episode_raises_and_leaves_files_untouched(store, stats, tmp_path, c
     assert e.value.episode == bad and e.value.field == field
     if field != "length":  # statistics need every episode readable, but not long enough for a window
         with pytest.raises(EpisodeError) as e:
-            P.NormStats.from_store(st)
+            norm_stats.NormStats.from_store(st)
         assert e.value.episode == bad and e.value.field == field
     assert _hash_dir(root) == before
     assert sorted(p.name for p in root.iterdir()) == sorted(p.name for p in store.root.iterdir())

@@ -11,12 +11,11 @@ import numpy as np
 import pytest
 
 import sc3_jax.sim  # noqa: F401  (picks the GL backend before mujoco is imported)
-from sc3_jax import train
+from sc3_jax import checkpoint, train
 from sc3_jax.config import load_config, replace
 from sc3_jax.data.episodes import Episode, EpisodeStore
-from sc3_jax.data.pipeline import NormStats
+from sc3_jax.data.norm_stats import NormStats
 from sc3_jax.evaluate import diagnose as dg
-from sc3_jax.evaluate import sweep
 
 
 def test_moving_mask_and_pooled_psnr_on_a_constructed_pair():
@@ -69,7 +68,7 @@ def _copy_last_model(root):
                                   rope_axes_dim=(4, 2, 2)), sample=dict(steps=2))
     params = jax.device_get(train.init_state(cfg)["params"])
     stats = NormStats(np.zeros(7, np.float32), np.full(7, 0.02, np.float32))
-    return sweep.save_world_model(root / "wm", cfg, stats, params, np.float32)
+    return checkpoint.save(root / "wm", cfg, stats, params, np.float32)
 
 
 @pytest.fixture(scope="module")

@@ -7,11 +7,10 @@ import jax
 import numpy as np
 import pytest
 
-from sc3_jax import sharding, train
+from sc3_jax import checkpoint, sharding, train
 from sc3_jax.config import Config, DataConfig, ModelConfig, TrainConfig, replace
 from sc3_jax.data import synthetic
-from sc3_jax.data.pipeline import NormStats
-from sc3_jax.evaluate import sweep
+from sc3_jax.data.norm_stats import NormStats
 
 
 def _cfg(data, workdir, **model) -> Config:
@@ -40,11 +39,11 @@ def _leaves(tree):
 def test_init_from_loads_params_fresh_optimizer_and_source_stats(source, kind):
     tmp, data, src_cfg = source
     src = tmp / "src"
-    _, stats, params = sweep.load_world_model(src)
+    _, stats, params = checkpoint.load(src)
     if kind == "exported":
         # a different norm-stats file in the exported dir proves the fine-tune reads the *source's* stats
         stats = NormStats(**{f.name: np.asarray(getattr(stats, f.name)) * 2 for f in dataclasses.fields(stats)})
-        src = sweep.save_world_model(tmp / "exported", src_cfg, stats, jax.device_get(params), np.float32)
+        src = checkpoint.save(tmp / "exported", src_cfg, stats, jax.device_get(params), np.float32)
     cfg = replace(_cfg(data, tmp / f"ft_{kind}"), train=dict(init_from=str(src)))
     state = train.create_state(cfg, sharding.make_mesh(cfg.mesh))  # all 8 host devices: placed sharded
     assert int(state["step"]) == 0
@@ -79,14 +78,14 @@ def test_init_from_reads_params_straight_into_their_shards(source, kind):
     split, not a full copy per device) and the source's values; the optimizer state of a workdir is not read."""
     tmp, data, src_cfg = source
     src = tmp / "src"
-    _, _, params = sweep.load_world_model(src)
+    _, _, params = checkpoint.load(src)
     if kind == "exported":
-        src = sweep.save_world_model(tmp / "exported_fsdp", src_cfg, sweep.load_world_model(src)[1],
+        src = checkpoint.save(tmp / "exported_fsdp", src_cfg, checkpoint.load(src)[1],
                                      jax.device_get(params), np.float16)
     cfg = replace(_cfg(data, tmp / f"fsdp_{kind}"), train=dict(init_from=str(src)), mesh=dict(data=1, fsdp=-1))
     mesh = sharding.make_mesh(cfg.mesh)
     _, st_shard = train.state_shardings(cfg, mesh)
-    got = train.init_params(cfg, st_shard["params"])
+    got = checkpoint.load_init_from(cfg, st_shard["params"])
     flat_got, flat_want = jax.tree.leaves(got), jax.tree.leaves(st_shard["params"])
     assert all(g.sharding == w for g, w in zip(flat_got, flat_want))
     split = [g for g in flat_got if not g.sharding.is_fully_replicated]
@@ -94,5 +93,5 @@ def test_init_from_reads_params_straight_into_their_shards(source, kind):
     tol = 1e-3 if kind == "exported" else 0  # float16 storage
     for a, b in zip(_leaves(got), _leaves(params)):
         np.testing.assert_allclose(a, b, atol=tol * np.abs(b).max(), rtol=tol)
-    assert train.source_shapes(src) == {jax.tree_util.keystr(k): v.shape
+    assert checkpoint.source_shapes(src) == {jax.tree_util.keystr(k): v.shape
                                         for k, v in jax.tree_util.tree_flatten_with_path(params)[0]}

@@ -115,14 +115,14 @@ def test_slurm_two_processes_train_and_checkpoint(tmp_path):
     import jax
 
     from sc3_jax import sharding, train
-    from sc3_jax.rollout_cli import config_from_dict
+    from sc3_jax.config import config_from_dict
 
     cfg = config_from_dict(json.loads((workdir / "config.json").read_text()))
     assert (cfg.model.depth, cfg.data.batch_size) == (1, 8)
     mngr = train.checkpoint_manager(cfg)
     state, _ = train.restore(mngr, cfg, sharding.make_mesh(cfg.mesh))
     assert int(state["step"]) == 3 and state["params"]["layers"]["wq"].shape == (1, 32, 2, 32)
-    # (train.load_params passes no shardings and fails on this multi-process checkpoint ("topology mismatch"); the
+    # (checkpoint.load_params passes no shardings and fails on this multi-process checkpoint ("topology mismatch"); the
     # fix proposed in the report restores onto one device like this:)
     one = jax.sharding.SingleDeviceSharding(jax.devices()[0])
     target = jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype, sharding=one),

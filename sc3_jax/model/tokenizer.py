@@ -163,7 +163,7 @@ def make_tokenizer(model_cfg) -> Tokenizer:
             raise ValueError("tokenizer 'conv_ae' needs model.tokenizer_path (a `sc3 train-tokenizer` output)")
         return _conv_ae(model_cfg.tokenizer_path, model_cfg.patch_size)
     if model_cfg.tokenizer in ("wan2.1", "wan2.2"):
-        from sc3_jax.model.wan_vae import make_wan_tokenizer  # lazy: the VAE module is large and optional
+        from sc3_jax.model.wan_tokenizer import make_wan_tokenizer  # lazy: the VAE module is large and optional
 
         return make_wan_tokenizer(model_cfg.tokenizer, model_cfg.tokenizer_path, patch_size=model_cfg.patch_size)
     raise ValueError(f"unknown tokenizer {model_cfg.tokenizer!r} (available: 'pixel', 'conv_ae', 'wan2.1', 'wan2.2')")
@@ -172,3 +172,37 @@ def make_tokenizer(model_cfg) -> Tokenizer:
 @functools.lru_cache(maxsize=8)
 def _conv_ae(path: str, patch_size: int) -> ConvAETokenizer:
     return ConvAETokenizer(path, patch_size)  # weights load once per (path, patch)
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# A config's token geometry (its tokenizer on its image size and window): the one place these counts are made
+# ----------------------------------------------------------------------------------------------------------------
+def token_geometry(cfg) -> tuple[int, tuple[int, int]]:
+    """(token_dim, (rows, cols) tokens per frame) of a ``Config``'s tokenizer and image size."""
+    tok = make_tokenizer(cfg.model)
+    return tok.token_dim, tok.grid(cfg.data.image_size)
+
+
+def context_token_frames(cfg) -> int | None:
+    """Context *token* frames when the tokenizer compresses time (None: one token frame per frame, K = F - T).
+    A window of 1 + 4 k context and 4 t future frames is k + 1 context and t future token frames with 4 t actions
+    (``window_tokens``): the Cosmos3 layout (actions independent of frames); the sc3 layout needs one action per
+    token frame."""
+    tok = make_tokenizer(cfg.model)
+    if tok.time_compression == 1:
+        return None
+    k, _ = window_tokens(tok, cfg.data.context_frames, cfg.data.future_frames)
+    if cfg.model.layout != "cosmos3":
+        raise ValueError(f"{tok.time_compression}x time-compressed tokens need model.layout='cosmos3' (several "
+                         "actions per token frame); the sc3 layout has one action per future frame")
+    return k
+
+
+def tokens_per_sample(cfg) -> int:
+    """Tokens of one training sample: every view's token frames of the window (fewer than its frames when the
+    tokenizer compresses time) times the tokens per frame, plus one token per action (one per future frame)."""
+    tok = make_tokenizer(cfg.model)
+    d = cfg.data
+    rows, cols = tok.grid(d.image_size)
+    k, t = window_tokens(tok, d.context_frames, d.future_frames)
+    return len(d.views) * (k + t) * rows * cols + d.future_frames

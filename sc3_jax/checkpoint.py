@@ -1,0 +1,186 @@
+"""A saved world model: its config, params, normalisation stats and (learned) tokenizer -- read, written, exported.
+
+Three kinds of directory hold one, and every reader here takes any of them:
+
+    a ``sc3 train`` workdir   config.json, norm_stats.json, checkpoints/<step>/state (orbax, the whole train state)
+    an exported world model   config.json, norm_stats.json, params.npz (any float dtype), tokenizer/ (conv_ae)
+    a ``sc3 convert`` output  config.json, params/ (orbax, params only)
+
+:func:`load` gives (config, stats, params); :func:`save` / :func:`export` write the exported form (small enough to
+commit, e.g. ``sc3_jax/evaluate/shipped/bussing_sim``). Training's own checkpoints (optimizer state and data
+position, for resuming) are written by ``train.py``; this module only reads their params.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import shutil
+import zipfile
+from pathlib import Path
+
+import jax
+import numpy as np
+import orbax.checkpoint as ocp
+
+from sc3_jax.config import Config, config_from_dict
+from sc3_jax.data.norm_stats import NormStats
+from sc3_jax.model import dit
+from sc3_jax.model.shapes import check_shapes
+from sc3_jax.model.tokenizer import token_geometry
+
+
+# ================================================================================================================
+# Reading
+# ================================================================================================================
+def load(path: str | Path, step: int | None = None) -> tuple[Config, NormStats, dict]:
+    """(config, norm stats, params) of a training workdir (latest orbax checkpoint, or ``step``) or an exported
+    world model."""
+    cfg = read_config(path)
+    return cfg, read_norm_stats(path), load_params(path, cfg, step)
+
+
+def read_config(path: str | Path, what: str = "") -> Config:
+    """The config of a saved model; a tokenizer shipped inside the model directory is referred to by its absolute
+    path. ``what``: a prefix for the error message."""
+    path = Path(path)
+    if not (path / "config.json").exists():
+        raise FileNotFoundError(f"{what}{path}: no config.json (expected a `sc3 train` workdir, an exported world "
+                                "model or a `sc3 convert` output)")
+    cfg = config_from_dict(json.loads((path / "config.json").read_text()))
+    tp = cfg.model.tokenizer_path
+    if tp and not Path(tp).is_absolute() and (path / tp).exists():  # a tokenizer shipped inside the model dir
+        cfg = dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, tokenizer_path=str((path / tp).absolute())))
+    return cfg
+
+
+def read_norm_stats(path: str | Path) -> NormStats:
+    path = Path(path) / "norm_stats.json"
+    if not path.exists():
+        raise FileNotFoundError(f"{path.parent}: no norm_stats.json (a `sc3 train` workdir or an exported world "
+                                "model has one; a `sc3 convert` output does not)")
+    return NormStats.load(path)
+
+
+def param_shapes(cfg: Config) -> dict:
+    """The params of ``cfg``'s model as ``jax.ShapeDtypeStruct`` (nothing allocated)."""
+    token_dim, grid = token_geometry(cfg)
+    return jax.eval_shape(lambda: dit.init_params(cfg.model, token_dim, jax.random.key(0), grid))
+
+
+def load_params(path: str | Path, cfg: Config, step: int | None = None, shardings=None):
+    """Params of a trained run (latest orbax checkpoint), an exported world model (``params.npz``, any float dtype)
+    or a ``sc3 convert`` output (orbax ``params/``), as ``cfg``'s param dtype. ``shardings``: a params-shaped tree of
+    shardings (default: all on the first device); every leaf is read straight into its shards, so a model larger
+    than one device's memory loads onto a mesh (orbax reads only each device's slice; an npz leaf passes through
+    host memory once). A run's optimizer state is not read."""
+    path = Path(path)
+    want = param_shapes(cfg)
+    if shardings is None:
+        one = jax.sharding.SingleDeviceSharding(jax.devices()[0])
+        shardings = jax.tree.map(lambda _: one, want)
+    target = jax.tree.map(lambda w, s: jax.ShapeDtypeStruct(w.shape, w.dtype, sharding=s), want, shardings)
+    if (path / "params.npz").exists():
+        return _load_npz(path / "params.npz", target)
+    item, in_state = _orbax_item(path, step)
+    target = {"params": target} if in_state else target
+    out = ocp.PyTreeCheckpointer().restore(item, args=ocp.args.PyTreeRestore(
+        item=target, restore_args=ocp.checkpoint_utils.construct_restore_args(target), partial_restore=True))
+    return out["params"] if in_state else out
+
+
+def load_init_from(cfg: Config, shardings=None) -> dict:
+    """Params that ``cfg.train.init_from`` names (any saved model), checked leaf by leaf against this config's
+    shapes before anything is read, then loaded straight into ``shardings`` as this config's param dtype (their norm
+    stats are picked up by ``train.prepare_data``)."""
+    src = Path(cfg.train.init_from)
+    read_config(src, what="init_from ")
+    have = {jax.tree_util.keystr(k): v.shape for k, v in jax.tree_util.tree_flatten_with_path(param_shapes(cfg))[0]}
+    check_shapes(have, source_shapes(src), f"init_from {src}: params do not fit this model config:")
+    return load_params(src, cfg, shardings=shardings)
+
+
+def source_shapes(path: str | Path, step: int | None = None) -> dict[str, tuple[int, ...]]:
+    """``{keystr: shape}`` of the params that ``load_params`` would read, from metadata only (nothing loaded)."""
+    path = Path(path)
+    if (path / "params.npz").exists():
+        out = {}
+        with zipfile.ZipFile(path / "params.npz") as zf:
+            for name in zf.namelist():
+                with zf.open(name) as f:
+                    version = np.lib.format.read_magic(f)
+                    read = {(1, 0): np.lib.format.read_array_header_1_0, (2, 0): np.lib.format.read_array_header_2_0}
+                    shape = read[version](f)[0]
+                out["".join(f"['{k}']" for k in name.removesuffix(".npy").split("/"))] = tuple(shape)
+        return out
+    item, in_state = _orbax_item(path, step)
+    meta = ocp.PyTreeCheckpointer().metadata(item)
+    tree = getattr(meta, "item_metadata", meta)
+    tree = getattr(tree, "tree", tree)
+    tree = tree["params"] if in_state else tree
+    return {jax.tree_util.keystr(k): tuple(v.shape)
+            for k, v in jax.tree_util.tree_flatten_with_path(tree, is_leaf=lambda x: hasattr(x, "shape"))[0]}
+
+
+def _orbax_item(path: Path, step: int | None) -> tuple[Path, bool]:
+    """(orbax item directory, whether the params sit under "params" in a whole train state)."""
+    if (path / "params").is_dir():  # a `sc3 convert` output: params only
+        return (path / "params").absolute(), False
+    mngr = ocp.CheckpointManager(path.absolute() / "checkpoints")
+    step = mngr.latest_step() if step is None else step
+    if step is None:
+        raise FileNotFoundError(f"no checkpoint under {path}/checkpoints (and no params.npz or params/)")
+    return path.absolute() / "checkpoints" / str(step) / "state", True
+
+
+def _load_npz(path: Path, target) -> dict:
+    """``{"a/b/c": array}`` (written by :func:`save`) -> params placed as ``target`` says."""
+    with np.load(path) as z:
+        def leaf(kp, t):
+            x = np.asarray(z["/".join(k.key for k in kp)]).astype(t.dtype)
+            return jax.make_array_from_callback(t.shape, t.sharding, lambda idx: x[idx])
+        return jax.tree_util.tree_map_with_path(leaf, target)
+
+
+# ================================================================================================================
+# Writing
+# ================================================================================================================
+def export(workdir: str | Path, out: str | Path, dtype=np.float16) -> Path:
+    """Write a run's latest params (as ``dtype``), config and norm stats to ``out`` -- small enough to commit."""
+    cfg, stats, params = load(workdir)
+    return save(out, cfg, stats, params, dtype)
+
+
+def save(out: str | Path, cfg: Config, stats: NormStats, params, dtype=np.float16) -> Path:
+    """An exported world model at ``out``. A learned tokenizer (``conv_ae``) travels with the model: copied to
+    ``out/tokenizer`` (float32: a few MB) and referred to by that relative path, which :func:`read_config` resolves
+    against the model directory."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    if cfg.model.tokenizer == "conv_ae":
+        src = Path(cfg.model.tokenizer_path)
+        if src.resolve() != (out / "tokenizer").resolve():
+            shutil.copytree(src, out / "tokenizer", dirs_exist_ok=True)
+        cfg = dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, tokenizer_path="tokenizer"))
+    np.savez_compressed(out / "params.npz", **{k: np.asarray(v).astype(dtype) for k, v in _flatten(params)})
+    (out / "config.json").write_text(json.dumps(dataclasses.asdict(cfg), indent=1))
+    stats.save(out / "norm_stats.json")
+    return out
+
+
+def save_converted(out: str | Path, cfg: Config, params) -> Path:
+    """A ``sc3 convert`` output at ``out``: config.json and the params as an orbax tree (no norm stats: a converted
+    model has not seen our data)."""
+    out = Path(out)
+    (out / "config.json").write_text(json.dumps(dataclasses.asdict(cfg), indent=1))
+    ckpt = ocp.StandardCheckpointer()
+    ckpt.save((out / "params").absolute(), params)
+    ckpt.wait_until_finished()
+    return out
+
+
+def _flatten(tree, prefix=""):
+    for k, v in tree.items():
+        if isinstance(v, dict):
+            yield from _flatten(v, f"{prefix}{k}/")
+        else:
+            yield f"{prefix}{k}", v
