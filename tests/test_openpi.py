@@ -16,9 +16,11 @@ import pytest
 
 from sc3_jax.policies import msgpack_numpy as mn
 from sc3_jax.policies.base import HostPolicy, JaxPolicy, as_host
-from sc3_jax.policies.openpi import (ALOHA, DEFAULT_PROMPTS, DROID, LIBERO, PolicyConnectionError, PolicyServer,
-                                     PolicyServerError, PolicyTimeoutError, WebsocketClientPolicy,
-                                     build_policy_server, get_mapping, serve)
+from sc3_jax.policies.openpi_client import (PolicyConnectionError, PolicyServerError, PolicyTimeoutError,
+                                            WebsocketClientPolicy)
+from sc3_jax.policies.openpi_mappings import ALOHA, DEFAULT_PROMPTS, DROID, LIBERO, get_mapping
+from sc3_jax.policies.openpi_server import PolicyServer, serve
+from sc3_jax.policies.serve_cli import build_policy_server
 
 CHUNK = 5
 

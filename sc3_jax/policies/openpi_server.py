@@ -1,0 +1,178 @@
+"""The server side of openpi's policy-server WebSocket protocol (see ``openpi_client.py`` for the wire format):
+serve one of our policies so that openpi clients, or ours, can query it. ``sc3 serve-policy`` is ``serve_cli.py``.
+"""
+from __future__ import annotations
+
+import logging
+import threading
+import time
+import traceback
+from http import HTTPStatus
+from typing import Any, Mapping
+
+import numpy as np
+import websockets
+import websockets.exceptions
+import websockets.sync.server
+from websockets.frames import CloseCode
+
+from sc3_jax.policies import msgpack_numpy
+from sc3_jax.policies.base import HostPolicy, JaxPolicy, as_host
+from sc3_jax.policies.openpi_mappings import ObsMapping, get_mapping
+
+__all__ = ["PolicyServer", "serve", "serve_until_interrupted"]
+
+logger = logging.getLogger(__name__)
+
+
+class PolicyServer:
+    """Serve one of our policies (a :class:`JaxPolicy`, wrapped with ``as_host``, or any :class:`HostPolicy`) over
+    openpi's protocol, so openpi clients (``openpi_client.WebsocketClientPolicy``) or ours can query it.
+
+    Requests are our observation dict (``mapping=None``) or a family's observation, mapped back with
+    ``mapping.from_family``; the reply is ``{"actions": ..., "server_timing": {"infer_ms", "prev_total_ms"}}`` with
+    actions mapped by ``mapping.actions_to_family``. A HostPolicy whose ``infer`` returns a dict is passed through
+    (openpi-style policies). An exception inside the policy sends the traceback as a text frame and closes the
+    connection with 1011, like openpi. ``GET /healthz`` -> 200 ``OK``. With ``api_key`` set, WebSocket connections
+    must carry ``Authorization: Api-Key <key>`` (else 401). Inference is serialised with a lock (one policy, many
+    connections). ``port=0`` binds a free port (see ``.port``). Use ``start()`` for a background thread and
+    ``shutdown()`` to stop, or ``serve_forever()`` to block.
+    """
+
+    def __init__(self, policy: JaxPolicy | HostPolicy, host: str = "0.0.0.0", port: int = 8000,
+                 metadata: Mapping[str, Any] | None = None, mapping: ObsMapping | str | None = None,
+                 api_key: str | None = None):
+        self.policy = as_host(policy) if isinstance(policy, JaxPolicy) else policy
+        if not callable(getattr(self.policy, "infer", None)):
+            raise TypeError(f"{type(policy).__name__} is neither a JaxPolicy nor a HostPolicy (no .infer)")
+        self.mapping = get_mapping(mapping)
+        self.api_key = api_key
+        name = getattr(policy, "name", type(policy).__name__)
+        chunk = getattr(self.policy, "chunk", None)
+        self.metadata = {"server": "sc3_jax", "policy": str(name), "family": self.mapping.name if self.mapping else
+                         "native", **({"chunk": int(chunk)} if isinstance(chunk, int) else {}),
+                         **({"action_dim": self.mapping.action_map.family_dim} if self.mapping else {}),
+                         **dict(metadata or {})}
+        msgpack_numpy.packb(self.metadata)  # fail now, not on the first connection
+        self._lock = threading.Lock()
+        self._thread: threading.Thread | None = None
+        self._serving = False
+        self._stopped = False
+        self._server = websockets.sync.server.serve(self._handler, host, port, compression=None, max_size=None,
+                                                    process_request=self._process_request)
+        self.host, self.port = self._server.socket.getsockname()[:2]
+
+    @property
+    def url(self) -> str:
+        host = "127.0.0.1" if self.host in ("0.0.0.0", "::") else self.host
+        return f"ws://{host}:{self.port}"
+
+    def _process_request(self, connection: Any, request: Any) -> Any:
+        if request.path == "/healthz":
+            return connection.respond(HTTPStatus.OK, "OK\n")
+        if self.api_key and request.headers.get("Authorization") != f"Api-Key {self.api_key}":
+            return connection.respond(HTTPStatus.UNAUTHORIZED, "missing or wrong Authorization: Api-Key header\n")
+        return None
+
+    def _infer(self, obs: Any) -> dict:
+        if not isinstance(obs, dict):
+            raise TypeError(f"expected an observation dict, got {type(obs).__name__}")
+        ours = self.mapping.from_family(obs) if self.mapping is not None else obs
+        with self._lock:
+            out = self.policy.infer(ours)
+        if isinstance(out, Mapping):
+            return dict(out)
+        actions = np.asarray(out)
+        if self.mapping is not None:
+            actions = self.mapping.actions_to_family(actions)
+        return {"actions": actions}
+
+    def _handler(self, ws: websockets.sync.server.ServerConnection) -> None:
+        try:
+            ws.send(msgpack_numpy.packb(self.metadata))
+        except websockets.exceptions.ConnectionClosed:
+            return
+        prev_total_ms = None
+        while True:
+            try:
+                msg = ws.recv()
+            except websockets.exceptions.ConnectionClosed:
+                return
+            start = time.monotonic()
+            try:
+                if isinstance(msg, str):
+                    raise TypeError("expected a binary msgpack frame, got a text frame")
+                obs = msgpack_numpy.unpackb(msg)
+                t0 = time.monotonic()
+                result = self._infer(obs)
+                timing = {"infer_ms": (time.monotonic() - t0) * 1000.0}
+                if prev_total_ms is not None:
+                    timing["prev_total_ms"] = prev_total_ms
+                result["server_timing"] = timing
+                ws.send(msgpack_numpy.packb(result))
+            except websockets.exceptions.ConnectionClosed:
+                return
+            except Exception:  # noqa: BLE001 - reported to the client, like openpi
+                tb = traceback.format_exc()
+                logger.error("policy inference failed:\n%s", tb)
+                try:
+                    ws.send(tb)
+                    ws.close(CloseCode.INTERNAL_ERROR, "Internal server error. Traceback included in previous frame.")
+                except websockets.exceptions.ConnectionClosed:
+                    pass
+                return
+            prev_total_ms = (time.monotonic() - start) * 1000.0
+
+    def serve_forever(self) -> None:
+        self._serving = True
+        self._server.serve_forever()
+
+    def start(self) -> "PolicyServer":
+        """Serve from a background (daemon) thread; returns self."""
+        if self._thread is None:
+            self._serving = True
+            self._thread = threading.Thread(target=self._server.serve_forever, name=f"policy-server:{self.port}",
+                                            daemon=True)
+            self._thread.start()
+        return self
+
+    def shutdown(self) -> None:
+        """Stop accepting connections, close open ones, wait for their handlers. Idempotent."""
+        if self._stopped:
+            return
+        self._stopped = True
+        if self._serving:
+            self._server.shutdown()
+        else:
+            self._server.socket.close()
+        if self._thread is not None:
+            self._thread.join(timeout=30)
+
+    def __enter__(self) -> "PolicyServer":
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.shutdown()
+
+
+def serve(policy: JaxPolicy | HostPolicy, host: str = "0.0.0.0", port: int = 8000,
+          metadata: Mapping[str, Any] | None = None, mapping: ObsMapping | str | None = None, *,
+          api_key: str | None = None, block: bool = True) -> PolicyServer:
+    """Serve ``policy`` over openpi's protocol. ``block=True`` serves until KeyboardInterrupt (then shuts down);
+    ``block=False`` starts a background thread and returns the running :class:`PolicyServer`."""
+    server = PolicyServer(policy, host, port, metadata, mapping, api_key)
+    if not block:
+        return server.start()
+    logger.info("serving %s on %s (family %s)", server.metadata.get("policy"), server.url, server.metadata["family"])
+    return serve_until_interrupted(server)
+
+
+def serve_until_interrupted(server: PolicyServer) -> PolicyServer:
+    """Serve in this thread until KeyboardInterrupt (Ctrl-C), then shut down."""
+    try:
+        server.serve_forever()
+    except KeyboardInterrupt:
+        pass
+    finally:
+        server.shutdown()
+    return server

@@ -1,0 +1,85 @@
+"""One way to name a policy, for every command that takes one (``sc3 rollout``, ``sc3 sweep``, ``sc3 serve-policy``).
+
+    bus_bc_full              a zoo policy (``sim/zoo.py``; acts on its zoo entry's task)
+    zero | random | linear   a built-in JAX policy (``policies/simple.py``)
+    package.module:attr      a JaxPolicy / HostPolicy, or a zero-argument factory of one
+    ws://HOST:PORT           a policy server speaking openpi's protocol (``policies/openpi_client.py``)
+    NAME=SPEC                any of the above, called NAME (the sweep's record and directory name)
+    SPEC@TASK                any of the above, acting on TASK ("bussing" or "reverse")
+
+e.g. ``served=ws://10.0.0.2:8000@bussing``. The sweep needs a task for every policy but a zoo one.
+"""
+from __future__ import annotations
+
+import dataclasses
+import importlib
+from typing import Any
+
+from sc3_jax.policies.base import HostPolicy, JaxPolicy
+
+TASKS = ("bussing", "reverse")
+SPELLINGS = "a zoo name, zero | random | linear, package.module:attr or ws://HOST:PORT, as [NAME=]SPEC[@TASK]"
+
+
+@dataclasses.dataclass(frozen=True)
+class Resolved:
+    name: str
+    task: str | None  # None: not given and not a zoo policy
+    policy: Any  # JaxPolicy | HostPolicy
+
+
+def parse(spec: str) -> tuple[str | None, str, str | None]:
+    """``[NAME=]SPEC[@TASK]`` -> (NAME or None, SPEC, TASK or None)."""
+    name = None
+    head, eq, rest = spec.partition("=")
+    if eq and head and not any(c in head for c in ":/@"):
+        name, spec = head, rest
+    task = None
+    if "@" in spec:
+        spec, _, task = spec.rpartition("@")
+        if not spec or task not in TASKS:
+            raise ValueError(f"policy {name + '=' if name else ''}{spec}@{task}: expected [NAME=]SPEC@TASK with "
+                             f"TASK in {list(TASKS)} (e.g. NAME=ws://HOST:PORT@TASK)")
+    if not spec:
+        raise ValueError(f"policy {spec!r}: empty; expected {SPELLINGS}")
+    return name, spec, task
+
+
+def resolve(spec: str, chunk: int | None = None, family: str | None = None) -> Resolved:
+    """The policy ``spec`` names (see the module docstring). ``chunk``: a built-in policy's actions per call
+    (default its own); ``family``: the openpi observation mapping of a ``ws://`` server (None / "native": ours)."""
+    from sc3_jax.policies import simple
+
+    name, body, task = parse(spec)
+    if body in simple.BUILTIN:
+        policy = simple.BUILTIN[body]() if chunk is None else simple.BUILTIN[body](chunk=chunk)
+    elif body.startswith(("ws://", "wss://")):
+        from sc3_jax.policies.openpi_client import WebsocketClientPolicy
+        policy = WebsocketClientPolicy(body, port=None, mapping=None if family in (None, "native") else family)
+    elif ":" in body:
+        policy = load_object(body)
+    else:
+        from sc3_jax.sim.zoo import ZOO, load_policy
+        if body not in ZOO:
+            raise ValueError(f"unknown policy {body!r}: expected {SPELLINGS}; zoo policies are {sorted(ZOO)}")
+        policy, task = load_policy(body), task or ZOO[body].task
+    return Resolved(name or body, task, policy)
+
+
+def load_object(spec: str) -> JaxPolicy | HostPolicy:
+    """``package.module:attr``: attr is a JaxPolicy / HostPolicy, or a zero-argument factory returning one."""
+    mod_name, _, attr = spec.partition(":")
+    obj: Any = importlib.import_module(mod_name)
+    for part in attr.split("."):
+        obj = getattr(obj, part)
+    if not _is_policy(obj):
+        if not callable(obj):
+            raise TypeError(f"{spec} is neither a policy nor a factory")
+        obj = obj()
+    if not _is_policy(obj):
+        raise TypeError(f"{spec} produced {type(obj).__name__}, which is neither a JaxPolicy nor a HostPolicy")
+    return obj
+
+
+def _is_policy(obj) -> bool:
+    return isinstance(obj, JaxPolicy) or callable(getattr(obj, "infer", None))
