@@ -22,7 +22,7 @@ import numpy as np
 
 from sc3_jax import rollout
 from sc3_jax.config import MeshConfig, load_config, replace
-from sc3_jax.data.pipeline import NormStats
+from sc3_jax.data.norm_stats import NormStats
 from sc3_jax.model import dit
 from sc3_jax.model.tokenizer import make_tokenizer
 from sc3_jax.policies import simple
@@ -62,11 +62,11 @@ def chunk_flops(cfg, cached: bool, latent_frames: tuple[int, int] | None = None)
 
 
 # -- timing -----------------------------------------------------------------------------------------------------
-def _setup(cfg, num_chunks, batch, use_cache=None):
+def _setup(cfg, num_chunks, batch, cache=True):
     mesh = jax.make_mesh((1, 1, 1), ("data", "fsdp", "tensor"), axis_types=(jax.sharding.AxisType.Auto,) * 3,
                          devices=jax.devices()[:1])
     stats = NormStats(np.zeros(7, np.float32), np.full(7, 0.01, np.float32))
-    ro = rollout.Rollout(cfg, stats, mesh=mesh, num_chunks=num_chunks, use_cache=use_cache)
+    ro = rollout.Rollout(cfg, stats, mesh=mesh, num_chunks=num_chunks, cache=cache)
     tok = make_tokenizer(cfg.model)
     params = dit.init_params(cfg.model, tok.token_dim, jax.random.key(0), tok.grid(cfg.data.image_size))
     params = jax.tree.map(lambda x: x + 0.02 * jax.random.normal(jax.random.key(1), x.shape), params)
@@ -123,7 +123,7 @@ def main(argv=None) -> int:
     n2 = 2
     runs, flops = {}, {}
     for cached in (True, False):
-        ro, params, ics, keys, policy = _setup(cfg2, n2, batch=1, use_cache=cached)
+        ro, params, ics, keys, policy = _setup(cfg2, n2, batch=1, cache=cached)
         runs[cached] = (lambda ro=ro, params=params, ics=ics, keys=keys, policy=policy:
                         ro.run(params, policy, ics, keys, math.inf))
         flops[cached] = chunk_flops(cfg2, cached)

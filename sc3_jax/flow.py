@@ -126,17 +126,23 @@ def time_grid(steps: int, fcfg: FlowConfig = FlowConfig()) -> jax.Array:
     return t.at[0].set(1.0).at[-1].set(0.0)
 
 
+CACHES = ("auto", "context", "video", "none")
+
+
 def sample(params, cfg: ModelConfig, video, actions, stride, video_noisy, action_noisy, rng, steps: int, grid,
-           use_cache: bool | str | None = None, fcfg: FlowConfig = FlowConfig(), context_frames: int | None = None,
+           cache: str = "auto", fcfg: FlowConfig = FlowConfig(), context_frames: int | None = None,
            pose=None, context_noise: float = 0.0):
-    """Euler from t = 1 to t = 0 in ``steps`` steps (``time_grid``); clean tokens held fixed. Returns (video,
+    """Euler from t = 1 to t = 0 in ``steps`` Euler steps (``time_grid``); clean tokens held fixed. Returns (video,
     actions) with the noisy positions filled in (the context frames as given, never their noised copy).
 
-    With ``context_attention="causal"`` a clean prefix's keys/values are computed once and reused by every step:
-    ``use_cache`` None/True = the context frames, "video" = every frame (only for inverse mode: all frames clean,
-    all actions noisy), False = no cache (for checks). ``context_frames``: see ``predict``. ``pose``: see
-    ``dit.Inputs``. ``context_noise``: the level the context is noised with (models trained with context noise
-    use a small one at inference, as GameNGen does)."""
+    ``cache``: which clean prefix's keys/values are computed once and reused by every Euler step (exact only with
+    ``context_attention="causal"``): "context" = the context frames, "video" = every frame (only for inverse mode:
+    all frames clean, all actions noisy), "none" = no cache (for checks), "auto" = "context" when the model's
+    context attention is causal, else "none". ``context_frames``: see ``predict``. ``pose``: see ``dit.Inputs``.
+    ``context_noise``: the level the context is noised with (models trained with context noise use a small one at
+    inference, as GameNGen does)."""
+    if cache not in CACHES:
+        raise ValueError(f"cache {cache!r}: one of {CACHES}")
     K = video.shape[2] - actions.shape[1] if context_frames is None else context_frames
     context_level = None
     given = video
@@ -147,15 +153,14 @@ def sample(params, cfg: ModelConfig, video, actions, stride, video_noisy, action
     k_v, k_a = jax.random.split(rng)
     video = jnp.where(video_noisy[..., None, None], jax.random.normal(k_v, video.shape, video.dtype), video)
     actions = jnp.where(action_noisy[..., None], jax.random.normal(k_a, actions.shape, actions.dtype), actions)
-    if use_cache is None:
-        use_cache = cfg.context_attention == "causal"
+    if cache == "auto":
+        cache = "context" if cfg.context_attention == "causal" else "none"
     context_kv = None
-    if use_cache:
+    if cache != "none":
         clean = dit.Inputs(video, actions, jnp.zeros(video_noisy.shape), video_noisy,
                            jnp.zeros(action_noisy.shape), action_noisy, stride, pose=pose,
                            context_level=context_level)
-        prefix = "video" if use_cache == "video" else "context"
-        context_kv = dit.encode_context(params, cfg, clean, grid, prefix=prefix, context_frames=context_frames)
+        context_kv = dit.encode_context(params, cfg, clean, grid, prefix=cache, context_frames=context_frames)
 
     ts = time_grid(steps, fcfg)
 

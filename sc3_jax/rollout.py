@@ -1,4 +1,4 @@
-"""Closed-loop rollouts inside the world model (Algorithm 1 of DESIGN.md), on device, and offline (open-loop) replay.
+"""Closed-loop rollouts inside the world model (the paper's Algorithm 1), on device, and offline (open-loop) replay.
 
 One chunk (per initial condition; ``vmap`` over a batch of them, the batch sharded over the mesh's data axes):
 
@@ -18,7 +18,7 @@ Decisions (see docs/rollout.md for more):
   A chunk whose U exceeds tau is *not* pushed into the context and everything after it is marked invalid; the scan
   still computes the later chunks (on the frozen context) so shapes stay static. Their U values are emitted but are
   not those of an untruncated rollout: to sweep tau after the fact run once with ``tau=inf`` and cut with
-  :func:`terminated_at` -- identical, up to the termination chunk, to a run with that tau.
+  ``evaluate.results.terminated_at`` -- identical, up to the termination chunk, to a run with that tau.
 * U is the mean over the l kept steps of the L2 norm over the 7 action dimensions, in ``cfg.rollout.tau_units``:
   "raw" (the paper's units, in which its tau = 0.02 is set; the default) or "normalised" (per-dimension unit
   variance). Both are emitted (``u_raw``, ``u``); the one in tau_units decides termination.
@@ -31,8 +31,8 @@ Decisions (see docs/rollout.md for more):
   (:meth:`Rollout.run_host`) reproduces the scan (:meth:`Rollout.run`) by driving the very same per-chunk functions
   (observe -> policy on the host -> model step).
 * Context caching: with ``cfg.model.context_attention == "causal"`` the forward sampler reuses the context's
-  keys/values over its S steps and the inverse sampler those of every frame (each step then runs only the action
-  tokens); ``use_cache=False`` forces the uncached path, for checks and benchmarks.
+  keys/values over its S Euler steps and the inverse sampler those of every frame (each step then runs only the
+  action tokens); ``Rollout(..., cache=False)`` forces the uncached path, for checks and benchmarks.
 """
 from __future__ import annotations
 
@@ -66,7 +66,7 @@ class RolloutSpec:
     policy_chunk: int  # C
     num_chunks: int
     stride: int
-    steps: int  # Euler steps per sampler call
+    steps: int  # Euler steps per sampler call (sample.steps)
     ratio: int = 1  # raw policy actions per model-rate action (policy_hz / control_hz)
     context_noise: float = 0.0  # noise level on the context at inference (models trained with context noise)
     tau_units: str = "raw"  # the units U_chunk is compared with tau in (RolloutConfig.tau_units)
@@ -123,23 +123,17 @@ def episode_keys(seed: int, n: int, start: int = 0) -> jax.Array:
     return jax.vmap(lambda i: jax.random.key_data(jax.random.fold_in(base, i)))(jnp.arange(start, start + n))
 
 
-def terminated_at(u: np.ndarray, tau: float) -> np.ndarray:
-    """First chunk with U > tau per episode (-1: never). ``u`` [B, N]. Cutting a ``tau=inf`` rollout with this gives
-    exactly the termination a rollout run with ``tau`` reports."""
-    above = np.asarray(u) > tau
-    return np.where(above.any(-1), above.argmax(-1), -1).astype(np.int32)
-
-
 # ================================================================================================================
 # One chunk (per episode), in the pieces the scan and the host loop share
 # ================================================================================================================
-class _Steps:
+class ChunkFns:
     """The per-episode chunk functions, closed over hashable things only (model config, flow config -- it sets the
     sampler's time grid --, spec, cache flag), so their jitted versions are shared by every Rollout with the same
-    key (see ``_compiled``)."""
+    key (see ``_compiled``). ``cache``: reuse clean keys/values across Euler steps where the model allows it
+    (``context_attention="causal"``); False forces the uncached path."""
 
-    def __init__(self, model_cfg, flow_cfg, spec: RolloutSpec, use_cache: bool | None):
-        self.model_cfg, self.flow_cfg, self.spec, self.use_cache = model_cfg, flow_cfg, spec, use_cache
+    def __init__(self, model_cfg, flow_cfg, spec: RolloutSpec, cache: bool = True):
+        self.model_cfg, self.flow_cfg, self.spec, self.cache = model_cfg, flow_cfg, spec, cache
         self.tok = make_tokenizer(model_cfg)
         self.grid = self.tok.grid(spec.image_size)
         # token frames of the (context, prediction) window; raises on impossible bookkeeping
@@ -187,11 +181,11 @@ class _Steps:
                                    context_noise=s.context_noise)
         # forward dynamics: every view's future frames from the context and the commanded actions
         vn, an = modes.fixed(modes.FD, 1, V, Kt, Tt, num_actions=T)
-        video, _ = sample(video, a[None], stride, vn, an, k_fd, use_cache=self.use_cache)
+        video, _ = sample(video, a[None], stride, vn, an, k_fd, cache="auto" if self.cache else "none")
         # inverse dynamics: re-read the actions from the context and the predicted frames
         vn, an = modes.fixed(modes.ID, 1, V, Kt, Tt, num_actions=T)
-        id_cache = "video" if m.context_attention == "causal" and self.use_cache is not False else False
-        _, a_hat = sample(video, jnp.zeros_like(a)[None], stride, vn, an, k_id, use_cache=id_cache)
+        id_cache = "video" if m.context_attention == "causal" and self.cache else "none"
+        _, a_hat = sample(video, jnp.zeros_like(a)[None], stride, vn, an, k_id, cache=id_cache)
         a_hat = a_hat[0]
         u = jnp.mean(jnp.linalg.norm(a[:l] - a_hat[:l], axis=-1))  # normalised units
         u_raw = jnp.mean(jnp.linalg.norm(model_actions[:l] - (a_hat[:l] * std + mean), axis=-1))
@@ -230,7 +224,7 @@ class Rollout:
     """
 
     def __init__(self, cfg: Config, norm_stats, mesh=None, data_fps: float = 20.0, num_chunks: int | None = None,
-                 use_cache: bool | None = None, state_reader=None):
+                 cache: bool = True, state_reader=None):
         self.cfg = cfg
         self.spec = make_spec(cfg, data_fps, num_chunks)
         self.mesh = mesh if mesh is not None else sharding.make_mesh(MeshConfig(-1, 1, 1))
@@ -238,14 +232,14 @@ class Rollout:
         self._repl = sharding.replicated(self.mesh)
         self.batch_multiple = self.mesh.shape["data"] * self.mesh.shape["fsdp"]
         self.norm = jax.device_put(norm_stats.as_array(), self._repl)
-        self.steps, self._init, self._observe, self._model_step_fn, self._scan_policy, self._scan_actions = \
-            _compiled(cfg.model, cfg.flow, self.spec, use_cache, state_reader and state_reader.apply)
+        self.chunk_fns, self._init, self._observe, self._model_step_fn, self._scan_policy, self._scan_actions = \
+            _compiled(cfg.model, cfg.flow, self.spec, cache, state_reader and state_reader.apply)
         # context-parallel attention traces under the mesh; a no-op for meshes without a "context" axis
         self._init, self._observe, self._model_step_fn, self._scan_policy, self._scan_actions = (
             sharding.bind_mesh(f, self.mesh) for f in (self._init, self._observe, self._model_step_fn,
                                                        self._scan_policy, self._scan_actions))
         # state_reader: anything with a pure ``apply(params, images uint8 [V, H, W, 3]) -> gripper width`` and
-        # ``params`` (e.g. ``evaluate.scorers.PerceptionScorer.state_reader()``); see ``_Steps.observe``
+        # ``params`` (e.g. ``evaluate.scorers.PerceptionScorer.state_reader()``); see ``ChunkFns.observe``
         self.reader_params = None if state_reader is None else jax.device_put(state_reader.params, self._repl)
 
     def _model_step(self, params, carry, actions, keys, tau):
@@ -253,7 +247,7 @@ class Rollout:
 
     # -- placement ---------------------------------------------------------------------------------------------
     def place_params(self, params):
-        axes = dit.param_axes(self.cfg.model, self.steps.tok.token_dim, self.steps.grid)
+        axes = dit.param_axes(self.cfg.model, self.chunk_fns.tok.token_dim, self.chunk_fns.grid)
         shard = jax.tree.map(lambda ax, x: sharding.named(self.mesh, ax, x.shape), axes, params,
                              is_leaf=lambda a: type(a) is tuple)
         return jax.device_put(params, shard)
@@ -282,11 +276,9 @@ class Rollout:
                                   task, keys, jnp.float32(tau))
         return self._finish(jax.device_get(emits), ics, B, tau, chunk_axis=0)
 
-    def run_offline(self, params, ics: InitialConditions, actions, keys, tau: float = math.inf,
-                    targets=None) -> dict:
-        """Open loop: ``actions`` raw [B, N, >= l', 7] (the recorded actions of each chunk) replace the policy.
-        With ``targets`` uint8 [B, V, N*l, H, W, 3] (the recorded frames) adds ``psnr`` [B, V, N*l] per frame and
-        view, and ``psnr_view`` [B, V] (mean over valid frames, where finite)."""
+    def run_offline(self, params, ics: InitialConditions, actions, keys, tau: float = math.inf) -> dict:
+        """Open loop: ``actions`` raw [B, N, >= l', 7] (the recorded actions of each chunk, :func:`chunk_actions`)
+        replace the policy. Scoring the frames against the recorded ones is the caller's (``evaluate.metrics``)."""
         actions = np.asarray(actions, np.float32)
         if actions.shape[1] != self.spec.num_chunks or actions.shape[2] < self.spec.predict:
             raise ValueError(f"actions {list(actions.shape)}: expected [B, {self.spec.num_chunks}, "
@@ -294,14 +286,7 @@ class Rollout:
         B, frames, state, task, keys = self._inputs(ics, keys)
         emits = self._scan_actions(self.place_params(params), self.norm, frames, state, task, keys, jnp.float32(tau),
                                    self._pad(actions, len(keys)))
-        out = self._finish(jax.device_get(emits), ics, B, tau, chunk_axis=0)
-        if targets is not None:
-            from sc3_jax.evaluate.metrics import psnr
-            out["psnr"] = np.asarray(psnr(out["frames"], np.asarray(targets)), np.float32)
-            masked = np.where(out["frame_valid"][:, None] & np.isfinite(out["psnr"]), out["psnr"], np.nan)
-            with np.errstate(all="ignore"):
-                out["psnr_view"] = np.nanmean(masked, axis=-1).astype(np.float32)
-        return out
+        return self._finish(jax.device_get(emits), ics, B, tau, chunk_axis=0)
 
     # -- host loop ---------------------------------------------------------------------------------------------
     def run_host(self, params, policy, ics: InitialConditions, keys, tau: float | None = None,
@@ -371,8 +356,8 @@ class Rollout:
 # The jitted programs, shared by every Rollout with the same (model config, flow config, spec, cache flag)
 # ================================================================================================================
 @functools.lru_cache(maxsize=32)
-def _compiled(model_cfg, flow_cfg, spec: RolloutSpec, use_cache: bool | None, reader=None):
-    st = _Steps(model_cfg, flow_cfg, spec, use_cache)
+def _compiled(model_cfg, flow_cfg, spec: RolloutSpec, cache: bool, reader=None):
+    st = ChunkFns(model_cfg, flow_cfg, spec, cache)
     observe_b = jax.vmap(lambda c, t, k, rp: st.observe(c, t, k, rp, reader), in_axes=(0, 0, 0, None))
     step_b = jax.vmap(st.model_step, in_axes=(None, None, 0, 0, 0, None))
     step_offline = jax.vmap(functools.partial(st.model_step, raw=False), in_axes=(None, None, 0, 0, 0, None))
@@ -401,9 +386,7 @@ def from_episode(ep, views, spec: RolloutSpec, start: int = 0, task: int = 0):
     """(initial conditions of one episode [no batch axis], recorded raw actions [N, l', 7], recorded frames
     [V, N*l, H, W, 3]) for an offline rollout starting at frame ``start``. Rollout step i (i = 0 is the last
     context frame) is episode frame ``start + stride * (K - 1 + i)``; its action is the composition of the
-    ``stride`` recorded actions in between (``pipeline.compose_actions``)."""
-    from sc3_jax.data.pipeline import compose_actions
-
+    ``stride`` recorded actions in between (:func:`chunk_actions`)."""
     s = spec
     frame_at = lambda i: start + s.stride * (s.context - 1 + i)  # noqa: E731
     if max_offline_chunks(ep.length, s, start) < s.num_chunks:
@@ -412,12 +395,34 @@ def from_episode(ep, views, spec: RolloutSpec, start: int = 0, task: int = 0):
                          f"{max_offline_chunks(ep.length, s, start)} (max_offline_chunks)")
     ctx_idx = [frame_at(i) for i in range(-(s.context - 1), 1)]
     frames = np.stack([np.asarray(ep.frames[v])[ctx_idx] for v in views])
-    step_actions = np.stack([compose_actions(ep.actions, frame_at(i), s.stride)
-                             for i in range((s.num_chunks - 1) * s.keep + s.predict)])
-    actions = np.stack([step_actions[c * s.keep: c * s.keep + s.predict] for c in range(s.num_chunks)])
+    actions = chunk_actions(np.asarray(ep.actions)[frame_at(0):], s)
     tgt_idx = [frame_at(i) for i in range(1, s.num_frames + 1)]
     targets = np.stack([np.asarray(ep.frames[v])[tgt_idx] for v in views])
     return (frames, np.asarray(ep.ee_pose[frame_at(0)], np.float32), np.int32(task)), actions, targets
+
+
+def chunk_actions(actions: np.ndarray, spec: RolloutSpec) -> np.ndarray:
+    """Recorded raw actions [T, 7] at the data rate, from the last context frame on -> the model-rate actions of
+    every chunk [N, l', 7] (``stride`` recorded actions composed into one, ``pipeline.compose_actions``); after the
+    recording ends the robot holds still (zero motion, last gripper command)."""
+    from sc3_jax.data.pipeline import compose_actions
+    r = spec.stride  # recorded (data-rate) actions per model step
+    need = ((spec.num_chunks - 1) * spec.keep + spec.predict) * r
+    a = np.asarray(actions, np.float32)
+    if len(a) < need:
+        hold = np.zeros((need - len(a), 7), np.float32)
+        hold[:, 6] = a[-1, 6]
+        a = np.concatenate([a, hold])
+    model_rate = np.stack([compose_actions(a, i * r, r) for i in range(need // r)])
+    return np.stack([model_rate[c * spec.keep: c * spec.keep + spec.predict] for c in range(spec.num_chunks)])
+
+
+def recorded_targets(frames: np.ndarray, spec: RolloutSpec) -> tuple[np.ndarray, np.ndarray]:
+    """Recorded frames [V, T, ...] from the last context frame on -> (the frames at the model's steps [V, N*l, ...],
+    valid bool [N*l]: before the recording ended), what an offline rollout's frames are compared with."""
+    idx = spec.stride * np.arange(1, spec.num_frames + 1)
+    valid = idx < frames.shape[1]
+    return frames[:, np.minimum(idx, frames.shape[1] - 1)], valid
 
 
 def max_offline_chunks(length: int, spec: RolloutSpec, start: int = 0) -> int:

@@ -3,10 +3,11 @@
     sc3 rollout --checkpoint runs/tiny --policy zero --initial-conditions runs/synthetic/heldout --out runs/ro \\
         [--episodes 8] [--tau 0.02|inf] [--num-chunks N] [--offline] [--seed 0]
 
-``--checkpoint``: a training workdir (``config.json``, ``norm_stats.json``, ``checkpoints/``).
-``--policy``: ``zero`` | ``random`` (built-in JAX policies), ``ws://HOST:PORT`` (an openpi policy server, see
-``--family``), or ``package.module:attr`` (a JaxPolicy / HostPolicy, or a zero-argument factory of one). JAX policies
-run inside the scan; host policies are called between jitted chunk steps.
+``--checkpoint``: a saved world model (``checkpoint.py``: a training workdir or an exported directory).
+``--policy``: any spelling of ``policies/resolve.py``: a zoo name, ``zero`` | ``random`` | ``linear`` (built-in JAX
+policies), ``ws://HOST:PORT`` (an openpi policy server, see ``--family``) or ``package.module:attr`` (a JaxPolicy /
+HostPolicy, or a zero-argument factory of one). JAX policies run inside the scan; host policies are called between
+jitted chunk steps.
 ``--initial-conditions``: an episode store (its first K frames at the rollout stride and the pose at the last of them)
 or an ``.npz`` with ``frames`` uint8 [B, V, K, H, W, 3], ``state`` float32 [B, 7] and optionally ``task`` int32 [B].
 Writes ``OUT/rollout.npz`` (every array of ``Rollout.run``, see sc3_jax/rollout.py), ``OUT/summary.json``, one
@@ -16,62 +17,12 @@ Writes ``OUT/rollout.npz`` (every array of ``Rollout.run``, see sc3_jax/rollout.
 from __future__ import annotations
 
 import argparse
-import dataclasses
-import importlib
 import json
 import math
 import sys
 from pathlib import Path
 
 import numpy as np
-
-
-def config_from_dict(d: dict, default=None):
-    """Rebuild a Config from ``dataclasses.asdict`` output (``config.json``); lists become tuples, unknown keys are
-    dropped with a warning (configs evolve), missing keys keep their defaults."""
-    from sc3_jax.config import Config
-
-    default = Config() if default is None else default
-    changes = {}
-    for f in dataclasses.fields(default):
-        if f.name not in d:
-            continue
-        cur, val = getattr(default, f.name), d[f.name]
-        if dataclasses.is_dataclass(cur):
-            changes[f.name] = config_from_dict(val, cur)
-        elif isinstance(cur, tuple):
-            changes[f.name] = tuple(tuple(v) if isinstance(v, list) else v for v in val)
-        else:
-            changes[f.name] = val
-    unknown = set(d) - {f.name for f in dataclasses.fields(default)}
-    if unknown:
-        print(f"sc3 rollout: ignoring unknown config fields {sorted(unknown)}", file=sys.stderr)
-    return dataclasses.replace(default, **changes)
-
-
-def resolve_policy(spec: str, cfg, family: str | None = None):
-    from sc3_jax.policies import simple
-    from sc3_jax.policies.base import JaxPolicy
-
-    chunk = cfg.rollout.policy_chunk
-    if spec in simple.BUILTIN:
-        return simple.BUILTIN[spec](chunk=chunk)
-    if spec.startswith(("ws://", "wss://")):
-        from sc3_jax.policies.openpi import WebsocketClientPolicy
-
-        return WebsocketClientPolicy(spec, port=None, mapping=None if family in (None, "native") else family)
-    if ":" not in spec:
-        raise ValueError(f"--policy {spec!r}: expected one of {sorted(simple.BUILTIN)}, ws://HOST:PORT or "
-                         "package.module:attr")
-    mod, attr = spec.split(":", 1)
-    obj = importlib.import_module(mod)
-    for part in attr.split("."):
-        obj = getattr(obj, part)
-    if not isinstance(obj, JaxPolicy) and not callable(getattr(obj, "infer", None)):
-        obj = obj()
-    if not isinstance(obj, JaxPolicy) and not callable(getattr(obj, "infer", None)):
-        raise TypeError(f"{spec} is neither a JaxPolicy nor a HostPolicy")
-    return obj
 
 
 def load_initial_conditions(path: str, cfg, spec, episodes: int | None, start: int, task: int):
@@ -105,21 +56,15 @@ def load_initial_conditions(path: str, cfg, spec, episodes: int | None, start: i
 
 
 def write_videos(out: Path, ids, result: dict, views, fps: float) -> list[str]:
-    import cv2
+    """One mp4 per episode and view: the context frames, then the kept frames up to termination."""
+    from sc3_jax.video import write_mp4
 
     written = []
     for b, eid in enumerate(ids):
         valid = result["frame_valid"][b]
         for v, view in enumerate(views):
-            frames = np.concatenate([result["initial_frames"][b, v], result["frames"][b, v][valid]])
-            H, W = frames.shape[1:3]
             path = out / f"{eid}_{view}.mp4"
-            writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), float(fps), (W, H))
-            if not writer.isOpened():
-                raise RuntimeError(f"OpenCV cannot write {path} with the mp4v codec")
-            for f in frames:
-                writer.write(cv2.cvtColor(np.ascontiguousarray(f), cv2.COLOR_RGB2BGR))
-            writer.release()
+            write_mp4(path, np.concatenate([result["initial_frames"][b, v], result["frames"][b, v][valid]]), fps)
             written.append(path.name)
     return written
 
@@ -148,9 +93,11 @@ def _run_batched(fn, n: int, size: int, progress: bool, desc: str) -> dict:
 
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="sc3 rollout", description=__doc__.split("\n\n")[0])
-    p.add_argument("--checkpoint", required=True, help="training workdir (config.json, norm_stats.json, checkpoints/)")
+    p.add_argument("--checkpoint", required=True, help="a training workdir or an exported world model (config.json, "
+                   "norm_stats.json, checkpoints/ or params.npz)")
     p.add_argument("--step", type=int, default=None, help="checkpoint step (default: latest)")
-    p.add_argument("--policy", required=True, help="zero | random | ws://HOST:PORT | package.module:attr")
+    p.add_argument("--policy", required=True, help="a zoo name | zero | random | linear | ws://HOST:PORT | "
+                   "package.module:attr (policies/resolve.py)")
     p.add_argument("--family", default="native", help="openpi observation mapping for ws:// policies")
     p.add_argument("--initial-conditions", required=True, help="episode store directory or .npz")
     p.add_argument("--out", required=True)
@@ -177,21 +124,20 @@ def _parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
-    from sc3_jax import rollout, train
-    from sc3_jax.config import load_config, replace
-    from sc3_jax.data.pipeline import NormStats
+    from sc3_jax import checkpoint, rollout
+    from sc3_jax.config import replace
     from sc3_jax.policies.base import JaxPolicy
+    from sc3_jax.policies.resolve import resolve
 
     work = Path(args.checkpoint)
-    cfg = config_from_dict(json.loads((work / "config.json").read_text())) if (work / "config.json").exists() \
-        else load_config("tiny")
+    cfg = checkpoint.read_config(work)
     overrides = {k: v for k, v in (("keep_frames", args.keep_frames), ("policy_chunk", args.policy_chunk),
                                    ("tau_units", args.tau_units)) if v is not None}
     cfg = replace(cfg, rollout=overrides)
     if args.sample_steps is not None:
         cfg = replace(cfg, sample=dict(steps=args.sample_steps))
-    stats = NormStats.load(work / "norm_stats.json")
-    params = train.load_params(work, cfg, args.step)
+    stats = checkpoint.read_norm_stats(work)
+    params = checkpoint.load_params(work, cfg, args.step)
     data_fps = args.data_fps
     if data_fps is None:
         ic = Path(args.initial_conditions)
@@ -199,7 +145,7 @@ def main(argv: list[str] | None = None) -> int:
     ro = rollout.Rollout(cfg, stats, data_fps=data_fps, num_chunks=args.num_chunks)
     ids, ics, store = load_initial_conditions(args.initial_conditions, cfg, ro.spec, args.episodes, args.start,
                                               args.task)
-    policy = resolve_policy(args.policy, cfg, args.family)
+    policy = resolve(args.policy, cfg.rollout.policy_chunk, args.family).policy
     tau = cfg.rollout.tau if args.tau is None else args.tau
     n = len(ids)
     size = args.batch_size or n
@@ -224,6 +170,7 @@ def main(argv: list[str] | None = None) -> int:
     if not args.no_video:
         summary["videos"] = write_videos(out, ids, result, cfg.data.views, cfg.rollout.control_hz)
     if args.offline:
+        from sc3_jax.evaluate.metrics import psnr_by_view
         if store is None:
             raise ValueError("--offline needs an episode store as --initial-conditions")
         eps = [store.load(e) for e in ids]
@@ -236,8 +183,10 @@ def main(argv: list[str] | None = None) -> int:
         off_ics = rollout.stack_initial_conditions([it[0] for it in items])
         acts, tgts = np.stack([it[1] for it in items]), np.stack([it[2] for it in items])
         pick_off = lambda sl: rollout.InitialConditions(*(np.asarray(x)[sl] for x in off_ics))  # noqa: E731
-        off = _run_batched(lambda sl: ro_off.run_offline(params, pick_off(sl), acts[sl], keys[sl], math.inf,
-                                                         tgts[sl]), n, size, progress, "offline")
+        off = _run_batched(lambda sl: ro_off.run_offline(params, pick_off(sl), acts[sl], keys[sl], math.inf), n, size,
+                           progress, "offline")
+        off["psnr"], off["psnr_view"] = (x.astype(np.float32) for x in psnr_by_view(off["frames"], tgts,
+                                                                                     off["frame_valid"]))
         np.savez_compressed(out / "offline.npz", **off, targets=tgts, episode_ids=np.asarray(ids))
         summary["offline_psnr_per_view"] = dict(zip(cfg.data.views, np.nanmean(off["psnr_view"], 0).tolist()))
         summary["offline_chunks"] = n_off

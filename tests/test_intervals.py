@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from sc3_jax.evaluate import bootstrap, calibrate, degrade, intervals, metrics, report, sweep
+from sc3_jax.evaluate.results import ResultsStore, seed_blocks
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -101,8 +102,8 @@ def _store(root, good_cut_calib: int, eval_variant: int):
     random, drawn from ``eval_variant``."""
     cfg = sweep.SweepConfig(out=str(root), episodes=4, calibration_episodes=3, ceiling_episodes=2,
                             taus=(math.inf, 0.1, 0.07, 0.05, 0.02, 0.01))
-    store = sweep.ResultsStore(root, cfg.to_json())
-    blocks = sweep.seed_blocks(cfg)
+    store = ResultsStore(root, cfg.to_json())
+    blocks = seed_blocks(cfg)
     rng = np.random.default_rng(0)
     ev_rng = np.random.default_rng(100 + eval_variant)
     q = {"pa": .9, "pb": .5, "pc": .8, "pd": .3}
@@ -173,8 +174,8 @@ def test_report_prints_every_row_with_its_interval(tmp_path):
 def test_seed_blocks_must_be_disjoint():
     cfg = sweep.SweepConfig(episodes=10, calibration_seed0=10_000_005)
     with pytest.raises(ValueError, match="overlap"):
-        sweep.seed_blocks(cfg)
-    blocks = sweep.seed_blocks(dataclasses.replace(cfg, calibration_seed0=20_000_000))
+        seed_blocks(cfg)
+    blocks = seed_blocks(dataclasses.replace(cfg, calibration_seed0=20_000_000))
     assert blocks["evaluation"][0] == 10_000_000 and len(blocks["calibration"]) == cfg.calibration_episodes
 
 

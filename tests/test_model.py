@@ -105,14 +105,14 @@ def test_timestep_embedding_only_on_noisy_tokens():
     assert not np.allclose(out0[0], out2[0])
 
 
-@pytest.mark.parametrize("mode,prefix", [(modes.FD, True), (modes.CVI, True), (modes.ID, True),
+@pytest.mark.parametrize("mode,prefix", [(modes.FD, "context"), (modes.CVI, "context"), (modes.ID, "context"),
                                          (modes.ID, "video")])
 def test_context_cache_matches_uncached(mode, prefix):
     cfg, tok, params, frames, video, actions, grid = _setup(context_attention="causal", **SHORTCUTS)
     vn, an = modes.fixed(mode, B, V, K, T, kept_view=1)
     stride = jnp.asarray([1, 2])
-    full = flow.sample(params, cfg, video, actions, stride, vn, an, jax.random.key(5), 3, grid, use_cache=False)
-    cached = flow.sample(params, cfg, video, actions, stride, vn, an, jax.random.key(5), 3, grid, use_cache=prefix)
+    full = flow.sample(params, cfg, video, actions, stride, vn, an, jax.random.key(5), 3, grid, cache="none")
+    cached = flow.sample(params, cfg, video, actions, stride, vn, an, jax.random.key(5), 3, grid, cache=prefix)
     np.testing.assert_allclose(full[0], cached[0], atol=2e-5)
     np.testing.assert_allclose(full[1], cached[1], atol=2e-5)
 

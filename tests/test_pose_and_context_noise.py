@@ -7,6 +7,7 @@ import pytest
 
 from sc3_jax import flow, imagination_state, modes
 from sc3_jax.config import DataConfig, FlowConfig, ModelConfig
+from sc3_jax.data import norm_stats
 from sc3_jax.data import pipeline as P
 from sc3_jax.data import synthetic as S
 from sc3_jax.model import dit
@@ -41,7 +42,7 @@ def _params(key):
 def test_window_pose_equals_integrated_commanded_actions(store):
     """The pipeline's pose condition is frame K-1's pose integrated with the window's actions -- exactly what a
     rollout computes with imagination_state.frame_poses -- and follows the recorded poses of the episode."""
-    stats = P.NormStats.from_store(store)
+    stats = norm_stats.NormStats.from_store(store)
     for pseudo_p in (0.0, 1.0):
         cfg = DataConfig(path=str(store.root), image_size=(16, 16), batch_size=8, context_frames=2, future_frames=4,
                          strides=(1, 2), pseudo_action_prob=pseudo_p, seed=5)
@@ -147,8 +148,8 @@ def test_sampler_returns_the_given_context_and_uses_the_level():
     vn, an = modes.fixed(modes.FD, 2, V, K, T)
     stride = jnp.ones((2,), jnp.int32)
     a, _ = flow.sample(params, CFG, video, actions, stride, vn, an, jax.random.key(1), 2, GRID, pose=pose,
-                       context_noise=0.2, use_cache=False)
+                       context_noise=0.2, cache="none")
     b, _ = flow.sample(params, CFG, video, actions, stride, vn, an, jax.random.key(1), 2, GRID, pose=pose,
-                       context_noise=0.0, use_cache=False)
+                       context_noise=0.0, cache="none")
     np.testing.assert_array_equal(a[:, :, :K], video[:, :, :K])
     assert float(jnp.abs(a[:, :, K:] - b[:, :, K:]).max()) > 1e-4

@@ -8,10 +8,11 @@ import numpy as np
 import pytest
 
 from sc3_jax import imagination_state, rollout
-from sc3_jax.config import load_config, replace
+from sc3_jax.config import config_from_dict, load_config, replace
 from sc3_jax.data import rotations
-from sc3_jax.data.pipeline import NormStats
-from sc3_jax.evaluate.metrics import psnr, termination_rate
+from sc3_jax.data.norm_stats import NormStats
+from sc3_jax.evaluate import results
+from sc3_jax.evaluate.metrics import psnr, psnr_by_view, termination_rate
 from sc3_jax.model import dit
 from sc3_jax.model.tokenizer import make_tokenizer, to_uint8
 from sc3_jax.policies import simple
@@ -80,7 +81,7 @@ def test_shapes_and_spec(setup):
     assert np.all(np.isfinite(ref["u"])) and np.all(ref["u"] > 0)
     # episodes differ (own keys, own initial conditions): no accidental broadcasting across the batch
     assert not np.allclose(ref["u"][0], ref["u"][1])
-    assert ro.steps.flow_cfg == cfg.flow  # the sampler uses the training's time grid (tiny: t_logit_mean = 1)
+    assert ro.chunk_fns.flow_cfg == cfg.flow  # the sampler uses the training's time grid (tiny: t_logit_mean = 1)
     np.testing.assert_allclose(ref["u_raw"], np.linalg.norm(ref["actions"] - ref["reread"], axis=-1)
                                .reshape(B, N, 3).mean(-1), rtol=1e-5)
     # paper defaults: 20 s at 10 Hz with l = 16 -> 13 chunks at frame stride 2 (20 Hz data)
@@ -121,7 +122,7 @@ def test_termination_at_first_chunk_above_tau(setup):
         assert np.any(u[0, 1:] > tau), "need a later chunk above the first one"
     else:
         tau = float((u[0, :c_max].max() + u[0, c_max]) / 2)
-    expect = rollout.terminated_at(u, tau)
+    expect = results.terminated_at(u, tau)
     assert expect[0] >= 1
     out = ro.run(params, policy, ics, keys, tau=tau)
     np.testing.assert_array_equal(out["terminated_at"], expect)
@@ -200,8 +201,8 @@ def test_context_unchanged_by_terminating_chunk(setup):
 
 def test_cached_and_uncached_rollouts_agree(setup):
     cfg, ro, params, policy, ics, keys, ref = setup
-    assert cfg.model.context_attention == "causal" and ro.steps.use_cache is None  # -> cached by default
-    uncached = rollout.Rollout(cfg, STATS, num_chunks=N, use_cache=False)
+    assert cfg.model.context_attention == "causal" and ro.chunk_fns.cache  # -> cached by default
+    uncached = rollout.Rollout(cfg, STATS, num_chunks=N, cache=False)
     _assert_same(ref, uncached.run(params, policy, ics, keys, tau=math.inf), atol=2e-5)
 
 
@@ -248,11 +249,15 @@ def test_offline_replay_with_recorded_actions(tmp_path, setup):
     np.testing.assert_allclose(actions[0, 1, 0, :3], eps[0].actions[2 + 2 * 3: 2 + 2 * 3 + 2, :3].sum(0), atol=1e-6)
     with pytest.raises(ValueError, match="too few"):
         rollout.from_episode(eps[0], store.views, rollout.make_spec(cfg, store.fps, num_chunks=7))
-    out = ro.run_offline(params, ics, actions, rollout.episode_keys(0, B), targets=targets)
+    out = ro.run_offline(params, ics, actions, rollout.episode_keys(0, B))
     np.testing.assert_allclose(out["actions"], actions[:, :, :3].reshape(B, N * 3, 7))
-    assert out["psnr"].shape == (B, 3, N * 3) and np.all(np.isfinite(out["psnr"]))
-    np.testing.assert_allclose(out["psnr"], psnr(out["frames"], targets), rtol=1e-5)
-    np.testing.assert_allclose(out["psnr_view"], out["psnr"].mean(-1), rtol=1e-5)
+    assert "psnr" not in out  # scoring is the caller's (evaluate.metrics)
+    per_frame, per_view = psnr_by_view(out["frames"], targets, out["frame_valid"])
+    assert per_frame.shape == (B, 3, N * 3) and np.all(np.isfinite(per_frame))
+    np.testing.assert_allclose(per_frame, psnr(out["frames"], targets), rtol=1e-5)
+    np.testing.assert_allclose(per_view, per_frame.mean(-1), rtol=1e-5)
+    # chunk_actions (the sweep's offline actions) builds the same per-chunk arrays from the recorded actions
+    np.testing.assert_array_equal(rollout.chunk_actions(eps[0].actions[2:], ro.spec), actions[0])
     assert np.all(out["terminated_at"] == -1)
 
 
@@ -272,7 +277,7 @@ def test_cli_writes_arrays_and_videos(tmp_path, setup):
     mngr.wait_until_finished()
     STATS.save(tmp_path / "run" / "norm_stats.json")
     (tmp_path / "run" / "config.json").write_text(json.dumps(dataclasses.asdict(cfg)))
-    assert rollout_cli.config_from_dict(json.loads((tmp_path / "run" / "config.json").read_text())) == cfg
+    assert config_from_dict(json.loads((tmp_path / "run" / "config.json").read_text())) == cfg
     rc = rollout_cli.main(["--checkpoint", str(tmp_path / "run"), "--policy", "linear", "--initial-conditions",
                            str(tmp_path / "eps"), "--out", str(tmp_path / "out"), "--num-chunks", str(N),
                            "--tau", "inf", "--offline", "--no-progress"])

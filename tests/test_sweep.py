@@ -15,11 +15,13 @@ import numpy as np
 import pytest
 
 import sc3_jax.sim  # noqa: F401  (picks the GL backend before mujoco is imported)
-from sc3_jax import train
+from sc3_jax import checkpoint, rollout, train
 from sc3_jax.config import load_config, replace
-from sc3_jax.data.pipeline import NormStats
+from sc3_jax.data.norm_stats import NormStats
 from sc3_jax.evaluate import annotation, metrics, perception, report, sweep
+from sc3_jax.evaluate.results import ResultsStore, seed_blocks
 from sc3_jax.evaluate.scorers import HumanScorer, RolloutView
+from sc3_jax.policies import resolve
 
 def _one_per_split():
     """The zoo's first policy of each task (names come from the zoo, which may change)."""
@@ -36,7 +38,7 @@ def tiny_world_model(root):
                                   rope_axes_dim=(4, 2, 2)), sample=dict(steps=2))
     params = train.init_state(cfg)["params"]
     stats = NormStats(np.zeros(7, np.float32), np.full(7, 0.02, np.float32))
-    return sweep.save_world_model(root / "wm", cfg, stats, jax.device_get(params), np.float32)
+    return checkpoint.save(root / "wm", cfg, stats, jax.device_get(params), np.float32)
 
 
 @pytest.fixture(scope="module")
@@ -53,12 +55,12 @@ def setup(tmp_path_factory):
 
 def test_sweep_writes_every_rollout(setup):
     root, cfg = setup
-    recs = sweep.ResultsStore(cfg.out).records()
+    recs = ResultsStore(cfg.out).records()
     # per policy: real on 2 evaluation + 1 calibration + 1 ceiling seed, offline on 2, online on 2 + 1 calibration
     count = lambda m: sum(r["mode"] == m for r in recs)  # noqa: E731
     assert (count("real"), count("offline"), count("online")) == (len(POLICIES) * 4, len(POLICIES) * 2,
                                                                  len(POLICIES) * 3)
-    blocks = sweep.seed_blocks(cfg)
+    blocks = seed_blocks(cfg)
     assert {r["seed"] for r in recs if r["mode"] == "online"} == set(blocks["evaluation"] + blocks["calibration"])
     assert {r["seed"] for r in recs if r["mode"] == "offline"} == set(blocks["evaluation"])
     real = [r for r in recs if r["mode"] == "real"]
@@ -66,7 +68,7 @@ def test_sweep_writes_every_rollout(setup):
     assert {r["split"] for r in recs} == {"in_distribution", "out_of_distribution"}
     for r in recs:
         assert len(r["objects"]) == 3 and all(set(metrics.CRITERIA) <= set(o) for o in r["objects"])
-        arrays = sweep.ResultsStore(cfg.out).load_arrays(r["id"])
+        arrays = ResultsStore(cfg.out).load_arrays(r["id"])
         if r["mode"] == "real":
             assert arrays["frames"].shape[:2] == (3, r["length"]) and r["length"] <= 32
         else:
@@ -90,8 +92,8 @@ def test_report_numbers_come_from_compute(setup, tmp_path):
     t = report.compute(cfg.out)
     assert json.loads((tmp_path / "rep" / "report.json").read_text()) == json.loads(json.dumps(t))
     # recompute the main table independently from the raw records
-    evaluation = set(sweep.seed_blocks(cfg)["evaluation"])
-    recs = [r for r in sweep.ResultsStore(cfg.out).records() if r["seed"] in evaluation]
+    evaluation = set(seed_blocks(cfg)["evaluation"])
+    recs = [r for r in ResultsStore(cfg.out).records() if r["seed"] in evaluation]
     rows = lambda mode: [{"policy": r["policy"], "split": r["split"], "episode": r["seed"], "object": o["object"],  # noqa: E731
                           **{c: o[c] for c in metrics.CRITERIA}} for r in recs if r["mode"] == mode
                          for o in r["objects"]]
@@ -139,7 +141,7 @@ def test_sweep_resumes_after_sigkill_with_identical_results(setup):
     n_before = results.read_text().count("\n")
     assert 11 <= n_before < 18
     sweep.run_sweep(dataclasses.replace(cfg, out=str(out)))
-    by_id = lambda path: {r["id"]: r for r in sweep.ResultsStore(path).records()}  # noqa: E731
+    by_id = lambda path: {r["id"]: r for r in ResultsStore(path).records()}  # noqa: E731
     assert by_id(out) == by_id(cfg.out)
 
 
@@ -147,7 +149,7 @@ def test_annotation_round_trip_reproduces_ground_truth(setup, tmp_path):
     _, cfg = setup
     csv_path, key_path = annotation.export_blinded(cfg.out, tmp_path / "annotate")
     assert key_path.parent != csv_path.parent  # the key is not shipped with the clips
-    recs = {r["id"]: r for r in sweep.ResultsStore(cfg.out).records()}
+    recs = {r["id"]: r for r in ResultsStore(cfg.out).records()}
     key = json.loads(key_path.read_text())
     clips = sorted((tmp_path / "annotate" / "clips").glob("*.mp4"))
     assert len(clips) == len(recs) and all(len(c.stem) == 8 for c in clips)
@@ -194,17 +196,17 @@ def _write_csv(path, rows):
         w.writerows(rows)
 
 
-def test_offline_actions_compose_pairs_and_hold_still_after_the_end():
+def test_chunk_actions_compose_pairs_and_hold_still_after_the_end():
     spec = sweep_spec()
     raw = np.zeros((5, 7), np.float32)
     raw[:, 0] = 0.01
     raw[:, 6] = 0.05
-    a = sweep.offline_actions(raw, spec)
+    a = rollout.chunk_actions(raw, spec)
     assert a.shape == (spec.num_chunks, spec.predict, 7)
     assert a[0, 0, 0] == pytest.approx(0.02) and a[0, 2, 0] == pytest.approx(0.01)  # 5 raw -> 2.5 model steps
     assert np.all(a[0, 3:, :6] == 0) and np.all(a[..., 6] == pytest.approx(0.05))
     frames = np.arange(7)[None, :, None, None, None] * np.ones((3, 7, 2, 2, 3), np.uint8)
-    tgt, valid = sweep.offline_targets(frames, spec)
+    tgt, valid = rollout.recorded_targets(frames, spec)
     assert tgt[0, :4, 0, 0, 0].tolist() == [2, 4, 6, 6] and valid[:4].tolist() == [True, True, True, False]
 
 
@@ -215,7 +217,7 @@ def sweep_spec():
 
 def test_remote_policy_over_the_openpi_protocol(setup, tmp_path):
     """A policy behind an openpi-protocol server is evaluated like a zoo policy (real + online via the host loop)."""
-    from sc3_jax.policies.openpi import PolicyServer
+    from sc3_jax.policies.openpi_server import PolicyServer
     from sc3_jax.sim.zoo import load_policy
     root, cfg = setup
     server = PolicyServer(load_policy(POLICIES[0]), host="127.0.0.1", port=0).start()
@@ -226,11 +228,11 @@ def test_remote_policy_over_the_openpi_protocol(setup, tmp_path):
         sweep.run_sweep(remote)
     finally:
         server.shutdown()
-    recs = {r["mode"]: r for r in sweep.ResultsStore(remote.out).records()}
-    local = {r["mode"]: r for r in sweep.ResultsStore(cfg.out).records()
+    recs = {r["mode"]: r for r in ResultsStore(remote.out).records()}
+    local = {r["mode"]: r for r in ResultsStore(cfg.out).records()
              if r["policy"] == POLICIES[0] and r["seed"] == cfg.seed0}
     assert set(recs) == {"real", "online"} and recs["real"]["policy"] == "served"
     assert recs["real"]["objects"] == local["real"]["objects"]  # same policy, same simulator: same outcomes
     assert len(recs["online"]["u"]) == 2
     with pytest.raises(ValueError, match="NAME=ws://HOST:PORT@TASK"):
-        sweep.resolve_policy("x=ws://127.0.0.1:1@nowhere")
+        resolve.resolve("x=ws://127.0.0.1:1@nowhere")

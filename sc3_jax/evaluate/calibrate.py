@@ -12,7 +12,7 @@ A candidate whose r is nan (a constant side) ranks below every finite r. The eva
 still lists every candidate, marked post hoc: reading a tau off that table would tune on the evaluation itself.
 
 Every online rollout runs untruncated (tau = inf) and stores the outcomes of the rollout cut after every chunk, so a
-candidate tau is a lookup: the kept frames are the chunks before the first with U_chunk > tau (``rollout.
+candidate tau is a lookup: the kept frames are the chunks before the first with U_chunk > tau (``results.
 terminated_at``), U_chunk in the sweep's one unit convention (``RolloutConfig.tau_units``).
 """
 from __future__ import annotations
@@ -22,6 +22,7 @@ import math
 import numpy as np
 
 from sc3_jax.evaluate import metrics
+from sc3_jax.evaluate.results import terminated_at
 
 SELECT_SPLIT = "in_distribution"
 SPLIT_ORDER = ("in_distribution", "out_of_distribution", metrics.OVERALL)
@@ -41,8 +42,8 @@ def cut(rec: dict, tau: float, units: str) -> int:
     """Index into an online record's ``objects_by_cut`` for threshold tau: the first chunk with U > tau (its frames
     and every later chunk's are dropped); ``num_chunks`` when no chunk exceeds tau."""
     u = np.asarray(rec["u"] if units == "normalised" else rec["u_raw"])
-    above = np.flatnonzero(u > tau)
-    return int(above[0]) if len(above) else len(u)
+    first = int(terminated_at(u[None], tau)[0])
+    return len(u) if first < 0 else first
 
 
 def faith(ev_rows: list[dict], real_rows: list[dict]) -> dict:

@@ -142,8 +142,8 @@ class ErrorSums:
 def load(world_model):
     """(config, norm stats, params, name) of a path (``sc3 train`` workdir or exported dir) or a loaded triple."""
     if isinstance(world_model, (str, Path)):
-        from sc3_jax.evaluate.sweep import load_world_model
-        cfg, stats, params = load_world_model(world_model)
+        from sc3_jax import checkpoint
+        cfg, stats, params = checkpoint.load(world_model)
         return cfg, stats, params, str(world_model)
     cfg, stats, params = world_model
     return cfg, stats, params, cfg.name if hasattr(cfg, "name") else "<loaded>"
@@ -180,7 +180,6 @@ def diagnose(world_model, heldout_store, config: DiagnoseConfig | None = None, *
     from sc3_jax import rollout as ro_mod
     from sc3_jax.config import replace
     from sc3_jax.data.episodes import EpisodeStore
-    from sc3_jax.evaluate import sweep
     from sc3_jax.evaluate.world_model import make_sampler
 
     dc = dataclasses.replace(config or DiagnoseConfig(), **overrides)
@@ -309,8 +308,8 @@ def diagnose(world_model, heldout_store, config: DiagnoseConfig | None = None, *
             frames = np.stack([np.asarray(ep.frames[v]) for v in views])
             ic_frames = frames[:, [stride * i for i in range(K)]]
             ics_l.append((ic_frames, np.asarray(ep.ee_pose[off], np.float32), np.int32(0)))
-            acts_l.append(sweep.offline_actions(np.asarray(ep.actions)[off:], S))
-            t, v = sweep.offline_targets(frames[:, off:], S)
+            acts_l.append(ro_mod.chunk_actions(np.asarray(ep.actions)[off:], S))
+            t, v = ro_mod.recorded_targets(frames[:, off:], S)
             tgts.append(t)
             valids.append(v)
         for a, b in bat.chunks(len(g)):

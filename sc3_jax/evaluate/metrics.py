@@ -1,7 +1,7 @@
 """Faithfulness metrics: how well success rates measured inside the world model ("evaluator") track the real
 (simulated-physics) success rates, plus the per-rollout scores those rates are built from.
 
-Definitions follow SIMPLER (see REFERENCE.md, "MMRV and Pearson"):
+Definitions follow SIMPLER (Li et al. 2024, "Evaluating Real-World Robot Manipulation Policies in Simulation"):
 
 * Each ``(policy, criterion)`` pair is one point; ``S`` are the evaluator's success rates, ``R`` the real ones.
 * Pearson r = sum(x*y) / sqrt(sum(x^2) * sum(y^2)) with x = S - mean(S), y = R - mean(R).
@@ -377,6 +377,17 @@ def psnr(pred: np.ndarray, target: np.ndarray, max_value: float = 255.0,
     if np.ndim(value) == 0:
         return float(value)
     return value
+
+
+def psnr_by_view(pred: np.ndarray, target: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Frames ``pred`` / ``target`` [..., V, T, H, W, C] (an offline rollout's and the recorded ones), ``valid``
+    bool [..., T] -> (:func:`psnr` per view and frame [..., V, T], its mean per view over the valid frames where
+    finite [..., V]; nan for a view with none)."""
+    p = np.asarray(psnr(pred, target))
+    ok = np.asarray(valid, bool)[..., None, :] & np.isfinite(p)
+    rows = [float(np.mean(x[m])) if m.any() else math.nan
+            for x, m in zip(p.reshape(-1, p.shape[-1]), ok.reshape(-1, p.shape[-1]))]
+    return p, np.asarray(rows, np.float64).reshape(p.shape[:-1])
 
 
 def termination_rate(done_flags: Sequence[Any] | np.ndarray) -> float:

@@ -20,7 +20,7 @@ import numpy as np
 
 from sc3_jax.evaluate import calibrate, intervals, metrics
 from sc3_jax.evaluate.calibrate import object_rows as _object_rows
-from sc3_jax.evaluate.sweep import MODES, ResultsStore
+from sc3_jax.evaluate.results import EVAL_MODES, ResultsStore, rollout_id, seed_blocks
 
 SPLIT_ORDER = ("in_distribution", "out_of_distribution", metrics.OVERALL)
 
@@ -42,13 +42,6 @@ def _rates(rows: list[dict]) -> dict:
     return {s: {f"{p}/{c}": v for (p, c), v in r.items()} for s, r in metrics.success_rates_by_split(rows).items()}
 
 
-def seed_sets(cfg: dict) -> dict[str, list[int]]:
-    """The sweep's disjoint blocks of simulator seeds: evaluation, calibration (tau), ceiling (second real set)."""
-    block = lambda k0, kn: [cfg[k0] + i for i in range(cfg.get(kn) or 0)] if k0 in cfg else []  # noqa: E731
-    return {"evaluation": block("seed0", "episodes"), "calibration": block("calibration_seed0", "calibration_episodes"),
-            "ceiling": block("ceiling_seed0", "ceiling_episodes")}
-
-
 def _agreement(real: dict) -> dict:
     """The perception scorer against physics on real frames, clean and degraded (as generated frames are)."""
     from sc3_jax.evaluate.scorers import agreement
@@ -65,24 +58,24 @@ def compute(results: str | Path, taus=None, draws: int = 2000, seed: int = 0) ->
     the sweep's candidate thresholds (every online record stores U_chunk and the outcomes of every cut, so any
     threshold is evaluated without rolling out again). ``draws`` / ``seed``: the paired bootstrap's."""
     store = ResultsStore(results)
-    cfg = json.loads((store.root / "sweep.json").read_text())
+    cfg = store.config()
     if taus is not None:
         cfg["taus"] = [str(float(t)) for t in taus]
     units = cfg.get("tau_units", "raw")
-    sets = seed_sets(cfg)
+    sets = seed_blocks(cfg)
     recs = store.records()
     in_set = {name: set(seeds) for name, seeds in sets.items()}
     by = {(s, m): {(r["policy"], r["seed"]): r for r in recs if r["mode"] == m and r["seed"] in in_set[s]}
-          for s in sets for m in MODES}
+          for s in sets for m in EVAL_MODES}
     real = by["evaluation", "real"]
     if not real:
         raise ValueError(f"{results}: no real rollouts on the evaluation seeds yet: faithfulness needs the "
                          "simulator's ground truth")
     policies = sorted({(r["policy"], r["split"]) for r in real.values()}, key=lambda x: (x[1], x[0]))
-    out: dict = {"config": cfg, "counts": {m: len(by["evaluation", m]) for m in MODES},
+    out: dict = {"config": cfg, "counts": {m: len(by["evaluation", m]) for m in EVAL_MODES},
                  "policies": policies,
                  "protocol": {s: {"n": len(v), "seeds": [v[0], v[-1]] if v else [],
-                                  "rollouts": {m: len(by[s, m]) for m in MODES}} for s, v in sets.items()},
+                                  "rollouts": {m: len(by[s, m]) for m in EVAL_MODES}} for s, v in sets.items()},
                  "bootstrap": {"draws": draws, "seed": seed, "level": 0.95,
                                "resampled": "evaluation initial conditions, paired across policies and evaluators"}}
     # ground truth, the scorer's agreement with it (clean and degraded frames)
@@ -327,8 +320,8 @@ def u_plot(store: ResultsStore, t: dict, path: Path, examples: int = 4) -> None:
 
 def side_by_side(store: ResultsStore, policy: str, seed: int, path: Path, fps: int = 10) -> bool:
     """mp4 of real | offline | online (columns) x views (rows) at the model's frame rate; False if not all exist."""
-    from sc3_jax.sim.evaluate import write_mp4
-    ids = {m: f"{policy}/{seed}_{m}" for m in ("real", "offline", "online")}
+    from sc3_jax.video import write_mp4
+    ids = {m: rollout_id(policy, seed, m) for m in EVAL_MODES}
     if not all(store.array_path(i).exists() for i in ids.values()):
         return False
     arr = {m: store.load_arrays(i)["frames"] for m, i in ids.items()}

@@ -14,25 +14,26 @@ Early termination is swept after the fact: each online rollout runs once untrunc
 outcomes of the rollout cut after every chunk; a threshold tau keeps the chunks before the first one with
 U_chunk > tau, which are exactly the frames a rollout run with that tau would have produced.
 
-Results store (``out/``): ``sweep.json`` (the config, checked on resume), ``results.jsonl`` (one JSON line per
-rollout, appended and flushed as each finishes), ``rollouts/<policy>/<seed>_<mode>.npz`` (frames and arrays,
-written before their line). A killed sweep restarted with the same config skips every rollout whose line exists
-and redoes only the work in flight: one real rollout, or one world-model batch (``batch`` initial conditions are
-rolled out together, and a batch is always the same set, so results do not depend on where a sweep was killed).
+Results go to a results store (``results.py``: ``sweep.json``, ``results.jsonl``, one npz per rollout). A killed
+sweep restarted with the same config skips every rollout whose line exists and redoes only the work in flight: one
+real rollout, or one world-model batch (``batch`` initial conditions are rolled out together, and a batch is always
+the same set, so results do not depend on where a sweep was killed).
+
+Policies are named as ``policies/resolve.py`` reads them (a zoo name, or e.g. NAME=ws://HOST:PORT@TASK); every
+policy needs a task (a zoo policy has its own).
 """
 from __future__ import annotations
 
 import dataclasses
 import json
 import math
-import os
 import time
 from pathlib import Path
 
 import numpy as np
 
-SPLITS = {"bussing": "in_distribution", "reverse": "out_of_distribution"}
-MODES = ("real", "offline", "online")
+from sc3_jax.evaluate.results import EVAL_MODES, SPLITS, ResultsStore, rollout_id, seed_blocks
+
 SHIPPED_WORLD_MODEL = Path(__file__).resolve().parent / "shipped" / "bussing_sim"
 
 
@@ -41,7 +42,9 @@ class SweepConfig:
     out: str = "runs/sweep"
     world_model: str = str(SHIPPED_WORLD_MODEL)  # a training run dir (checkpoints/) or an exported dir (params.npz)
     perception: str | None = None  # perception weights (None: the shipped ones)
-    policies: tuple[str, ...] = ()  # zoo names or NAME=ws://HOST:PORT@TASK (openpi server); () = the whole zoo
+    # policies/resolve.py spellings with a task: zoo names, NAME=ws://HOST:PORT@TASK (openpi server),
+    # NAME=package.module:attr@TASK, ...; () = the whole zoo
+    policies: tuple[str, ...] = ()
     # quick protocol by default (~20 min on 2 cores, docs/sweep.md); the full one: --episodes 36
     # --calibration-episodes 6 --ceiling-episodes 36 --batch 6
     episodes: int = 4  # evaluation initial conditions per policy (simulator seeds seed0 + i)
@@ -50,7 +53,7 @@ class SweepConfig:
     calibration_seed0: int = 20_000_000  # first calibration seed (disjoint from every other block)
     ceiling_episodes: int = 4  # second independent real set per policy, the noise ceiling (0: split-half estimate)
     ceiling_seed0: int = 30_000_000  # first ceiling seed
-    modes: tuple[str, ...] = MODES
+    modes: tuple[str, ...] = EVAL_MODES  # evaluation modes (results.EVAL_MODES)
     # candidate U_chunk thresholds (the calibration picks one; the report's post-hoc table lists them all). In raw
     # units (m, rad, gripper m) the paper's 0.02-0.05 is in the range our models' U takes; in normalised units
     # (per-dimension unit variance) it would stop every rollout at once
@@ -74,144 +77,7 @@ class SweepConfig:
 
 
 # ================================================================================================================
-# Results store
-# ================================================================================================================
-class ResultsStore:
-    """Append-only JSONL of rollout records + one npz of arrays per rollout."""
-
-    def __init__(self, root: str | Path, config: dict | None = None):
-        self.root = Path(root)
-        self.path = self.root / "results.jsonl"
-        if config is not None:
-            self._check_config(config)
-
-    def _check_config(self, config: dict):
-        self.root.mkdir(parents=True, exist_ok=True)
-        cfg_path = self.root / "sweep.json"
-        # modes may be added to a store (records are per mode); anything else that changes results may not
-        keep = lambda d: {k: v for k, v in d.items() if k not in ("progress", "out", "modes")}  # noqa: E731
-        if cfg_path.exists():
-            old = json.loads(cfg_path.read_text())
-            if keep(old) != keep(config):
-                diff = {k: (old.get(k), v) for k, v in keep(config).items() if old.get(k) != v}
-                raise ValueError(f"{self.root} holds results of a different sweep (changed: {diff}); use another "
-                                 "--out or delete it")
-            config = dict(config, modes=[m for m in MODES if m in set(old["modes"]) | set(config["modes"])])
-        cfg_path.write_text(json.dumps(config, indent=1))
-
-    def records(self) -> list[dict]:
-        """Every complete line (a line cut by a kill is dropped and truncated away)."""
-        if not self.path.exists():
-            return []
-        raw = self.path.read_bytes()
-        if raw and not raw.endswith(b"\n"):
-            raw = raw[:raw.rfind(b"\n") + 1]
-            self.path.write_bytes(raw)
-        return [json.loads(line) for line in raw.decode().splitlines() if line.strip()]
-
-    def done(self) -> set[str]:
-        return {r["id"] for r in self.records()}
-
-    def append(self, records: list[dict]):
-        with open(self.path, "a") as fh:
-            fh.write("".join(json.dumps(r, sort_keys=True) + "\n" for r in records))
-            fh.flush()
-            os.fsync(fh.fileno())
-
-    def array_path(self, rid: str) -> Path:
-        return self.root / "rollouts" / f"{rid}.npz"
-
-    def save_arrays(self, rid: str, **arrays):
-        p = self.array_path(rid)
-        p.parent.mkdir(parents=True, exist_ok=True)
-        tmp = p.with_suffix(".tmp.npz")
-        np.savez_compressed(tmp, **arrays)
-        os.replace(tmp, p)
-
-    def load_arrays(self, rid: str) -> dict:
-        with np.load(self.array_path(rid)) as z:
-            return {k: z[k] for k in z.files}
-
-
-def seed_blocks(cfg: SweepConfig) -> dict[str, list[int]]:
-    """Disjoint simulator-seed blocks: evaluation, calibration (tau), ceiling (second real set). Raises if they
-    overlap: a calibration or ceiling rollout on an evaluation seed would leak the evaluation into its baseline."""
-    blocks = {"evaluation": [cfg.seed0 + i for i in range(cfg.episodes)],
-              "calibration": [cfg.calibration_seed0 + i for i in range(cfg.calibration_episodes)],
-              "ceiling": [cfg.ceiling_seed0 + i for i in range(cfg.ceiling_episodes)]}
-    names = list(blocks)
-    for i, a in enumerate(names):
-        for b in names[i + 1:]:
-            both = sorted(set(blocks[a]) & set(blocks[b]))
-            if both:
-                raise ValueError(f"{a} and {b} seeds overlap ({both[:3]}...): move calibration_seed0 / ceiling_seed0")
-    return blocks
-
-
-def rollout_id(policy: str, seed: int, mode: str) -> str:
-    return f"{policy}/{seed}_{mode}"
-
-
-# ================================================================================================================
-# Policies and the world model
-# ================================================================================================================
-def resolve_policy(spec: str):
-    """(name, task, policy): a zoo name (a JaxPolicy, batched inside the rollout scan) or NAME=ws://HOST:PORT@TASK
-    (an openpi-protocol server, driven from the host loop)."""
-    if "=" in spec:
-        name, rest = spec.split("=", 1)
-        url, _, task = rest.rpartition("@")
-        if not url or task not in SPLITS:
-            raise ValueError(f"policy {spec!r}: expected NAME=ws://HOST:PORT@TASK with TASK in {list(SPLITS)}")
-        from sc3_jax.policies.openpi import WebsocketClientPolicy
-        return name, task, WebsocketClientPolicy(url, port=None)
-    from sc3_jax.sim.zoo import ZOO, load_policy
-    if spec not in ZOO:
-        raise ValueError(f"unknown policy {spec!r}: zoo policies are {sorted(ZOO)} (or NAME=ws://HOST:PORT@TASK)")
-    return spec, ZOO[spec].task, load_policy(spec)
-
-
-def load_world_model(path: str | Path):
-    """(config, norm stats, params) of a training run dir (latest orbax checkpoint) or an exported dir."""
-    from sc3_jax import train
-    from sc3_jax.data.pipeline import NormStats
-    cfg, params = train.load_model(path)
-    return cfg, NormStats.load(Path(path) / "norm_stats.json"), params
-
-
-def export_world_model(workdir: str | Path, out: str | Path, dtype=np.float16) -> Path:
-    """Write a run's latest params (as ``dtype``), config and norm stats to ``out`` -- small enough to commit."""
-    cfg, stats, params = load_world_model(workdir)
-    return save_world_model(out, cfg, stats, params, dtype)
-
-
-def save_world_model(out: str | Path, cfg, stats, params, dtype=np.float16) -> Path:
-    """A learned tokenizer (``conv_ae``) travels with the model: copied to ``out/tokenizer`` (float32: a few MB)
-    and referred to by that relative path, which ``train.read_config`` resolves against the model directory."""
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    if cfg.model.tokenizer == "conv_ae":
-        import shutil
-        src = Path(cfg.model.tokenizer_path)
-        if src.resolve() != (out / "tokenizer").resolve():
-            shutil.copytree(src, out / "tokenizer", dirs_exist_ok=True)
-        cfg = dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, tokenizer_path="tokenizer"))
-    np.savez_compressed(out / "params.npz", **{k: np.asarray(v).astype(dtype) for k, v in _flatten(params)})
-    (out / "config.json").write_text(json.dumps(dataclasses.asdict(cfg), indent=1))
-    stats.save(out / "norm_stats.json")
-    return out
-
-
-def _flatten(tree, prefix=""):
-    for k, v in tree.items():
-        if isinstance(v, dict):
-            yield from _flatten(v, f"{prefix}{k}/")
-        else:
-            yield f"{prefix}{k}", v
-
-
-# ================================================================================================================
-# The three modes
+# The three evaluation modes
 # ================================================================================================================
 def initial_observation(env, seed: int, task: str):
     """Frames uint8 [V, H, W, 3] and end-effector pose [7] right after reset: where real and imagined start."""
@@ -226,7 +92,7 @@ def run_real(env, name, task, policy, seed, scorer, max_steps: int, score_stride
     the world model's frame rate, so real and imagined rollouts are read alike); with ``degradations`` also by
     perception on degraded copies of the frames (``degrade.py``: how the scorer reads generated-looking frames)."""
     from sc3_jax.evaluate.scorers import RolloutView, SimScorer
-    from sc3_jax.sim.evaluate import run_policy_episode
+    from sc3_jax.sim.policy_eval import run_policy_episode
     r = run_policy_episode(env, policy, seed, task, record=True, max_steps=max_steps)
     frames = np.stack([r.frames[v] for v in env.views])  # [V, T, H, W, 3] at 20 Hz
     scored = np.concatenate([frames[:, :-1:score_stride], frames[:, -1:]], 1)
@@ -242,28 +108,6 @@ def run_real(env, name, task, policy, seed, scorer, max_steps: int, score_stride
                  "object_pos": r.object_pos}
 
 
-def offline_actions(actions: np.ndarray, spec) -> np.ndarray:
-    """Recorded raw actions [T, 7] -> model-rate actions per chunk [N, l', 7]; after the episode ended (all objects
-    settled) the robot holds still (zero motion, last gripper command)."""
-    from sc3_jax.data.pipeline import compose_actions
-    r = spec.stride  # recorded (data-rate) actions per model step
-    need = ((spec.num_chunks - 1) * spec.keep + spec.predict) * r
-    a = np.asarray(actions, np.float32)
-    if len(a) < need:
-        hold = np.zeros((need - len(a), 7), np.float32)
-        hold[:, 6] = a[-1, 6]
-        a = np.concatenate([a, hold])
-    steps = np.stack([compose_actions(a, i * r, r) for i in range(need // r)])
-    return np.stack([steps[c * spec.keep: c * spec.keep + spec.predict] for c in range(spec.num_chunks)])
-
-
-def offline_targets(frames: np.ndarray, spec) -> tuple[np.ndarray, np.ndarray]:
-    """Real frames [V, T, ...] -> (targets [V, N*l, ...] at the model's steps, valid bool [N*l]: before the end)."""
-    idx = spec.stride * np.arange(1, spec.num_frames + 1)
-    valid = idx < frames.shape[1]
-    return frames[:, np.minimum(idx, frames.shape[1] - 1)], valid
-
-
 # ================================================================================================================
 # The sweep
 # ================================================================================================================
@@ -272,15 +116,16 @@ def run_sweep(cfg: SweepConfig) -> Path:
     import jax
     from tqdm import tqdm
 
+    from sc3_jax import checkpoint
     from sc3_jax import rollout as ro_mod
     from sc3_jax.evaluate import perception
     from sc3_jax.evaluate.scorers import PerceptionScorer
     from sc3_jax.policies.base import JaxPolicy
-    from sc3_jax.sim.evaluate import make_env
+    from sc3_jax.sim.policy_eval import make_env
 
-    bad = [m for m in cfg.modes if m not in MODES]
+    bad = [m for m in cfg.modes if m not in EVAL_MODES]
     if bad or not cfg.modes:
-        raise ValueError(f"modes {list(cfg.modes)}: choose from {list(MODES)}")
+        raise ValueError(f"modes {list(cfg.modes)}: choose from {list(EVAL_MODES)}")
     if "offline" in cfg.modes and "real" not in cfg.modes:
         raise ValueError("offline rollouts replay the real rollouts' actions: include 'real' in modes")
     if cfg.tau_units not in ("normalised", "raw"):
@@ -289,7 +134,7 @@ def run_sweep(cfg: SweepConfig) -> Path:
     store = ResultsStore(cfg.out, cfg.to_json())
     p_params = perception.load(cfg.perception or perception.DEFAULT_WEIGHTS)
     scorer = PerceptionScorer(p_params)
-    policies = [resolve_policy(p) for p in (cfg.policies or _zoo_names())]
+    policies = [_resolve(p) for p in (cfg.policies or _zoo_names())]
     seeds = blocks["evaluation"]
     real_seeds = seeds + blocks["calibration"] + blocks["ceiling"]
     # world-model rollouts per mode: (seed block, fold-in offset of its episode keys: blocks never share noise)
@@ -297,7 +142,7 @@ def run_sweep(cfg: SweepConfig) -> Path:
     wm_modes = [m for m in cfg.modes if m != "real"]
     ro = params = None
     if wm_modes:
-        wcfg, stats, params = load_world_model(cfg.world_model)
+        wcfg, stats, params = checkpoint.load(cfg.world_model)
         from sc3_jax.config import replace
         if cfg.sample_steps:
             wcfg = replace(wcfg, sample=dict(steps=cfg.sample_steps))
@@ -345,6 +190,16 @@ def run_sweep(cfg: SweepConfig) -> Path:
     return store.root
 
 
+def _resolve(spec: str):
+    """(name, task, policy) of a sweep policy: any spelling of ``policies.resolve``, with a task."""
+    from sc3_jax.policies.resolve import TASKS, resolve
+    r = resolve(spec)
+    if r.task is None:
+        raise ValueError(f"policy {spec!r}: the sweep needs its task; expected NAME=SPEC@TASK (e.g. "
+                         f"NAME=ws://HOST:PORT@TASK) with TASK in {list(TASKS)}")
+    return r.name, r.task, r.policy
+
+
 def _zoo_names():
     from sc3_jax.sim.zoo import zoo_names
     return zoo_names()
@@ -353,7 +208,7 @@ def _zoo_names():
 def _world_model_batch(mode, ro, params, env, name, task, policy, seeds, indices, cfg, store, scorer, is_jax):
     """Offline or online rollouts of one batch of initial conditions -> one record per rollout."""
     from sc3_jax import rollout as ro_mod
-    from sc3_jax.evaluate.metrics import psnr
+    from sc3_jax.evaluate.metrics import psnr_by_view
     from sc3_jax.sim.tasks import make_initial_condition, task_id
     s = ro.spec
     obs = [initial_observation(env, seed, task) for seed in seeds]
@@ -363,7 +218,7 @@ def _world_model_batch(mode, ro, params, env, name, task, policy, seeds, indices
     keys = np.asarray(ro_mod.episode_keys(cfg.rollout_seed, len(seeds), start=indices[0]))
     if mode == "offline":
         real = [store.load_arrays(rollout_id(name, seed, "real")) for seed in seeds]
-        actions = np.stack([offline_actions(r["actions"], s) for r in real])
+        actions = np.stack([ro_mod.chunk_actions(r["actions"], s) for r in real])
         out = ro.run_offline(params, ics, actions, keys, math.inf)
     elif is_jax:
         out = ro.run(params, policy, ics, keys, math.inf)
@@ -379,9 +234,8 @@ def _world_model_batch(mode, ro, params, env, name, task, policy, seeds, indices
         if mode == "online":
             rec["objects_by_cut"] = cuts
         else:
-            targets, valid = offline_targets(real[b]["frames"], s)
-            p = psnr(out["frames"][b], targets)  # [V, N*l]
-            rec["psnr_view"] = [float(np.mean(p[v][valid & np.isfinite(p[v])])) for v in range(p.shape[0])]
+            targets, valid = ro_mod.recorded_targets(real[b]["frames"], s)
+            rec["psnr_view"] = psnr_by_view(out["frames"][b], targets, valid)[1].tolist()  # per view
         store.save_arrays(rollout_id(name, seed, mode), frames=frames, actions=out["actions"][b],
                           reread=out["reread"][b], u=out["u"][b], u_raw=out["u_raw"][b])
         recs.append(rec)

@@ -15,12 +15,13 @@ import numpy as np
 
 from sc3_jax import flow, modes
 from sc3_jax.config import Config
+from sc3_jax.evaluate import metrics
 from sc3_jax.model.tokenizer import make_tokenizer, to_uint8, window_tokens
 
 
 def _psnr(pred_u8, true_u8) -> float:
-    mse = np.mean((pred_u8.astype(np.float64) - true_u8.astype(np.float64)) ** 2)
-    return float(10 * np.log10(255.0 ** 2 / max(mse, 1e-10)))
+    """PSNR of the pooled squared error over every frame given."""
+    return metrics.psnr(pred_u8, true_u8, axis=None)
 
 
 def make_sampler(cfg: Config, steps: int | None = None):
