@@ -2,8 +2,8 @@
 subsample, l' = 24 predicted / l = 16 kept frames, policy chunk 25, AdamW 1e-4 / wd 0.05 / betas (0.9, 0.99),
 2,000 warm-up steps then cosine to 24,000 steps, global batch 512, modes (0.8, 0.1, 0.1), pseudo-actions p = 0.5.
 
-Until the Wan VAE lands behind the tokenizer interface this uses 32x32 pixel patches (15 x 20 tokens per frame);
-`sc3 plan` / `jax.eval_shape` report its size without allocating it."""
+It uses 32x32 pixel patches (15 x 20 tokens per frame), not the Wan VAE (``model.tokenizer='wan2.2'``, see
+docs/wan_vae.md); `sc3 plan` / `jax.eval_shape` report its size without allocating it."""
 from sc3_jax.config import Config, DataConfig, MeshConfig, ModelConfig, RolloutConfig, TrainConfig
 
 

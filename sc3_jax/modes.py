@@ -1,4 +1,5 @@
-"""The three training modes as per-sample token masks. A mode is only a choice of which token groups are noisy:
+"""The three training modes as per-sample token masks (not the sweep's evaluation modes real / offline / online,
+``evaluate/results.py``). A training mode is only a choice of which token groups are noisy:
 
     forward dynamics (FD):       future frames of every view noisy; context frames and actions clean
     cross-view inpainting (CVI): future frames of every view but one randomly kept view noisy

@@ -83,7 +83,7 @@ def test_validation(fn):
 # ---------------------------------------------------------------- MMRV
 
 def _mmrv_loops(s, r):
-    """Literal transcription of REFERENCE.md's formula, used only as a cross-check."""
+    """Literal transcription of the MMRV formula (metrics.py's docstring), used only as a cross-check."""
     n = len(s)
     total = 0.0
     for i in range(n):
