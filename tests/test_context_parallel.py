@@ -11,7 +11,7 @@ from jax.sharding import NamedSharding, PartitionSpec as P
 from sc3_jax import flow, modes, sharding, train
 from sc3_jax.config import MeshConfig, ModelConfig, replace
 from sc3_jax.model import context_parallel as cp
-from sc3_jax.model import dit, layers, tokenizer
+from sc3_jax.model import attention, dit, layers, tokenizer
 
 MESHES = {"data2_ctx4": MeshConfig(data=2, fsdp=1, tensor=1, context=4),
           "tensor2_ctx4": MeshConfig(data=1, fsdp=1, tensor=2, context=4)}
@@ -32,11 +32,11 @@ def _mask(kind, B, N, M):
         return None
     if kind == "causal":  # dit's causal context attention: context prefix, then a random mix of clean/noisy tokens
         noisy = jax.random.bernoulli(jax.random.key(5), 0.5, (B, M))
-        seg = cp.causal_segments(noisy, M // 4)
-        return cp.SegmentMask(seg[:, M - N:], seg, cp.CAUSAL_TABLE)
+        seg = attention.causal_segments(noisy, M // 4)
+        return attention.SegmentMask(seg[:, M - N:], seg, attention.CAUSAL_TABLE)
     # an arbitrary 3-segment table, including a query segment that sees nothing (fully masked rows)
     table = ((True, False, True), (False, True, False), (False, False, False))
-    return cp.SegmentMask(jax.random.randint(jax.random.key(6), (B, N), 0, 3),
+    return attention.SegmentMask(jax.random.randint(jax.random.key(6), (B, N), 0, 3),
                           jax.random.randint(jax.random.key(7), (B, M), 0, 3), table)
 
 
