@@ -424,6 +424,7 @@ def test_training_drives_the_cosmos3_layout_on_time_compressed_latents(monkeypat
 
     tok = _tiny_wan_tokenizer()
     monkeypatch.setattr(train, "make_tokenizer", lambda m: tok)
+    monkeypatch.setattr(tokenizer, "make_tokenizer", lambda m: tok)  # the token geometry's
     model = _tiny_cfg(text_pathway=False, tokenizer="wan2.1", action_dim=7, num_views=3)
     cfg = Config(model=model, data=DataConfig(image_size=(16, 32), context_frames=5, future_frames=8, batch_size=2),
                  flow=FlowConfig(t_logit_mean=0.0), train=TrainConfig(lr=3e-3, warmup_steps=1, steps=40))
