@@ -16,7 +16,7 @@ sc3 sim demos --out $D --episodes 50 --seed 14 --wrong-destination-prob 0.4
 sc3 train --config bussing_sim --data.path $D --train.workdir $R/train --train.no-progress
 # the perception scorer: the same demos + 300 expert episodes of both tasks + 140 zoo-policy episodes on training
 # seeds (a measuring instrument may see reverse bussing and the policies' behaviours; never the evaluation seeds)
-python -m sc3_jax.evaluate.perception --store $D $R/scorer_data $R/scorer_zoo --generate 300 --generate-policies 140 \
+python -m sc3_jax.evaluate.perception_train --store $D $R/scorer_data $R/scorer_zoo --generate 300 --generate-policies 140 \
     --steps 3000 --out $R/perception.npz
 # small copies to commit (params as float16)
 python -c "from sc3_jax.evaluate import sweep; sweep.export_world_model('$R/train', 'sc3_jax/evaluate/shipped/bussing_sim')"

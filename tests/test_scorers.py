@@ -1,6 +1,7 @@
 """Scorers: criteria from per-frame predicates (hand-built cases), perception labels from physics state, the state
 reader, agreement."""
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -92,3 +93,30 @@ def test_scorers_share_one_interface_and_agreement():
     assert set(p[0]) == set(gt[0])
     a = agreement([gt, gt], [gt, [dict(gt[0], lifting=False, outcome="lifting")]])
     assert a["lifting"] == 0.5 and a["language"] == 1.0 and a["outcome"] == 0.5 and a["n_objects"] == 2
+
+
+def test_augment_degrades_per_sample_and_depends_only_on_the_key():
+    from sc3_jax.evaluate.perception_train import augment
+    imgs = jnp.asarray(np.random.default_rng(0).integers(60, 200, (16, 3, 64, 64, 3)), jnp.uint8)
+    a, b = augment(jax.random.key(1), imgs), augment(jax.random.key(1), imgs)
+    c = augment(jax.random.key(2), imgs)
+    assert a.dtype == jnp.uint8 and a.shape == imgs.shape
+    assert np.array_equal(a, b) and not np.array_equal(a, c)
+    diff = np.abs(np.asarray(a, np.float32) - np.asarray(imgs, np.float32)).mean(axis=(1, 2, 3, 4))
+    # every sample gets at least the pixel noise; the degradations are drawn per sample, so their sizes differ
+    assert diff.min() > 1.0 and diff.max() > 2 * diff.min()
+
+
+def test_train_warm_starts_from_given_weights():
+    from sc3_jax.evaluate.perception_train import train
+    rng = np.random.default_rng(0)
+    n = 24
+    data = (rng.integers(0, 255, (n, 3, 64, 64, 3), dtype=np.uint8), rng.random((n, 6, 3)) > 0.5,
+            np.tile(np.array([1, 1, 1, 0, 0, 0], bool), (n, 1)), rng.uniform(0, 0.08, n).astype(np.float32),
+            np.repeat(np.arange(4), n // 4))
+    start = perception.init(jax.random.key(5))
+    zero_lr, m = train(data, steps=2, batch=4, lr=0.0, init=start, holdout=0.25, progress=False)
+    assert all(np.array_equal(zero_lr[a][b], start[a][b]) for a in start for b in start[a])  # lr 0: nothing moves
+    moved, _ = train(data, steps=2, batch=4, lr=1e-2, init=start, holdout=0.25, progress=False)
+    assert not np.array_equal(moved["out"]["w"], start["out"]["w"])
+    assert set(m) >= {"heldout_acc/lifted", "heldout_acc/in_bin", "heldout_acc/in_can", "heldout_width_mae_m"}
