@@ -7,7 +7,7 @@ import pytest
 
 from sc3_jax.evaluate import perception
 from sc3_jax.evaluate.scorers import (PerceptionScorer, RolloutView, SimScorer, agreement, criteria_from_predicates,
-                                      held)
+                                      first_run, held)
 from sc3_jax.sim.criteria import evaluate_object
 
 DEST = {"cup": "bin", "bag": "can"}
@@ -23,6 +23,7 @@ def probs_for(T, series: dict):
 
 def test_held_needs_a_run():
     assert held([0, 1, 1, 0], 2) and not held([1, 0, 1, 0], 2) and held([1], 1) and not held([], 1)
+    assert first_run([0, 1, 0, 1, 1, 1], 2) == 3 and first_run([1, 0, 1], 2) is None
 
 
 @pytest.mark.parametrize("series, expected", [
@@ -36,15 +37,24 @@ def test_held_needs_a_run():
                                                                                      "placing")),
     # two misread frames of "lifted" do not count
     ({("cup", "lifted"): [0, 1, 1, 0, 0, 0]}, ("cup", True, False, False, "lifting")),
-    # into the wrong container: language violated (lifting counts: it got into a container)
-    ({("cup", "in_can"): [0, 0, 1, 1, 1, 1]}, ("cup", False, True, False, "language")),
+    # lifted, then into the wrong container: language violated
+    ({("cup", "lifted"): [1, 1, 1, 0, 0, 0], ("cup", "in_can"): [0, 0, 1, 1, 1, 1]}, ("cup", False, True, False,
+                                                                                     "language")),
+    # "in a container" without ever being lifted is a misreading: it counts for nothing
+    ({("cup", "in_can"): [0, 0, 1, 1, 1, 1]}, ("cup", True, False, False, "lifting")),
+    ({("cup", "in_bin"): [1, 1, 1, 1, 1, 1]}, ("cup", True, False, False, "lifting")),
+    # container frames count only from the first lifted run on: "in the can" before the lift is a misreading
+    ({("cup", "in_can"): [1, 1, 1, 0, 0, 0, 0, 0, 0], ("cup", "lifted"): [0, 0, 0, 1, 1, 1, 0, 0, 0],
+      ("cup", "in_bin"): [0, 0, 0, 0, 0, 0, 1, 1, 1]}, ("cup", True, True, True, "no_failure")),
     # lifted but ends outside: placing failure
     ({("cup", "lifted"): [0, 1, 1, 1, 0, 0]}, ("cup", True, True, False, "placing")),
     # in the bin, but taken out again at the end
-    ({("cup", "in_bin"): [0, 1, 1, 1, 1, 0]}, ("cup", True, True, False, "placing")),
+    ({("cup", "lifted"): [1, 1, 1, 0, 0, 0], ("cup", "in_bin"): [0, 1, 1, 1, 1, 0]}, ("cup", True, True, False,
+                                                                                     "placing")),
 ])
 def test_criteria_from_predicates(series, expected):
-    (o,) = criteria_from_predicates(probs_for(6, series), ["cup"], DEST)
+    T = max([len(v) for v in series.values()], default=6)
+    (o,) = criteria_from_predicates(probs_for(T, series), ["cup"], DEST)
     assert (o["object"], o["language"], o["lifting"], o["placing"], o["outcome"]) == expected
 
 
