@@ -1,12 +1,13 @@
 """Scorers: criteria from per-frame predicates (hand-built cases), perception labels from physics state, the state
 reader, agreement."""
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
 from sc3_jax.evaluate import perception
 from sc3_jax.evaluate.scorers import (PerceptionScorer, RolloutView, SimScorer, agreement, criteria_from_predicates,
-                                      held)
+                                      first_run, held)
 from sc3_jax.sim.criteria import evaluate_object
 
 DEST = {"cup": "bin", "bag": "can"}
@@ -22,6 +23,7 @@ def probs_for(T, series: dict):
 
 def test_held_needs_a_run():
     assert held([0, 1, 1, 0], 2) and not held([1, 0, 1, 0], 2) and held([1], 1) and not held([], 1)
+    assert first_run([0, 1, 0, 1, 1, 1], 2) == 3 and first_run([1, 0, 1], 2) is None
 
 
 @pytest.mark.parametrize("series, expected", [
@@ -35,15 +37,24 @@ def test_held_needs_a_run():
                                                                                      "placing")),
     # two misread frames of "lifted" do not count
     ({("cup", "lifted"): [0, 1, 1, 0, 0, 0]}, ("cup", True, False, False, "lifting")),
-    # into the wrong container: language violated (lifting counts: it got into a container)
-    ({("cup", "in_can"): [0, 0, 1, 1, 1, 1]}, ("cup", False, True, False, "language")),
+    # lifted, then into the wrong container: language violated
+    ({("cup", "lifted"): [1, 1, 1, 0, 0, 0], ("cup", "in_can"): [0, 0, 1, 1, 1, 1]}, ("cup", False, True, False,
+                                                                                     "language")),
+    # "in a container" without ever being lifted is a misreading: it counts for nothing
+    ({("cup", "in_can"): [0, 0, 1, 1, 1, 1]}, ("cup", True, False, False, "lifting")),
+    ({("cup", "in_bin"): [1, 1, 1, 1, 1, 1]}, ("cup", True, False, False, "lifting")),
+    # container frames count only from the first lifted run on: "in the can" before the lift is a misreading
+    ({("cup", "in_can"): [1, 1, 1, 0, 0, 0, 0, 0, 0], ("cup", "lifted"): [0, 0, 0, 1, 1, 1, 0, 0, 0],
+      ("cup", "in_bin"): [0, 0, 0, 0, 0, 0, 1, 1, 1]}, ("cup", True, True, True, "no_failure")),
     # lifted but ends outside: placing failure
     ({("cup", "lifted"): [0, 1, 1, 1, 0, 0]}, ("cup", True, True, False, "placing")),
     # in the bin, but taken out again at the end
-    ({("cup", "in_bin"): [0, 1, 1, 1, 1, 0]}, ("cup", True, True, False, "placing")),
+    ({("cup", "lifted"): [1, 1, 1, 0, 0, 0], ("cup", "in_bin"): [0, 1, 1, 1, 1, 0]}, ("cup", True, True, False,
+                                                                                     "placing")),
 ])
 def test_criteria_from_predicates(series, expected):
-    (o,) = criteria_from_predicates(probs_for(6, series), ["cup"], DEST)
+    T = max([len(v) for v in series.values()], default=6)
+    (o,) = criteria_from_predicates(probs_for(T, series), ["cup"], DEST)
     assert (o["object"], o["language"], o["lifting"], o["placing"], o["outcome"]) == expected
 
 
@@ -92,3 +103,30 @@ def test_scorers_share_one_interface_and_agreement():
     assert set(p[0]) == set(gt[0])
     a = agreement([gt, gt], [gt, [dict(gt[0], lifting=False, outcome="lifting")]])
     assert a["lifting"] == 0.5 and a["language"] == 1.0 and a["outcome"] == 0.5 and a["n_objects"] == 2
+
+
+def test_augment_degrades_per_sample_and_depends_only_on_the_key():
+    from sc3_jax.evaluate.perception_train import augment
+    imgs = jnp.asarray(np.random.default_rng(0).integers(60, 200, (16, 3, 64, 64, 3)), jnp.uint8)
+    a, b = augment(jax.random.key(1), imgs), augment(jax.random.key(1), imgs)
+    c = augment(jax.random.key(2), imgs)
+    assert a.dtype == jnp.uint8 and a.shape == imgs.shape
+    assert np.array_equal(a, b) and not np.array_equal(a, c)
+    diff = np.abs(np.asarray(a, np.float32) - np.asarray(imgs, np.float32)).mean(axis=(1, 2, 3, 4))
+    # every sample gets at least the pixel noise; the degradations are drawn per sample, so their sizes differ
+    assert diff.min() > 1.0 and diff.max() > 2 * diff.min()
+
+
+def test_train_warm_starts_from_given_weights():
+    from sc3_jax.evaluate.perception_train import train
+    rng = np.random.default_rng(0)
+    n = 24
+    data = (rng.integers(0, 255, (n, 3, 64, 64, 3), dtype=np.uint8), rng.random((n, 6, 3)) > 0.5,
+            np.tile(np.array([1, 1, 1, 0, 0, 0], bool), (n, 1)), rng.uniform(0, 0.08, n).astype(np.float32),
+            np.repeat(np.arange(4), n // 4))
+    start = perception.init(jax.random.key(5))
+    zero_lr, m = train(data, steps=2, batch=4, lr=0.0, init=start, holdout=0.25, progress=False)
+    assert all(np.array_equal(zero_lr[a][b], start[a][b]) for a in start for b in start[a])  # lr 0: nothing moves
+    moved, _ = train(data, steps=2, batch=4, lr=1e-2, init=start, holdout=0.25, progress=False)
+    assert not np.array_equal(moved["out"]["w"], start["out"]["w"])
+    assert set(m) >= {"heldout_acc/lifted", "heldout_acc/in_bin", "heldout_acc/in_can", "heldout_width_mae_m"}

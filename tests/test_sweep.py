@@ -9,6 +9,7 @@ import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import jax
 import numpy as np
@@ -78,6 +79,37 @@ def test_sweep_writes_every_rollout(setup):
             assert len(r["objects_by_cut"]) == 3 and r["objects_by_cut"][-1] == r["objects"]
         if r["mode"] == "offline":
             assert len(r["psnr_view"]) == 3 and all(np.isfinite(r["psnr_view"]))
+
+
+def test_validate_rescores_real_rollouts_as_the_sweep_scored_them(setup):
+    from sc3_jax.evaluate.perception_train import validate
+    from sc3_jax.evaluate.scorers import agreement
+    root, cfg = setup
+    real = [r for r in ResultsStore(cfg.out).records() if r["mode"] == "real"]
+    stride = rollout.make_spec(checkpoint.load(cfg.world_model)[0]).stride
+    got = validate(cfg.out, perception.load(root / "perception.npz"), score_stride=stride)
+    truth = [r["objects"] for r in real]
+    assert got["clean"] == agreement([r["perception"] for r in real], truth)
+    for kind in ("blur", "patch_noise", "colour_shift"):
+        assert got[kind] == agreement([r["perception_degraded"][kind] for r in real], truth)
+
+
+def test_report_shows_the_world_models_diagnose_gates(setup):
+    from sc3_jax.evaluate import diagnose
+    root, cfg = setup
+    gate_rows = lambda t: [x[2] for x in report.tables(t) if x[0].startswith("World-model checkpoint gates")]  # noqa: E731
+    t = report.compute(cfg.out, draws=20)
+    assert t["diagnose"]["gates"] is None and gate_rows(t)[0][0][0].startswith("not diagnosed")
+    path = Path(cfg.world_model) / "diagnose.json"
+    gates = [{"gate": "g1", "value": 3.5, "threshold": 3.0, "pass": True, "note": ""},
+             {"gate": "g2", "value": float("nan"), "threshold": 0.75, "pass": False, "note": ""}]
+    diagnose.save_result({"data": "heldout", "episodes": [0, 1], "gates": gates}, path)
+    try:
+        t = report.compute(cfg.out, draws=20)
+        assert [g["gate"] for g in t["diagnose"]["gates"]] == ["g1", "g2"] and t["diagnose"]["episodes"] == 2
+        assert gate_rows(t) == [[["g1", "3.50", "3", "PASS"], ["g2", "nan", "0.75", "FAIL"]]]
+    finally:
+        path.unlink()
 
 
 def test_sweep_refuses_a_different_config_in_the_same_store(setup):

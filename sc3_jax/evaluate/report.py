@@ -118,7 +118,20 @@ def compute(results: str | Path, taus=None, draws: int = 2000, seed: int = 0) ->
         pv = np.array([r["psnr_view"] for r in by["evaluation", "offline"].values()])
         out["psnr"] = {"per_view": [float(x) for x in np.nanmean(pv, 0)], "mean": float(np.nanmean(pv)),
                        "rollouts": len(pv)}
+    out["diagnose"] = _diagnose_gates(cfg["world_model"])
     return out
+
+
+def _diagnose_gates(world_model: str) -> dict:
+    """The world model's checkpoint gates, from the ``diagnose.json`` that ``sc3 diagnose WM --out WM/diagnose.json``
+    writes next to it (held-out episodes, not the sweep's rollouts): a sweep of a model that fails them says so."""
+    from sc3_jax.evaluate import diagnose
+    path = Path(world_model) / "diagnose.json"
+    if not path.exists():
+        return {"path": str(path), "gates": None}
+    res = diagnose.load_result(path)
+    return {"path": str(path), "data": res.get("data"), "episodes": len(res.get("episodes", [])),
+            "gates": res["gates"]}
 
 
 def _with_intervals(by, sets, policies, chosen_tau, units, draws, seed) -> dict:
@@ -230,6 +243,16 @@ def tables(t: dict) -> list[tuple[str, list[str], list[list[str]]]]:
         out.append(("Offline PSNR (dB, mean over valid frames)", ["view " + str(i) for i in
                                                                  range(len(t["psnr"]["per_view"]))] + ["mean"],
                     [[_fmt(x, 2) for x in t["psnr"]["per_view"]] + [_fmt(t["psnr"]["mean"], 2)]]))
+    d = t.get("diagnose") or {}
+    if d.get("gates") is not None:
+        out.append((f"World-model checkpoint gates (`sc3 diagnose` on {d['episodes']} held-out episodes of "
+                    f"{d['data']}; {d['path']})", ["gate", "value", "threshold", "pass"],
+                    [[g["gate"], _fmt(g["value"], 2), f"{g['threshold']:g}", "PASS" if g["pass"] else "FAIL"]
+                     for g in d["gates"]]))
+    elif d:
+        out.append(("World-model checkpoint gates", ["gate", "value", "threshold", "pass"],
+                    [[f"not diagnosed: run `sc3 diagnose WORLD_MODEL --data HELDOUT --out {d['path']}`", "-", "-",
+                      "-"]]))
     a = t["scorer_agreement"]
     out.append(("Perception scorer vs physics on every real rollout of the sweep (evaluation, calibration and ceiling "
                 "seeds; agreement per criterion), "

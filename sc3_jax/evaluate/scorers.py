@@ -10,13 +10,17 @@ One interface, three kinds, interchangeable in a sweep:
 Criteria from predicates, per object (a predicate "holds" when its probability is > 0.5 for ``min_run``
 consecutive frames, 3 at the world model's 10 Hz = 0.3 s, so a misread frame or two do not decide an outcome; real
 rollouts are scored at the same frame rate):
+  lifting  = it was lifted for a run of ``min_run`` frames;
+  nothing gets into a container without being lifted over its wall, so the container predicates count only from
+  the first such lifted run on (an object next to the can, or one hidden by the arm, read as "in the can" before it
+  was ever lifted is a misreading: on 312 real objects of the zoo (``perception_train --validate``) this rule
+  raised lifting agreement from 0.974 to 0.994, language from 0.955 to 0.962, placing from 0.894 to 0.907);
   language = it never held in the *wrong* container;
-  lifting  = it was lifted for a run of ``min_run`` frames, or in a container for such a run (walls are taller than
-             the lift clearance);
   placing  = it is in the instructed container in every one of the last ``min_run`` frames (the settled tail: a
              real rollout ends once every object is at rest, an imagined one at its horizon), not in one frame.
 The physics criteria also require the object to be at rest and released at the end; frames show that only
-indirectly, which is the main source of disagreement (measured by the sweep: ``scorer_agreement``).
+indirectly. The remaining disagreement is mostly the network's: objects at rest inside a container (occluded,
+stacked) misread, measured by the sweep (``scorer_agreement``).
 """
 from __future__ import annotations
 
@@ -60,14 +64,19 @@ class SimScorer:
                 for o in rollout.physics]
 
 
-def held(p: np.ndarray, min_run: int) -> bool:
-    """Whether the bool series ``p`` [T] is True for ``min_run`` consecutive steps somewhere."""
+def first_run(p: np.ndarray, min_run: int) -> int | None:
+    """Start of the first run of ``min_run`` consecutive True steps of the bool series ``p`` [T] (None: no run)."""
     run = 0
-    for v in np.asarray(p, bool):
+    for i, v in enumerate(np.asarray(p, bool)):
         run = run + 1 if v else 0
         if run >= min_run:
-            return True
-    return False
+            return i - min_run + 1
+    return None
+
+
+def held(p: np.ndarray, min_run: int) -> bool:
+    """Whether the bool series ``p`` [T] is True for ``min_run`` consecutive steps somewhere."""
+    return first_run(p, min_run) is not None
 
 
 def criteria_from_predicates(probs: np.ndarray, objects, destinations: dict, min_run: int = 3) -> list[dict]:
@@ -77,10 +86,12 @@ def criteria_from_predicates(probs: np.ndarray, objects, destinations: dict, min
     for name in objects:
         k = perception.TYPES.index(name)
         lifted, in_bin, in_can = on[:, k, 0], on[:, k, 1], on[:, k, 2]
+        first = first_run(lifted, min_run)
+        after = np.arange(len(lifted)) >= (len(lifted) if first is None else first)  # containers count from here
         dest = destinations[name]
-        right, wrong = (in_bin, in_can) if dest == "bin" else (in_can, in_bin)
+        right, wrong = (in_bin & after, in_can & after) if dest == "bin" else (in_can & after, in_bin & after)
         language = not held(wrong, min_run)
-        lifting = held(lifted, min_run) or held(in_bin | in_can, min_run)
+        lifting = first is not None
         placing = bool(len(right) and right[-min_run:].all())
         out.append(outcome(name, dest, language, lifting, placing))
     return out
