@@ -127,6 +127,10 @@ def test_latent_cache_matches_encoder_and_refuses_other_tokenizer(trained, store
     index = pipeline.build_index(store, cfg)
     b = pipeline.make_dataset(cfg, store, stats, index=index, latents=latent_cache.LatentReader(root, index.episode_ids))[0]
     assert "frames" not in b and b["latents"].shape == (4, 3, 5, 4, 4, 4)
+    # ... with the same windows as the frame path (its actions / poses come from the trajectory-only reader)
+    f = pipeline.make_dataset(cfg, store, stats, index=index)[0]
+    for k in ("actions", "pose", "episode", "start", "stride", "pseudo"):
+        np.testing.assert_array_equal(b[k], f[k], err_msg=k)
     # another tokenizer's weights: refused
     p = ae.init(SMALL, jax.random.key(9))
     ae.save(tmp_path / "other", SMALL, (16, 16), p, {"mean": np.zeros(4), "std": np.ones(4)})

@@ -30,7 +30,9 @@ from __future__ import annotations
 
 import collections
 import dataclasses
+import os
 import threading
+from typing import NamedTuple
 
 import grain
 import numpy as np
@@ -95,13 +97,20 @@ def start_pose(actions: np.ndarray, ee_pose: np.ndarray, t: int) -> np.ndarray:
 
 def integrate_poses(pose: np.ndarray, actions: np.ndarray) -> np.ndarray:
     """float32 [n + 1, 7]: ``pose`` and the poses after each of ``actions`` [n, 7] (xyz summed, rotations composed
-    on the left, gripper = command); the numpy twin of ``imagination_state.frame_poses``."""
-    out = [np.asarray(pose, np.float64)]
-    for a in np.asarray(actions, np.float64):
-        p = out[-1]
-        rot = rotations.matrix_to_rotvec(rotations.rotvec_to_matrix(a[3:6]) @ rotations.rotvec_to_matrix(p[3:6]))
-        out.append(np.concatenate([p[:3] + a[:3], rot, a[6:7]]))
-    return np.stack(out).astype(np.float32)
+    on the left, gripper = command); the numpy twin of ``imagination_state.frame_poses``. The rotations are
+    converted in two batched calls and composed as matrices: per-step conversions cost more than the rest of a
+    training window (a data-loading bottleneck on an accelerator)."""
+    pose, actions = np.asarray(pose, np.float64), np.asarray(actions, np.float64)
+    steps = rotations.rotvec_to_matrix(actions[:, 3:6])  # [n, 3, 3]
+    mats = [rotations.rotvec_to_matrix(pose[3:6])]
+    for m in steps:
+        mats.append(m @ mats[-1])
+    out = np.empty((len(actions) + 1, 7))
+    out[0] = pose
+    out[1:, :3] = pose[:3] + np.cumsum(actions[:, :3], axis=0)
+    out[1:, 3:6] = rotations.matrix_to_rotvec(np.stack(mats[1:])) if len(actions) else 0.0
+    out[1:, 6] = actions[:, 6]
+    return out.astype(np.float32)
 
 
 def window_actions(actions: np.ndarray, ee_pose: np.ndarray, start: int, stride: int, context_frames: int,
@@ -150,6 +159,42 @@ class _EpisodeReader:
             while len(self._cache) > self.max_open:
                 self._cache.popitem(last=False)
         return ep
+
+
+class _TrajectoryReader:
+    """Picklable, thread-safe cache of every episode's ``actions`` and ``ee_pose`` (a few kB each), for windows
+    whose frames come from the latent cache: parsing an episode's meta.json on every LRU miss cost more than the
+    rest of the window."""
+
+    def __init__(self, root: str, episode_ids: list[str]):
+        self.root, self.episode_ids = root, list(episode_ids)
+        self._init_cache()
+
+    def _init_cache(self):
+        self._cache: dict[int, _Trajectory] = {}
+        self._lock = threading.Lock()
+
+    def __getstate__(self):
+        return {"root": self.root, "episode_ids": self.episode_ids}
+
+    def __setstate__(self, state):
+        self.__dict__.update(state)
+        self._init_cache()
+
+    def get(self, i: int) -> "_Trajectory":
+        tr = self._cache.get(i)
+        if tr is None:
+            d = os.path.join(self.root, self.episode_ids[i])
+            with _OPEN_LOCK:  # np.load's header parsing is not thread-safe (see _EpisodeReader.get)
+                tr = _Trajectory(np.load(os.path.join(d, "actions.npy")), np.load(os.path.join(d, "ee_pose.npy")))
+            with self._lock:
+                self._cache[i] = tr
+        return tr
+
+
+class _Trajectory(NamedTuple):
+    actions: np.ndarray
+    ee_pose: np.ndarray
 
 
 @dataclasses.dataclass(frozen=True)
@@ -248,7 +293,8 @@ def make_dataset(cfg, store: EpisodeStore, stats: NormStats, process_index: int 
     if not 0 <= process_index < process_count:
         raise ValueError(f"process_index {process_index} not in [0, {process_count})")
     index = index if index is not None else build_index(store, cfg)
-    reader = _EpisodeReader(str(store.root), index.episode_ids, tuple(cfg.views))
+    reader = (_TrajectoryReader(str(store.root), index.episode_ids) if latents is not None
+              else _EpisodeReader(str(store.root), index.episode_ids, tuple(cfg.views)))
     samples = (grain.MapDataset.source(index.pairs)
                .shuffle(seed=int(cfg.seed))
                .repeat()

@@ -1,0 +1,64 @@
+#!/usr/bin/env bash
+# The accelerator run of the benchmark's world model (configs/bussing_latent_gpu.py) on one GPU machine with 16
+# cores, in phases that each fit one device call (docs/world_model.md#accelerator-run):
+#   bash scripts/gpu_world_model.sh data  RUN SECONDS   demos from 16 MuJoCo processes for SECONDS (EGL rendering)
+#   bash scripts/gpu_world_model.sh train RUN           start training in the background (own session: survives
+#                                                       the command that started it); log in RUN/train.log
+#   bash scripts/gpu_world_model.sh status RUN          episodes, last metrics line
+#   bash scripts/gpu_world_model.sh export RUN DEST     latest checkpoint -> RUN/export (float16), as 15 MB parts
+#                                                       DEST/export.tar.NN (join: cat export.tar.* | tar x)
+#   bash scripts/gpu_world_model.sh stop RUN            SIGTERM: the trainer saves a checkpoint and exits
+# Runs with `python3 -m sc3_jax.cli` from the repository root (no install needed beyond the packages).
+set -euo pipefail
+cmd=$1 R=$2
+D=$R/demos
+sc3() { python3 -m sc3_jax.cli "$@"; }
+
+case $cmd in
+data)
+  secs=$3
+  mkdir -p $R
+  # The mixture of scripts/world_model.sh (expert on bussing only, with failure knobs; never reverse bussing and no
+  # --wrong-destination-prob), 7:4:3:2 processes, on seeds 20-35: disjoint from its demos (10-13) and held-out
+  # episodes (18, 19), the scorer's (50-79) and every sweep's (>= 10^7 / 10^5).
+  pids=()
+  for s in 20 21 22 23 24 25 26; do knobs[$s]=""; done
+  for s in 27 28 29 30; do knobs[$s]="--grasp-noise 0.04"; done
+  for s in 31 32 33; do knobs[$s]="--action-noise 0.012"; done
+  for s in 34 35; do knobs[$s]="--release-noise 0.08"; done
+  for s in "${!knobs[@]}"; do
+    # an episode cut off by the deadline stays a temporary directory, which the store ignores
+    JAX_PLATFORMS=cpu timeout $secs python3 -m sc3_jax.cli sim demos --out $D --episodes 100000 --seed $s ${knobs[$s]} \
+      > $R/demos_$s.log 2>&1 &
+    pids+=($!)
+  done
+  wait "${pids[@]}" || true
+  echo "episodes: $(ls $D | grep -c '^ep')"
+  ;;
+train)
+  shift 2
+  setsid nohup python3 -m sc3_jax.cli train --config bussing_latent_gpu --data.path $D --train.workdir $R/train "$@" \
+    > $R/train.log 2>&1 < /dev/null &
+  echo "trainer pid $!"
+  ;;
+status)
+  echo "episodes: $(ls $D | grep -c '^ep')"
+  tail -n 3 $R/train.log || true
+  tail -n 1 $R/train/metrics.jsonl || true
+  ;;
+export)
+  dest=$3
+  rm -rf $R/export
+  JAX_PLATFORMS=cpu python3 -c "from sc3_jax import checkpoint; checkpoint.export('$R/train', '$R/export')"
+  tar cf - -C $R export | split -b 15m -d - $dest/export.tar.
+  cp $R/train/metrics.jsonl $dest/
+  ls -la $dest
+  ;;
+stop)
+  pkill -TERM -f "sc3_jax.cli train" || true
+  while pgrep -f "sc3_jax.cli train" > /dev/null; do sleep 2; done
+  echo stopped
+  ;;
+*)
+  echo "unknown phase $cmd" >&2; exit 2 ;;
+esac
