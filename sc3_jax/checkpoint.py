@@ -3,7 +3,8 @@
 Three kinds of directory hold one, and every reader here takes any of them:
 
     a ``sc3 train`` workdir   config.json, norm_stats.json, checkpoints/<step>/state (orbax, the whole train state)
-    an exported world model   config.json, norm_stats.json, params.npz (any float dtype), tokenizer/ (conv_ae)
+    an exported world model   config.json, norm_stats.json, params.npz (any float dtype, or int8 matrices with
+                              per-output-channel scales), tokenizer/ (conv_ae)
     a ``sc3 convert`` output  config.json, params/ (orbax, params only)
 
 :func:`load` gives (config, stats, params); :func:`save` / :func:`export` write the exported form (small enough to
@@ -106,6 +107,8 @@ def source_shapes(path: str | Path, step: int | None = None) -> dict[str, tuple[
         out = {}
         with zipfile.ZipFile(path / "params.npz") as zf:
             for name in zf.namelist():
+                if name.endswith(SCALE_SUFFIX + ".npy"):
+                    continue
                 with zf.open(name) as f:
                     version = np.lib.format.read_magic(f)
                     read = {(1, 0): np.lib.format.read_array_header_1_0, (2, 0): np.lib.format.read_array_header_2_0}
@@ -136,7 +139,11 @@ def _load_npz(path: Path, target) -> dict:
     """``{"a/b/c": array}`` (written by :func:`save`) -> params placed as ``target`` says."""
     with np.load(path) as z:
         def leaf(kp, t):
-            x = np.asarray(z["/".join(k.key for k in kp)]).astype(t.dtype)
+            name = "/".join(k.key for k in kp)
+            x = np.asarray(z[name])
+            if name + SCALE_SUFFIX in z.files:  # int8 export: dequantise
+                x = x.astype(np.float32) * z[name + SCALE_SUFFIX].astype(np.float32)
+            x = x.astype(t.dtype)
             return jax.make_array_from_callback(t.shape, t.sharding, lambda idx: x[idx])
         return jax.tree_util.tree_map_with_path(leaf, target)
 
@@ -153,7 +160,8 @@ def export(workdir: str | Path, out: str | Path, dtype=np.float16) -> Path:
 def save(out: str | Path, cfg: Config, stats: NormStats, params, dtype=np.float16) -> Path:
     """An exported world model at ``out``. A learned tokenizer (``conv_ae``) travels with the model: copied to
     ``out/tokenizer`` (float32: a few MB) and referred to by that relative path, which :func:`read_config` resolves
-    against the model directory."""
+    against the model directory. ``dtype="int8"`` stores every matrix as int8 with a float16 scale per output
+    channel (:func:`quantize_int8`) and the rest as float16: half the bytes, for models that must fit a repository."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     if cfg.model.tokenizer == "conv_ae":
@@ -161,10 +169,35 @@ def save(out: str | Path, cfg: Config, stats: NormStats, params, dtype=np.float1
         if src.resolve() != (out / "tokenizer").resolve():
             shutil.copytree(src, out / "tokenizer", dirs_exist_ok=True)
         cfg = dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, tokenizer_path="tokenizer"))
-    np.savez_compressed(out / "params.npz", **{k: np.asarray(v).astype(dtype) for k, v in _flatten(params)})
+    arrays = {}
+    for k, v in _flatten(params):
+        v = np.asarray(v)
+        if isinstance(dtype, str) and dtype == "int8":
+            if v.ndim >= 2 and v.size >= INT8_MIN_SIZE:
+                arrays[k], arrays[k + SCALE_SUFFIX] = quantize_int8(v)
+            else:
+                arrays[k] = v.astype(np.float16)
+        else:
+            arrays[k] = v.astype(dtype)
+    np.savez_compressed(out / "params.npz", **arrays)
     (out / "config.json").write_text(json.dumps(dataclasses.asdict(cfg), indent=1))
     stats.save(out / "norm_stats.json")
     return out
+
+
+SCALE_SUFFIX = "@scale"  # params.npz entry holding an int8 matrix's scales
+INT8_MIN_SIZE = 4096  # smaller arrays (norms, biases, embeddings of a few rows) stay float16: nothing to gain
+
+
+def quantize_int8(w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Symmetric int8 with one float16 scale per output channel (the last axis; per layer for scanned [L, ...]
+    stacks): ``w ~= q * scale``, error at most half a step of that channel's largest weight / 127."""
+    w = np.asarray(w, np.float32)
+    axes = tuple(range(w.ndim - 1)) if w.ndim == 2 else tuple(range(1, w.ndim - 1))
+    scale = (np.abs(w).max(axis=axes, keepdims=True) / 127.0).astype(np.float16)
+    safe = np.where(scale == 0, 1.0, scale.astype(np.float32))
+    q = np.clip(np.round(w / safe), -127, 127).astype(np.int8)
+    return q, scale
 
 
 def save_converted(out: str | Path, cfg: Config, params) -> Path:
