@@ -87,9 +87,50 @@ def test_perception_shapes_state_reader_and_round_trip(tmp_path):
     perception.save(tmp_path / "p.npz", params, {"note": 1})
     back = perception.load(tmp_path / "p.npz")
     assert np.allclose(perception.predict(back, frames)[0], probs, atol=1e-6)
-    assert perception.load_meta(tmp_path / "p.npz") == {"note": 1}
+    assert perception.load_meta(tmp_path / "p.npz") == {"note": 1, "arch": perception.arch(params)}
     with pytest.raises(FileNotFoundError, match="perception weights"):
         perception.load(tmp_path / "missing.npz")
+
+
+def test_perception_architecture_is_stored_and_weights_of_any_size_load(tmp_path):
+    small = {"n_kp": 8, "widths": [8, 12, 16], "hidden": 24}
+    params = perception.init(jax.random.key(1), **small)
+    assert perception.arch(params) == small and params["d1"]["w"].shape == (3 * 3 * 8, 24)
+    frames = np.random.default_rng(1).integers(0, 255, (3, 4, 64, 64, 3), dtype=np.uint8)
+    perception.save(tmp_path / "small.npz", params)
+    assert perception.load_meta(tmp_path / "small.npz")["arch"] == small
+    back = perception.load(tmp_path / "small.npz")
+    assert perception.arch(back) == small
+    assert np.allclose(perception.predict(back, frames)[0], perception.predict(params, frames)[0], atol=1e-6)
+    # weights saved before the architecture was stored (no meta['arch']) load with the default shapes
+    old = perception.init(jax.random.key(2))
+    flat = {f"{a}/{b}": np.asarray(v) for a in old for b, v in old[a].items()}
+    np.savez_compressed(tmp_path / "old.npz", __meta__="{}", **flat)
+    assert perception.arch(perception.load(tmp_path / "old.npz")) == {
+        "n_kp": perception.N_KP, "widths": list(perception.WIDTHS), "hidden": perception.HIDDEN}
+    # a stored architecture that contradicts the arrays is refused
+    np.savez_compressed(tmp_path / "bad.npz", __meta__='{"arch": {"n_kp": 8, "widths": [8, 12, 16], "hidden": 32}}',
+                        **{f"{a}/{b}": np.asarray(v) for a in params for b, v in params[a].items()})
+    with pytest.raises(ValueError, match="meta\\['arch'\\]"):
+        perception.load(tmp_path / "bad.npz")
+
+
+def test_loss_weights_positive_labels_only():
+    from sc3_jax.evaluate.perception_train import loss_fn
+    rng = np.random.default_rng(3)
+    params = perception.init(jax.random.key(3))
+    x = jnp.asarray(rng.integers(0, 255, (4, 3, 64, 64, 3)), jnp.uint8)
+    masks = jnp.ones((4, 6), bool)
+    widths = jnp.zeros(4)
+    logits = perception.apply(params, x)[0]
+    neg = jnp.zeros((4, 6, 3), bool)
+    pos = neg.at[:, 2, 1].set(True)
+    # all labels negative: the weight changes nothing
+    assert np.isclose(loss_fn(params, x, neg, masks, widths, 3.0)[1][0], loss_fn(params, x, neg, masks, widths)[1][0])
+    # positives: their cross-entropy terms (-log sigmoid) count pos_weight times
+    pos_term = float(-jax.nn.log_sigmoid(logits[:, 2, 1]).sum()) / 3 / masks.sum()
+    c1, c3 = loss_fn(params, x, pos, masks, widths)[1][0], loss_fn(params, x, pos, masks, widths, 3.0)[1][0]
+    assert np.isclose(float(c3 - c1), 2 * pos_term, rtol=1e-4)
 
 
 def test_scorers_share_one_interface_and_agreement():
@@ -129,4 +170,8 @@ def test_train_warm_starts_from_given_weights():
     assert all(np.array_equal(zero_lr[a][b], start[a][b]) for a in start for b in start[a])  # lr 0: nothing moves
     moved, _ = train(data, steps=2, batch=4, lr=1e-2, init=start, holdout=0.25, progress=False)
     assert not np.array_equal(moved["out"]["w"], start["out"]["w"])
-    assert set(m) >= {"heldout_acc/lifted", "heldout_acc/in_bin", "heldout_acc/in_can", "heldout_width_mae_m"}
+    assert set(m) >= {"heldout_acc/lifted", "heldout_acc/in_bin", "heldout_acc/in_can", "heldout_width_mae_m",
+                      "heldout_recall/in_can", "heldout_precision/in_can"}
+    small = {"n_kp": 4, "widths": [4, 8, 8], "hidden": 16}
+    fresh, _ = train(data, steps=1, batch=4, arch=small, pos_weight=2.0, holdout=0.25, progress=False)
+    assert perception.arch(fresh) == small  # fresh weights take the requested architecture

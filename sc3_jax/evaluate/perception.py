@@ -27,7 +27,9 @@ from sc3_jax.sim.tasks import OBJECTS
 
 PREDICATES = ("lifted", "in_bin", "in_can")
 TYPES = tuple(o.name for o in OBJECTS)
-N_KP = 32
+N_KP = 32  # the defaults: the architecture of weights saved before it was stored (see ``arch``)
+WIDTHS = (16, 32, 32)
+HIDDEN = 256
 WIDTH_SCALE = 100.0  # the width head predicts centimetres
 DEFAULT_WEIGHTS = Path(__file__).with_name("perception.npz")
 
@@ -51,11 +53,22 @@ def predicate_labels(object_pos: np.ndarray, objects, bin_xy, can_xy) -> tuple[n
 
 
 # -- network ------------------------------------------------------------------------------------------------------
-def init(key: jax.Array, n_views: int = 3) -> dict:
+def init(key: jax.Array, n_views: int = 3, n_kp: int = N_KP, widths: tuple[int, int, int] = WIDTHS,
+         hidden: int = HIDDEN) -> dict:
+    """Fresh weights. ``n_kp`` keypoints per view, ``widths`` the trunk's first three conv layers, ``hidden`` the
+    MLP's width: all read back from the weights' shapes (:func:`arch`), so weights of any size load."""
     ks = jax.random.split(key, 7)
-    feat = n_views * 3 * N_KP
-    return {**init_trunk(ks[:4], N_KP), "d1": dense_init(ks[4], feat, 256), "d2": dense_init(ks[5], 256, 256),
-            "out": dense_init(ks[6], 256, len(TYPES) * len(PREDICATES) + 1, 0.1)}
+    feat = n_views * 3 * n_kp
+    return {**init_trunk(ks[:4], n_kp, tuple(widths)), "d1": dense_init(ks[4], feat, hidden),
+            "d2": dense_init(ks[5], hidden, hidden),
+            "out": dense_init(ks[6], hidden, len(TYPES) * len(PREDICATES) + 1, 0.1)}
+
+
+def arch(params: dict) -> dict:
+    """The architecture hyper-parameters of ``params`` (``init``'s keyword arguments), from their shapes."""
+    return {"n_kp": int(params["c4"]["w"].shape[-1]),
+            "widths": [int(params[c]["w"].shape[-1]) for c in ("c1", "c2", "c3")],
+            "hidden": int(params["d1"]["w"].shape[-1])}
 
 
 def apply(params: dict, images: jax.Array) -> tuple[jax.Array, jax.Array]:
@@ -105,8 +118,9 @@ def predict(params: dict, frames: np.ndarray, batch: int = 256) -> tuple[np.ndar
 
 
 def save(path: str | Path, params: dict, meta: dict | None = None) -> None:
+    """Weights (float32) and ``meta`` (JSON), with the architecture under ``meta['arch']``."""
     flat = {"/".join(k): np.asarray(v, np.float32) for k, v in _flatten(params)}
-    np.savez_compressed(path, __meta__=json.dumps(meta or {}), **flat)
+    np.savez_compressed(path, __meta__=json.dumps({**(meta or {}), "arch": arch(params)}), **flat)
 
 
 def load(path: str | Path = DEFAULT_WEIGHTS) -> dict:
@@ -121,6 +135,10 @@ def load(path: str | Path = DEFAULT_WEIGHTS) -> dict:
                 continue
             a, b = k.split("/")
             params.setdefault(a, {})[b] = jnp.asarray(z[k])
+        stored = json.loads(str(z["__meta__"])).get("arch") if "__meta__" in z.files else None
+    # weights saved before the architecture was stored have none: their shapes are the defaults'
+    if stored is not None and stored != arch(params):
+        raise ValueError(f"{path}: weights of shape {arch(params)} but meta['arch'] says {stored}")
     return params
 
 

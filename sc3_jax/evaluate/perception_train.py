@@ -16,6 +16,10 @@ The shipped weights (``perception.DEFAULT_WEIGHTS``) in two stages (see docs/swe
    runs/bussing/scorer_zoo runs/bussing/scorer_zoo2 --generate-policies 208 --policy-seed 70 --init
    runs/bussing/perception.npz --steps 3000 --lr 5e-4``.
 
+Fresh weights take their size from ``--keypoints``, ``--widths`` and ``--hidden`` (stored in the .npz, see
+``perception.arch``; the defaults are the shipped weights' size), and ``--pos-weight`` weights the loss of a positive
+predicate label (each predicate holds in only 7-12% of the frames of the validation store).
+
 ``--validate STORE`` re-scores the real rollouts of a sweep results store (``sc3 sweep --modes real``) with the
 weights and prints their agreement with physics, clean and degraded: how a scorer is chosen before a sweep uses it.
 """
@@ -126,9 +130,12 @@ def augment(key: jax.Array, images: jax.Array) -> jax.Array:
 
 
 # -- training -----------------------------------------------------------------------------------------------------
-def loss_fn(params, images, labels, masks, widths):
+def loss_fn(params, images, labels, masks, widths, pos_weight: float = 1.0):
+    """Masked binary cross-entropy of the predicates (a positive label's term weighted by ``pos_weight``: a
+    predicate holds in a few percent of the frames only) plus the finger gap's squared error."""
     logits, width = apply(params, images)
-    bce = optax.sigmoid_binary_cross_entropy(logits, labels.astype(jnp.float32)).mean(-1)  # [B, 6]
+    y = labels.astype(jnp.float32)
+    bce = (optax.sigmoid_binary_cross_entropy(logits, y) * (1.0 + (pos_weight - 1.0) * y)).mean(-1)  # [B, 6]
     m = masks.astype(jnp.float32)
     cls = (bce * m).sum() / jnp.maximum(m.sum(), 1.0)
     reg = jnp.mean((width - widths) ** 2) * WIDTH_SCALE ** 2 * 0.1  # (cm^2)
@@ -136,10 +143,12 @@ def loss_fn(params, images, labels, masks, widths):
 
 
 def train(data, steps: int = 2500, batch: int = 64, lr: float = 1e-3, seed: int = 0, holdout: float = 0.1,
-          init: dict | None = None, progress: bool = True) -> tuple[dict, dict]:
-    """Train on ``load_training_data`` output, from ``init`` (warm start) or fresh weights; the last ``holdout``
-    fraction of episodes is held out and scored. Returns (params, metrics: held-out per-predicate accuracy and
-    finger-gap error)."""
+          init: dict | None = None, progress: bool = True, arch: dict | None = None,
+          pos_weight: float = 1.0) -> tuple[dict, dict]:
+    """Train on ``load_training_data`` output, from ``init`` (warm start) or fresh weights of architecture ``arch``
+    (``perception.init``'s keywords; default: its defaults); a random ``holdout`` fraction of episodes is held out
+    and scored. Returns (params, metrics: held-out per-predicate accuracy, precision and recall, and finger-gap
+    error)."""
     from tqdm import tqdm
     images, labels, masks, widths, eps = data
     n_ep = int(eps.max()) + 1
@@ -148,14 +157,14 @@ def train(data, steps: int = 2500, batch: int = 64, lr: float = 1e-3, seed: int 
     is_test = np.isin(eps, test_eps)
     train_idx, test_idx = np.flatnonzero(~is_test), np.flatnonzero(is_test)
     key = jax.random.key(seed)
-    params = perception.init(key, images.shape[1]) if init is None else init
+    params = perception.init(key, images.shape[1], **(arch or {})) if init is None else init
     opt = optax.adamw(optax.warmup_cosine_decay_schedule(0.0, lr, min(100, steps // 10), steps), weight_decay=1e-4)
     opt_state = opt.init(params)
 
     @jax.jit
     def step(params, opt_state, key, x, y, m, w):
         x = augment(key, x)
-        (loss, aux), g = jax.value_and_grad(loss_fn, has_aux=True)(params, x, y, m, w)
+        (loss, aux), g = jax.value_and_grad(loss_fn, has_aux=True)(params, x, y, m, w, pos_weight)
         upd, opt_state = opt.update(g, opt_state, params)
         return optax.apply_updates(params, upd), opt_state, loss
 
@@ -170,7 +179,10 @@ def train(data, steps: int = 2500, batch: int = 64, lr: float = 1e-3, seed: int 
         pred = probs > 0.5
         m = masks[test_idx]
         for k, name in enumerate(PREDICATES):
-            metrics[f"heldout_acc/{name}"] = float((pred[..., k] == labels[test_idx][..., k])[m].mean())
+            p, t = pred[..., k][m], labels[test_idx][..., k][m]
+            metrics[f"heldout_acc/{name}"] = float((p == t).mean())
+            metrics[f"heldout_precision/{name}"] = float((p & t).sum() / max(p.sum(), 1))
+            metrics[f"heldout_recall/{name}"] = float((p & t).sum() / max(t.sum(), 1))
         metrics["heldout_width_mae_m"] = float(np.abs(width - widths[test_idx]).mean())
     return params, metrics
 
@@ -213,6 +225,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", default=str(perception.DEFAULT_WEIGHTS))
     ap.add_argument("--steps", type=int, default=2500)
     ap.add_argument("--lr", type=float, default=1e-3)
+    ap.add_argument("--batch", type=int, default=64)
+    ap.add_argument("--pos-weight", type=float, default=1.0, help="weight of a positive predicate label in the loss")
+    ap.add_argument("--keypoints", type=int, default=perception.N_KP, help="keypoints per view (fresh weights)")
+    ap.add_argument("--widths", type=int, nargs=3, default=list(perception.WIDTHS),
+                    help="channels of the first three conv layers (fresh weights)")
+    ap.add_argument("--hidden", type=int, default=perception.HIDDEN, help="MLP width (fresh weights)")
     ap.add_argument("--stride", type=int, default=2)
     ap.add_argument("--max-episodes", type=int, default=None)
     ap.add_argument("--seed", type=int, default=0)
@@ -233,9 +251,11 @@ def main(argv: list[str] | None = None) -> int:
         generate_scorer_data(a.store[-1], a.generate_policies, seed=a.policy_seed, policies=True)
     data = load_training_data(a.store, a.stride, a.max_episodes)
     init = perception.load(a.init) if a.init else None
-    params, metrics = train(data, a.steps, lr=a.lr, seed=a.seed, init=init)
+    arch = {"n_kp": a.keypoints, "widths": tuple(a.widths), "hidden": a.hidden}
+    params, metrics = train(data, a.steps, a.batch, lr=a.lr, seed=a.seed, init=init, arch=arch,
+                            pos_weight=a.pos_weight)
     metrics.update(seconds=round(time.time() - t0, 1), store=[str(s) for s in a.store], stride=a.stride,
-                   init=a.init, lr=a.lr)
+                   init=a.init, lr=a.lr, batch=a.batch, pos_weight=a.pos_weight)
     perception.save(a.out, params, metrics)
     print(json.dumps(metrics, indent=1))
     return 0

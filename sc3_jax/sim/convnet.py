@@ -18,10 +18,12 @@ def dense_init(key, din, dout, scale=1.0):
     return {"w": jax.random.normal(key, (din, dout)) * np.sqrt(1.0 / din) * scale, "b": jnp.zeros(dout)}
 
 
-def init_trunk(ks, n_kp: int) -> dict:
-    """``ks``: 4 keys (one per conv layer)."""
-    return {"c1": conv_init(ks[0], 3, 5, 16), "c2": conv_init(ks[1], 3, 16, 32),
-            "c3": conv_init(ks[2], 3, 32, 32), "c4": conv_init(ks[3], 3, 32, n_kp)}
+def init_trunk(ks, n_kp: int, widths: tuple[int, int, int] = (16, 32, 32)) -> dict:
+    """``ks``: 4 keys (one per conv layer); ``widths``: output channels of the first three conv layers (the
+    forward pass reads every width from the weights' shapes, so any widths load and run)."""
+    w1, w2, w3 = widths
+    return {"c1": conv_init(ks[0], 3, 5, w1), "c2": conv_init(ks[1], 3, w1, w2),
+            "c3": conv_init(ks[2], 3, w2, w3), "c4": conv_init(ks[3], 3, w3, n_kp)}
 
 
 def trunk_features(net: dict, images: jax.Array) -> jax.Array:
