@@ -151,6 +151,10 @@ def _load_npz(path: Path, target) -> dict:
 # ================================================================================================================
 # Writing
 # ================================================================================================================
+SCALE_SUFFIX = "@scale"  # params.npz entry holding an int8 matrix's scales
+INT8_MIN_SIZE = 4096  # smaller arrays (norms, biases, embeddings of a few rows) stay float16: nothing to gain
+
+
 def export(workdir: str | Path, out: str | Path, dtype=np.float16) -> Path:
     """Write a run's latest params (as ``dtype``), config and norm stats to ``out`` -- small enough to commit."""
     cfg, stats, params = load(workdir)
@@ -169,24 +173,18 @@ def save(out: str | Path, cfg: Config, stats: NormStats, params, dtype=np.float1
         if src.resolve() != (out / "tokenizer").resolve():
             shutil.copytree(src, out / "tokenizer", dirs_exist_ok=True)
         cfg = dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, tokenizer_path="tokenizer"))
+    int8 = isinstance(dtype, str) and dtype == "int8"
     arrays = {}
     for k, v in _flatten(params):
         v = np.asarray(v)
-        if isinstance(dtype, str) and dtype == "int8":
-            if v.ndim >= 2 and v.size >= INT8_MIN_SIZE:
-                arrays[k], arrays[k + SCALE_SUFFIX] = quantize_int8(v)
-            else:
-                arrays[k] = v.astype(np.float16)
+        if int8 and v.ndim >= 2 and v.size >= INT8_MIN_SIZE:
+            arrays[k], arrays[k + SCALE_SUFFIX] = quantize_int8(v)
         else:
-            arrays[k] = v.astype(dtype)
+            arrays[k] = v.astype(np.float16 if int8 else dtype)
     np.savez_compressed(out / "params.npz", **arrays)
     (out / "config.json").write_text(json.dumps(dataclasses.asdict(cfg), indent=1))
     stats.save(out / "norm_stats.json")
     return out
-
-
-SCALE_SUFFIX = "@scale"  # params.npz entry holding an int8 matrix's scales
-INT8_MIN_SIZE = 4096  # smaller arrays (norms, biases, embeddings of a few rows) stay float16: nothing to gain
 
 
 def quantize_int8(w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
