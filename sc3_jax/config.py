@@ -211,6 +211,9 @@ class MeshConfig:
 @dataclasses.dataclass(frozen=True)
 class SampleConfig:
     steps: int = 10  # Euler steps from t = 1 to t = 0
+    # Euler steps of the inverse-dynamics re-read in a rollout (None: ``steps``). It only yields U_chunk (never the
+    # frames or the outcomes), and it is a third of a rollout's cost at 8 steps: fewer steps make sweeps cheaper
+    inverse_steps: int | None = None
     context_noise: float = 0.0  # noise level put on the context at inference (models trained with context noise)
 
 

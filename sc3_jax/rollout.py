@@ -5,7 +5,8 @@ One chunk (per initial condition; ``vmap`` over a batch of them, the batch shard
     obs      = (last context frame of every view as uint8, imagined state, task)
     a[0:C]   = policy(obs, k_policy)                      raw actions, C = policy chunk (25) >= l' (24)
     v[0:l']  = FD-sample(context, normalise(a[0:l']))     S Euler steps (flow.sample), every view
-    â[0:l']  = ID-sample(context, v[0:l'])                re-read the actions from the predicted frames
+    â[0:l']  = ID-sample(context, v[0:l'])                re-read the actions from the predicted frames (its own
+                                                          step count, sample.inverse_steps; default S)
     U        = mean_{i<l} ||a_i - denormalise(â_i)||_2    l = kept frames (16), in rollout.tau_units (raw by default)
     done'    = done | (U > tau)
     if not done': context = last K frames of [context, v[0:l]];  state = integrate(state, a[0:l])
@@ -66,10 +67,11 @@ class RolloutSpec:
     policy_chunk: int  # C
     num_chunks: int
     stride: int
-    steps: int  # Euler steps per sampler call (sample.steps)
+    steps: int  # Euler steps per forward-dynamics sampler call (sample.steps)
     ratio: int = 1  # raw policy actions per model-rate action (policy_hz / control_hz)
     context_noise: float = 0.0  # noise level on the context at inference (models trained with context noise)
     tau_units: str = "raw"  # the units U_chunk is compared with tau in (RolloutConfig.tau_units)
+    inverse_steps: int | None = None  # Euler steps of the inverse-dynamics re-read (None: steps)
 
     @property
     def raw_needed(self) -> int:
@@ -101,7 +103,7 @@ def make_spec(cfg: Config, data_fps: float = 20.0, num_chunks: int | None = None
         num_chunks = math.ceil(r.episode_seconds * r.control_hz / r.keep_frames - 1e-9)
     return RolloutSpec(len(d.views), tuple(d.image_size), d.context_frames, d.future_frames, r.keep_frames,
                        r.policy_chunk, int(num_chunks), int(round(stride)), cfg.sample.steps, ratio,
-                       float(cfg.sample.context_noise), r.tau_units)
+                       float(cfg.sample.context_noise), r.tau_units, cfg.sample.inverse_steps)
 
 
 class InitialConditions(NamedTuple):
@@ -185,7 +187,8 @@ class ChunkFns:
         # inverse dynamics: re-read the actions from the context and the predicted frames
         vn, an = modes.fixed(modes.ID, 1, V, Kt, Tt, num_actions=T)
         id_cache = "video" if m.context_attention == "causal" and self.cache else "none"
-        _, a_hat = sample(video, jnp.zeros_like(a)[None], stride, vn, an, k_id, cache=id_cache)
+        _, a_hat = sample(video, jnp.zeros_like(a)[None], stride, vn, an, k_id, cache=id_cache,
+                          steps=s.inverse_steps or s.steps)
         a_hat = a_hat[0]
         u = jnp.mean(jnp.linalg.norm(a[:l] - a_hat[:l], axis=-1))  # normalised units
         u_raw = jnp.mean(jnp.linalg.norm(model_actions[:l] - (a_hat[:l] * std + mean), axis=-1))

@@ -112,6 +112,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--keep-frames", type=int, default=None, help="override rollout.keep_frames (l)")
     p.add_argument("--policy-chunk", type=int, default=None, help="override rollout.policy_chunk")
     p.add_argument("--sample-steps", type=int, default=None, help="override sample.steps (Euler steps)")
+    p.add_argument("--inverse-steps", type=int, default=None, help="override sample.inverse_steps (Euler steps of "
+                   "the inverse-dynamics re-read that yields U_chunk)")
     p.add_argument("--batch-size", type=int, default=None, help="episodes per jitted call (default: all)")
     p.add_argument("--data-fps", type=float, default=None, help="frame rate the model was trained at (default: "
                    "the store's fps, else 20)")
@@ -134,8 +136,8 @@ def main(argv: list[str] | None = None) -> int:
     overrides = {k: v for k, v in (("keep_frames", args.keep_frames), ("policy_chunk", args.policy_chunk),
                                    ("tau_units", args.tau_units)) if v is not None}
     cfg = replace(cfg, rollout=overrides)
-    if args.sample_steps is not None:
-        cfg = replace(cfg, sample=dict(steps=args.sample_steps))
+    cfg = replace(cfg, sample={k: v for k, v in (("steps", args.sample_steps),
+                                                 ("inverse_steps", args.inverse_steps)) if v is not None})
     stats = checkpoint.read_norm_stats(work)
     params = checkpoint.load_params(work, cfg, args.step)
     data_fps = args.data_fps

@@ -110,6 +110,19 @@ def test_u_chunk_equals_numpy_recomputation(setup):
     np.testing.assert_allclose(ref["u"], u, rtol=1e-4, atol=1e-5)
 
 
+def test_inverse_steps_change_only_the_reread(setup):
+    """sample.inverse_steps sets the Euler steps of the inverse-dynamics re-read alone: frames, actions and states
+    are the forward sampler's (same keys), only the re-read actions and U move."""
+    cfg, ro, params, policy, ics, keys, ref = setup
+    assert ro.spec.inverse_steps is None  # default: the forward sampler's steps
+    fewer = rollout.Rollout(replace(cfg, sample=dict(inverse_steps=1)), STATS, num_chunks=N)
+    assert fewer.spec.inverse_steps == 1
+    out = fewer.run(params, policy, ics, keys, tau=math.inf)
+    for k in ("frames", "actions", "states"):
+        np.testing.assert_array_equal(out[k], ref[k], err_msg=k)
+    assert np.abs(out["reread"] - ref["reread"]).max() > 1e-4 and not np.allclose(out["u"], ref["u"])
+
+
 def test_termination_at_first_chunk_above_tau(setup):
     cfg, ro, params, policy, ics, keys, ref = setup
     assert ref["tau_units"] == cfg.rollout.tau_units == "raw"  # the paper's units by default

@@ -118,6 +118,21 @@ def test_sweep_refuses_a_different_config_in_the_same_store(setup):
         sweep.run_sweep(dataclasses.replace(cfg, episodes=3))
 
 
+def test_store_written_before_a_field_existed_resumes_at_its_default(tmp_path):
+    """A store written before a SweepConfig field was added (absent from its sweep.json) resumes when the field is
+    at its neutral None, and refuses any other value."""
+    for name, new, ok in (("a", None, True), ("b", 2, False)):
+        cfg = sweep.SweepConfig(out=str(tmp_path / name))
+        old = cfg.to_json()
+        del old["inverse_steps"]
+        ResultsStore(cfg.out, old)
+        if ok:
+            ResultsStore(cfg.out, dataclasses.replace(cfg, inverse_steps=new).to_json())  # resumes
+        else:
+            with pytest.raises(ValueError, match="inverse_steps"):
+                ResultsStore(cfg.out, dataclasses.replace(cfg, inverse_steps=new).to_json())
+
+
 def test_report_numbers_come_from_compute(setup, tmp_path):
     _, cfg = setup
     md = report.render(cfg.out, tmp_path / "rep", videos=1)

@@ -68,8 +68,10 @@ class ResultsStore:
         keep = lambda d: {k: v for k, v in d.items() if k not in ("progress", "out", "modes")}  # noqa: E731
         if cfg_path.exists():
             old = json.loads(cfg_path.read_text())
-            if keep(old) != keep(config):
-                diff = {k: (old.get(k), v) for k, v in keep(config).items() if old.get(k) != v}
+            # a field added since the store was written is absent from it: it matches only at its neutral None
+            diff = {k: (old.get(k), v) for k, v in keep(config).items() if old.get(k) != v}
+            diff.update({k: (v, None) for k, v in keep(old).items() if k not in config})
+            if diff:
                 raise ValueError(f"{self.root} holds results of a different sweep (changed: {diff}); use another "
                                  "--out or delete it")
             config = dict(config, modes=[m for m in EVAL_MODES if m in set(old["modes"]) | set(config["modes"])])
