@@ -5,8 +5,11 @@
 #   bash scripts/gpu_world_model.sh train RUN           start training in the background (own session: survives
 #                                                       the command that started it); log in RUN/train.log
 #   bash scripts/gpu_world_model.sh status RUN          episodes, last metrics line
-#   bash scripts/gpu_world_model.sh export RUN DEST     latest checkpoint -> RUN/export (float16), as 15 MB parts
-#                                                       DEST/export.tar.NN (join: cat export.tar.* | tar x)
+#   bash scripts/gpu_world_model.sh export RUN DEST [int8]
+#                                                       latest checkpoint -> RUN/export_STEP (float16; int8: half
+#                                                       the bytes, so two fit one call's return), as 15 MB parts
+#                                                       DEST/export_STEP.tar.NN (join: cat export_STEP.tar.* | tar x);
+#                                                       one export per call at growing steps = a compute curve
 #   bash scripts/gpu_world_model.sh stop RUN            SIGTERM: the trainer saves a checkpoint and exits
 # Runs with `python3 -m sc3_jax.cli` from the repository root (no install needed beyond the packages).
 set -euo pipefail
@@ -47,10 +50,12 @@ status)
   tail -n 1 $R/train/metrics.jsonl || true
   ;;
 export)
-  dest=$3
-  rm -rf $R/export
-  JAX_PLATFORMS=cpu python3 -c "from sc3_jax import checkpoint; checkpoint.export('$R/train', '$R/export')"
-  tar cf - -C $R export | split -b 15m -d - $dest/export.tar.
+  dest=$3 dtype=${4:-float16}
+  step=$(ls $R/train/checkpoints | grep -E '^[0-9]+$' | sort -n | tail -1)
+  rm -rf $R/export_$step
+  JAX_PLATFORMS=cpu python3 -c "import numpy as np; from sc3_jax import checkpoint
+checkpoint.export('$R/train', '$R/export_$step', 'int8' if '$dtype' == 'int8' else np.float16)"
+  tar cf - -C $R export_$step | split -b 15m -d - $dest/export_$step.tar.
   cp $R/train/metrics.jsonl $dest/
   ls -la $dest
   ;;
