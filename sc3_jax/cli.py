@@ -13,6 +13,7 @@ commands:
   rollout        closed-loop / offline rollouts of a policy inside a trained world model
   sweep          policies x initial conditions x {real, offline, online} on the simulated benchmark -> report
   report         sc3 report RESULTS --out DIR: tables, plots and videos from a sweep's results store
+  rescore        sc3 rescore RESULTS [--perception WEIGHTS]: re-score a store's stored frames with other scorer weights
   data           LeRobot datasets: sc3 data import-lerobot ROOT --out DIR | export-lerobot STORE --out DIR
   sim            the simulated table-bussing benchmark: sc3 sim demos|eval ...
   serve-policy   serve one of our policies over the openpi websocket protocol
@@ -137,6 +138,12 @@ def cmd_report(argv: list[str]) -> int:
     return 0
 
 
+def cmd_rescore(argv: list[str]) -> int:
+    from sc3_jax.evaluate import rescore
+
+    return rescore.main(argv)
+
+
 def cmd_plan(argv: list[str]) -> int:
     from sc3_jax import plan
 
@@ -168,7 +175,7 @@ def cmd_rollout(argv: list[str]) -> int:
 
 
 COMMANDS = {"demo": cmd_demo, "train": cmd_train, "rollout": cmd_rollout, "sweep": cmd_sweep, "report": cmd_report,
-            "data": cmd_data, "sim": cmd_sim,
+            "rescore": cmd_rescore, "data": cmd_data, "sim": cmd_sim,
             "serve-policy": cmd_serve_policy, "configs": cmd_configs, "plan": cmd_plan,
             "convert": cmd_convert, "train-tokenizer": cmd_train_tokenizer, "diagnose": cmd_diagnose}
 

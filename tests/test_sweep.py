@@ -133,6 +133,33 @@ def test_store_written_before_a_field_existed_resumes_at_its_default(tmp_path):
                 ResultsStore(cfg.out, dataclasses.replace(cfg, inverse_steps=new).to_json())
 
 
+def test_rescore_reproduces_the_sweep_and_guards_the_store(setup, tmp_path):
+    """sc3 rescore with the sweep's own weights reproduces every record; with other weights the store changes, its
+    sweep.json names them, and resuming it with the old weights is refused until it is re-scored back."""
+    import shutil
+
+    from sc3_jax.evaluate import rescore
+    root, cfg = setup
+    out = tmp_path / "store"
+    shutil.copytree(cfg.out, out)
+    before = ResultsStore(out).records()
+    assert all("score_stride" in r for r in before if r["mode"] == "real")
+    assert rescore.rescore(out, cfg.perception, progress=False) == {"real": 0, "offline": 0, "online": 0}
+    assert ResultsStore(out).records() == before
+    other = tmp_path / "other.npz"
+    perception.save(other, perception.init(jax.random.key(2)))
+    changed = rescore.rescore(out, other, progress=False)
+    assert sum(changed.values()) > 0 and ResultsStore(out).records() != before
+    stored = ResultsStore(out).config()
+    assert stored["perception"] == str(other) and stored["perception_sha256"] == rescore.weights_digest(other)
+    with pytest.raises(ValueError, match="rescore"):
+        sweep.run_sweep(dataclasses.replace(cfg, out=str(out)))
+    # physics, U and PSNR are untouched
+    for a, b in zip(before, ResultsStore(out).records()):
+        assert a["objects"] == b["objects"] or a["mode"] != "real"
+        assert a.get("u") == b.get("u") and a.get("psnr_view") == b.get("psnr_view")
+
+
 def test_report_numbers_come_from_compute(setup, tmp_path):
     _, cfg = setup
     md = report.render(cfg.out, tmp_path / "rep", videos=1)

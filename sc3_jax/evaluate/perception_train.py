@@ -206,7 +206,6 @@ def train(data, steps: int = 2500, batch: int = 64, lr: float = 1e-3, seed: int 
 def validate(results: str | Path, params: dict, score_stride: int = 2, degradations: bool = True) -> dict:
     """Agreement with physics of ``params`` on every real rollout of a sweep results store, scored as the sweep
     scores them (every ``score_stride``-th frame and the last; the same seeded degradations)."""
-    from sc3_jax.evaluate import degrade
     from sc3_jax.evaluate.scorers import PerceptionScorer, RolloutView, agreement
     from sc3_jax.evaluate.results import ResultsStore
     from sc3_jax.sim.tasks import make_initial_condition
@@ -217,12 +216,11 @@ def validate(results: str | Path, params: dict, score_stride: int = 2, degradati
     scorer = PerceptionScorer(params)
     scored: dict[str, list] = {}
     for r in real:
-        frames = store.load_arrays(r["id"])["frames"]
-        frames = np.concatenate([frames[:, :-1:score_stride], frames[:, -1:]], 1)
         ic = make_initial_condition(r["seed"], r["task"])
-        variants = {"clean": frames, **(degrade.all_kinds(frames, r["seed"]) if degradations else {})}
-        for kind, f in variants.items():
-            scored.setdefault(kind, []).append(scorer.score(RolloutView(r["id"], f, ic.objects, ic.destinations())))
+        view = RolloutView(r["id"], store.load_arrays(r["id"])["frames"], ic.objects, ic.destinations())
+        clean, degraded = scorer.score_real(view, r["seed"], score_stride, degradations)
+        for kind, outcomes in {"clean": clean, **degraded}.items():
+            scored.setdefault(kind, []).append(outcomes)
     truth = [r["objects"] for r in real]
     return {kind: agreement(s, truth) for kind, s in scored.items()}
 

@@ -65,9 +65,16 @@ class ResultsStore:
         self.root.mkdir(parents=True, exist_ok=True)
         cfg_path = self.root / "sweep.json"
         # modes may be added to a store (records are per mode); anything else that changes results may not
-        keep = lambda d: {k: v for k, v in d.items() if k not in ("progress", "out", "modes")}  # noqa: E731
+        keep = lambda d: {k: v for k, v in d.items()  # noqa: E731
+                          if k not in ("progress", "out", "modes", "perception_sha256")}
         if cfg_path.exists():
             old = json.loads(cfg_path.read_text())
+            # which perception weights scored the store (a store from before digests were kept: unknown, accepted)
+            was, now = old.get("perception_sha256"), config.get("perception_sha256")
+            if was and now and was != now:
+                raise ValueError(f"{self.root} was scored by other perception weights (sha256 {was}, these are "
+                                 f"{now}): re-score it first (`sc3 rescore {self.root}`, --perception WEIGHTS) or use "
+                                 "another --out")
             # a field added since the store was written is absent from it: it matches only at its neutral None
             diff = {k: (old.get(k), v) for k, v in keep(config).items() if old.get(k) != v}
             diff.update({k: (v, None) for k, v in keep(old).items() if k not in config})

@@ -111,6 +111,17 @@ class PerceptionScorer:
         return criteria_from_predicates(self.predicates(rollout.frames), rollout.objects, rollout.destinations,
                                         self.min_run)
 
+    def score_real(self, view: RolloutView, seed: int, stride: int, degradations: bool = True):
+        """A real rollout as every sweep reads it: ``view.frames`` [V, T, ...] at the simulator's rate, read at
+        every ``stride``-th frame and the last (the world model's frame rate, so real and imagined rollouts are read
+        alike); with ``degradations`` also on the seeded degraded copies (``degrade.py``). Returns (outcomes,
+        {kind: outcomes})."""
+        from sc3_jax.evaluate import degrade
+        scored = np.concatenate([view.frames[:, :-1:stride], view.frames[:, -1:]], 1)
+        clean = dataclasses.replace(view, frames=scored)
+        kinds = degrade.all_kinds(scored, seed) if degradations else {}
+        return self.score(clean), {k: self.score(dataclasses.replace(view, frames=f)) for k, f in kinds.items()}
+
     def score_cuts(self, frames: np.ndarray, objects, destinations, frames_per_chunk: int, num_chunks: int,
                    prefix: int = 0) -> list[list[dict]]:
         """Outcomes of the rollout cut after each number of chunks: entry c scores ``prefix`` initial frames plus

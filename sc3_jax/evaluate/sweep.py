@@ -98,15 +98,13 @@ def run_real(env, name, task, policy, seed, scorer, max_steps: int, score_stride
     from sc3_jax.sim.policy_eval import run_policy_episode
     r = run_policy_episode(env, policy, seed, task, record=True, max_steps=max_steps)
     frames = np.stack([r.frames[v] for v in env.views])  # [V, T, H, W, 3] at 20 Hz
-    scored = np.concatenate([frames[:, :-1:score_stride], frames[:, -1:]], 1)
-    view = RolloutView(rollout_id(name, seed, "real"), scored, r.ic.objects, r.ic.destinations(),
+    view = RolloutView(rollout_id(name, seed, "real"), frames, r.ic.objects, r.ic.destinations(),
                        [o.to_json() for o in r.outcomes])
-    rec = {"objects": SimScorer().score(view), "perception": scorer.score(view), "length": int(r.length),
-           "prompt": r.ic.prompt}
+    clean, degraded = scorer.score_real(view, seed, score_stride, degradations)
+    rec = {"objects": SimScorer().score(view), "perception": clean, "length": int(r.length), "prompt": r.ic.prompt,
+           "score_stride": score_stride}
     if degradations:
-        from sc3_jax.evaluate import degrade
-        rec["perception_degraded"] = {k: scorer.score(dataclasses.replace(view, frames=f))
-                                      for k, f in degrade.all_kinds(scored, seed).items()}
+        rec["perception_degraded"] = degraded
     return rec, {"frames": frames, "actions": r.actions.astype(np.float32), "ee_pose": r.ee_pose.astype(np.float32),
                  "object_pos": r.object_pos}
 
@@ -122,6 +120,7 @@ def run_sweep(cfg: SweepConfig) -> Path:
     from sc3_jax import checkpoint
     from sc3_jax import rollout as ro_mod
     from sc3_jax.evaluate import perception
+    from sc3_jax.evaluate.rescore import weights_digest
     from sc3_jax.evaluate.scorers import PerceptionScorer
     from sc3_jax.policies.base import JaxPolicy
     from sc3_jax.sim.policy_eval import make_env
@@ -134,8 +133,9 @@ def run_sweep(cfg: SweepConfig) -> Path:
     if cfg.tau_units not in ("normalised", "raw"):
         raise ValueError(f"tau_units {cfg.tau_units!r}: 'normalised' or 'raw'")
     blocks = seed_blocks(cfg)
-    store = ResultsStore(cfg.out, cfg.to_json())
-    p_params = perception.load(cfg.perception or perception.DEFAULT_WEIGHTS)
+    weights = cfg.perception or perception.DEFAULT_WEIGHTS
+    store = ResultsStore(cfg.out, {**cfg.to_json(), "perception_sha256": weights_digest(weights)})
+    p_params = perception.load(weights)
     scorer = PerceptionScorer(p_params)
     policies = [_resolve(p) for p in (cfg.policies or _zoo_names())]
     seeds = blocks["evaluation"]
