@@ -148,10 +148,17 @@ def test_rescore_reproduces_the_sweep_and_guards_the_store(setup, tmp_path):
     assert ResultsStore(out).records() == before
     other = tmp_path / "other.npz"
     perception.save(other, perception.init(jax.random.key(2)))
-    changed = rescore.rescore(out, other, progress=False)
+    # its imagined rollouts read the gripper with the old weights: the store must be told which, and checks them
+    with pytest.raises(ValueError, match="--state-reader"):
+        rescore.rescore(out, other, progress=False)
+    with pytest.raises(ValueError, match="not the weights"):
+        rescore.rescore(out, other, state_reader=other, progress=False)
+    assert ResultsStore(out).records() == before  # refused before anything was written
+    changed = rescore.rescore(out, other, state_reader=cfg.perception, progress=False)
     assert sum(changed.values()) > 0 and ResultsStore(out).records() != before
     stored = ResultsStore(out).config()
     assert stored["perception"] == str(other) and stored["perception_sha256"] == rescore.weights_digest(other)
+    assert stored["state_reader"] == cfg.perception
     with pytest.raises(ValueError, match="rescore"):
         sweep.run_sweep(dataclasses.replace(cfg, out=str(out)))
     # physics, U and PSNR are untouched

@@ -7,7 +7,9 @@ seed 50-79, against the sweep's blocks at 10M+). Frames are augmented the ways g
 ones (blur, pixel and patch noise, a per-view colour drift: ``degrade.py``), so the network also reads a world
 model's frames.
 
-The shipped weights (``perception.DEFAULT_WEIGHTS``) in two stages (see docs/sweep.md):
+The shipped weights (``perception.DEFAULT_WEIGHTS``): a wider network (``--keypoints 64 --widths 32 64 64 --hidden
+384 --pos-weight 2``) fine-tuned on five stores, commands in docs/sweep.md#the-shipped-scorer. The previous ones, in
+two stages:
 
 1. ``python -m sc3_jax.evaluate.perception_train --store runs/bussing/demos runs/bussing/scorer_data
    runs/bussing/scorer_zoo --generate 300 --generate-policies 140 --steps 3000 --out runs/bussing/perception.npz``

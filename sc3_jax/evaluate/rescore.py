@@ -7,6 +7,12 @@ cut after each chunk) and rewrites the perception-scored fields (real: ``percept
 offline / online: ``objects``, online also ``objects_by_cut``). Physics outcomes, U_chunk and PSNR are left as they
 are. The new results.jsonl replaces the old one atomically, and sweep.json records the weights
 (``perception``, ``perception_sha256``), so a resumed sweep refuses to mix scorers (``ResultsStore``).
+
+The rollouts themselves do not change: inside an imagined rollout the policy's gripper state was read from the
+frames by the weights of that time (``SweepConfig.state_reader``, None = the scorer's). Re-scoring such a store with
+other weights therefore asks for those (``--state-reader OLD_WEIGHTS``, checked against the recorded digest), writes
+them into sweep.json, and the sweep is resumed with the same ``--state-reader``: its remaining rollouts are made the
+way the first ones were.
 """
 from __future__ import annotations
 
@@ -24,9 +30,10 @@ def weights_digest(path: str | Path) -> str:
     return hashlib.sha256(Path(path).read_bytes()).hexdigest()[:16]
 
 
-def rescore(results: str | Path, weights: str | Path | None = None, progress: bool = True) -> dict[str, int]:
+def rescore(results: str | Path, weights: str | Path | None = None, state_reader: str | Path | None = None,
+            progress: bool = True) -> dict[str, int]:
     """Re-score every rollout of the store ``results`` with ``weights`` (None: the shipped ones); returns the number
-    of rollouts per mode whose perception-scored outcomes changed."""
+    of rollouts per mode whose perception-scored outcomes changed. ``state_reader``: see the module docstring."""
     from tqdm import tqdm
 
     from sc3_jax.evaluate import perception
@@ -37,6 +44,18 @@ def rescore(results: str | Path, weights: str | Path | None = None, progress: bo
     if not recs:
         raise ValueError(f"{results}: no rollouts to re-score")
     path = Path(weights) if weights is not None else perception.DEFAULT_WEIGHTS
+    cfg, digest = store.config(), weights_digest(path)
+    was = cfg.get("perception_sha256")
+    if any(r["mode"] != "real" for r in recs) and not cfg.get("state_reader") and was != digest:
+        # the imagined rollouts read the gripper state with the scorer of their time: the store must remember it
+        if state_reader is None:
+            raise ValueError(f"{results}: its imagined rollouts read the gripper state with the perception weights "
+                             f"that scored them (sha256 {was or 'not recorded'}); pass those as --state-reader, "
+                             "and resume the sweep with the same --state-reader")
+        if was and weights_digest(state_reader) != was:
+            raise ValueError(f"--state-reader {state_reader} (sha256 {weights_digest(state_reader)}) is not the "
+                             f"weights the store was scored with (sha256 {was})")
+        cfg["state_reader"] = str(state_reader)
     scorer = PerceptionScorer(perception.load(path))
     # real rollouts were read at the world model's frame stride (2 where the store has no world-model rollouts)
     wm_stride = next((r["stride"] for r in recs if "stride" in r), 2)
@@ -67,8 +86,7 @@ def rescore(results: str | Path, weights: str | Path | None = None, progress: bo
         fh.flush()
         os.fsync(fh.fileno())
     os.replace(tmp, store.path)
-    cfg = store.config()
-    cfg.update(perception=None if weights is None else str(weights), perception_sha256=weights_digest(path))
+    cfg.update(perception=None if weights is None else str(weights), perception_sha256=digest)
     (store.root / "sweep.json").write_text(json.dumps(cfg, indent=1))
     return changed
 
@@ -77,9 +95,11 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="sc3 rescore", description=__doc__.split("\n")[0])
     ap.add_argument("results", help="a sweep's --out directory")
     ap.add_argument("--perception", default=None, help="perception weights (default: the shipped ones)")
+    ap.add_argument("--state-reader", default=None, help="the weights that read the gripper state inside the "
+                    "store's imagined rollouts (needed when they were the scorer's and the scorer changes)")
     ap.add_argument("--no-progress", action="store_true")
     a = ap.parse_args(argv)
-    changed = rescore(a.results, a.perception, progress=not a.no_progress)
+    changed = rescore(a.results, a.perception, a.state_reader, progress=not a.no_progress)
     print(json.dumps({"results": a.results, "rollouts_changed": changed}))
     print(f"rerun the report: sc3 report {a.results}")
     return 0

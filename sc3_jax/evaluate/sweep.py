@@ -42,6 +42,9 @@ class SweepConfig:
     out: str = "runs/sweep"
     world_model: str = str(SHIPPED_WORLD_MODEL)  # a training run dir (checkpoints/) or an exported dir (params.npz)
     perception: str | None = None  # perception weights (None: the shipped ones)
+    # perception weights whose finger-gap head reads the gripper state the policy sees inside imagined rollouts
+    # (None: the scorer's). Part of the rollouts, not of their scoring: `sc3 rescore` leaves it as it was
+    state_reader: str | None = None
     # policies/resolve.py spellings with a task: zoo names, NAME=ws://HOST:PORT@TASK (openpi server),
     # NAME=package.module:attr@TASK, ...; () = the whole zoo
     policies: tuple[str, ...] = ()
@@ -152,7 +155,8 @@ def run_sweep(cfg: SweepConfig) -> Path:
         if cfg.episode_seconds:
             wcfg = replace(wcfg, rollout=dict(episode_seconds=cfg.episode_seconds))
         wcfg = replace(wcfg, rollout=dict(tau_units=cfg.tau_units))  # one unit convention
-        ro = ro_mod.Rollout(wcfg, stats, state_reader=perception.state_reader(p_params))
+        reader = perception.load(cfg.state_reader) if cfg.state_reader else p_params
+        ro = ro_mod.Rollout(wcfg, stats, state_reader=perception.state_reader(reader))
     env = make_env(tuple(ro.spec.image_size) if ro else (64, 64))
     seconds = cfg.episode_seconds or (wcfg.rollout.episode_seconds if ro else 20.0)
     max_steps = int(round(seconds * env.control_hz))
