@@ -176,15 +176,3 @@ def test_train_warm_starts_from_given_weights():
     fresh, _ = train(data, steps=1, batch=4, arch=small, pos_weight=2.0, holdout=0.25, progress=False)
     assert perception.arch(fresh) == small  # fresh weights take the requested architecture
 
-
-def test_tail_indices_and_tail_sampling_checks():
-    from sc3_jax.evaluate.perception_train import tail_indices, train
-    eps = np.array([0, 0, 0, 1, 1, 2, 2, 2, 2])
-    np.testing.assert_array_equal(tail_indices(eps, np.arange(9), 2), [1, 2, 3, 4, 7, 8])
-    np.testing.assert_array_equal(tail_indices(eps, np.array([0, 2, 6, 8]), 1), [2, 8])
-    assert tail_indices(eps, np.arange(9), 0).size == 0
-    data = (np.zeros((9, 3, 64, 64, 3), np.uint8), np.zeros((9, 6, 3), bool), np.ones((9, 6), bool),
-            np.zeros(9, np.float32), eps)
-    with pytest.raises(ValueError, match="no tail frames"):
-        train(data, steps=1, batch=2, tail_frac=0.5, tail_frames=0, holdout=0.0, progress=False,
-              arch={"n_kp": 4, "widths": [4, 8, 8], "hidden": 16})

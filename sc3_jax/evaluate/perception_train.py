@@ -132,14 +132,6 @@ def augment(key: jax.Array, images: jax.Array) -> jax.Array:
 
 
 # -- training -----------------------------------------------------------------------------------------------------
-def tail_indices(eps: np.ndarray, idx: np.ndarray, n: int) -> np.ndarray:
-    """The entries of ``idx`` among the last ``n`` frames of their episode (``eps``: episode index per frame, each
-    episode's frames contiguous and in order, as ``load_training_data`` returns them)."""
-    last = np.zeros(int(eps.max()) + 1, np.int64)
-    np.maximum.at(last, eps, np.arange(len(eps)))
-    return idx[last[eps[idx]] - idx < n]
-
-
 def loss_fn(params, images, labels, masks, widths, pos_weight: float = 1.0):
     """Masked binary cross-entropy of the predicates (a positive label's term weighted by ``pos_weight``: a
     predicate holds in a few percent of the frames only) plus the finger gap's squared error."""
@@ -154,12 +146,11 @@ def loss_fn(params, images, labels, masks, widths, pos_weight: float = 1.0):
 
 def train(data, steps: int = 2500, batch: int = 64, lr: float = 1e-3, seed: int = 0, holdout: float = 0.1,
           init: dict | None = None, progress: bool = True, arch: dict | None = None,
-          pos_weight: float = 1.0, tail_frames: int = 0, tail_frac: float = 0.0) -> tuple[dict, dict]:
+          pos_weight: float = 1.0) -> tuple[dict, dict]:
     """Train on ``load_training_data`` output, from ``init`` (warm start) or fresh weights of architecture ``arch``
     (``perception.init``'s keywords; default: its defaults); a random ``holdout`` fraction of episodes is held out
-    and scored. ``tail_frac`` of every batch is drawn from the last ``tail_frames`` (loaded) frames of the episodes:
-    placing is decided on a rollout's settled tail, objects at rest in (or beside) a container. Returns (params,
-    metrics: held-out per-predicate accuracy, precision and recall, and finger-gap error)."""
+    and scored. Returns (params, metrics: held-out per-predicate accuracy, precision and recall, and finger-gap
+    error)."""
     from tqdm import tqdm
     images, labels, masks, widths, eps = data
     n_ep = int(eps.max()) + 1
@@ -167,9 +158,6 @@ def train(data, steps: int = 2500, batch: int = 64, lr: float = 1e-3, seed: int 
     test_eps = np.random.default_rng(seed).permutation(n_ep)[:int(round(n_ep * holdout))]
     is_test = np.isin(eps, test_eps)
     train_idx, test_idx = np.flatnonzero(~is_test), np.flatnonzero(is_test)
-    tail_idx = tail_indices(eps, train_idx, tail_frames)
-    if tail_frac and not len(tail_idx):
-        raise ValueError(f"tail_frac {tail_frac} with tail_frames {tail_frames}: no tail frames to draw from")
     key = jax.random.key(seed)
     params = perception.init(key, images.shape[1], **(arch or {})) if init is None else init
     opt = optax.adamw(optax.warmup_cosine_decay_schedule(0.0, lr, min(100, steps // 10), steps), weight_decay=1e-4)
@@ -185,9 +173,6 @@ def train(data, steps: int = 2500, batch: int = 64, lr: float = 1e-3, seed: int 
     rng = np.random.default_rng(seed)
     for i in tqdm(range(steps), desc="perception", disable=not progress):
         j = rng.choice(train_idx, batch)
-        if tail_frac:
-            n_tail = rng.binomial(batch, tail_frac)
-            j[:n_tail] = rng.choice(tail_idx, n_tail)
         params, opt_state, loss = step(params, opt_state, jax.random.fold_in(key, i), images[j], labels[j],
                                        masks[j], widths[j])
     metrics = {"steps": steps, "train_frames": int(len(train_idx)), "heldout_frames": int(len(test_idx))}
@@ -246,9 +231,6 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--widths", type=int, nargs=3, default=list(perception.WIDTHS),
                     help="channels of the first three conv layers (fresh weights)")
     ap.add_argument("--hidden", type=int, default=perception.HIDDEN, help="MLP width (fresh weights)")
-    ap.add_argument("--tail-frames", type=int, default=0, help="with --tail-frac: the last N loaded frames of every "
-                    "episode (at --stride) ...")
-    ap.add_argument("--tail-frac", type=float, default=0.0, help="... make up this fraction of every batch")
     ap.add_argument("--stride", type=int, default=2)
     ap.add_argument("--max-episodes", type=int, default=None)
     ap.add_argument("--seed", type=int, default=0)
@@ -271,10 +253,9 @@ def main(argv: list[str] | None = None) -> int:
     init = perception.load(a.init) if a.init else None
     arch = {"n_kp": a.keypoints, "widths": tuple(a.widths), "hidden": a.hidden}
     params, metrics = train(data, a.steps, a.batch, lr=a.lr, seed=a.seed, init=init, arch=arch,
-                            pos_weight=a.pos_weight, tail_frames=a.tail_frames, tail_frac=a.tail_frac)
+                            pos_weight=a.pos_weight)
     metrics.update(seconds=round(time.time() - t0, 1), store=[str(s) for s in a.store], stride=a.stride,
-                   init=a.init, lr=a.lr, batch=a.batch, pos_weight=a.pos_weight, tail_frames=a.tail_frames,
-                   tail_frac=a.tail_frac)
+                   init=a.init, lr=a.lr, batch=a.batch, pos_weight=a.pos_weight)
     perception.save(a.out, params, metrics)
     print(json.dumps(metrics, indent=1))
     return 0
