@@ -10,12 +10,15 @@
 #                                                       the bytes, so two fit one call's return), as 15 MB parts
 #                                                       DEST/export_STEP.tar.NN (join: cat export_STEP.tar.* | tar x);
 #                                                       one export per call at growing steps = a compute curve
-#   bash scripts/gpu_world_model.sh stop RUN            SIGTERM: the trainer saves a checkpoint and exits
+#   bash scripts/gpu_world_model.sh stop RUN            SIGTERM: every trainer saves a checkpoint and exits
+# CONFIG=ablation_no_id:bussing_latent_gpu TRAIN=no_id bash scripts/gpu_world_model.sh train|status|export ...
+#   trains / exports another config on the same demos into RUN/TRAIN (exports named TRAIN_STEP): the paper's
+#   equal-budget ablations (ablation_no_id, ablation_no_cvi, ablation_no_decouple, ablation_forward_only)
 # Runs with `python3 -m sc3_jax.cli` from the repository root (no install needed beyond the packages).
 set -euo pipefail
 cmd=$1 R=$2
-D=$R/demos
-sc3() { python3 -m sc3_jax.cli "$@"; }
+D=$R/demos CONFIG=${CONFIG:-bussing_latent_gpu} TRAIN=${TRAIN:-train}
+W=$R/$TRAIN
 
 case $cmd in
 data)
@@ -40,23 +43,24 @@ data)
   ;;
 train)
   shift 2
-  setsid nohup python3 -m sc3_jax.cli train --config bussing_latent_gpu --data.path $D --train.workdir $R/train "$@" \
-    > $R/train.log 2>&1 < /dev/null &
+  setsid nohup python3 -m sc3_jax.cli train --config $CONFIG --data.path $D --train.workdir $W "$@" \
+    > $W.log 2>&1 < /dev/null &
   echo "trainer pid $!"
   ;;
 status)
   echo "episodes: $(ls $D | grep -c '^ep')"
-  tail -n 3 $R/train.log || true
-  tail -n 1 $R/train/metrics.jsonl || true
+  tail -n 3 $W.log || true
+  tail -n 1 $W/metrics.jsonl || true
   ;;
 export)
   dest=$3 dtype=${4:-float16}
-  step=$(ls $R/train/checkpoints | grep -E '^[0-9]+$' | sort -n | tail -1)
-  rm -rf $R/export_$step
+  step=$(ls $W/checkpoints | grep -E '^[0-9]+$' | sort -n | tail -1)
+  name=$([ $TRAIN = train ] && echo export || echo $TRAIN)_$step
+  rm -rf $R/$name
   JAX_PLATFORMS=cpu python3 -c "import numpy as np; from sc3_jax import checkpoint
-checkpoint.export('$R/train', '$R/export_$step', 'int8' if '$dtype' == 'int8' else np.float16)"
-  tar cf - -C $R export_$step | split -b 15m -d - $dest/export_$step.tar.
-  cp $R/train/metrics.jsonl $dest/
+checkpoint.export('$W', '$R/$name', 'int8' if '$dtype' == 'int8' else np.float16)"
+  tar cf - -C $R $name | split -b 15m -d - $dest/$name.tar.
+  cp $W/metrics.jsonl $dest/${name}_metrics.jsonl
   ls -la $dest
   ;;
 stop)

@@ -100,3 +100,18 @@ def test_residual_model_starts_as_copy_last_frame():
                            jax.random.key(3), 5, (4, 4))
     np.testing.assert_allclose(out_v[:, :, K:], jnp.broadcast_to(video[:, :, K - 1:K], out_v[:, :, K:].shape),
                                atol=1e-5)
+
+
+def test_ablation_configs_change_only_their_mode_or_horizon():
+    """Each named ablation applied to a base keeps the base and changes only what the paper's ablation removes."""
+    from sc3_jax.config import load_config
+
+    base = load_config("tiny")
+    expected = {"ablation_no_id": (8 / 9, 1 / 9, 0.0), "ablation_no_cvi": (8 / 9, 0.0, 1 / 9),
+                "ablation_forward_only": (1.0, 0.0, 0.0), "ablation_no_decouple": base.modes.probs}
+    for name, probs in expected.items():
+        cfg = load_config(f"{name}:tiny")
+        np.testing.assert_allclose(cfg.modes.probs, probs, err_msg=name)
+        assert cfg.model == base.model and cfg.train == base.train, name
+        horizon = base.rollout.keep_frames if name == "ablation_no_decouple" else base.data.future_frames
+        assert cfg.data.future_frames == horizon, name
