@@ -1,9 +1,11 @@
 """``bussing_latent`` at accelerator scale: the same recipe (latent tokenizer, pose conditioning, context noise,
 l' = 10 / l = 8, multi-FPS windows, pseudo-actions) in a 5x larger model (dim 384, 8 layers: 23.8M parameters,
-45 MiB as float16, so its export still fits in the repository) with bfloat16 matmuls and 64-window batches.
+21.5 MB as an int8 export, the form the repository ships) with bfloat16 matmuls and 64-window batches.
 
-Sized for what one GPU does in ~20 minutes (``scripts/gpu_world_model.sh``: demos from 16 MuJoCo processes, then
-training): ~10^6 windows, against ~3.5 x 10^4 for the CPU run of ``bussing_latent``. It also runs on a CPU, slowly."""
+``train.steps`` 15,000 x 64 = ~10^6 windows (against ~3.5 x 10^4 for the CPU run of ``bussing_latent``), ~45 minutes
+at the 5-6 steps/s measured on one H100 (``scripts/gpu_world_model.sh``: demos from 16 MuJoCo processes, then
+training; a checkpoint every 1,000 steps, so a run cut short by the device's time still exports). It also runs on a
+CPU, slowly."""
 from sc3_jax.config import load_config, replace
 
 

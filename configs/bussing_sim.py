@@ -1,12 +1,13 @@
 """The world model of the simulated table-bussing benchmark, sized to train on a 2-core CPU in about an hour.
 
 Data: `sc3 sim demos` episodes (3 views at 64x64, 20 Hz, scripted expert with a mixture of failure knobs; see
-docs/sweep.md for the exact commands). The model runs at 10 Hz (frame stride 2 of the 20 Hz stream) while the
-zoo's policies act at 20 Hz: the first 16 of each policy chunk of 25 raw actions are composed pairwise into 8
-model-rate actions (`rollout.policy_hz`) and the model predicts and keeps l' = l = 8 frames (0.8 s), so one imagined
-chunk is exactly one real re-planning period (a real rollout executes 16 of the 25 actions, then re-observes).
-Pixel patches of 16 keep 16 tokens per view and frame (488 tokens per window); a 2.1M-parameter model then trains at
-~1 step/s on 2 CPU cores. (l' = 12 > l, as in the paper, costs 1.4x per token and did not fit the budget.)"""
+docs/sim.md and scripts/bussing_sim.sh for the exact commands). The model runs at 10 Hz (frame stride 2 of the 20 Hz
+stream) while the zoo's policies act at 20 Hz: the first 16 of each policy chunk of 25 raw actions are composed
+pairwise into 8 model-rate actions (`rollout.policy_hz`) and the model predicts and keeps l' = l = 8 frames (0.8 s),
+so one imagined chunk is exactly one real re-planning period (a real rollout executes 16 of the 25 actions, then
+re-observes).
+Pixel patches of 16 keep 16 tokens per view and frame (488 tokens per window); the 10.6M-parameter model then
+trains at ~1 step/s on 2 CPU cores. (l' = 12 > l, as in the paper, costs 1.4x per token and did not fit the budget.)"""
 from sc3_jax.config import (Config, DataConfig, FlowConfig, ModeConfig, ModelConfig, RolloutConfig, SampleConfig,
                             TrainConfig)
 

@@ -1,6 +1,7 @@
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from sc3_jax import flow, modes
 from sc3_jax.config import ModelConfig
@@ -103,15 +104,20 @@ def test_residual_model_starts_as_copy_last_frame():
 
 
 def test_ablation_configs_change_only_their_mode_or_horizon():
-    """Each named ablation applied to a base keeps the base and changes only what the paper's ablation removes."""
+    """Each named ablation applied to a base keeps the base and changes only what the paper's ablation removes; the
+    remaining modes keep the base's ratio (bussing_latent draws FD / CVI / ID 0.7 / 0.1 / 0.2)."""
     from sc3_jax.config import load_config
 
-    base = load_config("tiny")
-    expected = {"ablation_no_id": (8 / 9, 1 / 9, 0.0), "ablation_no_cvi": (8 / 9, 0.0, 1 / 9),
-                "ablation_forward_only": (1.0, 0.0, 0.0), "ablation_no_decouple": base.modes.probs}
-    for name, probs in expected.items():
-        cfg = load_config(f"{name}:tiny")
-        np.testing.assert_allclose(cfg.modes.probs, probs, err_msg=name)
-        assert cfg.model == base.model and cfg.train == base.train, name
-        horizon = base.rollout.keep_frames if name == "ablation_no_decouple" else base.data.future_frames
-        assert cfg.data.future_frames == horizon, name
+    expected = {"paper": {"ablation_no_id": (8 / 9, 1 / 9, 0.0), "ablation_no_cvi": (8 / 9, 0.0, 1 / 9)},
+                "bussing_latent": {"ablation_no_id": (0.875, 0.125, 0.0), "ablation_no_cvi": (7 / 9, 0.0, 2 / 9)}}
+    for base_name, by_ablation in expected.items():
+        base = load_config(base_name)
+        by_ablation |= {"ablation_forward_only": (1.0, 0.0, 0.0), "ablation_no_decouple": base.modes.probs}
+        for name, probs in by_ablation.items():
+            cfg = load_config(f"{name}:{base_name}")
+            np.testing.assert_allclose(cfg.modes.probs, probs, err_msg=name)
+            assert cfg.model == base.model and cfg.train == base.train, name
+            horizon = base.rollout.keep_frames if name == "ablation_no_decouple" else base.data.future_frames
+            assert cfg.data.future_frames == horizon, name
+    with pytest.raises(ValueError, match="no training mode left"):
+        modes.without((0.0, 0.0, 1.0), modes.ID)
