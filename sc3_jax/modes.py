@@ -21,9 +21,10 @@ def without(probs, *removed: int) -> tuple[float, float, float]:
     """Mode probabilities with the ``removed`` modes at zero and the others in their original ratio (the paper's
     ablations remove a mode and keep the rest as they were, whatever the base config's mixture)."""
     p = [0.0 if i in removed else float(x) for i, x in enumerate(probs)]
-    if sum(p) <= 0:
+    total = sum(p)
+    if total <= 0:
         raise ValueError(f"no training mode left in {tuple(probs)} without modes {removed}")
-    return tuple(x / sum(p) for x in p)
+    return tuple(x / total for x in p)
 
 
 def draw(rng: jax.Array, batch: int, num_views: int, probs) -> tuple[jax.Array, jax.Array]:
