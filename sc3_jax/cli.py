@@ -13,6 +13,7 @@ commands:
   rollout        closed-loop / offline rollouts of a policy inside a trained world model
   sweep          policies x initial conditions x {real, offline, online} on the simulated benchmark -> report
   report         sc3 report RESULTS --out DIR: tables, plots and videos from a sweep's results store
+  curve          sc3 curve SPEC.json --out DIR: faithfulness against training compute over several sweeps
   rescore        sc3 rescore RESULTS [--perception WEIGHTS]: re-score a store's stored frames with other scorer weights
   data           LeRobot datasets: sc3 data import-lerobot ROOT --out DIR | export-lerobot STORE --out DIR
   sim            the simulated table-bussing benchmark: sc3 sim demos|eval ...
@@ -138,6 +139,22 @@ def cmd_report(argv: list[str]) -> int:
     return 0
 
 
+def cmd_curve(argv: list[str]) -> int:
+    import argparse
+
+    from sc3_jax.evaluate import curve
+
+    ap = argparse.ArgumentParser(prog="sc3 curve", description="Faithfulness against training compute: one table "
+                                 "and one plot over several checkpoints' sweeps (sc3_jax/evaluate/curve.py).")
+    ap.add_argument("spec", help='JSON: {"title": ..., "points": [{"label", "store", "steps", "batch", "device", '
+                    '"hours"}, ...]}')
+    ap.add_argument("--out", required=True, help="directory for curve.md, curve.png, curve.json")
+    ap.add_argument("--draws", type=int, default=2000, help="paired bootstrap draws for the 95%% intervals")
+    a = ap.parse_args(argv)
+    print(f"curve: {curve.render(a.spec, a.out, a.draws)}")
+    return 0
+
+
 def cmd_rescore(argv: list[str]) -> int:
     from sc3_jax.evaluate import rescore
 
@@ -175,7 +192,7 @@ def cmd_rollout(argv: list[str]) -> int:
 
 
 COMMANDS = {"demo": cmd_demo, "train": cmd_train, "rollout": cmd_rollout, "sweep": cmd_sweep, "report": cmd_report,
-            "rescore": cmd_rescore, "data": cmd_data, "sim": cmd_sim,
+            "curve": cmd_curve, "rescore": cmd_rescore, "data": cmd_data, "sim": cmd_sim,
             "serve-policy": cmd_serve_policy, "configs": cmd_configs, "plan": cmd_plan,
             "convert": cmd_convert, "train-tokenizer": cmd_train_tokenizer, "diagnose": cmd_diagnose}
 

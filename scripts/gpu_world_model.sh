@@ -11,6 +11,7 @@
 #                                                       DEST/export_STEP.tar.NN (join: cat export_STEP.tar.* | tar x);
 #                                                       one export per call at growing steps = a compute curve
 #   bash scripts/gpu_world_model.sh stop RUN            SIGTERM: every trainer saves a checkpoint and exits
+# WRONG_DEST=0.15 bash scripts/gpu_world_model.sh data ...   adds wrong-container carries to the mixture (below)
 # CONFIG=ablation_no_id:bussing_latent_gpu TRAIN=no_id bash scripts/gpu_world_model.sh train|status|export ...
 #   trains / exports another config on the same demos into RUN/TRAIN (exports named TRAIN_STEP): the paper's
 #   equal-budget ablations (ablation_no_id, ablation_no_cvi, ablation_no_decouple, ablation_forward_only)
@@ -32,6 +33,10 @@ data)
   for s in 27 28 29 30; do knobs[$s]="--grasp-noise 0.04"; done
   for s in 31 32 33; do knobs[$s]="--action-noise 0.012"; done
   for s in 34 35; do knobs[$s]="--release-noise 0.08"; done
+  # WRONG_DEST=P: two of the clean processes carry each object to the other class's container with probability P
+  # (a bussing language failure, which the confused policies make and the default data never shows; not reverse
+  # bussing, whose every object goes to the swapped container). Not measured yet (docs/world_model.md)
+  if [ -n "${WRONG_DEST:-}" ]; then for s in 25 26; do knobs[$s]="--wrong-destination-prob $WRONG_DEST"; done; fi
   for s in "${!knobs[@]}"; do
     # an episode cut off by the deadline stays a temporary directory, which the store ignores
     JAX_PLATFORMS=cpu timeout $secs python3 -m sc3_jax.cli sim demos --out $D --episodes 100000 --seed $s ${knobs[$s]} \

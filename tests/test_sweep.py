@@ -190,7 +190,7 @@ def test_report_numbers_come_from_compute(setup, tmp_path):
                 assert (math.isnan(a) and math.isnan(c)) or a == pytest.approx(c)
     text = md.read_text()
     row = next(line for line in text.splitlines() if line.startswith("| offline |"))
-    assert report._ci(t["faithfulness"]["physics"]["offline"]["splits"]["overall"]["mmrv"]) in row
+    assert report.ci(t["faithfulness"]["physics"]["offline"]["splits"]["overall"]["mmrv"]) in row
     assert t["tau"]["chosen"] in ("inf", "1.0", "0.5") and t["protocol"]["calibration"]["n"] == 1
     assert (tmp_path / "rep" / "correlation.png").stat().st_size > 1000
     assert (tmp_path / "rep" / "u_chunk.png").exists() and (tmp_path / "rep" / "report.html").exists()
@@ -199,6 +199,76 @@ def test_report_numbers_come_from_compute(setup, tmp_path):
     inf_row = next(e for e in t["termination"] if e["tau"] == "inf")
     assert inf_row["faithfulness"] == t["main"]["online"]
     assert all(v == 0.0 for v in inf_row["termination_rate"].values())
+
+
+def test_real_from_links_the_real_rollouts_and_refuses_another_protocol(setup, tmp_path):
+    """--real-from starts a store from another store's real rollouts (hard links, nothing re-simulated) for this
+    sweep's policies and seeds only, and refuses a source run with another protocol before writing anything."""
+    _, cfg = setup
+    src = ResultsStore(cfg.out)
+    one = dataclasses.replace(cfg, out=str(tmp_path / "one"), policies=POLICIES[:1], modes=("real",),
+                              calibration_episodes=0, real_from=cfg.out)
+    sweep.run_sweep(one)
+    got = {r["id"]: r for r in ResultsStore(one.out).records()}
+    want = {r["id"]: r for r in src.records() if r["mode"] == "real" and r["policy"] == POLICIES[0]
+            and r["seed"] not in seed_blocks(cfg)["calibration"]}
+    assert got == want and len(got) == 3
+    assert all(os.path.samefile(ResultsStore(one.out).array_path(i), src.array_path(i)) for i in got)
+    sweep.run_sweep(one)  # resumes: nothing copied twice
+    assert len(ResultsStore(one.out).records()) == 3
+    for change, match in ((dict(episode_seconds=1.2), "episode_seconds"), (dict(degradations=False), "degradations")):
+        bad = dataclasses.replace(one, out=str(tmp_path / f"bad_{len(match)}"), **change)
+        with pytest.raises(ValueError, match=match):
+            sweep.run_sweep(bad)
+        assert ResultsStore(bad.out).records() == []
+
+
+def _flip_first_object(store: Path, mode: str, split: str):
+    """Flip every criterion of the first object of the first ``mode`` record of ``split`` in a store."""
+    lines = (store / "results.jsonl").read_text().splitlines()
+    i = next(k for k, line in enumerate(lines) if json.loads(line)["mode"] == mode
+             and json.loads(line)["split"] == split)
+    r = json.loads(lines[i])
+    r["objects"][0].update({c: not r["objects"][0][c] for c in metrics.CRITERIA})
+    lines[i] = json.dumps(r)
+    (store / "results.jsonl").write_text("\n".join(lines) + "\n")
+
+
+def test_compute_curve_over_sweeps_sharing_one_real_set(setup, tmp_path):
+    """sc3 curve: each point's numbers are its store's report numbers, the floor is the shared real set's, and
+    points whose real rollouts differ are refused."""
+    import shutil
+
+    from sc3_jax.evaluate import curve
+    _, cfg = setup
+    second = dataclasses.replace(cfg, out=str(tmp_path / "second"), modes=("real", "online"), real_from=cfg.out)
+    sweep.run_sweep(second)
+    _flip_first_object(Path(second.out), "online", "in_distribution")  # so the two points differ
+    points = [{"label": "a", "store": cfg.out, "steps": 10, "batch": 2, "device": "2-core CPU", "hours": 0.1},
+              {"label": "b", "store": second.out, "steps": 40, "batch": 2, "device": "GPU", "hours": 0.05}]
+    spec = tmp_path / "curve.json"
+    spec.write_text(json.dumps({"title": "t", "points": points}))
+    md = curve.render(spec, tmp_path / "out", draws=200)
+    c = json.loads((tmp_path / "out" / "curve.json").read_text())
+    for p, store in zip(c["points"], (cfg.out, second.out)):
+        t = report.compute(store, draws=200)
+        assert p["online"]["in_distribution"] == t["faithfulness"]["physics"]["online"]["splits"]["in_distribution"]
+        assert p["windows"] == p["steps"] * p["batch"] and p["cases"] == t["cases"]["online"]
+    assert c["floor"]["in_distribution"] == t["faithfulness"]["physics"]["policy_blind"]["splits"]["in_distribution"]
+    assert c["points"][0]["online"] != c["points"][1]["online"]
+    text = md.read_text()
+    assert "| a | 2-core CPU, 0.1 h | 20 |" in text and "policy-blind (floor)" in text
+    assert (tmp_path / "out" / "curve.png").stat().st_size > 1000
+    # a point swept against other real rollouts
+    third = tmp_path / "third"
+    shutil.copytree(second.out, third)
+    _flip_first_object(third, "real", "in_distribution")
+    spec.write_text(json.dumps({"points": points + [dict(points[1], label="c", store=str(third))]}))
+    with pytest.raises(ValueError, match="real rollouts differ"):
+        curve.render(spec, tmp_path / "out2", draws=200)
+    spec.write_text(json.dumps({"points": [{"label": "x", "store": cfg.out}]}))
+    with pytest.raises(ValueError, match="lacks"):
+        curve.read_spec(spec)
 
 
 def test_sweep_resumes_after_sigkill_with_identical_results(setup):

@@ -171,7 +171,7 @@ REFERENCES = {"physics": "end to end: imagined (perception) vs real scored by ph
               "perception": "same instrument: imagined vs real, both scored by perception"}
 
 
-def _ci(cell: dict | None) -> str:
+def ci(cell: dict | None) -> str:
     """value [lo, hi] of a bootstrap summary."""
     if cell is None:
         return "-"
@@ -184,7 +184,7 @@ def _interval_rows(rows: dict, pick, splits) -> list[list[str]]:
         if name not in rows:
             continue
         cells = [pick(rows[name], s) for s in splits]
-        out.append([ROW_NAMES[name]] + [_ci(c.get(k) if c else None) for c in cells for k in ("pearson", "mmrv")])
+        out.append([ROW_NAMES[name]] + [ci(c.get(k) if c else None) for c in cells for k in ("pearson", "mmrv")])
     return out
 
 

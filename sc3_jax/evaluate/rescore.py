@@ -22,7 +22,7 @@ import json
 import os
 from pathlib import Path
 
-from sc3_jax.evaluate.results import ResultsStore
+from sc3_jax.evaluate.results import ResultsStore, score_strides
 
 
 def weights_digest(path: str | Path) -> str:
@@ -57,8 +57,7 @@ def rescore(results: str | Path, weights: str | Path | None = None, state_reader
                              f"weights the store was scored with (sha256 {was})")
         cfg["state_reader"] = str(state_reader)
     scorer = PerceptionScorer(perception.load(path))
-    # real rollouts were read at the world model's frame stride (2 where the store has no world-model rollouts)
-    wm_stride = next((r["stride"] for r in recs if "stride" in r), 2)
+    strides = score_strides(recs)
     changed: dict[str, int] = {}
     out = []
     for r in tqdm(recs, desc="rescore", unit="rollout", disable=not progress):
@@ -67,7 +66,7 @@ def rescore(results: str | Path, weights: str | Path | None = None, state_reader
         new = dict(r)
         if r["mode"] == "real":
             view = RolloutView(r["id"], frames, ic.objects, ic.destinations())
-            new["perception"], degraded = scorer.score_real(view, r["seed"], r.get("score_stride", wm_stride),
+            new["perception"], degraded = scorer.score_real(view, r["seed"], strides[r["id"]],
                                                             "perception_degraded" in r)
             if degraded:
                 new["perception_degraded"] = degraded

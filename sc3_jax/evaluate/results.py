@@ -45,6 +45,13 @@ def seed_blocks(cfg) -> dict[str, list[int]]:
     return blocks
 
 
+def score_strides(records: list[dict]) -> dict[str, int]:
+    """The frame stride each real record of a store was scored at: its ``score_stride``, or for a record from
+    before that field the store's world-model stride (2 where the store has no world-model rollouts)."""
+    wm_stride = next((r["stride"] for r in records if "stride" in r), 2)
+    return {r["id"]: r.get("score_stride", wm_stride) for r in records if r["mode"] == "real"}
+
+
 def terminated_at(u: np.ndarray, tau: float) -> np.ndarray:
     """First chunk with U > tau per episode (-1: never). ``u`` [B, N]. Cutting a ``tau=inf`` rollout with this gives
     exactly the termination a rollout run with ``tau`` reports (``rollout.Rollout``)."""

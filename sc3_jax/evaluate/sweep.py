@@ -27,12 +27,14 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import os
+import shutil
 import time
 from pathlib import Path
 
 import numpy as np
 
-from sc3_jax.evaluate.results import EVAL_MODES, SPLITS, ResultsStore, rollout_id, seed_blocks
+from sc3_jax.evaluate.results import EVAL_MODES, SPLITS, ResultsStore, rollout_id, score_strides, seed_blocks
 
 SHIPPED_WORLD_MODEL = Path(__file__).resolve().parent / "shipped" / "bussing_sim"
 
@@ -74,7 +76,10 @@ class SweepConfig:
     # Euler steps of the inverse-dynamics re-read (None: the world model's config). It yields U_chunk only, never the
     # frames or the outcomes; 2 instead of 8 makes an online rollout ~35% cheaper (docs/sweep.md#cost-and-scale)
     inverse_steps: int | None = None
-    progress: bool = True
+    # start from another store's real rollouts (hard links; same protocol and scorer): world models compared on one
+    # real set, which is paid for once (e.g. the checkpoints of a compute curve, docs/results.md)
+    real_from: str | None = None
+    progress: bool = True  # progress bar over rollouts
 
     def to_json(self) -> dict:
         d = dataclasses.asdict(self)
@@ -157,9 +162,12 @@ def run_sweep(cfg: SweepConfig) -> Path:
         wcfg = replace(wcfg, rollout=dict(tau_units=cfg.tau_units))  # one unit convention
         reader = perception.load(cfg.state_reader) if cfg.state_reader else p_params
         ro = ro_mod.Rollout(wcfg, stats, state_reader=perception.state_reader(reader))
-    env = make_env(tuple(ro.spec.image_size) if ro else (64, 64))
+    image_size, score_stride = (tuple(ro.spec.image_size), ro.spec.stride) if ro else ((64, 64), 2)
+    env = make_env(image_size)
     seconds = cfg.episode_seconds or (wcfg.rollout.episode_seconds if ro else 20.0)
     max_steps = int(round(seconds * env.control_hz))
+    if cfg.real_from and "real" in cfg.modes:
+        copy_real(store, cfg.real_from, [n for n, _, _ in policies], real_seeds, image_size, score_stride)
     done = store.done()
     total = len(policies) * sum(len(real_seeds) if m == "real" else sum(len(b) for b, _ in wm_blocks[m])
                                 for m in cfg.modes)
@@ -172,7 +180,7 @@ def run_sweep(cfg: SweepConfig) -> Path:
                 rid = rollout_id(name, seed, "real")
                 if rid in done:
                     continue
-                rec, arrays = run_real(env, name, task, policy, seed, scorer, max_steps, ro.spec.stride if ro else 2,
+                rec, arrays = run_real(env, name, task, policy, seed, scorer, max_steps, score_stride,
                                        cfg.degradations)
                 store.save_arrays(rid, **arrays)
                 store.append([{"id": rid, "mode": "real", "seed": seed, **base, **rec}])
@@ -195,6 +203,47 @@ def run_sweep(cfg: SweepConfig) -> Path:
     (store.root / "timing.json").write_text(json.dumps({"seconds_last_run": time.time() - t0,
                                                         "devices": [str(d) for d in jax.devices()]}))
     return store.root
+
+
+def copy_real(store: ResultsStore, source: str | Path, policies: list[str], seeds: list[int],
+              image_size: tuple[int, int], score_stride: int) -> int:
+    """Hard-link into ``store`` the real rollouts of the results store ``source`` for ``policies`` x ``seeds`` that
+    ``store`` lacks; returns how many. A real rollout depends on its policy and seed and on the episode length, the
+    degradations scored, the perception weights, the frame size and the scoring stride: a source that differs in
+    any of them raises, so a copied rollout is the one this sweep would have run (the simulator is deterministic per
+    seed)."""
+    src = ResultsStore(source)
+    if not (src.root / "sweep.json").exists():
+        raise ValueError(f"--real-from {source}: not a results store (no sweep.json)")
+    theirs, ours = src.config(), store.config()
+    keys = ("episode_seconds", "degradations", "perception_sha256")
+    diff = {k: (theirs.get(k), ours.get(k)) for k in keys if theirs.get(k) != ours.get(k)}
+    if diff:
+        raise ValueError(f"--real-from {source}: its real rollouts were run or scored otherwise (source, this "
+                         f"sweep): {diff}")
+    have, want = store.done(), {rollout_id(p, s, "real") for p in policies for s in seeds}
+    every = src.records()
+    recs = [r for r in every if r["id"] in want and r["id"] not in have]
+    if not recs:
+        return 0
+    size = tuple(src.load_arrays(recs[0]["id"])["frames"].shape[-3:-1])
+    if size != tuple(image_size):
+        raise ValueError(f"--real-from {source}: its frames are {size}, this world model's {tuple(image_size)}")
+    strides = score_strides(every)
+    stride = {r["id"]: strides[r["id"]] for r in recs if strides[r["id"]] != score_stride}
+    if stride:
+        raise ValueError(f"--real-from {source}: scored at frame strides {sorted(set(stride.values()))} (e.g. "
+                         f"{next(iter(stride))}), this world model's is {score_stride}")
+    for r in recs:
+        dst = store.array_path(r["id"])
+        dst.parent.mkdir(parents=True, exist_ok=True)
+        if not dst.exists():
+            try:
+                os.link(src.array_path(r["id"]), dst)
+            except OSError:  # another file system
+                shutil.copy2(src.array_path(r["id"]), dst)
+    store.append(recs)
+    return len(recs)
 
 
 def _resolve(spec: str):

@@ -1,0 +1,126 @@
+"""Faithfulness against training compute: several world-model checkpoints, each swept online against one real set,
+as one table and one plot (``sc3 curve SPEC``).
+
+A curve is a small JSON file (e.g. ``docs/compute_curve.json``)::
+
+    {"title": "...", "points": [
+      {"label": "CPU step 2880", "store": "~/sc3-runs/curve/cpu_2880", "steps": 2880, "batch": 12,
+       "device": "2-core CPU", "hours": 1.8},
+      ...]}
+
+``steps`` x ``batch`` is the training windows a checkpoint has seen (the x axis: comparable across devices);
+``device`` and ``hours`` say what that cost where it ran (from the training log, stated by whoever trained it).
+Every faithfulness number comes from the stores (``report.compute``): r and MMRV of the online rollouts at tau = inf
+against the real rollouts scored by physics, with the paired bootstrap intervals, per split, plus the policy-blind
+floor and the noise ceiling. The points must share their real rollouts (``sc3 sweep --real-from``), which is checked:
+a curve whose floor moves between points would compare checkpoints on different tests.
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from sc3_jax.evaluate import report
+
+SPLITS = ("in_distribution", "out_of_distribution")
+FIELDS = ("label", "store", "steps", "batch", "device", "hours")
+
+
+def read_spec(path: str | Path) -> dict:
+    """The curve spec at ``path``, checked (every point has every field; ``store`` may start with ``~``)."""
+    spec = json.loads(Path(path).read_text())
+    points = spec.get("points") or []
+    if not points:
+        raise ValueError(f"{path}: no points")
+    for i, p in enumerate(points):
+        missing = [f for f in FIELDS if f not in p]
+        if missing:
+            raise ValueError(f"{path}: point {i} ({p.get('label', '?')}) lacks {missing}")
+        p["store"] = str(Path(p["store"]).expanduser())
+    return spec
+
+
+def compute(spec: dict, draws: int = 2000) -> dict:
+    """Every number of the curve (JSON-serialisable): per point its compute and its online rows per split."""
+    points, real = [], None
+    for p in spec["points"]:
+        t = report.compute(p["store"], draws=draws)
+        if real is None:
+            real = t["rates"]["real"]
+            rows = t["faithfulness"]["physics"]
+            floor = {s: rows["policy_blind"]["splits"].get(s) for s in SPLITS}
+            ceiling = {s: rows["ceiling"]["splits"].get(s) for s in SPLITS}
+        elif t["rates"]["real"] != real:
+            raise ValueError(f"{p['store']}: its real rollouts differ from {spec['points'][0]['store']}'s; sweep "
+                             "every point against one real set (sc3 sweep --real-from)")
+        online = t["faithfulness"]["physics"].get("online")
+        if online is None:
+            raise ValueError(f"{p['store']}: no online rollouts on the evaluation seeds")
+        points.append({**p, "windows": p["steps"] * p["batch"], "cases": t["cases"]["online"],
+                       "real_cases": t["counts"]["real"],
+                       "gates_failed": None if t["diagnose"]["gates"] is None else
+                       [g["gate"] for g in t["diagnose"]["gates"] if g.get("pass") is False],
+                       "online": {s: online["splits"].get(s) for s in SPLITS},
+                       "per_criterion": online.get("per_criterion", {})})
+    return {"title": spec.get("title", "Faithfulness against training compute"), "points": points,
+            "floor": floor, "ceiling": ceiling, "draws": draws}
+
+
+def markdown(c: dict) -> str:
+    head = ["checkpoint", "device, hours", "training windows", "online rollouts", "gates failed"]
+    head += [f"{s.replace('_', ' ')} {k}" for s in SPLITS for k in ("r", "MMRV")]
+    rows = []
+    for p in c["points"]:
+        cells = [p["label"], f"{p['device']}, {p['hours']:g} h", f"{p['windows']:,}", str(p["cases"]),
+                 str(len(p["gates_failed"])) if p["gates_failed"] is not None else "-"]
+        rows.append(cells + [report.ci((p["online"][s] or {}).get(k)) for s in SPLITS for k in ("pearson", "mmrv")])
+    for name, row in (("policy-blind (floor)", c["floor"]), ("noise ceiling", c["ceiling"])):
+        rows.append([name, "", "", "", ""] + [report.ci((row[s] or {}).get(k)) for s in SPLITS
+                                              for k in ("pearson", "mmrv")])
+    lines = [f"# {c['title']}", "",
+             f"Online (tau = inf) against real rollouts scored by physics; value [95% paired bootstrap interval over "
+             f"initial conditions, {c['draws']} draws].", "",
+             "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    lines += ["| " + " | ".join(r) + " |" for r in rows]
+    return "\n".join(lines) + "\n"
+
+
+def plot(c: dict, path: Path) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4.2))
+    xs = [p["windows"] for p in c["points"]]
+    markers = {d: m for d, m in zip(dict.fromkeys(p["device"] for p in c["points"]), "os^Dv")}
+    for ax, key, name in zip(axes, ("pearson", "mmrv"), ("Pearson r (higher is better)", "MMRV (lower is better)")):
+        for split, color, dx in (("in_distribution", "tab:blue", 0.97), ("out_of_distribution", "tab:orange", 1.03)):
+            cells = [(x * dx, (p["online"][split] or {}).get(key), p) for x, p in zip(xs, c["points"])]
+            cells = [(x, v, p) for x, v, p in cells if v is not None]
+            for x, v, p in cells:
+                ax.errorbar([x], [v["value"]], yerr=[[v["value"] - v["lo"]], [v["hi"] - v["value"]]],
+                            fmt=markers.get(p["device"], "o"), color=color, capsize=3)
+            floor = c["floor"][split]
+            if floor and floor.get(key):
+                f = floor[key]
+                ax.axhspan(f["lo"], f["hi"], color=color, alpha=0.12)
+                ax.axhline(f["value"], color=color, ls=":", lw=1, label=f"{split.replace('_', ' ')} (band: floor)")
+        for x, p in zip(xs, c["points"]):
+            ax.annotate(p["label"], (x, ax.get_ylim()[0]), fontsize=7, rotation=90, va="bottom", ha="right")
+        devices = ", ".join(f"{m}: {d}" for d, m in markers.items())
+        ax.set(xscale="log", xlabel=f"training windows seen ({devices})", title=name)
+        ax.legend(fontsize=7)
+    fig.suptitle(c["title"], fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def render(spec_path: str | Path, out: str | Path, draws: int = 2000) -> Path:
+    """Write curve.json, curve.md and curve.png to ``out``; returns curve.md."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    c = compute(read_spec(spec_path), draws)
+    (out / "curve.json").write_text(json.dumps(c, indent=1))
+    plot(c, out / "curve.png")
+    (out / "curve.md").write_text(markdown(c) + "\n![curve](curve.png)\n")
+    return out / "curve.md"
