@@ -20,7 +20,7 @@ from sc3_jax import checkpoint, rollout, train
 from sc3_jax.config import load_config, replace
 from sc3_jax.data.norm_stats import NormStats
 from sc3_jax.evaluate import annotation, metrics, perception, report, sweep
-from sc3_jax.evaluate.results import ResultsStore, seed_blocks
+from sc3_jax.evaluate.results import ResultsStore, rollout_id, seed_blocks
 from sc3_jax.evaluate.scorers import HumanScorer, RolloutView
 from sc3_jax.policies import resolve
 
@@ -203,24 +203,56 @@ def test_report_numbers_come_from_compute(setup, tmp_path):
 
 def test_real_from_links_the_real_rollouts_and_refuses_another_protocol(setup, tmp_path):
     """--real-from starts a store from another store's real rollouts (hard links, nothing re-simulated) for this
-    sweep's policies and seeds only, and refuses a source run with another protocol before writing anything."""
+    sweep's policies and seeds only, simulates the seeds the source lacks, and refuses a source run with another
+    protocol before creating anything."""
+    import shutil
     _, cfg = setup
     src = ResultsStore(cfg.out)
-    one = dataclasses.replace(cfg, out=str(tmp_path / "one"), policies=POLICIES[:1], modes=("real",),
+    one = dataclasses.replace(cfg, out=str(tmp_path / "one"), policies=POLICIES[:1], modes=("real",), episodes=3,
                               calibration_episodes=0, real_from=cfg.out)
     sweep.run_sweep(one)
     got = {r["id"]: r for r in ResultsStore(one.out).records()}
     want = {r["id"]: r for r in src.records() if r["mode"] == "real" and r["policy"] == POLICIES[0]
             and r["seed"] not in seed_blocks(cfg)["calibration"]}
-    assert got == want and len(got) == 3
-    assert all(os.path.samefile(ResultsStore(one.out).array_path(i), src.array_path(i)) for i in got)
-    sweep.run_sweep(one)  # resumes: nothing copied twice
-    assert len(ResultsStore(one.out).records()) == 3
-    for change, match in ((dict(episode_seconds=1.2), "episode_seconds"), (dict(degradations=False), "degradations")):
-        bad = dataclasses.replace(one, out=str(tmp_path / f"bad_{len(match)}"), **change)
+    new = rollout_id(POLICIES[0], cfg.seed0 + 2, "real")  # the third evaluation seed: not in the source
+    assert set(got) == set(want) | {new} and all(got[i] == want[i] for i in want)
+    assert all(os.path.samefile(ResultsStore(one.out).array_path(i), src.array_path(i)) for i in want)
+    assert os.stat(ResultsStore(one.out).array_path(new)).st_nlink == 1  # simulated here, not linked
+    # resumes without the source (it may have moved): nothing is copied twice, and real_from may differ
+    sweep.run_sweep(dataclasses.replace(one, real_from=str(tmp_path / "gone")))
+    assert len(ResultsStore(one.out).records()) == 4
+    # a source whose real rollouts the sweep would not have run: refused before the store exists
+    retasked = tmp_path / "retasked"
+    shutil.copytree(cfg.out, retasked)
+    lines = [json.loads(line) for line in (retasked / "results.jsonl").read_text().splitlines()]
+    for r in lines:
+        r["task"] = "reverse" if r["policy"] == POLICIES[0] else r["task"]
+    (retasked / "results.jsonl").write_text("".join(json.dumps(r) + "\n" for r in lines))
+    other = tmp_path / "other.npz"
+    perception.save(other, perception.init(jax.random.key(2)))
+    for k, (change, match) in enumerate(((dict(episode_seconds=1.2), "episode_seconds"),
+                                         (dict(degradations=False), "degradations"),
+                                         (dict(perception=str(other)), "perception_sha256"),
+                                         (dict(real_from=str(retasked)), "task"),
+                                         (dict(modes=("online",)), "modes"))):
+        bad = dataclasses.replace(one, out=str(tmp_path / f"bad_{k}"), **change)
         with pytest.raises(ValueError, match=match):
             sweep.run_sweep(bad)
-        assert ResultsStore(bad.out).records() == []
+        assert not Path(bad.out).exists()
+
+
+def test_reading_a_store_never_writes_and_its_sweep_repairs_a_cut_line(tmp_path):
+    """A report or a --real-from reading a store while its sweep appends must not cut the line being written; the
+    store's own sweep, resuming after a kill, truncates the cut line before appending."""
+    cfg = sweep.SweepConfig(out=str(tmp_path / "s"))
+    store = ResultsStore(cfg.out, cfg.to_json())
+    store.append([{"id": "a", "mode": "real"}])
+    with open(store.path, "a") as fh:
+        fh.write('{"id": "b", "mo')
+    raw = store.path.read_bytes()
+    assert [r["id"] for r in ResultsStore(cfg.out).records()] == ["a"] and store.path.read_bytes() == raw
+    ResultsStore(cfg.out, cfg.to_json())
+    assert store.path.read_bytes() == raw[:raw.rfind(b"\n") + 1]
 
 
 def _flip_first_object(store: Path, mode: str, split: str):
@@ -266,9 +298,19 @@ def test_compute_curve_over_sweeps_sharing_one_real_set(setup, tmp_path):
     spec.write_text(json.dumps({"points": points + [dict(points[1], label="c", store=str(third))]}))
     with pytest.raises(ValueError, match="real rollouts differ"):
         curve.render(spec, tmp_path / "out2", draws=200)
-    spec.write_text(json.dumps({"points": [{"label": "x", "store": cfg.out}]}))
-    with pytest.raises(ValueError, match="lacks"):
-        curve.read_spec(spec)
+    fourth = tmp_path / "fourth"  # the same evaluation rollouts, another ceiling rollout
+    shutil.copytree(second.out, fourth)
+    lines = [json.loads(line) for line in (fourth / "results.jsonl").read_text().splitlines()]
+    rec = next(r for r in lines if r["mode"] == "real" and r["seed"] in seed_blocks(cfg)["ceiling"])
+    rec["objects"][0]["language"] = not rec["objects"][0]["language"]
+    (fourth / "results.jsonl").write_text("".join(json.dumps(r) + "\n" for r in lines))
+    spec.write_text(json.dumps({"points": points + [dict(points[1], label="d", store=str(fourth))]}))
+    with pytest.raises(ValueError, match=rec["id"]):
+        curve.render(spec, tmp_path / "out3", draws=200)
+    for bad, match in (({"label": "x", "store": cfg.out}, "lacks"), (dict(points[0], steps="2880"), "steps")):
+        spec.write_text(json.dumps({"points": [bad]}))
+        with pytest.raises(ValueError, match=match):
+            curve.read_spec(spec)
 
 
 def test_sweep_resumes_after_sigkill_with_identical_results(setup):

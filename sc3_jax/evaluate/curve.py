@@ -21,6 +21,7 @@ import json
 from pathlib import Path
 
 from sc3_jax.evaluate import report
+from sc3_jax.evaluate.results import ResultsStore, seed_blocks
 
 SPLITS = ("in_distribution", "out_of_distribution")
 FIELDS = ("label", "store", "steps", "batch", "device", "hours")
@@ -36,23 +37,42 @@ def read_spec(path: str | Path) -> dict:
         missing = [f for f in FIELDS if f not in p]
         if missing:
             raise ValueError(f"{path}: point {i} ({p.get('label', '?')}) lacks {missing}")
+        bad = [f for f, kind in (("steps", int), ("batch", int), ("hours", (int, float)))
+               if not isinstance(p[f], kind) or isinstance(p[f], bool) or p[f] < 0]
+        if bad:
+            raise ValueError(f"{path}: point {i} ({p['label']}): {bad} must be non-negative numbers "
+                             "(steps and batch integers)")
         p["store"] = str(Path(p["store"]).expanduser())
     return spec
 
 
+def _real_set(store: str) -> dict:
+    """What the floor and the ceiling are computed from: the protocol's evaluation and ceiling seeds and the physics
+    outcomes of the real rollouts on them."""
+    st = ResultsStore(store)
+    blocks = seed_blocks(st.config())
+    seeds = set(blocks["evaluation"]) | set(blocks["ceiling"])
+    return {"blocks": {k: blocks[k] for k in ("evaluation", "ceiling")},
+            "objects": {r["id"]: r["objects"] for r in st.records() if r["mode"] == "real" and r["seed"] in seeds}}
+
+
 def compute(spec: dict, draws: int = 2000) -> dict:
     """Every number of the curve (JSON-serialisable): per point its compute and its online rows per split."""
-    points, real = [], None
+    points, first = [], spec["points"][0]["store"]
+    real = _real_set(first)
     for p in spec["points"]:
+        other = _real_set(p["store"])
+        if other != real:
+            ids = sorted(set(real["objects"]) ^ set(other["objects"]) or
+                         {i for i in real["objects"] if real["objects"][i] != other["objects"][i]})
+            why = "other evaluation or ceiling seeds" if other["blocks"] != real["blocks"] else f"e.g. {ids[:3]}"
+            raise ValueError(f"{p['store']}: its real rollouts differ from {first}'s ({why}); sweep every point "
+                             "against one real set (sc3 sweep --real-from)")
         t = report.compute(p["store"], draws=draws)
-        if real is None:
-            real = t["rates"]["real"]
+        if not points:
             rows = t["faithfulness"]["physics"]
             floor = {s: rows["policy_blind"]["splits"].get(s) for s in SPLITS}
             ceiling = {s: rows["ceiling"]["splits"].get(s) for s in SPLITS}
-        elif t["rates"]["real"] != real:
-            raise ValueError(f"{p['store']}: its real rollouts differ from {spec['points'][0]['store']}'s; sweep "
-                             "every point against one real set (sc3 sweep --real-from)")
         online = t["faithfulness"]["physics"].get("online")
         if online is None:
             raise ValueError(f"{p['store']}: no online rollouts on the evaluation seeds")

@@ -45,10 +45,13 @@ def seed_blocks(cfg) -> dict[str, list[int]]:
     return blocks
 
 
+REAL_ONLY_STRIDE = 2  # a sweep without a world model scores real frames at 10 Hz, the rollouts' rate
+
+
 def score_strides(records: list[dict]) -> dict[str, int]:
     """The frame stride each real record of a store was scored at: its ``score_stride``, or for a record from
-    before that field the store's world-model stride (2 where the store has no world-model rollouts)."""
-    wm_stride = next((r["stride"] for r in records if "stride" in r), 2)
+    before that field the store's world-model stride (``REAL_ONLY_STRIDE`` where it has no world-model rollouts)."""
+    wm_stride = next((r["stride"] for r in records if "stride" in r), REAL_ONLY_STRIDE)
     return {r["id"]: r.get("score_stride", wm_stride) for r in records if r["mode"] == "real"}
 
 
@@ -71,9 +74,10 @@ class ResultsStore:
     def _check_config(self, config: dict):
         self.root.mkdir(parents=True, exist_ok=True)
         cfg_path = self.root / "sweep.json"
-        # modes may be added to a store (records are per mode); anything else that changes results may not
+        # modes may be added to a store (records are per mode); anything else that changes results may not.
+        # real_from only says where identical real rollouts were copied from (the source may move later)
         keep = lambda d: {k: v for k, v in d.items()  # noqa: E731
-                          if k not in ("progress", "out", "modes", "perception_sha256")}
+                          if k not in ("progress", "out", "modes", "perception_sha256", "real_from")}
         if cfg_path.exists():
             old = json.loads(cfg_path.read_text())
             # which perception weights scored the store (a store from before digests were kept: unknown, accepted)
@@ -90,20 +94,27 @@ class ResultsStore:
                                  "--out or delete it")
             config = dict(config, modes=[m for m in EVAL_MODES if m in set(old["modes"]) | set(config["modes"])])
         cfg_path.write_text(json.dumps(config, indent=1))
+        self._repair()
 
     def config(self) -> dict:
         """The sweep's config as stored (``sweep.json``)."""
         return json.loads((self.root / "sweep.json").read_text())
 
     def records(self) -> list[dict]:
-        """Every complete line (a line cut by a kill is dropped and truncated away)."""
+        """Every complete line (a line cut by a kill, or still being written by a running sweep, is left out).
+        Reading never writes: a report or another sweep may read a store while its sweep runs."""
         if not self.path.exists():
             return []
         raw = self.path.read_bytes()
-        if raw and not raw.endswith(b"\n"):
-            raw = raw[:raw.rfind(b"\n") + 1]
-            self.path.write_bytes(raw)
+        raw = raw[:raw.rfind(b"\n") + 1]
         return [json.loads(line) for line in raw.decode().splitlines() if line.strip()]
+
+    def _repair(self):
+        """Truncate a line cut by a kill, before this store's own sweep appends to it."""
+        if self.path.exists():
+            raw = self.path.read_bytes()
+            if raw and not raw.endswith(b"\n"):
+                self.path.write_bytes(raw[:raw.rfind(b"\n") + 1])
 
     def done(self) -> set[str]:
         return {r["id"] for r in self.records()}

@@ -25,6 +25,7 @@ policy needs a task (a zoo policy has its own).
 from __future__ import annotations
 
 import dataclasses
+import errno
 import json
 import math
 import os
@@ -34,7 +35,8 @@ from pathlib import Path
 
 import numpy as np
 
-from sc3_jax.evaluate.results import EVAL_MODES, SPLITS, ResultsStore, rollout_id, score_strides, seed_blocks
+from sc3_jax.evaluate.results import (EVAL_MODES, REAL_ONLY_STRIDE, SPLITS, ResultsStore, rollout_id,
+                                     score_strides, seed_blocks)
 
 SHIPPED_WORLD_MODEL = Path(__file__).resolve().parent / "shipped" / "bussing_sim"
 
@@ -140,9 +142,12 @@ def run_sweep(cfg: SweepConfig) -> Path:
         raise ValueError("offline rollouts replay the real rollouts' actions: include 'real' in modes")
     if cfg.tau_units not in ("normalised", "raw"):
         raise ValueError(f"tau_units {cfg.tau_units!r}: 'normalised' or 'raw'")
+    if cfg.real_from and ("real" not in cfg.modes or not cfg.episode_seconds):
+        raise ValueError("--real-from copies real rollouts: it needs 'real' in modes and an explicit "
+                         "--episode-seconds (the length both stores' real rollouts ran for)")
     blocks = seed_blocks(cfg)
     weights = cfg.perception or perception.DEFAULT_WEIGHTS
-    store = ResultsStore(cfg.out, {**cfg.to_json(), "perception_sha256": weights_digest(weights)})
+    config = {**cfg.to_json(), "perception_sha256": weights_digest(weights)}
     p_params = perception.load(weights)
     scorer = PerceptionScorer(p_params)
     policies = [_resolve(p) for p in (cfg.policies or _zoo_names())]
@@ -162,12 +167,15 @@ def run_sweep(cfg: SweepConfig) -> Path:
         wcfg = replace(wcfg, rollout=dict(tau_units=cfg.tau_units))  # one unit convention
         reader = perception.load(cfg.state_reader) if cfg.state_reader else p_params
         ro = ro_mod.Rollout(wcfg, stats, state_reader=perception.state_reader(reader))
-    image_size, score_stride = (tuple(ro.spec.image_size), ro.spec.stride) if ro else ((64, 64), 2)
+    image_size, score_stride = (tuple(ro.spec.image_size), ro.spec.stride) if ro else ((64, 64), REAL_ONLY_STRIDE)
     env = make_env(image_size)
     seconds = cfg.episode_seconds or (wcfg.rollout.episode_seconds if ro else 20.0)
     max_steps = int(round(seconds * env.control_hz))
-    if cfg.real_from and "real" in cfg.modes:
-        copy_real(store, cfg.real_from, [n for n, _, _ in policies], real_seeds, image_size, score_stride)
+    # a refused --real-from source is refused before the store is created or written
+    copies = real_to_copy(cfg.real_from, config, {n: t for n, t, _ in policies}, real_seeds, image_size, score_stride,
+                          ResultsStore(cfg.out).done()) if cfg.real_from else []
+    store = ResultsStore(cfg.out, config)
+    link_real(store, cfg.real_from, copies)
     done = store.done()
     total = len(policies) * sum(len(real_seeds) if m == "real" else sum(len(b) for b, _ in wm_blocks[m])
                                 for m in cfg.modes)
@@ -205,45 +213,60 @@ def run_sweep(cfg: SweepConfig) -> Path:
     return store.root
 
 
-def copy_real(store: ResultsStore, source: str | Path, policies: list[str], seeds: list[int],
-              image_size: tuple[int, int], score_stride: int) -> int:
-    """Hard-link into ``store`` the real rollouts of the results store ``source`` for ``policies`` x ``seeds`` that
-    ``store`` lacks; returns how many. A real rollout depends on its policy and seed and on the episode length, the
-    degradations scored, the perception weights, the frame size and the scoring stride: a source that differs in
-    any of them raises, so a copied rollout is the one this sweep would have run (the simulator is deterministic per
-    seed)."""
+def real_to_copy(source: str | Path, config: dict, tasks: dict[str, str], seeds: list[int],
+                 image_size: tuple[int, int], score_stride: int, have: set[str]) -> list[dict]:
+    """The real records of the results store ``source`` for the policies of ``tasks`` (name -> task) x ``seeds``
+    that are not in ``have``, checked to be the rollouts the sweep of ``config`` would have run (the simulator is
+    deterministic per seed): the same task, episode length, degradations, perception weights, frame size and scoring
+    stride; raises otherwise. Reads the source without writing to it (its own sweep may be running)."""
+    want = {rollout_id(p, s, "real") for p in tasks for s in seeds} - have
+    if not want:
+        return []  # nothing left to copy: the source is not read (it may have moved since)
     src = ResultsStore(source)
     if not (src.root / "sweep.json").exists():
         raise ValueError(f"--real-from {source}: not a results store (no sweep.json)")
-    theirs, ours = src.config(), store.config()
+    theirs = src.config()
     keys = ("episode_seconds", "degradations", "perception_sha256")
-    diff = {k: (theirs.get(k), ours.get(k)) for k in keys if theirs.get(k) != ours.get(k)}
+    diff = {k: (theirs.get(k), config.get(k)) for k in keys if theirs.get(k) != config.get(k)}
     if diff:
         raise ValueError(f"--real-from {source}: its real rollouts were run or scored otherwise (source, this "
                          f"sweep): {diff}")
-    have, want = store.done(), {rollout_id(p, s, "real") for p in policies for s in seeds}
     every = src.records()
-    recs = [r for r in every if r["id"] in want and r["id"] not in have]
+    recs = [r for r in every if r["id"] in want]
     if not recs:
-        return 0
-    size = tuple(src.load_arrays(recs[0]["id"])["frames"].shape[-3:-1])
+        return []
+    strides = score_strides(every)
+    for what, bad in (("task", {r["id"]: r["task"] for r in recs if r["task"] != tasks[r["policy"]]}),
+                      ("scoring stride", {r["id"]: strides[r["id"]] for r in recs
+                                          if strides[r["id"]] != score_stride})):
+        if bad:
+            rid = next(iter(bad))
+            raise ValueError(f"--real-from {source}: {len(bad)} real rollouts differ in {what} from this sweep's "
+                             f"(e.g. {rid}: {bad[rid]})")
+    with np.load(src.array_path(recs[0]["id"])) as z:
+        size = tuple(z["frames"].shape[-3:-1])
     if size != tuple(image_size):
         raise ValueError(f"--real-from {source}: its frames are {size}, this world model's {tuple(image_size)}")
-    strides = score_strides(every)
-    stride = {r["id"]: strides[r["id"]] for r in recs if strides[r["id"]] != score_stride}
-    if stride:
-        raise ValueError(f"--real-from {source}: scored at frame strides {sorted(set(stride.values()))} (e.g. "
-                         f"{next(iter(stride))}), this world model's is {score_stride}")
+    return recs
+
+
+def link_real(store: ResultsStore, source: str | Path, recs: list[dict]) -> None:
+    """Hard-link the arrays of ``recs`` (records of the store ``source``, from :func:`real_to_copy`) into
+    ``store`` and append the records."""
+    src = ResultsStore(source) if recs else None
     for r in recs:
         dst = store.array_path(r["id"])
         dst.parent.mkdir(parents=True, exist_ok=True)
-        if not dst.exists():
-            try:
-                os.link(src.array_path(r["id"]), dst)
-            except OSError:  # another file system
-                shutil.copy2(src.array_path(r["id"]), dst)
-    store.append(recs)
-    return len(recs)
+        if dst.exists():
+            dst.unlink()  # arrays of a copy cut by a kill before its record was appended
+        try:
+            os.link(src.array_path(r["id"]), dst)
+        except OSError as e:
+            if e.errno != errno.EXDEV:
+                raise
+            shutil.copy2(src.array_path(r["id"]), dst)  # another file system
+    if recs:
+        store.append(recs)
 
 
 def _resolve(spec: str):
