@@ -76,6 +76,23 @@ def test_evaluator_rows_match_a_slow_reference_loop():
     assert set(rows) == {"online", "policy_blind", "ceiling"} and "split-half" in rows["ceiling"]["method"]
 
 
+def test_a_case_missing_on_one_side_leaves_both_sides():
+    """A partial sweep: a (policy, condition) without its online rollout is left out of the real side too, so the
+    rows equal those of both grids with that case removed (and rates stay rates: MMRV <= 1)."""
+    rng = np.random.default_rng(1)
+    pols, split_of, n = ["a", "b", "c"], ["in_distribution"] * 3, 8
+    passes = lambda: rng.integers(0, 4, (3, n, 3)).cumsum(-1)[..., ::-1].astype(float)  # noqa: E731
+    real, ev = (passes(), np.full((3, n), 3.0)), (passes(), np.full((3, n), 3.0))
+    run = np.ones((3, n))
+    run[2, 5:] = 0  # policy c's last 3 online rollouts not run yet
+    dropped = lambda g: (g[0] * run[..., None], g[1] * run)  # noqa: E731
+    partial = dropped(ev)
+    got = intervals.evaluator_rows(real, {"online": partial}, split_of, 50, seed=3)["online"]
+    want = intervals.evaluator_rows(dropped(real), {"online": dropped(ev)}, split_of, 50, seed=3)["online"]
+    assert got == want
+    assert 0 <= got["splits"]["in_distribution"]["mmrv"]["hi"] <= 1
+
+
 # ---------------------------------------------------------------------------------------------------------------
 # held-out tau and the report
 # ---------------------------------------------------------------------------------------------------------------

@@ -109,11 +109,12 @@ def plot(c: dict, path: Path) -> None:
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    import matplotlib.ticker
     fig, axes = plt.subplots(1, 2, figsize=(10, 4.2))
     xs = [p["windows"] for p in c["points"]]
     markers = {d: m for d, m in zip(dict.fromkeys(p["device"] for p in c["points"]), "os^Dv")}
     for ax, key, name in zip(axes, ("pearson", "mmrv"), ("Pearson r (higher is better)", "MMRV (lower is better)")):
-        for split, color, dx in (("in_distribution", "tab:blue", 0.97), ("out_of_distribution", "tab:orange", 1.03)):
+        for split, color, dx in (("in_distribution", "tab:blue", 0.95), ("out_of_distribution", "tab:orange", 1.05)):
             cells = [(x * dx, (p["online"][split] or {}).get(key), p) for x, p in zip(xs, c["points"])]
             cells = [(x, v, p) for x, v, p in cells if v is not None]
             for x, v, p in cells:
@@ -124,10 +125,11 @@ def plot(c: dict, path: Path) -> None:
                 f = floor[key]
                 ax.axhspan(f["lo"], f["hi"], color=color, alpha=0.12)
                 ax.axhline(f["value"], color=color, ls=":", lw=1, label=f"{split.replace('_', ' ')} (band: floor)")
-        for x, p in zip(xs, c["points"]):
-            ax.annotate(p["label"], (x, ax.get_ylim()[0]), fontsize=7, rotation=90, va="bottom", ha="right")
         devices = ", ".join(f"{m}: {d}" for d, m in markers.items())
-        ax.set(xscale="log", xlabel=f"training windows seen ({devices})", title=name)
+        ax.set(xscale="log", xlim=(min(xs) / 2, max(xs) * 2), xlabel=f"training windows seen ({devices})",
+               title=name)
+        ax.set_xticks(sorted(set(xs)), [f"{x / 1000:.3g}k" for x in sorted(set(xs))])
+        ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
         ax.legend(fontsize=7)
     fig.suptitle(c["title"], fontsize=10)
     fig.tight_layout()

@@ -118,9 +118,10 @@ def evaluator_rows(reference, evaluators: dict, split_of: list[str], draws: int,
         both = (ec > 0) & (rc > 0)
         if not both.any():
             continue
-        ecm, rcm = ec * both, rc * both
-        rows[name] = compare(bootstrap.rates(ep, ecm, one), bootstrap.rates(rp, rcm, one),
-                             bootstrap.rates(ep, ecm, w), bootstrap.rates(rp, rcm, w), split_of)
+        # a case missing on either side leaves both: its passes as well as its counts (else rates exceed 1)
+        (epm, ecm), (rpm, rcm) = ((x * both[..., None], c * both) for x, c in ((ep, ec), (rp, rc)))
+        rows[name] = compare(bootstrap.rates(epm, ecm, one), bootstrap.rates(rpm, rcm, one),
+                             bootstrap.rates(epm, ecm, w), bootstrap.rates(rpm, rcm, w), split_of)
     re_point, re_draws = bootstrap.rates(rp, rc, one), bootstrap.rates(rp, rc, w)
     rows["policy_blind"] = compare(policy_blind(re_point, split_of), re_point, policy_blind(re_draws, split_of),
                                    re_draws, split_of)
