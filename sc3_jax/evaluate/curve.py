@@ -77,7 +77,6 @@ def compute(spec: dict, draws: int = 2000) -> dict:
         if online is None:
             raise ValueError(f"{p['store']}: no online rollouts on the evaluation seeds")
         points.append({**p, "windows": p["steps"] * p["batch"], "cases": t["cases"]["online"],
-                       "real_cases": t["counts"]["real"],
                        "gates_failed": None if t["diagnose"]["gates"] is None else
                        [g["gate"] for g in t["diagnose"]["gates"] if g.get("pass") is False],
                        "online": {s: online["splits"].get(s) for s in SPLITS},
