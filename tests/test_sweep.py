@@ -192,6 +192,8 @@ def test_report_numbers_come_from_compute(setup, tmp_path):
     row = next(line for line in text.splitlines() if line.startswith("| offline |"))
     assert report.ci(t["faithfulness"]["physics"]["offline"]["splits"]["overall"]["mmrv"]) in row
     assert t["tau"]["chosen"] in ("inf", "1.0", "0.5") and t["protocol"]["calibration"]["n"] == 1
+    assert t["psnr"]["views"] == ["left", "right", "wrist"] and "| left | right | wrist | mean |" in text
+    assert "Incomplete sweep" not in text
     assert (tmp_path / "rep" / "correlation.png").stat().st_size > 1000
     assert (tmp_path / "rep" / "u_chunk.png").exists() and (tmp_path / "rep" / "report.html").exists()
     assert len(list((tmp_path / "rep").glob("*.mp4"))) == 1
@@ -199,6 +201,12 @@ def test_report_numbers_come_from_compute(setup, tmp_path):
     inf_row = next(e for e in t["termination"] if e["tau"] == "inf")
     assert inf_row["faithfulness"] == t["main"]["online"]
     assert all(v == 0.0 for v in inf_row["termination_rate"].values())
+
+
+def test_report_warns_while_a_mode_is_incomplete():
+    warn = report.incomplete({"counts": {"real": 8, "offline": 3, "online": 8}})
+    assert "offline 3 of 8" in warn and "online" not in warn
+    assert report.incomplete({"counts": {"real": 8, "offline": 0, "online": 8}}) == ""  # a mode not swept
 
 
 def test_real_from_links_the_real_rollouts_and_refuses_another_protocol(setup, tmp_path):

@@ -117,9 +117,17 @@ def compute(results: str | Path, taus=None, draws: int = 2000, seed: int = 0) ->
     if by["evaluation", "offline"]:
         pv = np.array([r["psnr_view"] for r in by["evaluation", "offline"].values()])
         out["psnr"] = {"per_view": [float(x) for x in np.nanmean(pv, 0)], "mean": float(np.nanmean(pv)),
-                       "rollouts": len(pv)}
+                       "rollouts": len(pv), "views": _views(cfg["world_model"], pv.shape[1])}
     out["diagnose"] = _diagnose_gates(cfg["world_model"])
     return out
+
+
+def _views(world_model: str, n: int) -> list[str]:
+    """The camera names of ``psnr_view``'s columns: the world model's views, in its order (``view i`` if the
+    model has moved or names a different count)."""
+    path = Path(world_model) / "config.json"
+    views = json.loads(path.read_text()).get("data", {}).get("views", []) if path.exists() else []
+    return list(views) if len(views) == n else [f"view {i}" for i in range(n)]
 
 
 def _diagnose_gates(world_model: str) -> dict:
@@ -240,9 +248,9 @@ def tables(t: dict) -> list[tuple[str, list[str], list[list[str]]]]:
                    for m in modes] for c in metrics.CATEGORIES]
     out.append(("Outcome reproduction per real outcome category (objects)", ["category"] + modes, rows))
     if "psnr" in t:
-        out.append(("Offline PSNR (dB, mean over valid frames)", ["view " + str(i) for i in
-                                                                 range(len(t["psnr"]["per_view"]))] + ["mean"],
-                    [[_fmt(x, 2) for x in t["psnr"]["per_view"]] + [_fmt(t["psnr"]["mean"], 2)]]))
+        p = t["psnr"]
+        out.append((f"Offline PSNR (dB, mean over valid frames of {p['rollouts']} rollouts)", p["views"] + ["mean"],
+                    [[_fmt(x, 2) for x in p["per_view"]] + [_fmt(p["mean"], 2)]]))
     d = t.get("diagnose") or {}
     if d.get("gates") is not None:
         out.append((f"World-model checkpoint gates (`sc3 diagnose` on {d['episodes']} held-out episodes of "
@@ -272,12 +280,21 @@ def tables(t: dict) -> list[tuple[str, list[str], list[list[str]]]]:
     return out
 
 
+def incomplete(t: dict) -> str:
+    """A warning line while a world-model mode has fewer evaluation rollouts than the real one ('' when none)."""
+    n = t["counts"]["real"]
+    short = [f"{m} {t['counts'][m]} of {n}" for m in ("offline", "online") if 0 < t["counts"][m] < n]
+    return (f"Incomplete sweep: {', '.join(short)} evaluation rollouts so far (rerun the sweep to resume). Intervals "
+            "over a split with a policy that has no rollout yet read nan." if short else "")
+
+
 def markdown(t: dict) -> str:
     tau = t["tau"]["chosen"]
+    warn = incomplete(t)
     parts = [f"# Sweep report\n\nResults: `{t['config']['out']}`; rollouts: {t['counts']}; compared cases: "
              f"{t['cases']}. tau* = {tau if tau is not None else '- (no calibration seeds: online rows untruncated)'}"
              f" ({t['tau']['units']} action units). Recompute every number with "
-             "`sc3_jax.evaluate.report.compute(RESULTS)`.\n"]
+             "`sc3_jax.evaluate.report.compute(RESULTS)`.\n" + (f"\n**{warn}**\n" if warn else "")]
     for title, header, rows in tables(t):
         parts.append(f"## {title}\n\n| " + " | ".join(header) + " |\n|" + "---|" * len(header) + "\n" +
                      "".join("| " + " | ".join(r) + " |\n" for r in rows))
@@ -286,6 +303,8 @@ def markdown(t: dict) -> str:
 
 def _html(t: dict, images: list[str], videos: list[str]) -> str:
     body = [f"<h1>Sweep report</h1><p>rollouts: {html.escape(str(t['counts']))}</p>"]
+    if incomplete(t):
+        body.append(f"<p><b>{html.escape(incomplete(t))}</b></p>")
     for title, header, rows in tables(t):
         body.append(f"<h2>{html.escape(title)}</h2><table border=1 cellpadding=4><tr>" +
                     "".join(f"<th>{html.escape(h)}</th>" for h in header) + "</tr>" +
