@@ -59,17 +59,23 @@ def test_evaluator_rows_match_a_slow_reference_loop():
     rows = intervals.evaluator_rows(intervals.grid(real, pols, seeds), {"online": intervals.grid(ev, pols, seeds)},
                                     split_of, draws, seed=5)
     w = bootstrap.multiplicities(n, draws, 5)
-    slow = {"pearson": [], "mmrv": []}
+    slow, minus_floor = {"pearson": [], "mmrv": []}, {"pearson": [], "mmrv": []}
     for b in range(draws):
         picks = [i for i in range(n) for _ in range(int(w[b, i]))]
         rows_of = lambda recs: [dict(r, episode=(i, k)) for k, i in enumerate(picks) for p in pols  # noqa: E731
                                 for r in calibrate.object_rows(recs[p, i], recs[p, i]["objects"])]
         f = calibrate.faith(rows_of(ev), rows_of(real))
+        real_rates = metrics.success_rates_by_split(rows_of(real))
+        floor = report._faith_rates(report._policy_blind(real_rates), real_rates)  # the same draw's guess
         for m in slow:
             slow[m].append(f["overall"][m])
+            minus_floor[m].append(f["overall"][m] - floor["overall"][m])
     for m in slow:
         cell = rows["online"]["splits"]["overall"][m]
         assert (cell["lo"], cell["hi"]) == pytest.approx(tuple(np.nanpercentile(slow[m], [2.5, 97.5])))
+        diff = rows["online"]["vs_floor"]["overall"][m]  # paired: evaluator and floor on one resample per draw
+        assert (diff["lo"], diff["hi"]) == pytest.approx(tuple(np.nanpercentile(minus_floor[m], [2.5, 97.5])))
+        assert diff["value"] == pytest.approx(cell["value"] - rows["policy_blind"]["splits"]["overall"][m]["value"])
     full = calibrate.faith([r for k in real for r in calibrate.object_rows(ev[k], ev[k]["objects"])],
                            [r for k in real for r in calibrate.object_rows(real[k], real[k]["objects"])])
     assert rows["online"]["splits"]["overall"]["pearson"]["value"] == pytest.approx(full["overall"]["pearson"])
@@ -180,8 +186,11 @@ def test_report_prints_every_row_with_its_interval(tmp_path):
             assert set(rows["online"]["per_criterion"][split]) == set(metrics.CRITERIA)
     assert "real_perception" in t["faithfulness"]["physics"]
     for name in ("noise ceiling", "policy-blind (floor)", "online (calibrated tau*)", "same instrument",
-                 "end to end", "POST HOC", "(chosen)"):
+                 "end to end", "POST HOC", "(chosen)", "Better than a guess?"):
         assert name in md
+    guess = md[md.index("Better than a guess?"):].split("\n## ")[0]  # the paired-difference table, one row each
+    assert [x.split(" | ")[0] for x in guess.splitlines() if x.startswith("| online")] == [
+        "| online (tau = inf)", "| online (calibrated tau*)"]
     line = next(x for x in md.splitlines() if x.startswith("| noise ceiling"))
     assert line.count("[") == 6  # r and MMRV with intervals for both splits and overall
     assert set(t["scorer_agreement"]) == {"clean", "blur"}

@@ -298,6 +298,8 @@ def test_compute_curve_over_sweeps_sharing_one_real_set(setup, tmp_path):
     assert c["points"][0]["online"] != c["points"][1]["online"]
     text = md.read_text()
     assert "| a | 2-core CPU, 0.1 h | 20 |" in text and "policy-blind (floor)" in text
+    vs = t["faithfulness"]["physics"]["online"]["vs_floor"]["in_distribution"]["pearson"]
+    assert c["points"][1]["vs_floor"]["in_distribution"]["pearson"] == vs and f"| b | {report.ci(vs)} |" in text
     assert (tmp_path / "out" / "curve.png").stat().st_size > 1000
     # a point swept against other real rollouts
     third = tmp_path / "third"

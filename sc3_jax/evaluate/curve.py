@@ -80,6 +80,7 @@ def compute(spec: dict, draws: int = 2000) -> dict:
                        "gates_failed": None if t["diagnose"]["gates"] is None else
                        [g["gate"] for g in t["diagnose"]["gates"] if g.get("pass") is False],
                        "online": {s: online["splits"].get(s) for s in SPLITS},
+                       "vs_floor": {s: online["vs_floor"].get(s) for s in SPLITS},
                        "per_criterion": online.get("per_criterion", {})})
     return {"title": spec.get("title", "Faithfulness against training compute"), "points": points,
             "floor": floor, "ceiling": ceiling, "draws": draws}
@@ -101,6 +102,12 @@ def markdown(c: dict) -> str:
              f"initial conditions, {c['draws']} draws].", "",
              "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     lines += ["| " + " | ".join(r) + " |" for r in rows]
+    head = ["checkpoint"] + [f"{s.replace('_', ' ')} {k} - floor" for s in SPLITS for k in ("r", "MMRV")]
+    lines += ["", "Better than a guess? The paired difference to the policy-blind floor on the same resampled "
+              "conditions (r > 0 and MMRV < 0 favour the checkpoint):", "",
+              "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    lines += ["| " + " | ".join([p["label"]] + [report.ci((p["vs_floor"][s] or {}).get(k)) for s in SPLITS
+                                                for k in ("pearson", "mmrv")]) + " |" for p in c["points"]]
     return "\n".join(lines) + "\n"
 
 

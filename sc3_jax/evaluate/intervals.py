@@ -8,6 +8,7 @@ annotators for both sides):
     online         the policy inside the world model, untruncated (tau = inf)
     online_tau     the same rollouts cut at the calibrated tau* (``calibrate.py``), when the sweep calibrated one
     real_perception  the real rollouts scored by perception (reference physics only): the scorer's own share
+                   (each of the rows above also carries ``vs_floor``: its paired difference to the floor)
     policy_blind   every policy gets its split's mean reference rate per criterion: the floor
     ceiling        an independent second set of real rollouts on other seeds, scored like the reference: how well
                    *the simulator itself* agrees with itself at this many conditions (the best any evaluator can
@@ -20,6 +21,8 @@ evaluator and the reference; a rollout missing on either side of a comparison is
 real set is resampled independently (its seeds are other initial conditions).
 """
 from __future__ import annotations
+
+import warnings
 
 import numpy as np
 
@@ -80,12 +83,35 @@ def compare(ev_point, re_point, ev_draws, re_draws, split_of: list[str], point_f
     return out
 
 
+def versus_floor(ev_point, re_point, ev_draws, re_draws, split_of: list[str]) -> dict:
+    """Paired difference to the policy-blind floor per split (all criteria pooled): r(evaluator) - r(floor) and
+    MMRV(evaluator) - MMRV(floor), both computed on the very same resample of conditions in every draw.
+
+    Reading an evaluator's interval against the floor's (the acceptance rule "lower bound above the floor's upper
+    bound") ignores that both come from the same real rollouts; the paired difference does not, so it is the
+    sharper test of "better than a guess". r > 0 and MMRV < 0 favour the evaluator."""
+    fl_point, fl_draws = policy_blind(re_point, split_of), policy_blind(re_draws, split_of)
+    out = {}
+    for split in SPLIT_ORDER:
+        if split != metrics.OVERALL and split not in split_of:
+            continue
+        pts = [_points(x, split_of, split) for x in (ev_point, fl_point, re_point, ev_draws, fl_draws, re_draws)]
+        if pts[0].shape[1] < 2:
+            continue
+        out[split] = {name: bootstrap.summary(float(fn(pts[0], pts[2])[0] - fn(pts[1], pts[2])[0]),
+                                              fn(pts[3], pts[5]) - fn(pts[4], pts[5]))
+                      for name, fn in (("pearson", bootstrap.pearson), ("mmrv", bootstrap.mmrv))}
+    return out
+
+
 def policy_blind(rates: np.ndarray, split_of: list[str]) -> np.ndarray:
     """[B, P, C] -> every policy gets its split's mean rate per criterion."""
     out = np.empty_like(rates)
-    for s in set(split_of):
-        ps = [p for p, x in enumerate(split_of) if x == s]
-        out[:, ps] = np.nanmean(rates[:, ps], axis=1, keepdims=True)
+    with warnings.catch_warnings():  # a split with no rollout in a draw (a partial sweep) is nan, said elsewhere
+        warnings.simplefilter("ignore", RuntimeWarning)
+        for s in set(split_of):
+            ps = [p for p, x in enumerate(split_of) if x == s]
+            out[:, ps] = np.nanmean(rates[:, ps], axis=1, keepdims=True)
     return out
 
 
@@ -120,8 +146,10 @@ def evaluator_rows(reference, evaluators: dict, split_of: list[str], draws: int,
             continue
         # a case missing on either side leaves both: its passes as well as its counts (else rates exceed 1)
         (epm, ecm), (rpm, rcm) = ((x * both[..., None], c * both) for x, c in ((ep, ec), (rp, rc)))
-        rows[name] = compare(bootstrap.rates(epm, ecm, one), bootstrap.rates(rpm, rcm, one),
-                             bootstrap.rates(epm, ecm, w), bootstrap.rates(rpm, rcm, w), split_of)
+        rates = [bootstrap.rates(epm, ecm, one), bootstrap.rates(rpm, rcm, one),
+                 bootstrap.rates(epm, ecm, w), bootstrap.rates(rpm, rcm, w)]
+        rows[name] = compare(*rates, split_of)
+        rows[name]["vs_floor"] = versus_floor(*rates, split_of)
     re_point, re_draws = bootstrap.rates(rp, rc, one), bootstrap.rates(rp, rc, w)
     rows["policy_blind"] = compare(policy_blind(re_point, split_of), re_point, policy_blind(re_draws, split_of),
                                    re_draws, split_of)
