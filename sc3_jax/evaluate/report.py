@@ -206,7 +206,7 @@ def tables(t: dict) -> list[tuple[str, list[str], list[list[str]]]]:
     out.append(("Protocol: initial conditions per policy and simulator seeds (disjoint blocks)",
                 ["set", "n per policy", "seeds", "rollouts"], rows))
     how = (f"value [95% paired bootstrap interval over initial conditions, {b['draws']} draws, seed {b['seed']}]; "
-          "r higher is better, MMRV lower")
+           "r higher is better, MMRV lower")
     splits = [s for s in SPLIT_ORDER if s in t["faithfulness"]["physics"]["policy_blind"]["splits"]]
     for ref, what in REFERENCES.items():
         f = t["faithfulness"][ref]
@@ -214,8 +214,8 @@ def tables(t: dict) -> list[tuple[str, list[str], list[list[str]]]]:
                     ["evaluator"] + [f"{s} {k}" for s in splits for k in ("r", "MMRV")],
                     _interval_rows(f, lambda row, s: row["splits"].get(s), splits)))
     f = t["faithfulness"]["physics"]
-    rows = [[ROW_NAMES[name]] + [ci(f[name]["vs_floor"].get(s, {}).get(k)) for s in splits for k in ("pearson", "mmrv")]
-            for name in ROW_NAMES if "vs_floor" in f.get(name, {})]
+    rows = [[ROW_NAMES[name]] + [ci(f[name]["vs_floor"].get(s, {}).get(k)) for s in splits
+                                 for k in ("pearson", "mmrv")] for name in ROW_NAMES if "vs_floor" in f.get(name, {})]
     out.append(("Better than a guess? Paired difference to the policy-blind floor, evaluator - floor, on the same "
                 f"resampled conditions (vs physics; r > 0 and MMRV < 0 favour the evaluator). {how}",
                 ["evaluator"] + [f"{s} {k}" for s in splits for k in ("r", "MMRV")], rows))
