@@ -59,7 +59,8 @@ def test_evaluator_rows_match_a_slow_reference_loop():
     rows = intervals.evaluator_rows(intervals.grid(real, pols, seeds), {"online": intervals.grid(ev, pols, seeds)},
                                     split_of, draws, seed=5)
     w = bootstrap.multiplicities(n, draws, 5)
-    slow, minus_floor = {"pearson": [], "mmrv": []}, {"pearson": [], "mmrv": []}
+    splits = ("in_distribution", "overall")
+    slow, minus_floor = {"pearson": [], "mmrv": []}, {(s, m): [] for s in splits for m in ("pearson", "mmrv")}
     for b in range(draws):
         picks = [i for i in range(n) for _ in range(int(w[b, i]))]
         rows_of = lambda recs: [dict(r, episode=(i, k)) for k, i in enumerate(picks) for p in pols  # noqa: E731
@@ -69,13 +70,16 @@ def test_evaluator_rows_match_a_slow_reference_loop():
         floor = report._faith_rates(report._policy_blind(real_rates), real_rates)  # the same draw's guess
         for m in slow:
             slow[m].append(f["overall"][m])
-            minus_floor[m].append(f["overall"][m] - floor["overall"][m])
+        for s, m in minus_floor:
+            minus_floor[s, m].append(f[s][m] - floor[s][m])
     for m in slow:
         cell = rows["online"]["splits"]["overall"][m]
         assert (cell["lo"], cell["hi"]) == pytest.approx(tuple(np.nanpercentile(slow[m], [2.5, 97.5])))
-        diff = rows["online"]["vs_floor"]["overall"][m]  # paired: evaluator and floor on one resample per draw
-        assert (diff["lo"], diff["hi"]) == pytest.approx(tuple(np.nanpercentile(minus_floor[m], [2.5, 97.5])))
-        assert diff["value"] == pytest.approx(cell["value"] - rows["policy_blind"]["splits"]["overall"][m]["value"])
+    for s, m in minus_floor:  # paired: evaluator and floor on one resample per draw
+        diff = rows["online"]["vs_floor"][s][m]
+        assert (diff["lo"], diff["hi"]) == pytest.approx(tuple(np.nanpercentile(minus_floor[s, m], [2.5, 97.5])))
+        assert diff["value"] == pytest.approx(rows["online"]["splits"][s][m]["value"] -
+                                              rows["policy_blind"]["splits"][s][m]["value"])
     full = calibrate.faith([r for k in real for r in calibrate.object_rows(ev[k], ev[k]["objects"])],
                            [r for k in real for r in calibrate.object_rows(real[k], real[k]["objects"])])
     assert rows["online"]["splits"]["overall"]["pearson"]["value"] == pytest.approx(full["overall"]["pearson"])

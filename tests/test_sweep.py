@@ -204,9 +204,11 @@ def test_report_numbers_come_from_compute(setup, tmp_path):
 
 
 def test_report_warns_while_a_mode_is_incomplete():
-    warn = report.incomplete({"counts": {"real": 8, "offline": 3, "online": 8}})
-    assert "offline 3 of 8" in warn and "online" not in warn
-    assert report.incomplete({"counts": {"real": 8, "offline": 0, "online": 8}}) == ""  # a mode not swept
+    t = {"protocol": {"evaluation": {"n": 4}}, "policies": [("a", "in_distribution"), ("b", "out_of_distribution")]}
+    warn = report.incomplete(dict(t, counts={"real": 8, "offline": 3, "online": 8}))
+    assert "offline 3 of 8" in warn and "online" not in warn and "real" not in warn
+    assert report.incomplete(dict(t, counts={"real": 8, "offline": 0, "online": 8})) == ""  # a mode not swept
+    assert "real 7 of 8" in report.incomplete(dict(t, counts={"real": 7, "offline": 0, "online": 7}))
 
 
 def test_real_from_links_the_real_rollouts_and_refuses_another_protocol(setup, tmp_path):

@@ -89,7 +89,8 @@ def versus_floor(ev_point, re_point, ev_draws, re_draws, split_of: list[str]) ->
 
     Reading an evaluator's interval against the floor's (the acceptance rule "lower bound above the floor's upper
     bound") ignores that both come from the same real rollouts; the paired difference does not, so it is the
-    sharper test of "better than a guess". r > 0 and MMRV < 0 favour the evaluator."""
+    sharper test of "better than a guess". r > 0 and MMRV < 0 favour the evaluator. The floor is this comparison's:
+    from the reference rates of the cases the evaluator is compared on (the floor row's own when nothing is missing)."""
     fl_point, fl_draws = policy_blind(re_point, split_of), policy_blind(re_draws, split_of)
     out = {}
     for split in SPLIT_ORDER:

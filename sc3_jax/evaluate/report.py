@@ -126,6 +126,7 @@ def _views(world_model: str, n: int) -> list[str]:
     """The camera names of ``psnr_view``'s columns: the world model's views, in its order (``view i`` if the
     model has moved or names a different count)."""
     path = Path(world_model) / "config.json"
+    # the JSON alone: checkpoint.read_config would also validate (and import) the whole model config
     views = json.loads(path.read_text()).get("data", {}).get("views", []) if path.exists() else []
     return list(views) if len(views) == n else [f"view {i}" for i in range(n)]
 
@@ -287,9 +288,10 @@ def tables(t: dict) -> list[tuple[str, list[str], list[list[str]]]]:
 
 
 def incomplete(t: dict) -> str:
-    """A warning line while a world-model mode has fewer evaluation rollouts than the real one ('' when none)."""
-    n = t["counts"]["real"]
-    short = [f"{m} {t['counts'][m]} of {n}" for m in ("offline", "online") if 0 < t["counts"][m] < n]
+    """A warning line while a swept mode has fewer evaluation rollouts than the protocol's ('' when none is short; a
+    world-model mode with none was not asked for)."""
+    n = t["protocol"]["evaluation"]["n"] * len(t["policies"])
+    short = [f"{m} {t['counts'][m]} of {n}" for m in ("real", "offline", "online") if 0 < t["counts"][m] < n]
     return (f"Incomplete sweep: {', '.join(short)} evaluation rollouts so far (rerun the sweep to resume). Intervals "
             "over a split with a policy that has no rollout yet read nan." if short else "")
 
@@ -309,8 +311,9 @@ def markdown(t: dict) -> str:
 
 def _html(t: dict, images: list[str], videos: list[str]) -> str:
     body = [f"<h1>Sweep report</h1><p>rollouts: {html.escape(str(t['counts']))}</p>"]
-    if incomplete(t):
-        body.append(f"<p><b>{html.escape(incomplete(t))}</b></p>")
+    warn = incomplete(t)
+    if warn:
+        body.append(f"<p><b>{html.escape(warn)}</b></p>")
     for title, header, rows in tables(t):
         body.append(f"<h2>{html.escape(title)}</h2><table border=1 cellpadding=4><tr>" +
                     "".join(f"<th>{html.escape(h)}</th>" for h in header) + "</tr>" +
