@@ -75,6 +75,14 @@ def test_evaluator_rows_match_a_slow_reference_loop():
     for m in slow:
         cell = rows["online"]["splits"]["overall"][m]
         assert (cell["lo"], cell["hi"]) == pytest.approx(tuple(np.nanpercentile(slow[m], [2.5, 97.5])))
+    # versus(): against the reference itself as the other evaluator (r 1, MMRV 0 in every draw), on the same resamples
+    ref_grid, ev_grid = intervals.grid(real, pols, seeds), intervals.grid(ev, pols, seeds)
+    self_diff = intervals.versus(ref_grid, ev_grid, ref_grid, split_of, draws, seed=5)["overall"]
+    for m, perfect in (("pearson", 1.0), ("mmrv", 0.0)):
+        want = np.nanpercentile(np.array(slow[m]) - perfect, [2.5, 97.5])
+        assert (self_diff[m]["lo"], self_diff[m]["hi"]) == pytest.approx(tuple(want))
+    zero = intervals.versus(ref_grid, ev_grid, ev_grid, split_of, draws, seed=5)["in_distribution"]["pearson"]
+    assert (zero["value"], zero["lo"], zero["hi"]) == (0.0, 0.0, 0.0)
     for s, m in minus_floor:  # paired: evaluator and floor on one resample per draw
         diff = rows["online"]["vs_floor"][s][m]
         assert (diff["lo"], diff["hi"]) == pytest.approx(tuple(np.nanpercentile(minus_floor[s, m], [2.5, 97.5])))

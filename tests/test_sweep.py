@@ -303,6 +303,19 @@ def test_compute_curve_over_sweeps_sharing_one_real_set(setup, tmp_path):
     vs = t["faithfulness"]["physics"]["online"]["vs_floor"]["in_distribution"]["pearson"]
     assert c["points"][1]["vs_floor"]["in_distribution"]["pearson"] == vs and f"| b | {report.ci(vs)} |" in text
     assert (tmp_path / "out" / "curve.png").stat().st_size > 1000
+    # a baseline: each point's paired difference to it (its own is 0), printed for the others
+    spec.write_text(json.dumps({"title": "t", "points": points, "baseline": "a"}))
+    text = curve.render(spec, tmp_path / "out_b", draws=200).read_text()
+    c = json.loads((tmp_path / "out_b" / "curve.json").read_text())
+    own, other = (p["vs_baseline"]["overall"]["mmrv"] for p in c["points"])
+    assert (own["value"], own["lo"], own["hi"]) == (0.0, 0.0, 0.0)
+    a_b = [report.compute(st, draws=200)["faithfulness"]["physics"]["online"]["splits"]["overall"]["mmrv"]["value"]
+           for st in (cfg.out, second.out)]
+    assert other["value"] == pytest.approx(a_b[1] - a_b[0])
+    assert f"| b | {report.ci(c['points'][1]['vs_baseline']['in_distribution']['pearson'])} |" in text
+    spec.write_text(json.dumps({"points": points, "baseline": "nope"}))
+    with pytest.raises(ValueError, match="baseline 'nope'"):
+        curve.read_spec(spec)
     # a point swept against other real rollouts
     third = tmp_path / "third"
     shutil.copytree(second.out, third)

@@ -8,6 +8,10 @@ A curve is a small JSON file (e.g. ``docs/compute_curve.json``)::
        "device": "2-core CPU", "hours": 1.8},
       ...]}
 
+An optional ``"baseline": "LABEL"`` adds each point's paired difference to that point (r and MMRV on the same
+resampled conditions): the test for "did more compute help" and for an ablation table (points = the full recipe
+and its ablations at one budget, baseline = the full recipe).
+
 ``steps`` x ``batch`` is the training windows a checkpoint has seen (the x axis: comparable across devices);
 ``device`` and ``hours`` say what that cost where it ran (from the training log, stated by whoever trained it).
 Every faithfulness number comes from the stores (``report.compute``): r and MMRV of the online rollouts at tau = inf
@@ -20,7 +24,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from sc3_jax.evaluate import report
+from sc3_jax.evaluate import intervals, report
 from sc3_jax.evaluate.results import ResultsStore, seed_blocks
 
 SPLITS = ("in_distribution", "out_of_distribution")
@@ -43,6 +47,8 @@ def read_spec(path: str | Path) -> dict:
             raise ValueError(f"{path}: point {i} ({p['label']}): {bad} must be non-negative numbers "
                              "(steps and batch integers)")
         p["store"] = str(Path(p["store"]).expanduser())
+    if "baseline" in spec and spec["baseline"] not in [p["label"] for p in points]:
+        raise ValueError(f"{path}: baseline {spec['baseline']!r} is not the label of a point")
     return spec
 
 
@@ -54,6 +60,18 @@ def _real_set(store: str) -> dict:
     seeds = set(blocks["evaluation"]) | set(blocks["ceiling"])
     return {"blocks": {k: blocks[k] for k in ("evaluation", "ceiling")},
             "objects": {r["id"]: r["objects"] for r in st.records() if r["mode"] == "real" and r["seed"] in seeds}}
+
+
+def _grids(store: str):
+    """(split of each policy, real grid, online grid) on the evaluation seeds, policies in the report's order."""
+    st = ResultsStore(store)
+    seeds = seed_blocks(st.config())["evaluation"]
+    recs = [r for r in st.records() if r["seed"] in set(seeds)]
+    by = {m: {(r["policy"], r["seed"]): r for r in recs if r["mode"] == m} for m in ("real", "online")}
+    policies = sorted({(r["policy"], r["split"]) for r in by["real"].values()}, key=lambda x: (x[1], x[0]))
+    names = [p for p, _ in policies]
+    grid = lambda m: intervals.grid(by[m], names, seeds)  # noqa: E731
+    return [s for _, s in policies], grid("real"), grid("online")
 
 
 def compute(spec: dict, draws: int = 2000) -> dict:
@@ -82,8 +100,13 @@ def compute(spec: dict, draws: int = 2000) -> dict:
                        "online": {s: online["splits"].get(s) for s in SPLITS},
                        "vs_floor": {s: online["vs_floor"].get(s) for s in SPLITS},
                        "per_criterion": online.get("per_criterion", {})})
+    if "baseline" in spec:  # seed 0: the same resamples as every report's intervals
+        grids = {p["label"]: _grids(p["store"]) for p in points}
+        split_of, real_grid, base = grids[spec["baseline"]]
+        for p in points:
+            p["vs_baseline"] = intervals.versus(real_grid, grids[p["label"]][2], base, split_of, draws, 0)
     return {"title": spec.get("title", "Faithfulness against training compute"), "points": points,
-            "floor": floor, "ceiling": ceiling, "draws": draws}
+            "floor": floor, "ceiling": ceiling, "draws": draws, "baseline": spec.get("baseline")}
 
 
 def markdown(c: dict) -> str:
@@ -108,6 +131,13 @@ def markdown(c: dict) -> str:
               "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     lines += ["| " + " | ".join([p["label"]] + [report.ci((p["vs_floor"][s] or {}).get(k)) for s in SPLITS
                                                 for k in ("pearson", "mmrv")]) + " |" for p in c["points"]]
+    if c.get("baseline"):
+        head = ["checkpoint"] + [f"{s.replace('_', ' ')} {k} - baseline" for s in SPLITS for k in ("r", "MMRV")]
+        lines += ["", f"Paired difference to the baseline, {c['baseline']}, on the same resampled conditions (r > 0 "
+                  "and MMRV < 0 favour the checkpoint):", "", "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+        lines += ["| " + " | ".join([p["label"]] + [report.ci(p["vs_baseline"].get(s, {}).get(k)) for s in SPLITS
+                                                    for k in ("pearson", "mmrv")]) + " |"
+                  for p in c["points"] if p["label"] != c["baseline"]]
     return "\n".join(lines) + "\n"
 
 

@@ -83,26 +83,42 @@ def compare(ev_point, re_point, ev_draws, re_draws, split_of: list[str], point_f
     return out
 
 
-def versus_floor(ev_point, re_point, ev_draws, re_draws, split_of: list[str]) -> dict:
-    """Paired difference to the policy-blind floor per split (all criteria pooled): r(evaluator) - r(floor) and
-    MMRV(evaluator) - MMRV(floor), both computed on the very same resample of conditions in every draw.
-
-    Reading an evaluator's interval against the floor's (the acceptance rule "lower bound above the floor's upper
-    bound") ignores that both come from the same real rollouts; the paired difference does not, so it is the
-    sharper test of "better than a guess". r > 0 and MMRV < 0 favour the evaluator. The floor is this comparison's:
-    from the reference rates of the cases the evaluator is compared on (the floor row's own when nothing is missing)."""
-    fl_point, fl_draws = policy_blind(re_point, split_of), policy_blind(re_draws, split_of)
+def difference(a_point, b_point, re_point, a_draws, b_draws, re_draws, split_of: list[str]) -> dict:
+    """Paired difference of two evaluators per split (all criteria pooled): r(a) - r(b) and MMRV(a) - MMRV(b), each
+    against the reference, all on the very same resample of conditions in every draw. Rates [1 or B, P, C]."""
     out = {}
     for split in SPLIT_ORDER:
         if split != metrics.OVERALL and split not in split_of:
             continue
-        pts = [_points(x, split_of, split) for x in (ev_point, fl_point, re_point, ev_draws, fl_draws, re_draws)]
+        pts = [_points(x, split_of, split) for x in (a_point, b_point, re_point, a_draws, b_draws, re_draws)]
         if pts[0].shape[1] < 2:
             continue
         out[split] = {name: bootstrap.summary(float(fn(pts[0], pts[2])[0] - fn(pts[1], pts[2])[0]),
                                               fn(pts[3], pts[5]) - fn(pts[4], pts[5]))
                       for name, fn in (("pearson", bootstrap.pearson), ("mmrv", bootstrap.mmrv))}
     return out
+
+
+def versus_floor(ev_point, re_point, ev_draws, re_draws, split_of: list[str]) -> dict:
+    """Paired difference to the policy-blind floor (:func:`difference`): r > 0 and MMRV < 0 favour the evaluator.
+
+    Reading an evaluator's interval against the floor's (the acceptance rule "lower bound above the floor's upper
+    bound") ignores that both come from the same real rollouts; the paired difference does not, so it is the
+    sharper test of "better than a guess". The floor is this comparison's: from the reference rates of the cases the
+    evaluator is compared on (the floor row's own when nothing is missing)."""
+    return difference(ev_point, policy_blind(re_point, split_of), re_point, ev_draws, policy_blind(re_draws, split_of),
+                      re_draws, split_of)
+
+
+def versus(reference, a, b, split_of: list[str], draws: int, seed: int) -> dict:
+    """Paired difference of evaluator grids ``a`` - ``b`` (e.g. an ablation and the full recipe, swept against one
+    real set), each (passes, counts) on the reference's seeds: a case missing on any of the three sides is left out
+    of all three, and one resample per draw serves all (the multiplicities of :func:`evaluator_rows`)."""
+    both = (reference[1] > 0) & (a[1] > 0) & (b[1] > 0)
+    w, one = bootstrap.multiplicities(both.shape[1], draws, seed), np.ones((1, both.shape[1]))
+    masked = [(p * both[..., None], c * both) for p, c in (a, b, reference)]
+    return difference(*[bootstrap.rates(p, c, one) for p, c in masked],
+                      *[bootstrap.rates(p, c, w) for p, c in masked], split_of)
 
 
 def policy_blind(rates: np.ndarray, split_of: list[str]) -> np.ndarray:
