@@ -68,7 +68,7 @@ def _grids(store: str):
     seeds = seed_blocks(st.config())["evaluation"]
     recs = [r for r in st.records() if r["seed"] in set(seeds)]
     by = {m: {(r["policy"], r["seed"]): r for r in recs if r["mode"] == m} for m in ("real", "online")}
-    policies = sorted({(r["policy"], r["split"]) for r in by["real"].values()}, key=lambda x: (x[1], x[0]))
+    policies = report.policy_order(by["real"].values())
     names = [p for p, _ in policies]
     grid = lambda m: intervals.grid(by[m], names, seeds)  # noqa: E731
     return [s for _, s in policies], grid("real"), grid("online")

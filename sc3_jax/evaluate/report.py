@@ -53,6 +53,11 @@ def _agreement(real: dict) -> dict:
     return out
 
 
+def policy_order(real_records) -> list[tuple[str, str]]:
+    """(policy, split) of every real record, split by split: the order of every grid and table."""
+    return sorted({(r["policy"], r["split"]) for r in real_records}, key=lambda x: (x[1], x[0]))
+
+
 def compute(results: str | Path, taus=None, draws: int = 2000, seed: int = 0) -> dict:
     """All report numbers from the results store at ``results`` (see the module docstring). ``taus`` overrides
     the sweep's candidate thresholds (every online record stores U_chunk and the outcomes of every cut, so any
@@ -71,7 +76,7 @@ def compute(results: str | Path, taus=None, draws: int = 2000, seed: int = 0) ->
     if not real:
         raise ValueError(f"{results}: no real rollouts on the evaluation seeds yet: faithfulness needs the "
                          "simulator's ground truth")
-    policies = sorted({(r["policy"], r["split"]) for r in real.values()}, key=lambda x: (x[1], x[0]))
+    policies = policy_order(real.values())
     out: dict = {"config": cfg, "counts": {m: len(by["evaluation", m]) for m in EVAL_MODES},
                  "policies": policies,
                  "protocol": {s: {"n": len(v), "seeds": [v[0], v[-1]] if v else [],
