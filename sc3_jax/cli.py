@@ -10,6 +10,7 @@ commands:
   train          sc3 train --config NAME_OR_PATH[:ARG] [--section.field VALUE ...]
   train-tokenizer  sc3 train-tokenizer --data STORE --workdir DIR: the learned latent tokenizer (conv autoencoder)
   diagnose       sc3 diagnose WORLD_MODEL --data HELDOUT_STORE: checkpoint gates (PSNR vs baselines, drift, actions)
+  diagnose-table sc3 diagnose-table DIR ... [--baseline NAME]: several models' diagnostics side by side (ablations)
   rollout        closed-loop / offline rollouts of a policy inside a trained world model
   sweep          policies x initial conditions x {real, offline, online} on the simulated benchmark -> report
   report         sc3 report RESULTS --out DIR: tables, plots and videos from a sweep's results store
@@ -185,6 +186,12 @@ def cmd_diagnose(argv: list[str]) -> int:
     return diagnose.main(argv) or 0
 
 
+def cmd_diagnose_table(argv: list[str]) -> int:
+    from sc3_jax.evaluate import diagnose_table
+
+    return diagnose_table.main(argv)
+
+
 def cmd_rollout(argv: list[str]) -> int:
     from sc3_jax import rollout_cli
 
@@ -194,7 +201,8 @@ def cmd_rollout(argv: list[str]) -> int:
 COMMANDS = {"demo": cmd_demo, "train": cmd_train, "rollout": cmd_rollout, "sweep": cmd_sweep, "report": cmd_report,
             "curve": cmd_curve, "rescore": cmd_rescore, "data": cmd_data, "sim": cmd_sim,
             "serve-policy": cmd_serve_policy, "configs": cmd_configs, "plan": cmd_plan,
-            "convert": cmd_convert, "train-tokenizer": cmd_train_tokenizer, "diagnose": cmd_diagnose}
+            "convert": cmd_convert, "train-tokenizer": cmd_train_tokenizer, "diagnose": cmd_diagnose,
+            "diagnose-table": cmd_diagnose_table}
 
 
 def main(argv: list[str] | None = None) -> int:

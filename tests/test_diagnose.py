@@ -4,7 +4,9 @@ short simulated episodes, where every model figure must equal its copy-last base
 import contextlib
 import copy
 import io
+import json
 import math
+from pathlib import Path
 
 import jax
 import numpy as np
@@ -170,3 +172,47 @@ def test_outcome_agreement_compares_criteria_not_category_spellings():
     assert sec["reference"] == "physics" and r["n_objects"] == 2
     assert (r["lifting"], r["placing"], r["lifting_and_placing"], r["outcome"]) == (0.5, 1.0, 0.5, 0.5)
     assert sec["real_perception_vs_physics"]["outcome"] == 1.0
+
+
+def test_diagnose_table_compares_models_with_a_baseline(run, tmp_path, capsys):
+    from sc3_jax.evaluate import diagnose_table as dt
+    from sc3_jax.cli import main as cli
+
+    _, result, _ = run
+    cfg = json.loads(Path(result["world_model"], "config.json").read_text())
+    base = dt.summary(result, cfg)
+    # the copy-last model: every margin to copy-last is exactly 0; its 2 s episodes have no 4 s drift point
+    assert base["tf_copy_last"] == base["wrist"] == base["actions"] == 0.0
+    assert math.isnan(base["drift"]) and base["inverse"] == result["inverse_dynamics"]["ratio_to_floor"]
+    assert base["gates_failed"] == sum(not g["pass"] for g in result["gates"])
+    # a model 2 dB better on the wrist, with a 4 s drift point, trained without inverse dynamics
+    other = copy.deepcopy(result)
+    wrist = other["teacher_forced"]["views"]["wrist"]["psnr"]["model"]
+    wrist["moving"] += 2.0
+    for v, gain in (("left", 1.0), ("right", 3.0)):
+        row = other["drift"]["views"][v][2]
+        assert row["horizon_s"] == dt.DRIFT_HORIZON_S
+        row["n_episodes"] = 1
+        row["psnr"] = {"model": {"moving": 10.0 + gain}, "copy_last": {"moving": 10.0}}
+    no_id = copy.deepcopy(cfg)
+    no_id["modes"]["probs"] = [0.9, 0.1, 0.0]
+    s = dt.summary(other, no_id)
+    assert s["wrist"] == pytest.approx(2.0) and s["drift"] == pytest.approx(2.0) and s["inverse"] is None
+    # the CLI: labels from the directory (its parent's name for `export`), differences to the baseline
+    for name, res, c in (("full/export", result, cfg), ("no_id", other, no_id)):
+        (tmp_path / name).mkdir(parents=True)
+        (tmp_path / name / "diagnose.json").write_text(json.dumps(res))
+        (tmp_path / name / "config.json").write_text(json.dumps(c))
+    out = tmp_path / "table.md"
+    assert cli(["diagnose-table", str(tmp_path / "full/export"), str(tmp_path / "no_id"), "--baseline", "full",
+                "--out", str(out)]) == 0
+    lines = out.read_text().splitlines()
+    assert lines[2].startswith("| **full** | 0.00 | ") and lines[3].startswith("| no_id | 0.00 (+0.00) | ")
+    cells = lines[3].split(" | ")
+    assert "2.00 (+2.00)" in cells and "2.00" in cells and "not trained" in cells  # wrist; drift (no base); ID
+    # bad input: an unknown baseline, a directory without diagnose.json; nothing written
+    with pytest.raises(SystemExit) as e:
+        cli(["diagnose-table", str(tmp_path / "no_id"), "--baseline", "full"])
+    assert e.value.code == 2 and "baseline 'full' is not one of ['no_id']" in capsys.readouterr().err
+    assert cli(["diagnose-table", str(tmp_path)]) == 2
+    assert "no diagnose.json or config.json" in capsys.readouterr().err
