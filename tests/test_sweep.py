@@ -192,7 +192,12 @@ def test_report_numbers_come_from_compute(setup, tmp_path):
     row = next(line for line in text.splitlines() if line.startswith("| offline |"))
     assert report.ci(t["faithfulness"]["physics"]["offline"]["splits"]["overall"]["mmrv"]) in row
     assert t["tau"]["chosen"] in ("inf", "1.0", "0.5") and t["protocol"]["calibration"]["n"] == 1
-    assert t["psnr"]["views"] == ["left", "right", "wrist"] and "| left | right | wrist | mean |" in text
+    assert t["psnr"]["views"] == ["left", "right", "wrist"] and "| split | rollouts | left | right | wrist | mean |" in text
+    for split, q in t["psnr"]["by_split"].items():  # per split: the offline records of that split only
+        pv = np.array([r["psnr_view"] for r in recs if r["mode"] == "offline" and r["split"] == split])
+        assert q["rollouts"] == len(pv) and q["per_view"] == pytest.approx(np.nanmean(pv, 0).tolist())
+    assert sum(q["rollouts"] for q in t["psnr"]["by_split"].values()) == t["psnr"]["rollouts"]
+    assert len(t["psnr"]["by_split"]) == 2
     assert "Incomplete sweep" not in text
     assert (tmp_path / "rep" / "correlation.png").stat().st_size > 1000
     assert (tmp_path / "rep" / "u_chunk.png").exists() and (tmp_path / "rep" / "report.html").exists()
