@@ -27,6 +27,9 @@ for v in $variants; do
   [ -f $W/export/params.npz ] || {
     sc3 train --config $config --model.tokenizer-path $R/tokenizer/tokenizer --data.path $R/demos \
       --train.workdir $W --train.steps $STEPS --train.no-progress $extra
+    # a trainer stopped by SIGTERM saves and exits cleanly: export only a run that reached its budget
+    last=$(ls $W/checkpoints | grep -E '^[0-9]+$' | sort -n | tail -1)
+    [ "$last" = "$STEPS" ] || { echo "$v stopped at step $last of $STEPS: rerun to resume" >&2; exit 1; }
     python -c "import numpy as np; from sc3_jax import checkpoint; checkpoint.export('$W', '$W/export', np.float16)"; }
   [ -f $W/export/diagnose.json ] || sc3 diagnose $W/export --data $R/heldout --episodes 4 --no-progress \
     --out $W/export/diagnose.json > $W/diagnose.md
