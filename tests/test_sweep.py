@@ -5,6 +5,7 @@ import dataclasses
 import json
 import math
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -206,6 +207,20 @@ def test_report_numbers_come_from_compute(setup, tmp_path):
     inf_row = next(e for e in t["termination"] if e["tau"] == "inf")
     assert inf_row["faithfulness"] == t["main"]["online"]
     assert all(v == 0.0 for v in inf_row["termination_rate"].values())
+
+
+def test_report_from_an_archived_store_needs_only_its_two_json_files(setup, tmp_path):
+    """sweep.json + results.jsonl (kilobytes per rollout, committable) regenerate every table of a store whose
+    rollouts/ (frames, gigabytes) are gone; only the videos need the frames."""
+    _, cfg = setup
+    archive = tmp_path / "archive"
+    archive.mkdir()
+    for name in ("sweep.json", "results.jsonl"):
+        shutil.copy(Path(cfg.out) / name, archive / name)
+    same = lambda t: json.dumps(t, sort_keys=True, default=str)  # noqa: E731  (NaN-safe equality)
+    assert same(report.compute(archive)) == same(report.compute(cfg.out))
+    report.render(archive, tmp_path / "rep", videos=1)
+    assert not list((tmp_path / "rep").glob("*.mp4")) and (tmp_path / "rep" / "report.json").exists()
 
 
 def test_report_warns_while_a_mode_is_incomplete():
