@@ -3,7 +3,8 @@
 # and its four ablations, each trained from scratch for STEPS steps (the same schedule squeezed into STEPS: warm-up,
 # then cosine decay to 0 at STEPS) on the demos, tokenizer and latent cache of scripts/world_model.sh, exported and
 # gated by `sc3 diagnose` on its held-out episodes. Resumable: a finished variant is skipped, a stopped one resumes
-# from its last checkpoint. Run scripts/world_model.sh RUNS_DIR first (it builds what this reads).
+# from its last checkpoint. Run scripts/world_model.sh RUNS_DIR first (it builds what this reads), or at least its
+# demos and heldout steps, with the shipped tokenizer copied to RUNS_DIR/tokenizer/tokenizer (docs/results.md).
 #   bash scripts/ablations.sh RUNS_DIR STEPS [VARIANT ...]
 #     variants (default: all, in this order): full, forward_only, no_id, no_cvi, no_decouple, and full_seed1 = the
 #     full recipe with another initialisation, noise and data-order seed: the run-to-run spread that a difference
@@ -23,6 +24,8 @@ for v in $variants; do
   esac
   mkdir -p $W
   # the latents depend on the tokenizer and the demos only: share the main run's cache instead of encoding again
+  # (the first variant encodes it when scripts/world_model.sh has not: the demos, heldout and tokenizer are enough)
+  mkdir -p $R/latent_train/latents
   [ -e $W/latents ] || ln -s "$(cd $R/latent_train && pwd)/latents" $W/latents
   [ -f $W/export/params.npz ] || {
     sc3 train --config $config --model.tokenizer-path $R/tokenizer/tokenizer --data.path $R/demos \
