@@ -15,6 +15,8 @@ R=$1 STEPS=$2
 shift 2
 variants=${*:-full forward_only no_id no_cvi no_decouple full_seed1}
 A=$R/ablations_$STEPS
+# the variants share one latent cache; the first variant encodes it when scripts/world_model.sh has not
+mkdir -p $R/latent_train/latents
 for v in $variants; do
   W=$A/$v
   case $v in
@@ -24,8 +26,6 @@ for v in $variants; do
   esac
   mkdir -p $W
   # the latents depend on the tokenizer and the demos only: share the main run's cache instead of encoding again
-  # (the first variant encodes it when scripts/world_model.sh has not: the demos, heldout and tokenizer are enough)
-  mkdir -p $R/latent_train/latents
   [ -e $W/latents ] || ln -s "$(cd $R/latent_train && pwd)/latents" $W/latents
   [ -f $W/export/params.npz ] || {
     sc3 train --config $config --model.tokenizer-path $R/tokenizer/tokenizer --data.path $R/demos \
