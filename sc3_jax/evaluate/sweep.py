@@ -38,7 +38,10 @@ import numpy as np
 from sc3_jax.evaluate.results import (EVAL_MODES, REAL_ONLY_STRIDE, SPLITS, ResultsStore, rollout_id,
                                      score_strides, seed_blocks)
 
-SHIPPED_WORLD_MODEL = Path(__file__).resolve().parent / "shipped" / "bussing_sim"
+# the best shipped world model (docs/results.md's headline): README command 1 evaluates the zoo inside it
+SHIPPED_WORLD_MODEL = Path(__file__).resolve().parent / "shipped" / "bussing_latent_gpu"
+# a world model may ship the gripper-state reader its published sweeps used (see default_state_reader)
+STATE_READER_FILE = "state_reader.npz"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -47,12 +50,13 @@ class SweepConfig:
     world_model: str = str(SHIPPED_WORLD_MODEL)  # a training run dir (checkpoints/) or an exported dir (params.npz)
     perception: str | None = None  # perception weights (None: the shipped ones)
     # perception weights whose finger-gap head reads the gripper state the policy sees inside imagined rollouts
-    # (None: the scorer's). Part of the rollouts, not of their scoring: `sc3 rescore` leaves it as it was
+    # (None: the world model's own state_reader.npz if it ships one, else the scorer's). Part of the rollouts, not
+    # of their scoring: `sc3 rescore` leaves it as it was
     state_reader: str | None = None
     # policies/resolve.py spellings with a task: zoo names, NAME=ws://HOST:PORT@TASK (openpi server),
     # NAME=package.module:attr@TASK, ...; () = the whole zoo
     policies: tuple[str, ...] = ()
-    # quick protocol by default (~20 min on 2 cores, docs/sweep.md); the full one: --episodes 36
+    # quick protocol by default (~1 h on 2 cores with the shipped model, docs/sweep.md); the full one: --episodes 36
     # --calibration-episodes 6 --ceiling-episodes 36 --batch 6
     episodes: int = 4  # evaluation initial conditions per policy (simulator seeds seed0 + i)
     seed0: int = 10_000_000
@@ -76,8 +80,9 @@ class SweepConfig:
     episode_seconds: float | None = 12.0
     sample_steps: int | None = None  # None: the world model's config
     # Euler steps of the inverse-dynamics re-read (None: the world model's config). It yields U_chunk only, never the
-    # frames or the outcomes; 2 instead of 8 makes an online rollout ~35% cheaper (docs/sweep.md#cost-and-scale)
-    inverse_steps: int | None = None
+    # frames or the outcomes; 2 instead of 8 makes an online rollout ~35% cheaper (docs/sweep.md#cost-and-scale),
+    # and 2 is what the published sweeps used (tau is calibrated on U read the same way)
+    inverse_steps: int | None = 2
     # start from another store's real rollouts (hard links; same protocol and scorer): world models compared on one
     # real set, which is paid for once (e.g. the checkpoints of a compute curve, docs/results.md)
     real_from: str | None = None
@@ -145,6 +150,7 @@ def run_sweep(cfg: SweepConfig) -> Path:
     if cfg.real_from and ("real" not in cfg.modes or not cfg.episode_seconds):
         raise ValueError("--real-from copies real rollouts: it needs 'real' in modes and an explicit "
                          "--episode-seconds (the length both stores' real rollouts ran for)")
+    cfg = dataclasses.replace(cfg, state_reader=default_state_reader(cfg))  # sweep.json records the one used
     blocks = seed_blocks(cfg)
     weights = cfg.perception or perception.DEFAULT_WEIGHTS
     config = {**cfg.to_json(), "perception_sha256": weights_digest(weights)}
@@ -211,6 +217,20 @@ def run_sweep(cfg: SweepConfig) -> Path:
     (store.root / "timing.json").write_text(json.dumps({"seconds_last_run": time.time() - t0,
                                                         "devices": [str(d) for d in jax.devices()]}))
     return store.root
+
+
+def default_state_reader(cfg: SweepConfig) -> str | None:
+    """The state reader a sweep uses: ``cfg.state_reader`` if given, else the world model's own
+    ``state_reader.npz`` if its directory ships one, else None (the scorer's weights).
+
+    Why a world model carries one: the reader is part of its imagined rollouts (the policy acts on the gripper state
+    it reads), so a sweep reproduces a model's published numbers only with the reader they were made with, even
+    after the shipped scorer is retrained. Resolved whatever the modes, so a store started with real rollouts only
+    resumes with world-model modes added."""
+    if cfg.state_reader:
+        return cfg.state_reader
+    own = Path(cfg.world_model) / STATE_READER_FILE
+    return str(own) if own.is_file() else None
 
 
 def real_to_copy(source: str | Path, config: dict, tasks: dict[str, str], seeds: list[int],
