@@ -56,7 +56,7 @@ class SweepConfig:
     # policies/resolve.py spellings with a task: zoo names, NAME=ws://HOST:PORT@TASK (openpi server),
     # NAME=package.module:attr@TASK, ...; () = the whole zoo
     policies: tuple[str, ...] = ()
-    # quick protocol by default (~1 h on 2 cores with the shipped model, docs/sweep.md); the full one: --episodes 36
+    # quick protocol by default (46 min on 2 cores with the shipped model, docs/sweep.md); the full one: --episodes 36
     # --calibration-episodes 6 --ceiling-episodes 36 --batch 6
     episodes: int = 4  # evaluation initial conditions per policy (simulator seeds seed0 + i)
     seed0: int = 10_000_000
