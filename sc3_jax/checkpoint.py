@@ -14,15 +14,14 @@ position, for resuming) are written by ``train.py``; this module only reads thei
 from __future__ import annotations
 
 import dataclasses
-import json
 import shutil
-import zipfile
 from pathlib import Path
 
 import jax
 import numpy as np
 import orbax.checkpoint as ocp
 
+from sc3_jax import atomic
 from sc3_jax.config import Config, config_from_dict
 from sc3_jax.data.norm_stats import NormStats
 from sc3_jax.model import dit
@@ -47,7 +46,7 @@ def read_config(path: str | Path, what: str = "") -> Config:
     if not (path / "config.json").exists():
         raise FileNotFoundError(f"{what}{path}: no config.json (expected a `sc3 train` workdir, an exported world "
                                 "model or a `sc3 convert` output)")
-    cfg = config_from_dict(json.loads((path / "config.json").read_text()))
+    cfg = config_from_dict(atomic.read_json(path / "config.json"))
     tp = cfg.model.tokenizer_path
     if tp and not Path(tp).is_absolute() and (path / tp).exists():  # a tokenizer shipped inside the model dir
         cfg = dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, tokenizer_path=str((path / tp).absolute())))
@@ -105,11 +104,11 @@ def source_shapes(path: str | Path, step: int | None = None) -> dict[str, tuple[
     path = Path(path)
     if (path / "params.npz").exists():
         out = {}
-        with zipfile.ZipFile(path / "params.npz") as zf:
-            for name in zf.namelist():
+        with atomic.open_npz(path / "params.npz", NPZ_FIX) as z:
+            for name in z.zip.namelist():
                 if name.endswith(SCALE_SUFFIX + ".npy"):
                     continue
-                with zf.open(name) as f:
+                with z.zip.open(name) as f:
                     version = np.lib.format.read_magic(f)
                     read = {(1, 0): np.lib.format.read_array_header_1_0, (2, 0): np.lib.format.read_array_header_2_0}
                     shape = read[version](f)[0]
@@ -137,7 +136,7 @@ def _orbax_item(path: Path, step: int | None) -> tuple[Path, bool]:
 
 def _load_npz(path: Path, target) -> dict:
     """``{"a/b/c": array}`` (written by :func:`save`) -> params placed as ``target`` says."""
-    with np.load(path) as z:
+    with atomic.open_npz(path, NPZ_FIX) as z:
         def leaf(kp, t):
             name = "/".join(k.key for k in kp)
             x = np.asarray(z[name])
@@ -152,6 +151,7 @@ def _load_npz(path: Path, target) -> dict:
 # Writing
 # ================================================================================================================
 SCALE_SUFFIX = "@scale"  # params.npz entry holding an int8 matrix's scales
+NPZ_FIX = "restore it from a copy, or export the model again (checkpoint.export)"
 INT8_MIN_SIZE = 4096  # smaller arrays (norms, biases, embeddings of a few rows) stay float16: nothing to gain
 
 
@@ -181,8 +181,8 @@ def save(out: str | Path, cfg: Config, stats: NormStats, params, dtype=np.float1
             arrays[k], arrays[k + SCALE_SUFFIX] = quantize_int8(v)
         else:
             arrays[k] = v.astype(np.float16 if int8 else dtype)
-    np.savez_compressed(out / "params.npz", **arrays)
-    (out / "config.json").write_text(json.dumps(dataclasses.asdict(cfg), indent=1))
+    atomic.save_npz(out / "params.npz", **arrays)
+    atomic.write_json(out / "config.json", dataclasses.asdict(cfg))
     stats.save(out / "norm_stats.json")
     return out
 
@@ -202,7 +202,7 @@ def save_converted(out: str | Path, cfg: Config, params) -> Path:
     """A ``sc3 convert`` output at ``out``: config.json and the params as an orbax tree (no norm stats: a converted
     model has not seen our data)."""
     out = Path(out)
-    (out / "config.json").write_text(json.dumps(dataclasses.asdict(cfg), indent=1))
+    atomic.write_json(out / "config.json", dataclasses.asdict(cfg))
     ckpt = ocp.StandardCheckpointer()
     ckpt.save((out / "params").absolute(), params)
     ckpt.wait_until_finished()

@@ -15,8 +15,9 @@ import numpy as np
 import optax
 import orbax.checkpoint as ocp
 
-from sc3_jax import checkpoint, flow, sharding
-from sc3_jax.config import Config
+from sc3_jax import atomic, checkpoint, flow, sharding
+from sc3_jax.config import Config, config_from_dict
+from sc3_jax.errors import UserError
 from sc3_jax.model import dit
 from sc3_jax.model.tokenizer import context_token_frames, make_tokenizer, token_geometry
 
@@ -282,12 +283,40 @@ def prepare_data(cfg: Config):
     return store, stats, it
 
 
+# Fields a resumed run may change: how it runs, logs and checkpoints (and how its model is later sampled), not what
+# it learns. train.steps extends (or shortens) a run; the learning-rate schedule follows the new length.
+RESUMABLE = ("name", "train.workdir", "train.steps", "train.log_every", "train.ckpt_every", "train.keep_checkpoints",
+             "train.async_checkpointing", "train.tensorboard", "train.progress", "data.read_threads", "model.remat",
+             "model.attention_impl", "model.attention_block", "mesh.", "sample.", "rollout.")
+
+
+def check_workdir(cfg: Config) -> None:
+    """Refuse, before anything is written, to resume a workdir trained with another config: its checkpoints,
+    norm stats and latents belong to the config in its ``config.json``."""
+    path = Path(cfg.train.workdir) / "config.json"
+    if not path.exists():
+        return
+
+    def flat(d, prefix=""):
+        for k, v in d.items():
+            yield from flat(v, f"{prefix}{k}.") if isinstance(v, dict) else [(prefix + k, v)]
+    # through JSON both ways: tuples and lists compare equal; fields added since the run was written take defaults
+    old, new = (dict(flat(json.loads(json.dumps(dataclasses.asdict(c))))) for c in
+                (config_from_dict(atomic.read_json(path, "restore it from a copy")), cfg))
+    diff = [f"{k} {old.get(k)!r} -> {new.get(k)!r}" for k in sorted(old.keys() | new.keys())
+            if old.get(k) != new.get(k) and not k.startswith(RESUMABLE)]
+    if diff:
+        raise UserError(f"{path.parent} holds a run with another config (changed: {'; '.join(diff)}): resume it "
+                        "with its own settings, or use another --train.workdir")
+
+
 def train(cfg: Config, mesh=None, stop_at: int | None = None) -> dict:
     """Train (or resume) until ``cfg.train.steps`` (or ``stop_at``). Returns the last logged metrics."""
+    check_workdir(cfg)
     workdir = Path(cfg.train.workdir)
     workdir.mkdir(parents=True, exist_ok=True)
     if jax.process_index() == 0:
-        (workdir / "config.json").write_text(json.dumps(dataclasses.asdict(cfg), indent=1))
+        atomic.write_json(workdir / "config.json", dataclasses.asdict(cfg))
     mesh = sharding.make_mesh(cfg.mesh) if mesh is None else mesh
     _, _, data_iter = prepare_data(cfg)
     step_fn, _ = compile_train_step(cfg, mesh)

@@ -29,12 +29,15 @@ from typing import Any
 
 import numpy as np
 
+from sc3_jax import atomic
+from sc3_jax.errors import UserError
+
 FORMAT = "sc3-episodes"
 VERSION = 1
 ACTION_DIM = 7
 
 
-class EpisodeError(ValueError):
+class EpisodeError(UserError):
     """A malformed episode. ``episode`` and ``field`` say where."""
 
     def __init__(self, episode: str, field: str, problem: str):
@@ -97,7 +100,7 @@ class EpisodeStore:
         self.root = Path(root)
         header = self.root / "dataset.json"
         if header.exists():
-            info = json.loads(header.read_text())
+            info = atomic.read_json(header)
             if info.get("format") != FORMAT:
                 raise ValueError(f"{header}: not an sc3 episode dataset (format={info.get('format')!r})")
             for key, want in (("views", views), ("fps", fps), ("action_dim", action_dim if create else None)):
@@ -109,7 +112,7 @@ class EpisodeStore:
             self.root.mkdir(parents=True, exist_ok=True)
             info = {"format": FORMAT, "version": VERSION, "views": list(views), "fps": fps,
                     "action_dim": action_dim, "image_size": list(image_size)}
-            _atomic_write_text(header, json.dumps(info, indent=1))
+            atomic.write_json(header, info)
         else:
             raise FileNotFoundError(f"{self.root}: no dataset.json (not an sc3 episode dataset)")
         self.info = info
@@ -184,9 +187,3 @@ def _json_default(x):
     if isinstance(x, np.ndarray):
         return x.tolist()
     raise TypeError(f"not JSON serialisable: {type(x)}")
-
-
-def _atomic_write_text(path: Path, text: str) -> None:
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)

@@ -11,20 +11,21 @@ from __future__ import annotations
 
 import collections
 import hashlib
-import json
 import threading
 from pathlib import Path
 
 import jax
 import numpy as np
 
+from sc3_jax import atomic
 from sc3_jax.data.episodes import EpisodeStore
+from sc3_jax.errors import UserError
 
 
 def tokenizer_digest(path: str | Path) -> str:
     """Hash of the tokenizer's arrays (not the file's bytes: a re-export of the same weights keeps its cache)."""
     h = hashlib.sha1()
-    with np.load(Path(path) / "ae_params.npz") as z:
+    with atomic.open_npz(Path(path) / "ae_params.npz", "restore the tokenizer's weights") as z:
         for k in sorted(z.files):
             h.update(k.encode())
             h.update(np.ascontiguousarray(z[k]).tobytes())
@@ -39,12 +40,11 @@ def build(store: EpisodeStore, tok, views: tuple[str, ...], root: str | Path, ba
                 "views": list(views)}
     mpath = root / "manifest.json"
     if mpath.exists():
-        old = json.loads(mpath.read_text())
+        old = atomic.read_json(mpath, f"delete {root} (the cache is rebuilt)")
         if {k: old.get(k) for k in manifest} != manifest:
-            raise ValueError(f"{root} holds latents of another tokenizer, store or views ({old}); remove it or "
-                             f"point the cache elsewhere")
-    root.mkdir(parents=True, exist_ok=True)
-    mpath.write_text(json.dumps(manifest, indent=1))
+            raise UserError(f"{root} holds latents of another tokenizer, store or views ({old}); remove it or "
+                            f"point the cache elsewhere")
+    atomic.write_json(mpath, manifest)
     enc = jax.jit(tok.encode_latents)
     ids = store.episode_ids()
     todo = [e for e in ids if not (root / f"{e}.npy").exists()]
@@ -60,9 +60,7 @@ def build(store: EpisodeStore, tok, views: tuple[str, ...], root: str | Path, ba
         flat = np.concatenate([flat, np.zeros((pad,) + flat.shape[1:], flat.dtype)]) if pad else flat
         z = np.concatenate([np.asarray(enc(flat[i:i + batch])) for i in range(0, len(flat), batch)])
         z = z[:len(flat) - pad].reshape(frames.shape[:2] + z.shape[1:]).astype(np.float16)
-        tmp = root / f".{eid}.tmp.npy"
-        np.save(tmp, z)
-        tmp.replace(root / f"{eid}.npy")
+        atomic.save_npy(root / f"{eid}.npy", z)
     return root
 
 

@@ -33,6 +33,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+from sc3_jax import atomic
 from .lerobot import IMAGE_PREFIX
 
 VERSIONS = ("v3.0", "v2.1")
@@ -342,7 +343,7 @@ class _Writer:
                 "total_frames": self.total, "total_tasks": len(self.tasks), "chunks_size": CHUNKS_SIZE,
                 "fps": self.fps, "splits": {"train": f"0:{n_eps}"}}
         stats = {k: _aggregate([s[k] for s in self.stats]) for k in self.features}
-        (meta / "stats.json").write_text(json.dumps(_jsonable(stats), indent=1))
+        atomic.write_json(meta / "stats.json", _jsonable(stats))
         if self.version == "v3.0":
             info.update({"data_files_size_in_mb": 100, "video_files_size_in_mb": 500, "data_path": V3_DATA_PATH,
                          "video_path": V3_VIDEO_PATH if videos else None})
@@ -370,11 +371,11 @@ class _Writer:
             _write_jsonl(meta / "episodes_stats.jsonl", [{"episode_index": r["episode_index"], "stats": _jsonable(s)}
                                                          for r, s in zip(self.rows, self.stats, strict=True)])
         info["features"] = self.features
-        (meta / "info.json").write_text(json.dumps(info, indent=4))
+        atomic.write_json(meta / "info.json", info, indent=4)
 
 
 def _write_jsonl(path: Path, rows: list[dict]) -> None:
-    path.write_text("".join(json.dumps(r) + "\n" for r in rows))
+    atomic.write_text(path, "".join(json.dumps(r) + "\n" for r in rows))
 
 
 # -- our episode store -> LeRobot -------------------------------------------------------------------------------

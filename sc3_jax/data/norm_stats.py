@@ -4,12 +4,12 @@ loading a world model does not import the data pipeline."""
 from __future__ import annotations
 
 import dataclasses
-import json
 import os
-from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
+
+from sc3_jax import atomic
 
 if TYPE_CHECKING:
     from sc3_jax.data.episodes import EpisodeStore
@@ -75,14 +75,10 @@ class NormStats:
                 "pose_std": self.pose_std.tolist()}
 
     def save(self, path: str | os.PathLike) -> None:
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(f".{path.name}.tmp")
-        tmp.write_text(json.dumps(self.to_dict(), indent=1))
-        os.replace(tmp, path)
+        atomic.write_json(path, self.to_dict())
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> "NormStats":
-        d = json.loads(Path(path).read_text())
+        d = atomic.read_json(path)
         pose = [np.array(d[k], np.float32) if k in d else None for k in ("pose_mean", "pose_std")]
         return cls(np.array(d["mean"], np.float32), np.array(d["std"], np.float32), *pose)

@@ -19,9 +19,10 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
-import os
 from pathlib import Path
 
+from sc3_jax import atomic
+from sc3_jax.errors import UserError
 from sc3_jax.evaluate.results import ResultsStore, score_strides
 
 
@@ -42,19 +43,19 @@ def rescore(results: str | Path, weights: str | Path | None = None, state_reader
     store = ResultsStore(results)
     recs = store.records()
     if not recs:
-        raise ValueError(f"{results}: no rollouts to re-score")
+        raise UserError(f"{results}: no rollouts to re-score")
     path = Path(weights) if weights is not None else perception.DEFAULT_WEIGHTS
     cfg, digest = store.config(), weights_digest(path)
     was = cfg.get("perception_sha256")
     if any(r["mode"] != "real" for r in recs) and not cfg.get("state_reader") and was != digest:
         # the imagined rollouts read the gripper state with the scorer of their time: the store must remember it
         if state_reader is None:
-            raise ValueError(f"{results}: its imagined rollouts read the gripper state with the perception weights "
-                             f"that scored them (sha256 {was or 'not recorded'}); pass those as --state-reader, "
-                             "and resume the sweep with the same --state-reader")
+            raise UserError(f"{results}: its imagined rollouts read the gripper state with the perception weights "
+                            f"that scored them (sha256 {was or 'not recorded'}); pass those as --state-reader, "
+                            "and resume the sweep with the same --state-reader")
         if was and weights_digest(state_reader) != was:
-            raise ValueError(f"--state-reader {state_reader} (sha256 {weights_digest(state_reader)}) is not the "
-                             f"weights the store was scored with (sha256 {was})")
+            raise UserError(f"--state-reader {state_reader} (sha256 {weights_digest(state_reader)}) is not the "
+                            f"weights the store was scored with (sha256 {was})")
         cfg["state_reader"] = str(state_reader)
     scorer = PerceptionScorer(perception.load(path))
     strides = score_strides(recs)
@@ -79,14 +80,9 @@ def rescore(results: str | Path, weights: str | Path | None = None, state_reader
         new = json.loads(json.dumps(new, sort_keys=True))  # as the store writes and reads it back
         changed[r["mode"]] = changed.get(r["mode"], 0) + (new != r)
         out.append(new)
-    tmp = store.path.with_suffix(".rescore.tmp")
-    with open(tmp, "w") as fh:
-        fh.write("".join(json.dumps(r, sort_keys=True) + "\n" for r in out))
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, store.path)
+    atomic.write_text(store.path, "".join(json.dumps(r, sort_keys=True) + "\n" for r in out))
     cfg.update(perception=None if weights is None else str(weights), perception_sha256=digest)
-    (store.root / "sweep.json").write_text(json.dumps(cfg, indent=1))
+    atomic.write_json(store.root / "sweep.json", cfg)
     return changed
 
 

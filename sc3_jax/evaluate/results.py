@@ -1,9 +1,10 @@
 """A sweep's results store and its vocabulary, shared by the sweep that writes it (``sweep.py``) and everything that
 reads it (``report.py``, ``calibrate.py``, ``annotation.py``) without importing the sweep's machinery.
 
-Store layout (``out/``): ``sweep.json`` (the sweep's config, checked on resume), ``results.jsonl`` (one JSON line
-per rollout, appended and flushed as each finishes), ``rollouts/<policy>/<seed>_<mode>.npz`` (frames and arrays,
-written before their line).
+Store layout (``out/``): ``sweep.json`` (the sweep's config, checked on resume: records without it are never
+resumed), ``results.jsonl`` (one JSON line per rollout, appended and flushed as each finishes; a line cut by a kill is
+dropped on resume), ``rollouts/<policy>/<seed>_<mode>.npz`` (frames and arrays, written atomically before their
+line). A damaged file is a ``UserError`` naming it (and the line), and changes nothing.
 
 *Evaluation modes* (``EVAL_MODES``, a record's ``"mode"``) say where a rollout ran: in the simulator ("real"), in the
 world model replaying the real actions ("offline") or with the policy acting inside it ("online"). They are not the
@@ -14,10 +15,14 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import sys
 from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
+
+from sc3_jax import atomic
+from sc3_jax.errors import UserError
 
 EVAL_MODES = ("real", "offline", "online")
 SPLITS = {"bussing": "in_distribution", "reverse": "out_of_distribution"}  # task -> split
@@ -41,7 +46,7 @@ def seed_blocks(cfg) -> dict[str, list[int]]:
         for b in names[i + 1:]:
             both = sorted(set(blocks[a]) & set(blocks[b]))
             if both:
-                raise ValueError(f"{a} and {b} seeds overlap ({both[:3]}...): move calibration_seed0 / ceiling_seed0")
+                raise UserError(f"{a} and {b} seeds overlap ({both[:3]}...): move calibration_seed0 / ceiling_seed0")
     return blocks
 
 
@@ -72,33 +77,40 @@ class ResultsStore:
             self._check_config(config)
 
     def _check_config(self, config: dict):
-        self.root.mkdir(parents=True, exist_ok=True)
+        """Refuse (writing nothing) a store of another sweep, or one whose sweep is unknown or whose records do
+        not read; then drop a line cut by a kill and write ``sweep.json``."""
         cfg_path = self.root / "sweep.json"
         # modes may be added to a store (records are per mode); anything else that changes results may not.
         # real_from only says where identical real rollouts were copied from (the source may move later)
         keep = lambda d: {k: v for k, v in d.items()  # noqa: E731
                           if k not in ("progress", "out", "modes", "perception_sha256", "real_from")}
         if cfg_path.exists():
-            old = json.loads(cfg_path.read_text())
+            old = atomic.read_json(cfg_path, "restore it from a copy, or use another --out")
             # which perception weights scored the store (a store from before digests were kept: unknown, accepted)
             was, now = old.get("perception_sha256"), config.get("perception_sha256")
             if was and now and was != now:
-                raise ValueError(f"{self.root} was scored by other perception weights (sha256 {was}, these are "
-                                 f"{now}): re-score it first (`sc3 rescore {self.root}`, --perception WEIGHTS) or use "
-                                 "another --out")
+                raise UserError(f"{self.root} was scored by other perception weights (sha256 {was}, these are "
+                                f"{now}): re-score it first (`sc3 rescore {self.root}`, --perception WEIGHTS) or use "
+                                "another --out")
             # a field added since the store was written is absent from it: it matches only at its neutral None
             diff = {k: (old.get(k), v) for k, v in keep(config).items() if old.get(k) != v}
             diff.update({k: (v, None) for k, v in keep(old).items() if k not in config})
             if diff:
-                raise ValueError(f"{self.root} holds results of a different sweep (changed: {diff}); use another "
-                                 "--out or delete it")
+                raise UserError(f"{self.root} holds results of a different sweep (changed: {diff}); use another "
+                                "--out or delete it")
             config = dict(config, modes=[m for m in EVAL_MODES if m in set(old["modes"]) | set(config["modes"])])
-        cfg_path.write_text(json.dumps(config, indent=1))
+        elif self.path.exists() and self.path.stat().st_size:
+            # its records were run under a protocol nobody can check this one against: resuming could mix two
+            raise UserError(f"{self.path} has no sweep.json beside it, so the sweep its records belong to is unknown: "
+                            "restore sweep.json, or use another --out")
+        self.records()  # a damaged record refuses the resume here, before anything is written
+        self.root.mkdir(parents=True, exist_ok=True)
         self._repair()
+        atomic.write_json(cfg_path, config)
 
     def config(self) -> dict:
         """The sweep's config as stored (``sweep.json``)."""
-        return json.loads((self.root / "sweep.json").read_text())
+        return atomic.read_json(self.root / "sweep.json", "restore it from a copy of the store")
 
     def records(self) -> list[dict]:
         """Every complete line (a line cut by a kill, or still being written by a running sweep, is left out).
@@ -106,15 +118,31 @@ class ResultsStore:
         if not self.path.exists():
             return []
         raw = self.path.read_bytes()
-        raw = raw[:raw.rfind(b"\n") + 1]
-        return [json.loads(line) for line in raw.decode().splitlines() if line.strip()]
+        out = []
+        for i, line in enumerate(raw[:raw.rfind(b"\n") + 1].split(b"\n"), 1):
+            if not line.strip():
+                continue
+            try:
+                rec = json.loads(line)
+                problem = None if isinstance(rec, dict) else "not a JSON object"
+            except ValueError as e:  # JSON, or bytes that are not UTF-8
+                problem = getattr(e, "msg", "not UTF-8 text")
+            if problem:
+                raise UserError(f"{self.path}:{i}: not a rollout record ({problem}); delete that line (resuming the "
+                                "sweep runs its rollout again) or restore the file")
+            out.append(rec)
+        return out
 
     def _repair(self):
-        """Truncate a line cut by a kill, before this store's own sweep appends to it."""
+        """Drop a line cut by a kill, before this store's own sweep appends to it: the complete lines go to a new
+        file renamed over the old one, so a kill during the repair loses nothing."""
         if self.path.exists():
             raw = self.path.read_bytes()
             if raw and not raw.endswith(b"\n"):
-                self.path.write_bytes(raw[:raw.rfind(b"\n") + 1])
+                keep = raw[:raw.rfind(b"\n") + 1]
+                atomic.write_bytes(self.path, keep)
+                print(f"{self.path}: dropped its last line, cut by a kill ({len(raw) - len(keep)} bytes); its rollout "
+                      "runs again", file=sys.stderr)
 
     def done(self) -> set[str]:
         return {r["id"] for r in self.records()}
@@ -129,12 +157,10 @@ class ResultsStore:
         return self.root / "rollouts" / f"{rid}.npz"
 
     def save_arrays(self, rid: str, **arrays):
-        p = self.array_path(rid)
-        p.parent.mkdir(parents=True, exist_ok=True)
-        tmp = p.with_suffix(".tmp.npz")
-        np.savez_compressed(tmp, **arrays)
-        os.replace(tmp, p)
+        atomic.save_npz(self.array_path(rid), **arrays)
 
     def load_arrays(self, rid: str) -> dict:
-        with np.load(self.array_path(rid)) as z:
+        p = self.array_path(rid)
+        with atomic.open_npz(p, f"restore it, or delete it and {rid}'s line in {self.path} and resume the sweep"
+                                " to run it again") as z:
             return {k: z[k] for k in z.files}
