@@ -18,7 +18,8 @@ from sc3_jax.policies import msgpack_numpy as mn
 from sc3_jax.policies.base import HostPolicy, JaxPolicy, as_host
 from sc3_jax.policies.openpi_client import (PolicyConnectionError, PolicyServerError, PolicyTimeoutError,
                                             WebsocketClientPolicy)
-from sc3_jax.policies.openpi_mappings import ALOHA, DEFAULT_PROMPTS, DROID, LIBERO, get_mapping
+from sc3_jax.policies.openpi_mappings import (ALOHA, ALOHA_CAMERAS, DEFAULT_PROMPTS, DROID, LIBERO, ActionMap,
+                                             get_mapping)
 from sc3_jax.policies.openpi_server import PolicyServer, serve
 from sc3_jax.policies.serve_cli import build_policy_server
 
@@ -32,20 +33,22 @@ def _apply(params, obs, rng):
     del rng
     img_mean = jnp.mean(obs["images"].astype(jnp.float32), axis=(1, 2, 3)) / 255.0  # [V]
     base = obs["state"].astype(jnp.float32) + jnp.sum(img_mean * params["view_w"]) + params["task_w"] * obs["task"]
-    return base[None, :] + params["t"][:, None]  # [CHUNK, 7]
+    return base[None, :] + params["t"][:, None]  # [CHUNK, state dim]
 
 
-def tiny_policy() -> JaxPolicy:
-    params = {"view_w": jnp.array([1.0, 2.0, 3.0]), "task_w": jnp.float32(0.5), "t": jnp.arange(CHUNK) * 0.01}
-    return JaxPolicy("tiny", _apply, params, chunk=CHUNK)
+def tiny_policy(dim=7, views=3) -> JaxPolicy:
+    """Actions [CHUNK, dim] from a state [dim] and ``views`` views (dim 8: DROID, 14: ALOHA)."""
+    params = {"view_w": jnp.arange(1.0, views + 1), "task_w": jnp.float32(0.5), "t": jnp.arange(CHUNK) * 0.01}
+    return JaxPolicy("tiny", _apply, params, chunk=CHUNK, action_dim=dim)
 
 
-def our_obs(h=48, w=64, task=1, seed=0):
+def our_obs(h=48, w=64, task=1, seed=0, state_dim=7, views=3):
     """Constant-colour views (resizing / letterboxing / un-letterboxing them is exact)."""
     rng = np.random.default_rng(seed)
-    colours = rng.integers(0, 256, size=3)
+    colours = rng.integers(0, 256, size=views)
     images = np.stack([np.full((h, w, 3), c, np.uint8) for c in colours])
-    return {"images": images, "state": rng.normal(size=7).astype(np.float32), "task": np.asarray(task, np.int32)}
+    return {"images": images, "state": rng.normal(size=state_dim).astype(np.float32),
+            "task": np.asarray(task, np.int32)}
 
 
 def free_port() -> int:
@@ -175,7 +178,9 @@ def test_msgpack_refuses_dtypes(bad):
 # mappings
 # ---------------------------------------------------------------------------------------------------------------------
 def test_presets_keys_shapes_and_inverse():
-    obs = our_obs(task=1)
+    # Each preset now carries its robot's own state layout (DROID 8-D, LIBERO 7-D, ALOHA 14-D with 4 views), so each
+    # gets an observation of that layout (this test used to feed all three our 7-D, 3-view benchmark observation).
+    obs = our_obs(task=1, state_dim=8)
     s = obs["state"]
     droid = DROID.to_family(obs)
     assert set(droid) == {"observation/exterior_image_1_left", "observation/wrist_image_left",
@@ -186,31 +191,35 @@ def test_presets_keys_shapes_and_inverse():
     ext = droid["observation/exterior_image_1_left"]
     assert (ext[:28] == 0).all() and (ext[-28:] == 0).all() and (ext[28:196] == obs["images"][0, 0, 0]).all()
     assert (droid["observation/wrist_image_left"][100, 100] == obs["images"][2, 0, 0]).all()  # wrist = last view
-    np.testing.assert_array_equal(droid["observation/joint_position"], np.r_[s[:6], 0.0].astype(np.float32))
-    np.testing.assert_array_equal(droid["observation/gripper_position"], s[6:7])
+    np.testing.assert_array_equal(droid["observation/joint_position"], s[:7])
+    np.testing.assert_array_equal(droid["observation/gripper_position"], s[7:8])
     assert droid["prompt"] == DEFAULT_PROMPTS[1]
 
-    libero = LIBERO.to_family(obs)
+    lobs = our_obs(task=1)
+    libero = LIBERO.to_family(lobs)
     assert set(libero) == {"observation/image", "observation/wrist_image", "observation/state", "prompt"}
     assert libero["observation/image"].shape == (224, 224, 3)
-    np.testing.assert_array_equal(libero["observation/state"], np.r_[s, -s[6]].astype(np.float32))
+    ls = lobs["state"]
+    np.testing.assert_array_equal(libero["observation/state"], np.r_[ls, -ls[6]].astype(np.float32))
 
-    aloha = ALOHA.to_family(obs)
+    aobs = our_obs(task=1, state_dim=14, views=4)
+    aloha = ALOHA.to_family(aobs)
     assert set(aloha) == {"images", "state", "prompt"}
-    assert set(aloha["images"]) == {"cam_high", "cam_low", "cam_left_wrist"}
+    assert tuple(aloha["images"]) == ALOHA_CAMERAS
     for v in aloha["images"].values():
         assert v.shape == (3, 224, 224) and v.dtype == np.uint8
-    assert aloha["state"].shape == (14,)
+    np.testing.assert_array_equal(aloha["state"], aobs["state"])
 
     # inverse (server side): back to our observation; constant views survive exactly
-    for m, fobs in ((DROID, droid), (LIBERO, libero), (ALOHA, aloha)):
+    for m, o, fobs in ((DROID, obs, droid), (LIBERO, lobs, libero), (ALOHA, aobs, aloha)):
         back = m.replace(our_image_size=(48, 64)).from_family(fobs)
-        assert back["images"].shape == (3, 48, 64, 3) and back["images"].dtype == np.uint8
-        np.testing.assert_array_equal(back["state"], s)
+        n = m.num_views
+        assert back["images"].shape == (n, 48, 64, 3) and back["images"].dtype == np.uint8
+        np.testing.assert_array_equal(back["state"], o["state"])
         assert back["task"].dtype == np.int32 and int(back["task"]) == 1
-        sent = {vf.view % 3 for vf in m.views}
-        for v in range(3):
-            np.testing.assert_array_equal(back["images"][v], obs["images"][v] if v in sent else 0)
+        sent = {m._view_index(vf.view, n) for vf in m.views}
+        for v in range(n):
+            np.testing.assert_array_equal(back["images"][v], o["images"][v] if v in sent else 0)
     assert DROID.from_family(droid)["images"].shape == (3, 224, 224, 3)  # our_image_size=None keeps the family size
 
     # prompts: fixed prompt, unknown prompt
@@ -222,19 +231,100 @@ def test_presets_keys_shapes_and_inverse():
 
 
 def test_action_mapping():
+    # DROID is now the identity over openpi's 8 dims (7 joint velocities + gripper) for an 8-D model; it used to
+    # squeeze them into our 7-D delta-EE layout by dropping dim 6.
     fam = np.random.default_rng(0).normal(size=(10, 8)).astype(np.float32)
     ours = DROID.actions_to_ours(fam, chunk=12)
-    assert ours.shape == (12, 7) and ours.dtype == np.float32
-    np.testing.assert_array_equal(ours[:10], fam[:, [0, 1, 2, 3, 4, 5, 7]])
-    np.testing.assert_array_equal(ours[10:], np.repeat(fam[-1:, [0, 1, 2, 3, 4, 5, 7]], 2, 0))  # "hold"
+    assert ours.shape == (12, 8) and ours.dtype == np.float32
+    np.testing.assert_array_equal(ours[:10], fam)
+    np.testing.assert_array_equal(ours[10:], np.repeat(fam[-1:], 2, 0))  # "hold"
     np.testing.assert_array_equal(DROID.actions_to_ours(fam, chunk=4), ours[:4])
     assert (DROID.replace(pad_actions="zeros").actions_to_ours(fam, 12)[10:] == 0).all()
     with pytest.raises(ValueError, match="chunk of 12"):
         DROID.replace(pad_actions="error").actions_to_ours(fam, 12)
     back = DROID.actions_to_family(ours)
-    assert back.shape == (12, 8) and (back[:, 6] == 0).all()
+    assert back.shape == (12, 8)
     np.testing.assert_array_equal(DROID.actions_to_ours(back, 12), ours)
-    assert ALOHA.actions_to_family(ours).shape == (12, 14)
+    # a mapping that reads a subset still scatters back with zeros in the family dims we do not produce
+    sub = DROID.replace(action_map=ActionMap(family_dim=8, indices=(0, 1, 2, 3, 4, 5, 7)))
+    ours7 = sub.actions_to_ours(fam, 10)
+    np.testing.assert_array_equal(ours7, fam[:, [0, 1, 2, 3, 4, 5, 7]])
+    back7 = sub.actions_to_family(ours7)
+    assert (back7[:, 6] == 0).all() and (back7[:, [0, 1, 2, 3, 4, 5, 7]] == ours7).all()
+    assert ALOHA.actions_to_family(np.zeros((12, 14), np.float32)).shape == (12, 14)
+
+
+def test_aloha_roundtrip_14d_four_views(server_factory):
+    """openpi ALOHA: both arms, [left 6 joints, left gripper, right 6 joints, right gripper], 4 CHW cameras."""
+    obs = our_obs(task=0, state_dim=14, views=4)
+    fam = ALOHA.to_family(obs)
+    assert tuple(fam["images"]) == ("cam_high", "cam_low", "cam_left_wrist", "cam_right_wrist")
+    for cam, img in zip(ALOHA_CAMERAS, obs["images"]):
+        assert fam["images"][cam].shape == (3, 224, 224) and fam["images"][cam].dtype == np.uint8
+        assert (fam["images"][cam][:, 112, 112] == img[0, 0]).all()  # view i -> camera i, CHW
+    assert fam["state"].shape == (14,) and fam["state"].dtype == np.float32
+    np.testing.assert_array_equal(fam["state"], obs["state"])  # right arm included, not zero padding
+    # ours -> family -> ours is the identity: images (constant colours survive the letterbox), state, task, actions
+    m = ALOHA.replace(our_image_size=(48, 64))
+    back = m.from_family(fam)
+    assert_same(obs, back)
+    chunk = np.random.default_rng(4).normal(size=(CHUNK, 14)).astype(np.float32)
+    fam_actions = ALOHA.actions_to_family(chunk)
+    assert fam_actions.shape == (CHUNK, 14)
+    np.testing.assert_array_equal(fam_actions, chunk)
+    np.testing.assert_array_equal(ALOHA.actions_to_ours(fam_actions, CHUNK), chunk)
+    # and over the wire: a 14-D, 4-view policy served as ALOHA, queried by our ALOHA client
+    policy = tiny_policy(14, views=4)
+    server = server_factory(policy, mapping=m)
+    with WebsocketClientPolicy("127.0.0.1", server.port, mapping=m, action_dim=14) as client:
+        assert client.metadata["family"] == "aloha" and client.metadata["action_dim"] == 14
+        got = client.infer(obs)
+    assert got.shape == (CHUNK, 14)
+    np.testing.assert_allclose(got, as_host(policy).infer(obs), rtol=0, atol=1e-6)
+
+
+def test_droid_shapes_and_names():
+    """openpi DROID: HWC 224x224 exterior + wrist images, joint_position [7] + gripper_position [1], actions [H, 8]."""
+    obs = our_obs(h=180, w=320, state_dim=8)
+    fam = DROID.to_family(obs)
+    assert {k: (v.shape, v.dtype) for k, v in fam.items() if k != "prompt"} == {
+        "observation/exterior_image_1_left": ((224, 224, 3), np.uint8),
+        "observation/wrist_image_left": ((224, 224, 3), np.uint8),
+        "observation/joint_position": ((7,), np.float32),
+        "observation/gripper_position": ((1,), np.float32)}
+    top = (224 - int(180 / (320 / 224))) // 2  # resize_with_pad: 320x180 -> 224x126, 49 black rows above
+    assert (fam["observation/exterior_image_1_left"][:top] == 0).all()
+    assert (fam["observation/exterior_image_1_left"][top + 1] == obs["images"][0, 0, 0]).all()
+    assert (fam["observation/wrist_image_left"][112, 112] == obs["images"][-1, 0, 0]).all()
+    assert DROID.action_dim == 8 and DROID.our_state_dim == 8 and DROID.action_map.family_dim == 8
+    chunk = np.arange(CHUNK * 8, dtype=np.float32).reshape(CHUNK, 8)
+    np.testing.assert_array_equal(DROID.actions_to_ours(DROID.actions_to_family(chunk), CHUNK), chunk)
+    # openpi's DroidInputs also accepts a 0-d gripper position
+    back = DROID.from_family({**fam, "observation/gripper_position": np.float32(0.25)})
+    assert back["state"].shape == (8,) and back["state"][7] == 0.25
+
+
+def test_dimension_mismatch_is_one_line_value_error(server_factory):
+    """A 7-D model with the 14-D ALOHA preset must not silently drive one arm: every entry point says so."""
+    msg = r"'aloha' carries 14-D actions but .* has 7-D actions"
+    with pytest.raises(ValueError, match=msg) as ei:
+        ALOHA.check_dims(action_dim=7)
+    assert "\n" not in str(ei.value)
+    with pytest.raises(ValueError, match=msg):
+        ALOHA.actions_to_family(np.zeros((CHUNK, 7), np.float32))
+    with pytest.raises(ValueError, match=r"'aloha' carries 14-D states but the observation has 7-D states"):
+        ALOHA.to_family(our_obs(state_dim=7, views=4))
+    with pytest.raises(ValueError, match=r"'droid' carries 8-D actions but policy 'tiny' has 7-D actions"):
+        PolicyServer(tiny_policy(7), host="127.0.0.1", port=0, mapping="droid")
+    with pytest.raises(ValueError, match=msg):  # refused before any connection is attempted (port 1 is closed)
+        WebsocketClientPolicy("127.0.0.1", 1, mapping="aloha", action_dim=7, max_retries=0)
+    with pytest.raises(IndexError, match="out of range for 3 views"):  # ALOHA needs all 4 cameras
+        ALOHA.to_family(our_obs(state_dim=14, views=3))
+    # a HostPolicy that does not declare its dimension is caught at its first reply (the client sees the traceback)
+    server = server_factory(FixedPolicy(), mapping=ALOHA.replace(our_image_size=(48, 64)))
+    with WebsocketClientPolicy("127.0.0.1", server.port, mapping="aloha", max_retries=0) as client:
+        with pytest.raises(PolicyServerError, match="carries 14-D actions but the policy's action chunk has 7-D"):
+            client.infer(our_obs(state_dim=14, views=4))
 
 
 # ---------------------------------------------------------------------------------------------------------------------
@@ -273,6 +363,10 @@ def test_jax_policy_served_native_and_droid(server_factory):
         assert client.chunk == CHUNK and client.metadata["policy"] == "tiny"
         np.testing.assert_array_equal(client.infer(obs), local.infer(obs))
 
+    # DROID carries an 8-D robot (7 joints + gripper): an 8-D policy and state (this used to be our 7-D policy)
+    policy = tiny_policy(8)
+    local = as_host(policy)
+    obs = our_obs(task=1, state_dim=8)
     mapping = DROID.replace(our_image_size=(48, 64))
     server = server_factory(policy, mapping=mapping)
     with WebsocketClientPolicy("127.0.0.1", server.port, mapping=mapping, chunk=8) as client:
@@ -281,7 +375,7 @@ def test_jax_policy_served_native_and_droid(server_factory):
         # DROID sends views 0 and -1; the server's view 1 is black
         expected_obs = {**obs, "images": obs["images"] * np.array([1, 0, 1], np.uint8)[:, None, None, None]}
         expected = local.infer(expected_obs)
-        assert got.shape == (8, 7)
+        assert got.shape == (8, 8)
         np.testing.assert_allclose(got[:CHUNK], expected, rtol=0, atol=1e-6)
         np.testing.assert_array_equal(got[CHUNK:], np.repeat(got[CHUNK - 1:CHUNK], 8 - CHUNK, 0))
 
@@ -406,12 +500,12 @@ def test_real_openpi_client(openpi_client, server_factory):
     assert_same(p, omn.unpackb(mn.packb(p)))
     assert_same(p, mn.unpackb(omn.packb(p)))
 
-    policy = tiny_policy()
+    policy = tiny_policy(8)  # DROID: an 8-D robot
     mapping = DROID.replace(our_image_size=(48, 64))
     server = server_factory(policy, mapping=mapping, metadata={"note": "sc3"})
     client = wcp.WebsocketClientPolicy(host="127.0.0.1", port=server.port)
     assert client.get_server_metadata()["note"] == "sc3"
-    fobs = mapping.to_family(our_obs(task=0))
+    fobs = mapping.to_family(our_obs(task=0, state_dim=8))
     reply = client.infer(fobs)
     expected = mapping.actions_to_family(as_host(policy).infer(mapping.from_family(fobs)))
     assert reply["actions"].shape == (CHUNK, 8) and reply["actions"].dtype == np.float32

@@ -63,8 +63,11 @@ class WebsocketClientPolicy:
     """A :class:`HostPolicy` backed by an openpi-protocol policy server (openpi's ``serve_policy.py`` or ours).
 
     ``infer(obs)`` maps our observation with ``mapping`` (a preset name or :class:`ObsMapping`; None = native: our
-    dict as is), sends it, and maps the reply's ``"actions"`` back to float32 [chunk, 7]. ``infer_raw(dict) -> dict``
+    dict as is), sends it, and maps the reply's ``"actions"`` back to float32 [chunk, D]. ``infer_raw(dict) -> dict``
     speaks the protocol without any mapping. ``last_response`` holds the last raw reply (timings etc.).
+    ``action_dim``: the action dimension of the model (world model / robot) these actions drive; given, a mapping
+    carrying another dimension is refused here (one-line ValueError) and native replies are checked against it.
+    Without it, ``action_dim`` is the mapping's (None when native).
 
     Connection failures (refused, reset, 5xx during the handshake, connection lost between requests) are retried
     ``max_retries`` times with exponential back-off ``backoff_s * 2**i`` (capped at ``max_backoff_s``), then raise
@@ -74,13 +77,16 @@ class WebsocketClientPolicy:
     """
 
     def __init__(self, host: str = "127.0.0.1", port: int | None = 8000, mapping: ObsMapping | str | None = None,
-                 api_key: str | None = None, *, chunk: int | None = None, timeout_s: float = 60.0,
-                 max_retries: int = 5, backoff_s: float = 0.5, max_backoff_s: float = 10.0):
+                 api_key: str | None = None, *, chunk: int | None = None, action_dim: int | None = None,
+                 timeout_s: float = 60.0, max_retries: int = 5, backoff_s: float = 0.5, max_backoff_s: float = 10.0):
         self.uri = host if host.startswith(("ws://", "wss://")) else f"ws://{host}"
         if port is not None:
             self.uri += f":{port}"
         self.address = self.uri.split("://", 1)[1]
         self.mapping = get_mapping(mapping)
+        if self.mapping is not None:
+            self.mapping.check_dims(action_dim=action_dim)  # before connecting: a wrong preset is not a network issue
+        self.action_dim = action_dim if action_dim is not None or self.mapping is None else self.mapping.action_dim
         self.api_key, self.timeout_s = api_key, timeout_s
         self.max_retries, self.backoff_s, self.max_backoff_s = max_retries, backoff_s, max_backoff_s
         self._ws: websockets.sync.client.ClientConnection | None = None
@@ -171,7 +177,7 @@ class WebsocketClientPolicy:
                                         f"{self.max_retries + 1} times; last error: {last}")
 
     def infer(self, obs: Mapping[str, Any]) -> np.ndarray:
-        """Our observation -> our action chunk float32 [chunk, 7]."""
+        """Our observation -> our action chunk float32 [chunk, D]."""
         if self.mapping is None:
             reply = self.infer_raw({k: np.asarray(v) for k, v in obs.items()})
         else:
@@ -181,6 +187,9 @@ class WebsocketClientPolicy:
                                     f"(keys: {sorted(map(str, reply))})")
         if self.mapping is None:
             actions = np.asarray(reply["actions"], np.float32)
+            if self.action_dim is not None and (actions.ndim != 2 or actions.shape[1] != self.action_dim):
+                raise ValueError(f"policy server {self.address} returned actions of shape {actions.shape} but the "
+                                 f"model has {self.action_dim}-D actions")
             return np.ascontiguousarray(fit_rows(actions, self.chunk, "hold", f"policy server {self.address}"))
         return self.mapping.actions_to_ours(reply["actions"], self.chunk)
 

@@ -2,14 +2,16 @@
 :data:`LIBERO`, :data:`ALOHA` (``mapping=None``, "native", sends our observation dict unchanged). Used by the client
 (``openpi_client.py``) to query a family's server and by our server (``openpi_server.py``) to answer its clients.
 
-Our observation is ``{"images": uint8 [V,H,W,3], "state": float32 [7], "task": int32 []}`` (see ``base.py``), our
-action chunk float32 [chunk, 7] delta end-effector; a family's are its own keys and ``"actions"`` [H, D].
+Our observation is ``{"images": uint8 [V,H,W,3], "state": float32 [S], "task": int32 []}`` (see ``base.py``), our
+action chunk float32 [chunk, D]; a family's are its own keys and ``"actions"`` [H, D_family].
 
-Semantics caveat (documented, not hidden): our 7-D state is an end-effector pose (x, y, z, rotvec, gripper) and our
-actions are delta end-effector actions. DROID policies expect joint positions and emit joint velocities, ALOHA
-policies expect/emit bimanual joint positions; the DROID/ALOHA presets route our numbers into those slots so that the
-protocol works end to end, but a meaningful evaluation needs a policy trained on (or a mapping to) our action space.
-LIBERO's state/action convention (EE pose + gripper, delta EE actions) is the closest to ours.
+The robot's state/action layout is the model's, not fixed to our 7-D delta-EE benchmark: each preset says which
+layout it carries and checks it (:meth:`ObsMapping.check_dims`), so a model of the wrong dimension fails loudly
+instead of silently losing dims. DROID and ALOHA are identities over openpi's own layouts (an 8-D DROID model:
+7 joint velocities + gripper position, state 7 joint positions + gripper; a 14-D ALOHA model: [left 6 joints,
+left gripper, right 6 joints, right gripper] joint positions, in the standard ALOHA runtime space, which openpi's
+``AlohaInputs(adapt_to_pi=True)`` converts itself). LIBERO maps our 7-D EE pose + gripper / delta-EE actions, the
+layout of our own benchmark. Conventions checked against openpi's files listed in docs/openpi.md.
 """
 from __future__ import annotations
 
@@ -18,8 +20,8 @@ from typing import Any, Mapping
 
 import numpy as np
 
-__all__ = ["ViewField", "StateField", "ActionMap", "ObsMapping", "DROID", "LIBERO", "ALOHA", "PRESETS",
-           "DEFAULT_PROMPTS", "get_mapping", "resize_with_pad"]
+__all__ = ["ViewField", "StateField", "ActionMap", "ObsMapping", "DROID", "LIBERO", "ALOHA", "ALOHA_CAMERAS",
+           "PRESETS", "DEFAULT_PROMPTS", "get_mapping", "resize_with_pad"]
 
 DEFAULT_PROMPTS: dict[int, str] = {
     0: "put the utensils in the bin and the trash in the trash can",  # bussing (in-distribution)
@@ -49,10 +51,15 @@ class StateField:
 @dataclasses.dataclass(frozen=True)
 class ActionMap:
     """Our action dim ``i`` = family ``actions[:, indices[i]] * scale[i]``; ``family_dim`` is D of the family's
-    ``"actions"`` [H, D] (used when serving: family dims we do not produce are zero)."""
+    ``"actions"`` [H, D] (used when serving: family dims we do not produce are zero). ``indices=None``: all
+    ``family_dim`` dims in order, so our action dimension is the family's."""
     family_dim: int
-    indices: tuple[int, ...] = (0, 1, 2, 3, 4, 5, 6)
+    indices: tuple[int, ...] | None = None
     scale: tuple[float, ...] | None = None
+
+    @property
+    def our_indices(self) -> tuple[int, ...]:
+        return tuple(range(self.family_dim)) if self.indices is None else tuple(self.indices)
 
 
 def _get(d: Mapping, key: KeyPath) -> Any:
@@ -150,7 +157,11 @@ class ObsMapping:
     back to their indices (divided by the scale; the first occurrence of a duplicated index wins) into ``state_dim``;
     the prompt looked up (case/space-insensitive) in the table to recover ``task`` (a fixed prompt or an unknown/missing
     prompt gives ``default_task``; unknown with ``default_task=None`` is an error). ``actions_to_family`` scatters our
-    [chunk, 7] into zeros [chunk, family_dim].
+    [chunk, D] into zeros [chunk, family_dim].
+
+    Dimensions: our action dimension is ``len(action_map.our_indices)``; our state dimension ``state_dim`` (None:
+    the highest mapped state index + 1, not enforced on the client). Both sides refuse other dimensions with a
+    ValueError (see :meth:`check_dims`) rather than dropping or inventing dims.
     """
     name: str
     views: tuple[ViewField, ...]
@@ -167,11 +178,29 @@ class ObsMapping:
     # inverse (server) side
     num_views: int = 3
     our_image_size: tuple[int, int] | None = None
-    state_dim: int = 7
+    state_dim: int | None = None
     default_task: int | None = None
 
     def replace(self, **changes: Any) -> "ObsMapping":
         return dataclasses.replace(self, **changes)
+
+    # -- dimensions ----------------------------------------------------------------------------------------------------
+    @property
+    def action_dim(self) -> int:
+        """Our action dimension under this mapping."""
+        return len(self.action_map.our_indices)
+
+    @property
+    def our_state_dim(self) -> int:
+        return self.state_dim if self.state_dim is not None else max(max(sf.indices) + 1 for sf in self.state)
+
+    def check_dims(self, action_dim: int | None = None, state_dim: int | None = None, who: str = "the model") -> None:
+        """One-line ValueError when ``who``'s action/state dimension is not the one this mapping carries (e.g. a 7-D
+        model with the 14-D bimanual ALOHA preset would otherwise silently drive one arm)."""
+        for kind, got, want in (("action", action_dim, self.action_dim), ("state", state_dim, self.state_dim)):
+            if got is not None and want is not None and int(got) != want:
+                raise ValueError(f"openpi mapping {self.name!r} carries {want}-D {kind}s but {who} has {int(got)}-D "
+                                 f"{kind}s; use a {want}-D model or a mapping for {int(got)}-D {kind}s")
 
     # -- views ---------------------------------------------------------------------------------------------------------
     def _view_index(self, view: int | str, n: int) -> int:
@@ -234,6 +263,7 @@ class ObsMapping:
     def to_family(self, obs: Mapping[str, Any]) -> dict:
         images = np.asarray(obs["images"])
         state = np.asarray(obs["state"], np.float32)
+        self.check_dims(state_dim=state.shape[-1], who="the observation")
         out: dict = {}
         for vf in self.views:
             _put(out, vf.key, self._image_out(images[self._view_index(vf.view, images.shape[0])]))
@@ -256,10 +286,10 @@ class ObsMapping:
         actions = np.asarray(actions, np.float32)
         if actions.ndim != 2:
             raise ValueError(f"expected 'actions' of shape [H, D], got {actions.shape}")
-        if max(self.action_map.indices) >= actions.shape[1]:
-            raise ValueError(f"'actions' has D={actions.shape[1]} but mapping {self.name!r} reads dims "
-                             f"{self.action_map.indices}")
-        ours = actions[:, list(self.action_map.indices)]
+        idx = self.action_map.our_indices
+        if max(idx) >= actions.shape[1]:
+            raise ValueError(f"'actions' has D={actions.shape[1]} but mapping {self.name!r} reads dims {idx}")
+        ours = actions[:, list(idx)]
         if self.action_map.scale is not None:
             ours = ours * np.asarray(self.action_map.scale, np.float32)
         return np.ascontiguousarray(fit_rows(ours, chunk, self.pad_actions, f"policy ({self.name})"), np.float32)
@@ -277,8 +307,8 @@ class ObsMapping:
         if len({v.shape for v in present}) != 1:
             raise ValueError(f"views have different shapes {[v.shape for v in present]}; set our_image_size")
         images = np.stack([v if v is not None else np.zeros_like(present[0]) for v in views])
-        state = np.zeros(self.state_dim, np.float32)
-        filled = np.zeros(self.state_dim, bool)
+        state = np.zeros(self.our_state_dim, np.float32)
+        filled = np.zeros(self.our_state_dim, bool)
         for sf in self.state:
             if not _has(fobs, sf.key):
                 continue
@@ -292,44 +322,56 @@ class ObsMapping:
 
     def actions_to_family(self, actions: np.ndarray) -> np.ndarray:
         actions = np.asarray(actions, np.float32)
+        if actions.ndim != 2:
+            raise ValueError(f"expected our actions of shape [chunk, D], got {actions.shape}")
+        self.check_dims(action_dim=actions.shape[1], who="the policy's action chunk")
         out = np.zeros((actions.shape[0], self.action_map.family_dim), np.float32)
-        vals = actions[:, : len(self.action_map.indices)]
+        vals = actions
         if self.action_map.scale is not None:
             vals = vals / np.asarray(self.action_map.scale, np.float32)
-        for j, i in reversed(list(enumerate(self.action_map.indices))):  # first occurrence wins
+        for j, i in reversed(list(enumerate(self.action_map.our_indices))):  # first occurrence wins
             out[:, i] = vals[:, j]
         return out
 
 
-# DROID (pi0/pi0-FAST/pi05 _droid): two 224x224 HWC images, joint_position [7], gripper_position [1], actions [H, 8]
-# (7 joint velocities + gripper). Our state[0:6] (EE pose) -> joint_position (zero-padded to 7), state[6] -> gripper;
-# our 7 actions <- action dims 0..5 and 7 (the gripper).
+# DROID (openpi src/openpi/policies/droid_policy.py, examples/droid/main.py; pi0/pi0-FAST/pi05 _droid): two HWC uint8
+# images letterboxed to 224x224 (the DROID client resizes with pad before sending), state joint_position [7] +
+# gripper_position [1], actions [H, 8] = 7 joint velocities + gripper position (DroidOutputs keeps the first 8 dims).
+# Our robot is a DROID Franka: an 8-D model, state [7 joint positions, gripper], views in DROID dataset order
+# (exterior 1, exterior 2, wrist; openpi's policies take exterior 1 and the wrist only).
 DROID = ObsMapping(
     name="droid",
     views=(ViewField("observation/exterior_image_1_left", 0), ViewField("observation/wrist_image_left", -1)),
-    state=(StateField("observation/joint_position", (0, 1, 2, 3, 4, 5), pad_to=7),
-           StateField("observation/gripper_position", (6,))),
-    action_map=ActionMap(family_dim=8, indices=(0, 1, 2, 3, 4, 5, 7)),
+    state=(StateField("observation/joint_position", tuple(range(7))),
+           StateField("observation/gripper_position", (7,))),
+    action_map=ActionMap(family_dim=8),
+    state_dim=8,
 )
 # LIBERO (pi0/pi05 _libero): 224x224 HWC images, state [8] = EE pos (3), axis-angle (3), gripper qpos (2, the two
-# fingers +g / -g), actions [H, 7] delta EE + gripper, the same layout as ours. (openpi's LIBERO example also rotates
-# the simulator's images by 180 degrees; do that before the mapping if your renders need it.)
+# fingers +g / -g), actions [H, 7] delta EE + gripper, the same layout as our 7-D benchmark. (openpi's LIBERO example
+# also rotates the simulator's images by 180 degrees; do that before the mapping if your renders need it.)
 LIBERO = ObsMapping(
     name="libero",
     views=(ViewField("observation/image", 0), ViewField("observation/wrist_image", -1)),
     state=(StateField("observation/state", (0, 1, 2, 3, 4, 5, 6, 6), scale=(1, 1, 1, 1, 1, 1, 1, -1)),),
     action_map=ActionMap(family_dim=7),
+    state_dim=7,
 )
-# ALOHA (pi0/pi05 _aloha*): images {cam_high, cam_low, cam_left_wrist[, cam_right_wrist]} CHW uint8 (openpi's ALOHA
-# client letterboxes to 224x224 first), state [14] (two arms x (6 joints + gripper)), actions [H, 14]. We fill the
-# left arm with our 7 numbers; cam_right_wrist is omitted (openpi's AlohaInputs substitutes a masked blank image).
+# ALOHA (openpi src/openpi/policies/aloha_policy.py, examples/aloha_real/{env,real_env}.py; pi0/pi05 _aloha*): images
+# {cam_high, cam_low, cam_left_wrist, cam_right_wrist} as CHW uint8 letterboxed to 224x224 (the ALOHA client's
+# resize_with_pad + "h w c -> c h w"), state [14] and actions [H, 14] = [left 6 joints, left gripper, right 6 joints,
+# right gripper] (AlohaOutputs keeps the first 14 dims). Our robot is a bimanual ALOHA: a 14-D model, 4 views in
+# that camera order.
+ALOHA_CAMERAS = ("cam_high", "cam_low", "cam_left_wrist", "cam_right_wrist")
 ALOHA = ObsMapping(
     name="aloha",
-    views=(ViewField(("images", "cam_high"), 0), ViewField(("images", "cam_low"), 1),
-           ViewField(("images", "cam_left_wrist"), -1)),
-    state=(StateField("state", (0, 1, 2, 3, 4, 5, 6), pad_to=14),),
+    views=tuple(ViewField(("images", cam), cam) for cam in ALOHA_CAMERAS),
+    state=(StateField("state", tuple(range(14))),),
     action_map=ActionMap(family_dim=14),
     channels_first=True,
+    view_names=ALOHA_CAMERAS,
+    num_views=4,
+    state_dim=14,
 )
 PRESETS: dict[str, ObsMapping] = {"droid": DROID, "libero": LIBERO, "aloha": ALOHA}
 

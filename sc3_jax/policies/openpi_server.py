@@ -46,8 +46,10 @@ class PolicyServer:
         if not callable(getattr(self.policy, "infer", None)):
             raise TypeError(f"{type(policy).__name__} is neither a JaxPolicy nor a HostPolicy (no .infer)")
         self.mapping = get_mapping(mapping)
-        self.api_key = api_key
         name = getattr(policy, "name", type(policy).__name__)
+        if self.mapping is not None:  # a JaxPolicy (or a HostPolicy that says) knows its action dim: refuse at start
+            self.mapping.check_dims(action_dim=getattr(policy, "action_dim", None), who=f"policy {name!r}")
+        self.api_key = api_key
         chunk = getattr(self.policy, "chunk", None)
         self.metadata = {"server": "sc3_jax", "policy": str(name), "family": self.mapping.name if self.mapping else
                          "native", **({"chunk": int(chunk)} if isinstance(chunk, int) else {}),

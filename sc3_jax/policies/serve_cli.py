@@ -27,7 +27,8 @@ def _serve_policy_parser() -> argparse.ArgumentParser:
                    help="observation keys clients send (native = our own observation dict)")
     p.add_argument("--image-size", type=int, nargs=2, metavar=("H", "W"), default=None,
                    help="image size our policy expects (family images are un-letterboxed and resized to it)")
-    p.add_argument("--num-views", type=int, default=3, help="number of views our policy expects")
+    p.add_argument("--num-views", type=int, default=None,
+                   help="number of views our policy expects (default: the family's, e.g. 4 for aloha)")
     p.add_argument("--task-prompt", action="append", default=[], metavar="ID=PROMPT",
                    help="prompt -> task id table entry (repeatable); default: the bussing / reverse-bussing prompts")
     p.add_argument("--default-task", type=int, default=None, help="task id for prompts not in the table")
@@ -47,7 +48,9 @@ def build_policy_server(argv: Sequence[str] | None = None,
     policy = resolve(args.policy)
     mapping = get_mapping(args.family)
     if mapping is not None:
-        changes: dict[str, Any] = {"num_views": args.num_views, "default_task": args.default_task}
+        changes: dict[str, Any] = {"default_task": args.default_task}
+        if args.num_views is not None:
+            changes["num_views"] = args.num_views
         if args.image_size:
             changes["our_image_size"] = tuple(args.image_size)
         if args.task_prompt:
