@@ -26,6 +26,7 @@ import optax
 import orbax.checkpoint as ocp
 
 from sc3_jax.data.episodes import EpisodeStore
+from sc3_jax.evaluate.metrics import psnr_from_mse
 from sc3_jax.model import autoencoder as ae
 
 
@@ -146,7 +147,7 @@ def psnr(pred_u8: np.ndarray, true_u8: np.ndarray, mask: np.ndarray | None = Non
         mse = err[m].mean()
     else:
         mse = err.mean()
-    return float(10 * np.log10(255.0 ** 2 / max(mse, 1e-10)))
+    return float(psnr_from_mse(max(mse, 1e-10)))  # floored: identical frames read ~148 dB, not inf
 
 
 def evaluate(params, stats, store_root: str, views, n: int, threshold: float, seed: int = 1) -> dict:
@@ -205,7 +206,7 @@ def train(cfg: TokenizerTrainConfig, ae_cfg: ae.AEConfig, stop_at: int | None = 
         state, m = step_fn(state, imgs, moving)
         if (i + 1) % 25 == 0 or i + 1 == cfg.steps:
             row = {"step": i + 1, **{k: float(v) for k, v in m.items()},
-                   "psnr_train": float(10 * np.log10(4.0 / max(float(m["mse"]), 1e-10))),
+                   "psnr_train": float(psnr_from_mse(max(float(m["mse"]), 1e-10), 2.0)),
                    "elapsed_s": time.perf_counter() - t0}
             log.write(json.dumps(row) + "\n")
             log.flush()

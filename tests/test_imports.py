@@ -1,14 +1,19 @@
-"""No import cycle between the modules of ``sc3_jax/``.
+"""No import cycle between the modules of ``sc3_jax/``, and no import against the layer order of docs/architecture.md.
 
 The graph is read from the source (``ast``), not by importing: every ``import x`` / ``from x import y`` statement
 counts, *including those inside functions*. A function-level import is still a dependency (it runs on the first
 call), and the loops this guards against were all lazy ones (sim/zoo -> demos -> evaluate -> zoo); a lazy import
 that only exists to dodge a cycle is the smell, not the fix. Imports under ``if TYPE_CHECKING:`` never run and are
 skipped. ``from pkg import name`` is an edge to ``pkg.name`` when that is a module, else to ``pkg``.
+
+The layers live here as data (``LAYERS``), not parsed out of the doc's table: the table's cells are prose for
+readers (``(+ ...)``, paths relative to the row), and a parser of them would be the fragile part. The doc and this
+list are tied by ``test_layers_match_the_documented_stages`` (same stage names, same order).
 """
 from __future__ import annotations
 
 import ast
+import re
 from pathlib import Path
 
 import pytest
@@ -136,3 +141,88 @@ def test_type_checking_imports_and_acyclic_graphs_pass(tmp_path, closing):
     graph = import_graph(pkg)
     assert graph == {"pkg": set(), "pkg.a": {"pkg.b"}, "pkg.b": set()}
     assert find_cycle(graph) is None
+
+
+# docs/architecture.md "Modules in data-flow order", lowest first: a module may import its own layer and those above
+# it in this list. Entries are module prefixes under sc3_jax; the longest one that matches places a module.
+LAYERS: list[tuple[str, tuple[str, ...]]] = [
+    ("utilities", ("errors", "atomic")),
+    ("video", ("video",)),
+    ("metrics", ("evaluate.metrics",)),
+    ("episodes", ("data",)),
+    ("normalisation", ("data.norm_stats",)),
+    ("pipeline", ("data.pipeline", "data.latent_cache")),
+    ("config", ("config",)),
+    ("tokenizer", ("model.tokenizer", "model.autoencoder", "model.wan_tokenizer", "model.wan_vae",
+                   "model.wan_vae_convert", "model.shapes")),
+    ("model", ("model",)),
+    ("training modes, flow", ("modes", "flow")),
+    ("checkpoint", ("checkpoint",)),
+    ("train", ("train", "sharding", "tokenizer_train")),
+    ("policies", ("policies",)),
+    ("simulator", ("sim",)),
+    ("policy names", ("policies.resolve", "policies.serve_cli")),
+    ("rollout", ("rollout", "imagination_state")),
+    ("results", ("evaluate.results",)),
+    ("scoring", ("evaluate.scorers", "evaluate.perception", "evaluate.perception_train",
+                 "evaluate.annotation", "evaluate.degrade", "evaluate.rescore")),
+    ("diagnostics", ("evaluate.world_model", "evaluate.diagnose", "evaluate.diagnose_table", "plan")),
+    ("sweep", ("evaluate.sweep", "evaluate.real_workers")),
+    ("report", ("evaluate.report", "evaluate.calibrate", "evaluate.intervals", "evaluate.bootstrap",
+                "evaluate.merged", "evaluate.curve")),
+    ("commands", ("cli", "commands", "rollout_cli", "convert_cli", "demo", "sim.cli")),
+]
+
+
+def layer_of(mod: str, layers=LAYERS, top: str = "sc3_jax") -> tuple[int, str] | None:
+    """(index, stage) of the longest prefix in ``layers`` matching ``mod``; None for packages' bare ``__init__``."""
+    rel = mod[len(top) + 1:] if mod.startswith(top + ".") else None
+    best = None
+    for i, (stage, prefixes) in enumerate(layers):
+        for p in prefixes:
+            if rel is not None and (rel == p or rel.startswith(p + ".")) and (best is None or len(p) > best[0]):
+                best = (len(p), i, stage)
+    return best and best[1:]
+
+
+def layer_violations(graph: dict[str, set[str]], layers=LAYERS, top: str = "sc3_jax") -> list[str]:
+    """Every import from a lower layer to a higher one, and every module no layer places."""
+    out = []
+    for mod in sorted(graph):
+        if mod == top or mod == f"{top}.evaluate":
+            continue  # empty package __init__s: nothing to place (the others match their package's prefix)
+        if (lm := layer_of(mod, layers, top)) is None:
+            out.append(f"{mod}: in no layer (add it to LAYERS and docs/architecture.md)")
+            continue
+        for dep in sorted(graph[mod]):
+            ld = layer_of(dep, layers, top)
+            if ld is not None and ld[0] > lm[0]:
+                out.append(f"{mod} (layer {lm[1]!r}) imports {dep} (higher layer {ld[1]!r})")
+    return out
+
+
+def test_sc3_jax_imports_follow_the_documented_layers():
+    problems = layer_violations(import_graph(ROOT / "sc3_jax"))
+    assert not problems, "imports against docs/architecture.md's order:\n" + "\n".join(problems)
+
+
+def test_layers_match_the_documented_stages():
+    text = (ROOT / "docs" / "architecture.md").read_text()
+    table = text.split("## Modules in data-flow order", 1)[1].split("\n## ", 1)[0]
+    stages = [m.group(1).strip() for m in re.finditer(r"^\|([^|]+)\|", table, re.M)][2:]  # past header, rule
+    assert stages == [s for s, _ in LAYERS]
+
+
+def test_an_import_against_the_layers_is_reported(tmp_path):
+    pkg = _write(tmp_path, {
+        "pkg/__init__.py": "",
+        "pkg/low.py": "def f():\n    from pkg.high import g\n",  # function-level, still an edge
+        "pkg/high.py": "from pkg import low\n\ndef g():\n    pass\n",
+        "pkg/stray.py": "",
+    })
+    layers = [("bottom", ("low",)), ("top", ("high",))]
+    assert find_cycle(graph := import_graph(pkg)) is not None  # (and a cycle, which the other test reports)
+    assert layer_violations(graph, layers, "pkg") == [
+        "pkg.low (layer 'bottom') imports pkg.high (higher layer 'top')",
+        "pkg.stray: in no layer (add it to LAYERS and docs/architecture.md)"]
+    assert layer_violations({"pkg.low": set(), "pkg.high": {"pkg.low"}}, layers, "pkg") == []

@@ -92,6 +92,7 @@ def test_every_command_resolves_every_spelling(server, monkeypatch):
     from sc3_jax import rollout_cli
     from sc3_jax.evaluate import sweep
     from sc3_jax.policies import serve_cli
+    from sc3_jax.sim import cli as sim_cli
     from sc3_jax.sim import policy_eval
 
     assert sweep._resolve("rev_confused")[:2] == ("rev_confused", "reverse")
@@ -116,5 +117,5 @@ def test_every_command_resolves_every_spelling(server, monkeypatch):
     monkeypatch.setattr(policy_eval, "run_policy_episode", run)
     for spec in ("zero", "rev_confused", f"{__name__}:make_policy"):
         with pytest.raises(Stop):
-            policy_eval.evaluate_policy(spec, episodes=1, videos=False, progress=False)
+            sim_cli.eval(spec, episodes=1, videos=False, progress=False)
     assert [h.chunk for h in seen] == [25, 25, CHUNK]

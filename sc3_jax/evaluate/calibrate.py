@@ -22,10 +22,9 @@ import math
 import numpy as np
 
 from sc3_jax.evaluate import metrics
-from sc3_jax.evaluate.results import terminated_at
+from sc3_jax.evaluate.results import SPLIT_ORDER, terminated_at
 
 SELECT_SPLIT = "in_distribution"
-SPLIT_ORDER = ("in_distribution", "out_of_distribution", metrics.OVERALL)
 
 
 def parse_tau(t) -> float:

@@ -25,9 +25,9 @@ import json
 from pathlib import Path
 
 from sc3_jax.evaluate import intervals, report
-from sc3_jax.evaluate.results import ResultsStore, seed_blocks
+from sc3_jax.evaluate.results import SPLIT_ORDER, ResultsStore, seed_blocks
 
-SPLITS = ("in_distribution", "out_of_distribution")
+_SPLITS = SPLIT_ORDER[:-1]  # a curve's columns are per split, never the pooled one
 FIELDS = ("label", "store", "steps", "batch", "device", "hours")
 
 
@@ -89,16 +89,16 @@ def compute(spec: dict, draws: int = 2000) -> dict:
         t = report.compute(p["store"], draws=draws)
         if not points:
             rows = t["faithfulness"]["physics"]
-            floor = {s: rows["policy_blind"]["splits"].get(s) for s in SPLITS}
-            ceiling = {s: rows["ceiling"]["splits"].get(s) for s in SPLITS}
+            floor = {s: rows["policy_blind"]["splits"].get(s) for s in _SPLITS}
+            ceiling = {s: rows["ceiling"]["splits"].get(s) for s in _SPLITS}
         online = t["faithfulness"]["physics"].get("online")
         if online is None:
             raise ValueError(f"{p['store']}: no online rollouts on the evaluation seeds")
         points.append({**p, "windows": p["steps"] * p["batch"], "cases": t["cases"]["online"],
                        "gates_failed": None if t["diagnose"]["gates"] is None else
                        [g["gate"] for g in t["diagnose"]["gates"] if g.get("pass") is False],
-                       "online": {s: online["splits"].get(s) for s in SPLITS},
-                       "vs_floor": {s: online["vs_floor"].get(s) for s in SPLITS},
+                       "online": {s: online["splits"].get(s) for s in _SPLITS},
+                       "vs_floor": {s: online["vs_floor"].get(s) for s in _SPLITS},
                        "per_criterion": online.get("per_criterion", {})})
     if "baseline" in spec:  # seed 0: the same resamples as every report's intervals
         grids = {p["label"]: _grids(p["store"]) for p in points}
@@ -111,31 +111,31 @@ def compute(spec: dict, draws: int = 2000) -> dict:
 
 def markdown(c: dict) -> str:
     head = ["checkpoint", "device, hours", "training windows", "online rollouts", "gates failed"]
-    head += [f"{s.replace('_', ' ')} {k}" for s in SPLITS for k in ("r", "MMRV")]
+    head += [f"{s.replace('_', ' ')} {k}" for s in _SPLITS for k in ("r", "MMRV")]
     rows = []
     for p in c["points"]:
         cells = [p["label"], f"{p['device']}, {p['hours']:g} h", f"{p['windows']:,}", str(p["cases"]),
                  str(len(p["gates_failed"])) if p["gates_failed"] is not None else "-"]
-        rows.append(cells + [report.ci((p["online"][s] or {}).get(k)) for s in SPLITS for k in ("pearson", "mmrv")])
+        rows.append(cells + [report.ci((p["online"][s] or {}).get(k)) for s in _SPLITS for k in ("pearson", "mmrv")])
     for name, row in (("policy-blind (floor)", c["floor"]), ("noise ceiling", c["ceiling"])):
-        rows.append([name, "", "", "", ""] + [report.ci((row[s] or {}).get(k)) for s in SPLITS
+        rows.append([name, "", "", "", ""] + [report.ci((row[s] or {}).get(k)) for s in _SPLITS
                                               for k in ("pearson", "mmrv")])
     lines = [f"# {c['title']}", "",
              f"Online (tau = inf) against real rollouts scored by physics; value [95% paired bootstrap interval over "
              f"initial conditions, {c['draws']} draws].", "",
              "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     lines += ["| " + " | ".join(r) + " |" for r in rows]
-    head = ["checkpoint"] + [f"{s.replace('_', ' ')} {k} - floor" for s in SPLITS for k in ("r", "MMRV")]
+    head = ["checkpoint"] + [f"{s.replace('_', ' ')} {k} - floor" for s in _SPLITS for k in ("r", "MMRV")]
     lines += ["", "Better than a guess? The paired difference to the policy-blind floor on the same resampled "
               "conditions (r > 0 and MMRV < 0 favour the checkpoint):", "",
               "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-    lines += ["| " + " | ".join([p["label"]] + [report.ci((p["vs_floor"][s] or {}).get(k)) for s in SPLITS
+    lines += ["| " + " | ".join([p["label"]] + [report.ci((p["vs_floor"][s] or {}).get(k)) for s in _SPLITS
                                                 for k in ("pearson", "mmrv")]) + " |" for p in c["points"]]
     if c.get("baseline"):
-        head = ["checkpoint"] + [f"{s.replace('_', ' ')} {k} - baseline" for s in SPLITS for k in ("r", "MMRV")]
+        head = ["checkpoint"] + [f"{s.replace('_', ' ')} {k} - baseline" for s in _SPLITS for k in ("r", "MMRV")]
         lines += ["", f"Paired difference to the baseline, {c['baseline']}, on the same resampled conditions (r > 0 "
                   "and MMRV < 0 favour the checkpoint):", "", "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-        lines += ["| " + " | ".join([p["label"]] + [report.ci(p["vs_baseline"].get(s, {}).get(k)) for s in SPLITS
+        lines += ["| " + " | ".join([p["label"]] + [report.ci(p["vs_baseline"].get(s, {}).get(k)) for s in _SPLITS
                                                     for k in ("pearson", "mmrv")]) + " |"
                   for p in c["points"] if p["label"] != c["baseline"]]
     return "\n".join(lines) + "\n"

@@ -47,6 +47,8 @@ from pathlib import Path
 
 import numpy as np
 
+from sc3_jax.evaluate import metrics  # numpy only: the module stays cheap for report.py to import
+
 PREDICTORS = ("model", "copy_last", "copy_first", "median")
 AXES = {"+x": (1.0, 0.0, 0.0), "-x": (-1.0, 0.0, 0.0), "+y": (0.0, 1.0, 0.0), "-y": (0.0, -1.0, 0.0)}
 
@@ -96,7 +98,7 @@ def psnr_from_sums(sse: float, n: float) -> float:
         return math.nan
     if sse <= 0:
         return math.inf
-    return float(10 * np.log10(255.0 ** 2 * n / sse))
+    return float(metrics.psnr_from_mse(sse / n))
 
 
 def temporal_median(frames: np.ndarray) -> np.ndarray:

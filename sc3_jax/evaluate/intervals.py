@@ -27,9 +27,7 @@ import warnings
 import numpy as np
 
 from sc3_jax.evaluate import bootstrap, metrics
-
-SPLITS = ("in_distribution", "out_of_distribution")
-SPLIT_ORDER = SPLITS + (metrics.OVERALL,)
+from sc3_jax.evaluate.results import SPLIT_ORDER
 
 
 def grid(recs: dict, policies: list[str], seeds: list[int], outcomes=lambda r: r["objects"]):

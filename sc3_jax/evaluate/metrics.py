@@ -371,12 +371,17 @@ def psnr(pred: np.ndarray, target: np.ndarray, max_value: float = 255.0,
     tf = t.astype(np.float64)
     if not (np.all(np.isfinite(pf)) and np.all(np.isfinite(tf))):
         raise ValueError("pred and target must be finite")
-    mse = np.mean((pf - tf) ** 2, axis=axis)
-    with np.errstate(divide="ignore"):
-        value = 10.0 * np.log10(float(max_value) ** 2 / mse)
+    value = psnr_from_mse(np.mean((pf - tf) ** 2, axis=axis), max_value)
     if np.ndim(value) == 0:
         return float(value)
     return value
+
+
+def psnr_from_mse(mse, max_value: float = 255.0):
+    """The PSNR formula (dB) of a mean squared error, elementwise; inf for 0. :func:`psnr` and the pooled /
+    masked variants (``diagnose.psnr_from_sums``, ``tokenizer_train.psnr``) all end here."""
+    with np.errstate(divide="ignore"):
+        return 10.0 * np.log10(float(max_value) ** 2 / mse)
 
 
 def psnr_by_view(pred: np.ndarray, target: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -23,9 +23,12 @@ import numpy as np
 
 from sc3_jax import atomic
 from sc3_jax.errors import UserError
+from sc3_jax.evaluate.metrics import OVERALL
 
 EVAL_MODES = ("real", "offline", "online")
 SPLITS = {"bussing": "in_distribution", "reverse": "out_of_distribution"}  # task -> split
+# the order every report lists splits in, then the pooled one; derived so a new task's split cannot be missed
+SPLIT_ORDER = (*dict.fromkeys(SPLITS.values()), OVERALL)
 
 
 def rollout_id(policy: str, seed: int, mode: str) -> str:

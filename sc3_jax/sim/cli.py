@@ -31,8 +31,9 @@ def demos(out: str, episodes: int = 100, seed: int = 0, grasp_noise: float = 0.0
 
 def eval(policy: str, task: str = "bussing", episodes: int = 36, out: str | None = None, videos: bool = True,
          image_size: tuple[int, int] = (64, 64), progress: bool = True) -> dict:  # noqa: A001 (CLI verb)
+    from ..policies.resolve import resolve  # any spelling; a command may import above the simulator
     from .policy_eval import evaluate_policy
-    return evaluate_policy(policy, task, episodes, out, image_size=tuple(image_size), videos=videos,
+    return evaluate_policy(resolve(policy).policy, task, episodes, out, image_size=tuple(image_size), videos=videos,
                            progress=progress)
 
 

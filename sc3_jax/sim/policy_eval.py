@@ -85,15 +85,12 @@ def run_policy_episode(env: BussingEnv, policy, seed: int, task: str = "bussing"
 def evaluate_policy(policy, task: str = "bussing", episodes: int = 36, out: str | Path | None = None,
                     seed0: int = EVAL_SEED0, image_size: tuple[int, int] = (64, 64), videos: bool = True,
                     progress: bool = True) -> dict:
-    """Evaluate ``policy`` (a name ``policies.resolve`` takes, a JaxPolicy or a host policy) on ``episodes`` initial
-    conditions.
+    """Evaluate ``policy`` (a JaxPolicy or a host policy; ``sim/cli.py`` resolves names, so the simulator never imports
+    ``policies/resolve.py``, which imports the zoo) on ``episodes`` initial conditions.
 
     Writes (if ``out``): ``episodes.jsonl`` (per-episode, per-object outcomes), ``summary.json`` (per-criterion
     success rates and outcome distribution), ``videos/ep<seed>_<view>.mp4`` (every view, if ``videos``)."""
     from tqdm import tqdm
-    if isinstance(policy, str):  # any spelling of policies/resolve.py
-        from ..policies.resolve import resolve
-        policy = resolve(policy).policy
     name = getattr(policy, "name", type(policy).__name__)
     env = make_env(image_size)
     out = Path(out) if out is not None else None
@@ -129,14 +126,15 @@ def evaluate_zoo(out: str | Path, episodes: int = 36, videos: bool = True, names
     return the markdown table (per-criterion success rates over all objects of ``episodes`` initial conditions,
     then each criterion's spread per task). Resumable: a policy whose ``summary.json`` in ``out`` has the same
     number of episodes is read back, not re-run."""
-    from .zoo import ZOO
+    from .zoo import ZOO, load_policy
     out = Path(out)
     rows, rates = [], {}
     for name in names or list(ZOO):
         done = out / name / "summary.json"
         s = json.loads(done.read_text()) if done.exists() else None
         if s is None or s.get("episodes") != episodes:
-            s = evaluate_policy(name, ZOO[name].task, episodes, out / name, videos=videos, progress=progress)
+            s = evaluate_policy(load_policy(name), ZOO[name].task, episodes, out / name, videos=videos,
+                                progress=progress)
         r = s["success"]
         rates.setdefault(ZOO[name].task, []).append(r)
         rows.append(f"| {name} | {ZOO[name].task} | {r['language']:.2f} | {r['lifting']:.2f} | {r['placing']:.2f} | "
