@@ -12,12 +12,12 @@ is read against the spread of the same recipe trained with another seed (scripts
 """
 from __future__ import annotations
 
-import argparse
 import json
 import math
 from pathlib import Path
 
 from sc3_jax import modes
+from sc3_jax.errors import UserError
 from sc3_jax.evaluate.diagnose import GATES
 
 # (key, column heading, higher is better)
@@ -97,7 +97,7 @@ def table(rows: dict[str, dict], baseline: str | None = None) -> str:
     """Markdown: one row per model, one column per ``COLUMNS`` entry; with ``baseline`` (a row's label) every other
     row's cells also give their difference to it."""
     if baseline is not None and baseline not in rows:
-        raise ValueError(f"baseline {baseline!r} is not one of {sorted(rows)}")
+        raise UserError(f"baseline {baseline!r} is not one of {sorted(rows)}")
     base = rows[baseline] if baseline else {}
     head = "| model | " + " | ".join(h for _, h, _ in COLUMNS) + " |"
     lines = [head, "|" + "---|" * (len(COLUMNS) + 1)]
@@ -110,25 +110,3 @@ def table(rows: dict[str, dict], baseline: str | None = None) -> str:
     lines.append(f"Higher is better except {better}. TF = teacher-forced, one chunk ahead from real context; "
                  "moving = pixels that move; median = the temporal median of the real frames (erases the arm).")
     return "\n".join(lines)
-
-
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="sc3 diagnose-table", description=__doc__.split("\n\n")[0])
-    ap.add_argument("models", nargs="+", help="world-model dirs, each holding diagnose.json and config.json")
-    ap.add_argument("--baseline", default=None, help="label of the row every other row is compared with")
-    ap.add_argument("--out", default=None, help="also write the table (markdown) here")
-    a = ap.parse_args(argv)
-    rows = {}
-    for m in a.models:
-        label, row = load(m)
-        if label in rows:
-            ap.error(f"two models are labelled {label!r}; give each its own directory name")
-        rows[label] = row
-    try:
-        text = table(rows, a.baseline)
-    except ValueError as e:
-        ap.error(str(e))
-    print(text)
-    if a.out:
-        Path(a.out).write_text(text + "\n")
-    return 0

@@ -16,7 +16,6 @@ way the first ones were.
 """
 from __future__ import annotations
 
-import argparse
 import hashlib
 import json
 from pathlib import Path
@@ -84,21 +83,3 @@ def rescore(results: str | Path, weights: str | Path | None = None, state_reader
     cfg.update(perception=None if weights is None else str(weights), perception_sha256=digest)
     atomic.write_json(store.root / "sweep.json", cfg)
     return changed
-
-
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="sc3 rescore", description=__doc__.split("\n")[0])
-    ap.add_argument("results", help="a sweep's --out directory")
-    ap.add_argument("--perception", default=None, help="perception weights (default: the shipped ones)")
-    ap.add_argument("--state-reader", default=None, help="the weights that read the gripper state inside the "
-                    "store's imagined rollouts (needed when they were the scorer's and the scorer changes)")
-    ap.add_argument("--no-progress", action="store_true")
-    a = ap.parse_args(argv)
-    changed = rescore(a.results, a.perception, a.state_reader, progress=not a.no_progress)
-    print(json.dumps({"results": a.results, "rollouts_changed": changed}))
-    print(f"rerun the report: sc3 report {a.results}")
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

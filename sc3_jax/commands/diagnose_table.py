@@ -1,0 +1,44 @@
+"""``sc3 diagnose-table DIR ... [--baseline NAME]``: several models' ``sc3 diagnose`` results side by side
+(sc3_jax/evaluate/diagnose_table.py)."""
+from __future__ import annotations
+
+import dataclasses
+from typing import Annotated
+from pathlib import Path
+
+import tyro
+
+from sc3_jax.commands import one_or_more, parse
+from sc3_jax.errors import UserError
+
+
+@dataclasses.dataclass(frozen=True)
+class Args:
+    """Several world models' `sc3 diagnose` results side by side: the offline half of an ablation table (the full
+    recipe and its ablations trained at one budget)."""
+
+    models: Annotated[tyro.conf.Positional[tuple[str, ...]], one_or_more("MODELS")]
+    """world-model dirs, each holding diagnose.json and config.json"""
+    baseline: str | None = None
+    """label of the row every other row is compared with"""
+    out: str | None = None
+    """also write the table (markdown) here"""
+
+
+def main(argv: list[str]) -> int:
+    a = parse(Args, argv, "diagnose-table")
+    if not a.models:  # tyro takes a positional tuple as zero or more; argparse asked for one at least
+        raise UserError("give at least one world-model directory")
+    from sc3_jax.evaluate import diagnose_table
+
+    rows = {}
+    for m in a.models:
+        label, row = diagnose_table.load(m)
+        if label in rows:
+            raise UserError(f"two models are labelled {label!r}; give each its own directory name")
+        rows[label] = row
+    text = diagnose_table.table(rows, a.baseline)
+    print(text)
+    if a.out:
+        Path(a.out).write_text(text + "\n")
+    return 0
