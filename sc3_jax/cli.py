@@ -1,6 +1,7 @@
 """The ``sc3`` command: one subcommand per stage (data -> train -> checkpoint -> rollout -> sweep -> report)."""
 from __future__ import annotations
 
+import importlib
 import sys
 
 USAGE = """usage: sc3 <command> [args]
@@ -13,7 +14,7 @@ commands:
   diagnose-table sc3 diagnose-table DIR ... [--baseline NAME]: several models' diagnostics side by side (ablations)
   rollout        closed-loop / offline rollouts of a policy inside a trained world model
   sweep          policies x initial conditions x {real, offline, online} on the simulated benchmark -> report
-  report         sc3 report RESULTS --out DIR: tables, plots and videos from a sweep's results store
+  report         sc3 report RESULTS ... [--out DIR]: tables, plots and videos from a sweep's results store
   curve          sc3 curve SPEC.json --out DIR: faithfulness against training compute over several sweeps
   rescore        sc3 rescore RESULTS [--perception WEIGHTS]: re-score a store's stored frames with other scorer weights
   data           LeRobot datasets: sc3 data import-lerobot ROOT --out DIR | export-lerobot STORE --out DIR
@@ -84,28 +85,11 @@ def cmd_serve_policy(argv: list[str]) -> int:
     return serve_cli.serve_policy_main(argv) or 0
 
 
-def cmd_configs(argv: list[str]) -> int:
-    """Each named config with its parameter count (from abstract shapes: nothing is allocated)."""
-    from sc3_jax import checkpoint
-    from sc3_jax.config import available_configs, configs_dir, load_config
-    from sc3_jax.model import dit
-    from sc3_jax.model.tokenizer import tokens_per_sample
-
-    print(f"named configs in {configs_dir()}:")
-    for name in available_configs():
-        cfg = load_config(name)
-        try:  # a config whose tokenizer weights are missing here is listed, not fatal
-            n = dit.count_params(checkpoint.param_shapes(cfg))
-            tokens = tokens_per_sample(cfg)
-        except (FileNotFoundError, ValueError) as e:
-            print(f"  {name:24s} (not sized here: {e})")
-            continue
-        print(f"  {name:24s} {n / 1e6:10.2f}M params  {tokens:6d} tokens/sample  batch {cfg.data.batch_size}")
-    return 0
-
-
 def cmd_sweep(argv: list[str]) -> int:
     """Run (or resume) a sweep, then write its report to OUT/report."""
+    import json
+    from pathlib import Path
+
     import tyro
 
     from sc3_jax.evaluate import report, sweep
@@ -114,52 +98,16 @@ def cmd_sweep(argv: list[str]) -> int:
                    description="Evaluate policies in the simulator and inside the world model; resumable (rerun the "
                                "same command). Ends with OUT/report/report.md.")
     out = sweep.run_sweep(cfg)
+    if out != Path(cfg.out):  # one shard of several: the report reads them all once every shard has finished
+        print(f"shard done: {out}; once every shard has finished: sc3 report {cfg.out}")
+        return 0
     md = report.render(out, out / "report")
-    sections = md.read_text().split("\n## ")
-    print("## " + sections[1] if len(sections) > 1 else "")  # the main table
-    print(f"report: {md} (and report.html, report.json)")
+    t = json.loads((out / "report" / "report.json").read_text())
+    title, header, rows = next(x for x in report.tables(t) if x[0].startswith("Faithfulness, end to end"))
+    print(f"## {title}\n\n| " + " | ".join(header) + " |\n" + "".join("| " + " | ".join(r) + " |\n" for r in rows))
+    print("\n".join(report.verdict(t) + t.get("warnings", [])))
+    print(f"report: {md} (and report.html, report.json, correlation.png)")
     return 0
-
-
-def cmd_report(argv: list[str]) -> int:
-    import argparse
-
-    from sc3_jax.evaluate import report
-
-    ap = argparse.ArgumentParser(prog="sc3 report", description="Report of a sweep's results store.")
-    ap.add_argument("results", help="the sweep's --out directory")
-    ap.add_argument("--out", default=None, help="report directory (default RESULTS/report)")
-    ap.add_argument("--videos", type=int, default=3, help="side-by-side example videos")
-    ap.add_argument("--taus", type=float, nargs="+", default=None, help="termination thresholds (default: the "
-                    "sweep's candidates); evaluated from the stored U_chunk, no new rollouts. U_chunk is in the "
-                    "sweep's units (rollout.tau_units)")
-    ap.add_argument("--draws", type=int, default=2000, help="paired bootstrap draws for the 95%% intervals")
-    a = ap.parse_args(argv)
-    md = report.render(a.results, a.out or f"{a.results}/report", a.videos, a.taus, a.draws)
-    print(f"report: {md}")
-    return 0
-
-
-def cmd_curve(argv: list[str]) -> int:
-    import argparse
-
-    from sc3_jax.evaluate import curve
-
-    ap = argparse.ArgumentParser(prog="sc3 curve", description="Faithfulness against training compute: one table "
-                                 "and one plot over several checkpoints' sweeps (sc3_jax/evaluate/curve.py).")
-    ap.add_argument("spec", help='JSON: {"title": ..., "points": [{"label", "store", "steps", "batch", "device", '
-                    '"hours"}, ...]}')
-    ap.add_argument("--out", required=True, help="directory for curve.md, curve.png, curve.json")
-    ap.add_argument("--draws", type=int, default=2000, help="paired bootstrap draws for the 95%% intervals")
-    a = ap.parse_args(argv)
-    print(f"curve: {curve.render(a.spec, a.out, a.draws)}")
-    return 0
-
-
-def cmd_rescore(argv: list[str]) -> int:
-    from sc3_jax.evaluate import rescore
-
-    return rescore.main(argv)
 
 
 def cmd_plan(argv: list[str]) -> int:
@@ -186,23 +134,26 @@ def cmd_diagnose(argv: list[str]) -> int:
     return diagnose.main(argv) or 0
 
 
-def cmd_diagnose_table(argv: list[str]) -> int:
-    from sc3_jax.evaluate import diagnose_table
-
-    return diagnose_table.main(argv)
-
-
 def cmd_rollout(argv: list[str]) -> int:
     from sc3_jax import rollout_cli
 
     return rollout_cli.main(argv) or 0
 
 
-COMMANDS = {"demo": cmd_demo, "train": cmd_train, "rollout": cmd_rollout, "sweep": cmd_sweep, "report": cmd_report,
-            "curve": cmd_curve, "rescore": cmd_rescore, "data": cmd_data, "sim": cmd_sim,
-            "serve-policy": cmd_serve_policy, "configs": cmd_configs, "plan": cmd_plan,
-            "convert": cmd_convert, "train-tokenizer": cmd_train_tokenizer, "diagnose": cmd_diagnose,
-            "diagnose-table": cmd_diagnose_table}
+def _command(module: str):
+    """The `main` of `sc3_jax/commands/MODULE.py`, imported when the command runs: `sc3 --help` and the other
+    commands load none of its libraries."""
+    def run(argv: list[str]) -> int:
+        return importlib.import_module(f"sc3_jax.commands.{module}").main(argv)
+
+    return run
+
+
+COMMANDS = {"demo": cmd_demo, "train": cmd_train, "rollout": cmd_rollout, "sweep": cmd_sweep,
+            "report": _command("report"), "curve": _command("curve"), "rescore": _command("rescore"),
+            "data": cmd_data, "sim": cmd_sim, "serve-policy": cmd_serve_policy, "configs": _command("configs"),
+            "plan": cmd_plan, "convert": cmd_convert, "train-tokenizer": cmd_train_tokenizer,
+            "diagnose": cmd_diagnose, "diagnose-table": _command("diagnose_table")}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -214,11 +165,11 @@ def main(argv: list[str] | None = None) -> int:
     if cmd is None:
         print(f"sc3: unknown command {argv[0]!r}\n\n{USAGE}", file=sys.stderr)
         return 2
-    from sc3_jax.data.episodes import EpisodeError
+    from sc3_jax.errors import UserError
 
     try:
         return cmd(argv[1:])
-    except (FileNotFoundError, FileExistsError, EpisodeError) as e:  # user-facing input problems: the message says it all
+    except (FileNotFoundError, FileExistsError, UserError) as e:  # expected faults: the one-line message says it all
         print(f"sc3 {argv[0]}: error: {e}", file=sys.stderr)
         return 2
 

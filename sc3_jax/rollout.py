@@ -193,8 +193,12 @@ class ChunkFns:
         u = jnp.mean(jnp.linalg.norm(a[:l] - a_hat[:l], axis=-1))  # normalised units
         u_raw = jnp.mean(jnp.linalg.norm(model_actions[:l] - (a_hat[:l] * std + mean), axis=-1))
         done = carry.done | ((u_raw if s.tau_units == "raw" else u) > tau)
-        # back to frames (a causal VAE decodes the future given the context's latents), keep the first l
-        kept = self.tok.decode(video[0], s.image_size)[:, K:K + l]  # [V, l, H, W, 3] in [-1, 1]
+        # back to frames, keep the first l: a per-frame tokenizer decodes only those (a third of a chunk's decoder
+        # time at l = 8 of 12; bit-identical), a causal VAE decodes the future given the context's latents
+        if self.tok.time_compression == 1:
+            kept = self.tok.decode(video[0][:, K:K + l], s.image_size)  # [V, l, H, W, 3] in [-1, 1]
+        else:
+            kept = self.tok.decode(video[0], s.image_size)[:, K:K + l]
         context = jnp.concatenate([carry.context, kept.astype(carry.context.dtype)], axis=1)[:, -K:]
         # the l executed steps: l * r raw actions; the state at each kept frame is every r-th integrated state
         state, states = imagination_state.integrate(carry.state, actions[:l * r])

@@ -21,7 +21,7 @@ from sc3_jax import checkpoint, rollout, train
 from sc3_jax.config import load_config, replace
 from sc3_jax.data.norm_stats import NormStats
 from sc3_jax.evaluate import annotation, metrics, perception, report, sweep
-from sc3_jax.evaluate.results import ResultsStore, rollout_id, seed_blocks
+from sc3_jax.evaluate.results import EVAL_MODES, ResultsStore, rollout_id, seed_blocks
 from sc3_jax.evaluate.scorers import HumanScorer, RolloutView
 from sc3_jax.policies import resolve
 
@@ -50,7 +50,8 @@ def setup(tmp_path_factory):
     perception.save(root / "perception.npz", perception.init(jax.random.key(1)))
     cfg = sweep.SweepConfig(out=str(root / "full"), world_model=str(wm), perception=str(root / "perception.npz"),
                             policies=POLICIES, episodes=2, episode_seconds=1.6, batch=2, progress=False,
-                            taus=(math.inf, 1.0, 0.5), calibration_episodes=1, ceiling_episodes=1)
+                            taus=(math.inf, 1.0, 0.5), calibration_episodes=1, ceiling_episodes=1, modes=EVAL_MODES,
+                            workers=1)
     sweep.run_sweep(cfg)
     return root, cfg
 
@@ -217,7 +218,8 @@ def test_report_from_an_archived_store_needs_only_its_two_json_files(setup, tmp_
     archive.mkdir()
     for name in ("sweep.json", "results.jsonl"):
         shutil.copy(Path(cfg.out) / name, archive / name)
-    same = lambda t: json.dumps(t, sort_keys=True, default=str)  # noqa: E731  (NaN-safe equality)
+    # NaN-safe equality; read_from names the directory each report read
+    same = lambda t: json.dumps({k: v for k, v in t.items() if k != "read_from"}, sort_keys=True, default=str)  # noqa: E731
     assert same(report.compute(archive)) == same(report.compute(cfg.out))
     report.render(archive, tmp_path / "rep", videos=1)
     assert not list((tmp_path / "rep").glob("*.mp4")) and (tmp_path / "rep" / "report.json").exists()
@@ -364,7 +366,8 @@ def test_sweep_resumes_after_sigkill_with_identical_results(setup):
     code = ("import math, sys; import sc3_jax.sim; from sc3_jax.evaluate import sweep; "
             f"sweep.run_sweep(sweep.SweepConfig(out={str(out)!r}, world_model={cfg.world_model!r}, "
             f"perception={cfg.perception!r}, policies={POLICIES!r}, episodes=2, episode_seconds=1.6, batch=2, "
-            "progress=False, taus=(math.inf, 1.0, 0.5), calibration_episodes=1, ceiling_episodes=1))")
+            "progress=False, taus=(math.inf, 1.0, 0.5), calibration_episodes=1, ceiling_episodes=1, "
+            "modes=('real', 'offline', 'online'), workers=1))")
     env = dict(os.environ)
     p = subprocess.Popen([sys.executable, "-c", code], env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     results = out / "results.jsonl"

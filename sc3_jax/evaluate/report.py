@@ -20,17 +20,22 @@ import numpy as np
 
 from sc3_jax.evaluate import calibrate, intervals, metrics
 from sc3_jax.evaluate.calibrate import object_rows as _object_rows
-from sc3_jax.evaluate.results import EVAL_MODES, ResultsStore, rollout_id, seed_blocks
-
-SPLIT_ORDER = ("in_distribution", "out_of_distribution", metrics.OVERALL)
+from sc3_jax.evaluate.merged import open_store
+from sc3_jax.evaluate.results import EVAL_MODES, SPLIT_ORDER, ResultsStore, rollout_id, seed_blocks
 
 
 def _policy_blind(real_rates: dict) -> dict:
     """An evaluator that knows each criterion's *average* real success rate in a split but nothing about the
     policies: every policy gets the same rates. Pooling criteria gives it a high r (language is easy for everyone,
-    placing hard), which is the floor a world model's r has to be read against."""
-    return {s: {(p, c): float(np.mean([v for (_, cc), v in r.items() if cc == c])) for (p, c) in r}
-            for s, r in real_rates.items()}
+    placing hard), which is the floor a world model's r has to be read against. The rule is
+    ``intervals.policy_blind``'s (one definition); this is its point estimate on ``{split: {(policy, c): rate}}``."""
+    out = {}
+    for s, r in real_rates.items():
+        ps, cs = list(dict.fromkeys(p for p, _ in r)), list(dict.fromkeys(c for _, c in r))
+        grid = np.array([[[r.get((p, c), np.nan) for c in cs] for p in ps]])  # [1, P, C]; nan: not measured
+        floor = intervals.policy_blind(grid, [s] * len(ps))[0]
+        out[s] = {(p, c): float(floor[ps.index(p), cs.index(c)]) for (p, c) in r}
+    return out
 
 
 def _faith_rates(ev, re) -> dict:
@@ -59,10 +64,11 @@ def policy_order(real_records) -> list[tuple[str, str]]:
 
 
 def compute(results: str | Path, taus=None, draws: int = 2000, seed: int = 0) -> dict:
-    """All report numbers from the results store at ``results`` (see the module docstring). ``taus`` overrides
+    """All report numbers from the results store at ``results`` (see the module docstring; several stores, or a
+    directory of a sharded sweep's shards, are read as one: ``merged.open_store``). ``taus`` overrides
     the sweep's candidate thresholds (every online record stores U_chunk and the outcomes of every cut, so any
     threshold is evaluated without rolling out again). ``draws`` / ``seed``: the paired bootstrap's."""
-    store = ResultsStore(results)
+    store = open_store(results)
     cfg = store.config()
     if taus is not None:
         cfg["taus"] = [str(float(t)) for t in taus]
@@ -127,6 +133,39 @@ def compute(results: str | Path, taus=None, draws: int = 2000, seed: int = 0) ->
         out["psnr"] = {**_psnr(pv), "views": _views(cfg["world_model"], pv.shape[1]),
                        "by_split": {s: _psnr(pv[split == s]) for s in SPLIT_ORDER[:-1] if (split == s).any()}}
     out["diagnose"] = _diagnose_gates(cfg["world_model"])
+    out["read_from"] = str(store.root)  # the directory read (sweep.json's "out" is where the sweep wrote it)
+    out["warnings"] = degenerate(policies)
+    return out
+
+
+def verdict(t: dict) -> list[str]:
+    """One line per split: is the online evaluator better than the policy-blind guess (its paired difference's
+    interval excludes 0 in the evaluator's favour), on r and on MMRV."""
+    online = t["faithfulness"]["physics"].get("online")
+    if online is None:
+        return ["no online rollouts: nothing to compare with the guess yet"]
+    out = []
+    for split, d in online["vs_floor"].items():
+        if split == metrics.OVERALL and len(online["vs_floor"]) == 2:
+            continue  # one split only: "overall" is the same numbers again
+        r, m = d["pearson"], d["mmrv"]
+        better = [name for name, ok in (("r", r["lo"] > 0), ("MMRV", m["hi"] < 0)) if ok]
+        out.append(f"{split}: online r {online['splits'][split]['pearson']['value']:.3f}, paired r - floor "
+                   f"{ci(r)}, MMRV - floor {ci(m)}: " +
+                   (f"better than a policy-blind guess on {' and '.join(better)}" if better else
+                    "not distinguishable from a policy-blind guess at this many conditions"))
+    return out
+
+
+def degenerate(policies: list[tuple[str, str]]) -> list[str]:
+    """Warnings for statistics that cannot mean anything with these (policy, split) pairs: with fewer than 2
+    policies in a split every policy-blind guess is exact and r / MMRV compare one policy's criteria only."""
+    out = []
+    for split in SPLIT_ORDER[:-1]:
+        n = sum(s == split for _, s in policies)
+        if n == 1:
+            out.append(f"{split}: one policy only, so the policy-blind floor equals the real rates and floor, ceiling "
+                       "and every r / MMRV there rank criteria, not policies: evaluate at least 2 policies per split")
     return out
 
 
@@ -313,10 +352,11 @@ def incomplete(t: dict) -> str:
 def markdown(t: dict) -> str:
     tau = t["tau"]["chosen"]
     warn = incomplete(t)
-    parts = [f"# Sweep report\n\nResults: `{t['config']['out']}`; rollouts: {t['counts']}; compared cases: "
+    warn = "\n".join(f"\n**{w}**\n" for w in ([warn] if warn else []) + t.get("warnings", []))
+    parts = [f"# Sweep report\n\nResults: `{t.get('read_from', t['config']['out'])}`; rollouts: {t['counts']}; compared cases: "
              f"{t['cases']}. tau* = {tau if tau is not None else '- (no calibration seeds: online rows untruncated)'}"
              f" ({t['tau']['units']} action units). Recompute every number with "
-             "`sc3_jax.evaluate.report.compute(RESULTS)`.\n" + (f"\n**{warn}**\n" if warn else "")]
+             "`sc3_jax.evaluate.report.compute(RESULTS)`.\n" + warn]
     for title, header, rows in tables(t):
         parts.append(f"## {title}\n\n| " + " | ".join(header) + " |\n|" + "---|" * len(header) + "\n" +
                      "".join("| " + " | ".join(r) + " |\n" for r in rows))
@@ -325,8 +365,7 @@ def markdown(t: dict) -> str:
 
 def _html(t: dict, images: list[str], videos: list[str]) -> str:
     body = [f"<h1>Sweep report</h1><p>rollouts: {html.escape(str(t['counts']))}</p>"]
-    warn = incomplete(t)
-    if warn:
+    for warn in ([incomplete(t)] if incomplete(t) else []) + t.get("warnings", []):
         body.append(f"<p><b>{html.escape(warn)}</b></p>")
     for title, header, rows in tables(t):
         body.append(f"<h2>{html.escape(title)}</h2><table border=1 cellpadding=4><tr>" +
@@ -350,13 +389,17 @@ def scatter(t: dict, path: Path) -> None:
             keys = [k for k in ev if k in re]
             for crit, color in zip(metrics.CRITERIA, ("tab:blue", "tab:orange", "tab:green")):
                 ks = [k for k in keys if k.endswith("/" + crit)]
+                if not ks:  # a split the sweep did not run: no empty legend entry
+                    continue
                 ax.scatter([re[k] for k in ks], [ev[k] for k in ks], marker=marker, color=color,
                            label=f"{split[:3]} {crit}")
-        f = t["main"][mode].get(metrics.OVERALL, {})
         ax.plot([0, 1], [0, 1], "k:", lw=1)
+        # one line per split, named: the pooled "overall" r mixes splits whose rates differ in level
+        title = "\n".join(f"{mode} {split.replace('_', ' ')}: r={_fmt(f.get('pearson'))} MMRV={_fmt(f.get('mmrv'))}"
+                          for split, f in t["main"][mode].items() if split in SPLIT_ORDER)
         ax.set(xlabel="real (simulator) success rate", ylabel=f"{mode} (world model) success rate",
-               title=f"{mode}: r={_fmt(f.get('pearson'))} MMRV={_fmt(f.get('mmrv'))}", xlim=(-0.03, 1.03),
-               ylim=(-0.03, 1.03))
+               title=title, xlim=(-0.03, 1.03), ylim=(-0.03, 1.03))
+        ax.title.set_fontsize(8)
         ax.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
@@ -402,7 +445,7 @@ def render(results: str | Path, out: str | Path, videos: int = 3, taus=None, dra
     """Write report.md, report.html, report.json, plots and example videos to ``out``; returns report.md."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    store = ResultsStore(results)
+    store = open_store(results)
     t = compute(results, taus, draws)
     (out / "report.json").write_text(json.dumps(t, indent=1))
     images = []
@@ -424,6 +467,9 @@ def render(results: str | Path, out: str | Path, videos: int = 3, taus=None, dra
     md += "".join(f"\n![{i}]({i})\n" for i in images)
     if vids:
         md += "\n## Real | offline | online (rows: views)\n\n" + "".join(f"* [{v}]({v})\n" for v in vids)
+    elif videos:
+        md += ("\n(No videos: no policy has real, offline and online frames of its first evaluation seed in "
+               f"{store.root / 'rollouts'}; an archived store keeps only sweep.json and results.jsonl.)\n")
     (out / "report.md").write_text(md)
     (out / "report.html").write_text(_html(t, images, vids))
     return out / "report.md"

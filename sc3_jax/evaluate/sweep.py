@@ -35,6 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
+from sc3_jax import atomic
 from sc3_jax.evaluate.results import (EVAL_MODES, REAL_ONLY_STRIDE, SPLITS, ResultsStore, rollout_id,
                                      score_strides, seed_blocks)
 
@@ -54,17 +55,26 @@ class SweepConfig:
     # of their scoring: `sc3 rescore` leaves it as it was
     state_reader: str | None = None
     # policies/resolve.py spellings with a task: zoo names, NAME=ws://HOST:PORT@TASK (openpi server),
-    # NAME=package.module:attr@TASK, ...; () = the whole zoo
+    # NAME=package.module:attr@TASK, ...; () = the zoo policies of `tasks`
     policies: tuple[str, ...] = ()
-    # quick protocol by default (46 min on 2 cores with the shipped model, docs/sweep.md); the full one: --episodes 36
-    # --calibration-episodes 6 --ceiling-episodes 36 --batch 6
-    episodes: int = 4  # evaluation initial conditions per policy (simulator seeds seed0 + i)
+    # with no --policies: the zoo's policies of these tasks ("bussing": in distribution, "reverse": out of
+    # distribution). The quick protocol sweeps the in-distribution split only: on 2 cores its budget buys enough
+    # conditions to tell a model from a guess there, or too few for anything on both splits. None: every task (how
+    # stores written before this field read)
+    tasks: tuple[str, ...] | None = ("bussing",)
+    # the quick protocol by default: the 7 in-distribution policies x 18 evaluation + 3 calibration + 18 ceiling
+    # conditions, real and online (docs/sweep.md#the-quick-protocol: the fewest conditions at which the shipped
+    # model's paired difference to the policy-blind floor excludes 0 on r and MMRV). The full protocol: --tasks
+    # bussing reverse --episodes 36 --calibration-episodes 6 --ceiling-episodes 36 (--modes real offline online)
+    episodes: int = 18  # evaluation initial conditions per policy (simulator seeds seed0 + i)
     seed0: int = 10_000_000
-    calibration_episodes: int = 2  # held-out conditions per policy for choosing tau (real + online; never evaluated)
+    calibration_episodes: int = 3  # held-out conditions per policy for choosing tau (real + online; never evaluated)
     calibration_seed0: int = 20_000_000  # first calibration seed (disjoint from every other block)
-    ceiling_episodes: int = 4  # second independent real set per policy, the noise ceiling (0: split-half estimate)
+    ceiling_episodes: int = 18  # second independent real set per policy, the noise ceiling (0: split-half estimate)
     ceiling_seed0: int = 30_000_000  # first ceiling seed
-    modes: tuple[str, ...] = EVAL_MODES  # evaluation modes (results.EVAL_MODES)
+    # evaluation modes (results.EVAL_MODES); offline replay (PSNR, open-loop faithfulness) is not in the quick
+    # protocol: it would cost as much again as online
+    modes: tuple[str, ...] = ("real", "online")
     # candidate U_chunk thresholds (the calibration picks one; the report's post-hoc table lists them all). In raw
     # units (m, rad, gripper m) the paper's 0.02-0.05 is in the range our models' U takes; in normalised units
     # (per-dimension unit variance) it would stop every rollout at once
@@ -72,25 +82,35 @@ class SweepConfig:
     # U_chunk's units: written into the world model's rollout.tau_units, so the sweep, the report and `sc3 rollout`
     # with the same config share one convention ("raw" or "normalised")
     tau_units: str = "raw"
-    batch: int = 4  # initial conditions per world-model batch (the resume unit for offline/online)
+    batch: int = 6  # initial conditions per world-model batch (the resume unit for offline/online)
     rollout_seed: int = 0
     degradations: bool = True  # also score real frames blurred / patch-noised / colour-shifted (scorer robustness)
     # real and imagined horizon (None: the world model's rollout config). 12 s: a successful zoo episode takes 6.5-7.5 s,
     # a failing one retries until the limit; 12 s keeps every success and costs 60% of the 20 s default
     episode_seconds: float | None = 12.0
-    sample_steps: int | None = None  # None: the world model's config
+    # forward-dynamics Euler steps (None: the world model's config). 2 instead of the shipped model's 8 costs a third
+    # of the time per chunk at equal faithfulness: on 7 in-distribution policies x 12 conditions, paired against 8
+    # steps, r -0.016 [-0.078, +0.051], MMRV +0.011 [-0.065, +0.123] (docs/sweep.md#sampler-steps)
+    sample_steps: int | None = 2
     # Euler steps of the inverse-dynamics re-read (None: the world model's config). It yields U_chunk only, never the
-    # frames or the outcomes; 2 instead of 8 makes an online rollout ~35% cheaper (docs/sweep.md#cost-and-scale),
-    # and 2 is what the published sweeps used (tau is calibrated on U read the same way)
-    inverse_steps: int | None = 2
+    # frames or the outcomes; U read in 1 step correlates with U read in 8 at Pearson 0.981 (docs/sweep.md), and tau
+    # is calibrated on U read the same way
+    inverse_steps: int | None = 1
     # start from another store's real rollouts (hard links; same protocol and scorer): world models compared on one
     # real set, which is paid for once (e.g. the checkpoints of a compute curve, docs/results.md)
     real_from: str | None = None
+    # run a disjoint share "I/N" of the (policy, initial-condition batch) work into OUT/shard-I-of-N (None: all of
+    # it; under jax.distributed with several processes, the process's own share). `sc3 report OUT` reads the shards
+    # of OUT as one store; merged shards hold exactly the records of one unsharded sweep
+    shard: str | None = None
+    # processes running the real (simulated) rollouts (0: one per core); records do not depend on it
+    workers: int = 0
     progress: bool = True  # progress bar over rollouts
 
     def to_json(self) -> dict:
         d = dataclasses.asdict(self)
         d["taus"] = [str(t) for t in self.taus]  # JSON has no inf
+        d.pop("workers")  # how the work was spread, not what it computed: a store resumes under any count
         return json.loads(json.dumps(d))  # tuples -> lists, as read back from sweep.json
 
 
@@ -102,26 +122,6 @@ def initial_observation(env, seed: int, task: str):
     env.reset(seed, task)
     f = env.render()
     return np.stack([f[v] for v in env.views]), env.ee_pose().astype(np.float32)
-
-
-def run_real(env, name, task, policy, seed, scorer, max_steps: int, score_stride: int,
-             degradations: bool = False) -> tuple[dict, dict]:
-    """One simulated rollout, scored by physics and by perception (on every ``score_stride``-th frame and the last:
-    the world model's frame rate, so real and imagined rollouts are read alike); with ``degradations`` also by
-    perception on degraded copies of the frames (``degrade.py``: how the scorer reads generated-looking frames)."""
-    from sc3_jax.evaluate.scorers import RolloutView, SimScorer
-    from sc3_jax.sim.policy_eval import run_policy_episode
-    r = run_policy_episode(env, policy, seed, task, record=True, max_steps=max_steps)
-    frames = np.stack([r.frames[v] for v in env.views])  # [V, T, H, W, 3] at 20 Hz
-    view = RolloutView(rollout_id(name, seed, "real"), frames, r.ic.objects, r.ic.destinations(),
-                       [o.to_json() for o in r.outcomes])
-    clean, degraded = scorer.score_real(view, seed, score_stride, degradations)
-    rec = {"objects": SimScorer().score(view), "perception": clean, "length": int(r.length), "prompt": r.ic.prompt,
-           "score_stride": score_stride}
-    if degradations:
-        rec["perception_degraded"] = degraded
-    return rec, {"frames": frames, "actions": r.actions.astype(np.float32), "ee_pose": r.ee_pose.astype(np.float32),
-                 "object_pos": r.object_pos}
 
 
 # ================================================================================================================
@@ -136,6 +136,7 @@ def run_sweep(cfg: SweepConfig) -> Path:
     from sc3_jax import rollout as ro_mod
     from sc3_jax.evaluate import perception
     from sc3_jax.evaluate.rescore import weights_digest
+    from sc3_jax.evaluate.real_workers import RealJob, RealSetup, default_workers, run_real_jobs
     from sc3_jax.evaluate.scorers import PerceptionScorer
     from sc3_jax.policies.base import JaxPolicy
     from sc3_jax.sim.policy_eval import make_env
@@ -150,17 +151,16 @@ def run_sweep(cfg: SweepConfig) -> Path:
     if cfg.real_from and ("real" not in cfg.modes or not cfg.episode_seconds):
         raise ValueError("--real-from copies real rollouts: it needs 'real' in modes and an explicit "
                          "--episode-seconds (the length both stores' real rollouts ran for)")
-    cfg = dataclasses.replace(cfg, state_reader=default_state_reader(cfg))  # sweep.json records the one used
+    cfg = dataclasses.replace(cfg, state_reader=default_state_reader(cfg), shard=shard_of(cfg))
+    index, count = parse_shard(cfg.shard)
+    out = shard_dir(cfg.out, cfg.shard)
     blocks = seed_blocks(cfg)
     weights = cfg.perception or perception.DEFAULT_WEIGHTS
     config = {**cfg.to_json(), "perception_sha256": weights_digest(weights)}
     p_params = perception.load(weights)
     scorer = PerceptionScorer(p_params)
-    policies = [_resolve(p) for p in (cfg.policies or _zoo_names())]
-    seeds = blocks["evaluation"]
-    real_seeds = seeds + blocks["calibration"] + blocks["ceiling"]
-    # world-model rollouts per mode: (seed block, fold-in offset of its episode keys: blocks never share noise)
-    wm_blocks = {"offline": [(seeds, 0)], "online": [(seeds, 0), (blocks["calibration"], 1 << 20)]}
+    specs = list(cfg.policies or _zoo_names(cfg.tasks))
+    policies = [_resolve(p) for p in specs]
     wm_modes = [m for m in cfg.modes if m != "real"]
     ro = params = None
     if wm_modes:
@@ -172,51 +172,120 @@ def run_sweep(cfg: SweepConfig) -> Path:
             wcfg = replace(wcfg, rollout=dict(episode_seconds=cfg.episode_seconds))
         wcfg = replace(wcfg, rollout=dict(tau_units=cfg.tau_units))  # one unit convention
         reader = perception.load(cfg.state_reader) if cfg.state_reader else p_params
-        ro = ro_mod.Rollout(wcfg, stats, state_reader=perception.state_reader(reader))
+        # a shard's batches run on its own process's devices: under jax.distributed every process runs a different
+        # share, so a mesh over every host's devices would wait for programs the other processes never start
+        from sc3_jax import sharding
+        from sc3_jax.config import MeshConfig
+        mesh = sharding.make_mesh(MeshConfig(-1, 1, 1), jax.local_devices())
+        ro = ro_mod.Rollout(wcfg, stats, mesh=mesh, state_reader=perception.state_reader(reader))
     image_size, score_stride = (tuple(ro.spec.image_size), ro.spec.stride) if ro else ((64, 64), REAL_ONLY_STRIDE)
     env = make_env(image_size)
     seconds = cfg.episode_seconds or (wcfg.rollout.episode_seconds if ro else 20.0)
     max_steps = int(round(seconds * env.control_hz))
+    units = work_units(len(policies), blocks, cfg.modes, cfg.batch)[index::count]
+    real_seeds = sorted({(u.policy, s) for u in units if u.real for s in u.seeds})
     # a refused --real-from source is refused before the store is created or written
-    copies = real_to_copy(cfg.real_from, config, {n: t for n, t, _ in policies}, real_seeds, image_size, score_stride,
-                          ResultsStore(cfg.out).done()) if cfg.real_from else []
-    store = ResultsStore(cfg.out, config)
+    copies = real_to_copy(cfg.real_from, config, {n: t for n, t, _ in policies},
+                          [(policies[p][0], s) for p, s in real_seeds], image_size, score_stride,
+                          ResultsStore(out).done()) if cfg.real_from else []
+    store = ResultsStore(out, config)
     link_real(store, cfg.real_from, copies)
     done = store.done()
-    total = len(policies) * sum(len(real_seeds) if m == "real" else sum(len(b) for b, _ in wm_blocks[m])
-                                for m in cfg.modes)
+    total = sum(len(u.seeds) * (u.real + len(u.modes)) for u in units)
     bar = tqdm(total=total, initial=len(done), desc="sweep", unit="rollout", disable=not cfg.progress)
+    timing = {"real": 0.0, "offline": 0.0, "online": 0.0}
+    count_run = {"real": 0, "offline": 0, "online": 0}
+    jobs = [RealJob(specs[p], *policies[p][:2], s) for p, s in real_seeds
+            if rollout_id(policies[p][0], s, "real") not in done]
+    setup = RealSetup(str(store.root), image_size, weights, max_steps, score_stride, cfg.degradations)
     t0 = time.time()
-    for name, task, policy in policies:
+    for job, rec in run_real_jobs(jobs, setup, cfg.workers or default_workers(),
+                                  {specs[p]: policies[p][2] for p in range(len(specs))}, env, scorer):
+        store.append([{"id": rollout_id(job.name, job.seed, "real"), "mode": "real", "seed": job.seed,
+                       "policy": job.name, "task": job.task, "split": SPLITS[job.task], **rec}])
+        bar.update(1)
+    timing["real"], count_run["real"] = time.time() - t0, len(jobs)
+    for u in units:
+        name, task, policy = policies[u.policy]
         base = {"policy": name, "task": task, "split": SPLITS[task]}
-        if "real" in cfg.modes:
-            for seed in real_seeds:
-                rid = rollout_id(name, seed, "real")
-                if rid in done:
-                    continue
-                rec, arrays = run_real(env, name, task, policy, seed, scorer, max_steps, score_stride,
-                                       cfg.degradations)
-                store.save_arrays(rid, **arrays)
-                store.append([{"id": rid, "mode": "real", "seed": seed, **base, **rec}])
-                bar.update(1)
-        for mode in wm_modes:
-            for block, offset in wm_blocks[mode]:
-                for g in range(0, len(block), cfg.batch):
-                    group = block[g:g + cfg.batch]
-                    ids = [rollout_id(name, s, mode) for s in group]
-                    if all(i in done for i in ids):
-                        continue
-                    recs = _world_model_batch(mode, ro, params, env, name, task, policy, group,
-                                              list(range(offset + g, offset + g + len(group))), cfg, store, scorer,
-                                              isinstance(policy, JaxPolicy))
-                    store.append([{"id": i, "mode": mode, "seed": s, **base, **r}
-                                  for i, s, r in zip(ids, group, recs)])
-                    bar.update(len(group))
+        for mode, offset in u.modes:
+            ids = [rollout_id(name, s, mode) for s in u.seeds]
+            if all(i in done for i in ids):
+                continue
+            t1 = time.time()
+            recs = _world_model_batch(mode, ro, params, env, name, task, policy, list(u.seeds),
+                                      list(range(offset + u.start, offset + u.start + len(u.seeds))), cfg, store,
+                                      scorer, isinstance(policy, JaxPolicy))
+            store.append([{"id": i, "mode": mode, "seed": s, **base, **r} for i, s, r in zip(ids, u.seeds, recs)])
+            timing[mode] += time.time() - t1
+            count_run[mode] += len(ids)
+            bar.update(len(ids))
     bar.close()
     env.close()
-    (store.root / "timing.json").write_text(json.dumps({"seconds_last_run": time.time() - t0,
-                                                        "devices": [str(d) for d in jax.devices()]}))
+    atomic.write_json(store.root / "timing.json", {
+        "seconds_last_run": time.time() - t0, "seconds_by_mode": timing, "rollouts_run": count_run,
+        "workers": cfg.workers or default_workers(), "devices": [str(d) for d in jax.local_devices()]})
     return store.root
+
+
+@dataclasses.dataclass(frozen=True)
+class Unit:
+    """One share of a sweep's work: a batch of initial conditions of one policy and what runs on them (its real
+    rollouts, and the world-model modes of its seed block, with the block's episode-key offset). Batches are fixed
+    sets, so a unit's records do not depend on which process or shard runs it."""
+    policy: int
+    block: str
+    start: int  # index of the first seed within its block
+    seeds: tuple[int, ...]
+    real: bool
+    modes: tuple[tuple[str, int], ...]  # (world-model mode, fold-in offset of its episode keys)
+
+
+# world-model modes per seed block, and the offset of the block's episode keys (blocks never share noise)
+WM_BLOCKS = {"evaluation": (("offline", 0), ("online", 0)), "calibration": (("online", 1 << 20),), "ceiling": ()}
+
+
+def work_units(n_policies: int, blocks: dict[str, list[int]], modes, batch: int) -> list[Unit]:
+    """Every unit of a sweep, in the order one process runs them (shard I of N takes units I, I + N, ...)."""
+    units = []
+    for p in range(n_policies):
+        for block, seeds in blocks.items():
+            wm = tuple((m, off) for m, off in WM_BLOCKS[block] if m in modes)
+            if not wm and "real" not in modes:
+                continue
+            for g in range(0, len(seeds), batch):
+                units.append(Unit(p, block, g, tuple(seeds[g:g + batch]), "real" in modes, wm))
+    return units
+
+
+def parse_shard(shard: str | None) -> tuple[int, int]:
+    """"I/N" -> (I, N); None -> (0, 1)."""
+    if shard is None:
+        return 0, 1
+    try:
+        i, n = (int(x) for x in shard.split("/"))
+    except ValueError:
+        i, n = -1, 0
+    if not 0 <= i < n:
+        raise ValueError(f"--shard {shard!r}: expected I/N with 0 <= I < N, e.g. 0/4")
+    return i, n
+
+
+def shard_of(cfg: SweepConfig) -> str | None:
+    """The sweep's shard: ``cfg.shard``, else this process's share under ``jax.distributed``, else None (all)."""
+    if cfg.shard is not None:
+        parse_shard(cfg.shard)
+        return cfg.shard
+    import jax
+    return f"{jax.process_index()}/{jax.process_count()}" if jax.process_count() > 1 else None
+
+
+def shard_dir(out: str | Path, shard: str | None) -> Path:
+    """Where a shard's store lives: OUT/shard-I-of-N (OUT itself when unsharded)."""
+    if shard is None:
+        return Path(out)
+    i, n = parse_shard(shard)
+    return Path(out) / f"shard-{i}-of-{n}"
 
 
 def default_state_reader(cfg: SweepConfig) -> str | None:
@@ -233,13 +302,13 @@ def default_state_reader(cfg: SweepConfig) -> str | None:
     return str(own) if own.is_file() else None
 
 
-def real_to_copy(source: str | Path, config: dict, tasks: dict[str, str], seeds: list[int],
+def real_to_copy(source: str | Path, config: dict, tasks: dict[str, str], pairs: list[tuple[str, int]],
                  image_size: tuple[int, int], score_stride: int, have: set[str]) -> list[dict]:
-    """The real records of the results store ``source`` for the policies of ``tasks`` (name -> task) x ``seeds``
-    that are not in ``have``, checked to be the rollouts the sweep of ``config`` would have run (the simulator is
+    """The real records of the results store ``source`` for the (policy name, seed) ``pairs`` (``tasks``: name ->
+    task) that are not in ``have``, checked to be the rollouts the sweep of ``config`` would have run (the simulator is
     deterministic per seed): the same task, episode length, degradations, perception weights, frame size and scoring
     stride; raises otherwise. Reads the source without writing to it (its own sweep may be running)."""
-    want = {rollout_id(p, s, "real") for p in tasks for s in seeds} - have
+    want = {rollout_id(p, s, "real") for p, s in pairs} - have
     if not want:
         return []  # nothing left to copy: the source is not read (it may have moved since)
     src = ResultsStore(source)
@@ -299,9 +368,9 @@ def _resolve(spec: str):
     return r.name, r.task, r.policy
 
 
-def _zoo_names():
+def _zoo_names(tasks=None):
     from sc3_jax.sim.zoo import zoo_names
-    return zoo_names()
+    return [n for n in zoo_names() if tasks is None or any(n in zoo_names(t) for t in tasks)]
 
 
 def _world_model_batch(mode, ro, params, env, name, task, policy, seeds, indices, cfg, store, scorer, is_jax):

@@ -1,0 +1,114 @@
+"""What a sweep costs on this machine, today's path against the new default, on the same rollouts in one run:
+
+    nice python bench/sweep.py [--real-seeds 6] [--chunks 3] [--batch 6]
+
+* real: the same real rollouts (two zoo policies, one per task, ``--real-seeds`` evaluation seeds each; MuJoCo at
+  64x64, perception scoring with degradations) in one process (today) and in one worker process per core
+  (``evaluate.real_workers``; the default). Steady state: seconds per rollout after each worker's first one, so
+  the workers' start (a spawned interpreter importing JAX and compiling, paid once per sweep) is left out; the
+  start is printed.
+* online: the same batch of ``--batch`` initial conditions of one zoo policy inside the shipped world model, the
+  first ``--chunks`` chunks (every chunk costs the same: static shapes), with today's sampler (8 forward Euler
+  steps, 2 inverse re-read steps) and the new default's (``SweepConfig``'s ``sample_steps`` / ``inverse_steps``);
+  each timed on its second call (compiled), scaled to a 12 s rollout.
+
+full_protocol_h: the full protocol (13 policies; 36 evaluation + 6 calibration + 36 ceiling real rollouts and 36 +
+6 online rollouts per policy) at these per-rollout costs. Last line:
+``sweep_cost: real_s=<new s per real rollout> online_s=<new s per online rollout> full_protocol_h=<new> speedup=<today
+/ new full protocol>``.
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import tempfile
+import time
+
+import numpy as np
+
+FULL = {"policies": 13, "real": 36 + 6 + 36, "online": 36 + 6}  # the full protocol (docs/sweep.md)
+
+
+def real_cost(workers: int, n_seeds: int, root: str) -> tuple[float, float]:
+    """(steady seconds per real rollout, seconds until the first records) for ``workers`` processes."""
+    from sc3_jax.evaluate import perception
+    from sc3_jax.evaluate.real_workers import RealJob, RealSetup, run_real_jobs
+    from sc3_jax.evaluate.scorers import PerceptionScorer
+    from sc3_jax.evaluate.sweep import _resolve, _zoo_names
+    from sc3_jax.sim.policy_eval import make_env
+    from sc3_jax.sim.zoo import ZOO
+    specs = [next(n for n in _zoo_names() if ZOO[n].task == t) for t in ("bussing", "reverse")]
+    resolved = {s: _resolve(s) for s in specs}
+    jobs = [RealJob(s, resolved[s][0], resolved[s][1], 10_000_000 + i) for s in specs for i in range(n_seeds)]
+    setup = RealSetup(root, (64, 64), str(perception.DEFAULT_WEIGHTS), 240, 2, True)
+    env = make_env((64, 64))
+    scorer = PerceptionScorer(perception.load(perception.DEFAULT_WEIGHTS))
+    t0, arrivals = time.perf_counter(), []
+    for _ in run_real_jobs(jobs, setup, workers, {s: r[2] for s, r in resolved.items()}, env, scorer):
+        arrivals.append(time.perf_counter() - t0)
+    env.close()
+    w = max(workers, 1)  # each worker's first rollout includes its start (and its first compile)
+    return (arrivals[-1] - arrivals[w - 1]) / (len(arrivals) - w), arrivals[w - 1]
+
+
+def online_cost(fd: int, inv: int, chunks: int, batch: int) -> float:
+    """Seconds per 12 s online rollout (amortised over the batch) at (forward, inverse) Euler steps."""
+    import jax
+
+    from sc3_jax import checkpoint, rollout
+    from sc3_jax.config import replace
+    from sc3_jax.evaluate import perception
+    from sc3_jax.evaluate.sweep import SHIPPED_WORLD_MODEL, STATE_READER_FILE, initial_observation
+    from sc3_jax.sim.policy_eval import make_env
+    from sc3_jax.sim.tasks import task_id
+    from sc3_jax.sim.zoo import load_policy
+    cfg, stats, params = checkpoint.load(str(SHIPPED_WORLD_MODEL))
+    cfg = replace(cfg, sample=dict(steps=fd, inverse_steps=inv), rollout=dict(episode_seconds=12.0))
+    full_chunks = rollout.make_spec(cfg).num_chunks
+    reader = perception.state_reader(perception.load(str(SHIPPED_WORLD_MODEL / STATE_READER_FILE)))
+    ro = rollout.Rollout(cfg, stats, state_reader=reader, num_chunks=chunks)
+    env = make_env((64, 64))
+    obs = [initial_observation(env, 10_000_000 + i, "bussing") for i in range(batch)]
+    env.close()
+    frames = np.stack([np.repeat(f[:, None], ro.spec.context, 1) for f, _ in obs])
+    ics = rollout.InitialConditions(frames, np.stack([p for _, p in obs]), np.full(batch, task_id("bussing")))
+    keys = np.asarray(rollout.episode_keys(0, batch))
+    policy = load_policy("bus_bc_full")
+    ro.run(params, policy, ics, keys, math.inf)  # compile
+    t0 = time.perf_counter()
+    jax.block_until_ready(ro.run(params, policy, ics, keys, math.inf)["u"])
+    return (time.perf_counter() - t0) / chunks * full_chunks / batch
+
+
+def hours(real_s: float, online_s: float) -> float:
+    return FULL["policies"] * (FULL["real"] * real_s + FULL["online"] * online_s) / 3600
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--real-seeds", type=int, default=6, help="real rollouts per policy (two policies)")
+    ap.add_argument("--chunks", type=int, default=3, help="online chunks timed (scaled to a 12 s rollout)")
+    ap.add_argument("--batch", type=int, default=6)
+    a = ap.parse_args(argv)
+    import sc3_jax.sim  # noqa: F401  (picks the GL backend before mujoco is imported)
+    from sc3_jax.evaluate.real_workers import default_workers
+    from sc3_jax.evaluate.sweep import SweepConfig
+    new = SweepConfig()
+    workers = new.workers or default_workers()
+    with tempfile.TemporaryDirectory() as d1, tempfile.TemporaryDirectory() as d2:
+        real_old, start_old = real_cost(1, a.real_seeds, d1)
+        real_new, start_new = real_cost(workers, a.real_seeds, d2)
+    online_old = online_cost(8, 2, a.chunks, a.batch)
+    online_new = online_cost(new.sample_steps or 8, new.inverse_steps or 8, a.chunks, a.batch)
+    h_old, h_new = hours(real_old, online_old), hours(real_new, online_new)
+    print("| path | real s / rollout | online s / rollout | full protocol h |\n|---|---|---|---|")
+    print(f"| today: 1 process, 8 + 2 Euler steps | {real_old:.2f} | {online_old:.1f} | {h_old:.2f} |")
+    print(f"| new default: {workers} real workers, {new.sample_steps} + {new.inverse_steps} Euler steps | "
+          f"{real_new:.2f} | {online_new:.1f} | {h_new:.2f} |")
+    print(f"(until the first real records: {start_old:.1f} s in process, {start_new:.1f} s with {workers} workers)")
+    print(f"sweep_cost: real_s={real_new:.2f} online_s={online_new:.1f} full_protocol_h={h_new:.2f} "
+          f"speedup={h_old / h_new:.2f}")
+
+
+if __name__ == "__main__":
+    main()
