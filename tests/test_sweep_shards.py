@@ -11,6 +11,7 @@ import jax
 import pytest
 
 import sc3_jax.sim  # noqa: F401  (picks the GL backend before mujoco is imported)
+from sc3_jax.errors import UserError
 from sc3_jax.evaluate import perception, report, sweep
 from sc3_jax.evaluate.merged import open_store
 from sc3_jax.evaluate.results import EVAL_MODES, ResultsStore, seed_blocks
@@ -108,6 +109,8 @@ def test_stores_of_different_sweeps_do_not_merge(tiny, tmp_path):
         ResultsStore(store).append([{"id": rid, "mode": "real"}])
     with pytest.raises(ValueError, match="in both"):
         open_store([a, c])
+    with pytest.raises(UserError, match="not a results store"):  # a one-line error for `sc3 report WRONG_DIR`
+        open_store(tmp_path / "nothing_here")
 
 
 def test_report_warns_on_a_one_policy_split_and_names_what_it_read(tiny, tmp_path):

@@ -10,6 +10,7 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
+from sc3_jax.errors import UserError
 from sc3_jax.evaluate.results import EVAL_MODES, ResultsStore
 
 # fields that say where or how a share ran, not what it computed
@@ -28,7 +29,12 @@ def open_store(results) -> ResultsStore | MergedStore:
     paths = [Path(results)] if isinstance(results, (str, Path)) else [Path(p) for p in results]
     expanded = []
     for p in paths:
-        expanded += shard_stores(p) if not (p / "sweep.json").exists() and shard_stores(p) else [p]
+        if (p / "sweep.json").exists():
+            expanded.append(p)
+        elif shard_stores(p):
+            expanded += shard_stores(p)
+        else:
+            raise UserError(f"{p}: not a results store (no sweep.json, no shard-I-of-N stores): give a sweep's --out")
     if len(expanded) == 1:
         return ResultsStore(expanded[0])
     return MergedStore(expanded)
@@ -46,11 +52,11 @@ class MergedStore:
             diff = sorted(k for k in strip(c).keys() | strip(configs[0]).keys()
                           if strip(c).get(k) != strip(configs[0]).get(k))
             if diff:
-                raise ValueError(f"{s.root} and {self.stores[0].root} are not shares of one sweep (they differ in "
+                raise UserError(f"{s.root} and {self.stores[0].root} are not shares of one sweep (they differ in "
                                  f"{', '.join(diff)}): report them separately")
         counts = {c.get("shard", "").partition("/")[2] for c in configs if c.get("shard")}
         if len(counts) > 1:
-            raise ValueError(f"{self.root}: shards of sweeps split {' and '.join(sorted(counts))} ways: keep one")
+            raise UserError(f"{self.root}: shards of sweeps split {' and '.join(sorted(counts))} ways: keep one")
         modes = {m for c in configs for m in c["modes"]}
         self._config = dict(configs[0], out=str(self.root), shard=None,
                             modes=[m for m in EVAL_MODES if m in modes])
@@ -59,7 +65,7 @@ class MergedStore:
         for s in self.stores:
             for r in s.records():
                 if r["id"] in self._where:
-                    raise ValueError(f"rollout {r['id']} is in both {self._where[r['id']].root} and {s.root}: "
+                    raise UserError(f"rollout {r['id']} is in both {self._where[r['id']].root} and {s.root}: "
                                      "the stores overlap, so they are not shares of one sweep")
                 self._where[r["id"]] = s
                 self._records.append(r)

@@ -36,6 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from sc3_jax import atomic
+from sc3_jax.errors import UserError
 from sc3_jax.evaluate.results import (EVAL_MODES, REAL_ONLY_STRIDE, SPLITS, ResultsStore, rollout_id,
                                      score_strides, seed_blocks)
 
@@ -267,7 +268,7 @@ def parse_shard(shard: str | None) -> tuple[int, int]:
     except ValueError:
         i, n = -1, 0
     if not 0 <= i < n:
-        raise ValueError(f"--shard {shard!r}: expected I/N with 0 <= I < N, e.g. 0/4")
+        raise UserError(f"--shard {shard!r}: expected I/N with 0 <= I < N, e.g. 0/4")
     return i, n
 
 
