@@ -16,16 +16,15 @@ import argparse
 import math
 
 from sc3_jax import plan
-from sc3_jax.config import MeshConfig, load_config
+from sc3_jax.config import MeshConfig, load_config, replace
 from sc3_jax.model import tokenizer
 
 SIZES = {2020: (32, 56), 4036: (56, 64), 8068: (64, 112)}
 
 
 def config(image, impl: str, remat: str):
-    return plan.apply_overrides(load_config("tiny"), [
-        f"data.image_size={list(image)}", "data.batch_size=1", "model.patch_size=4",
-        "model.action_reads_frames=False", f"model.attention_impl={impl}", f"model.remat={remat}"])
+    return replace(load_config("tiny"), data=dict(image_size=tuple(image), batch_size=1),
+                   model=dict(patch_size=4, action_reads_frames=False, attention_impl=impl, remat=remat))
 
 
 def kernel_backward():

@@ -3,10 +3,11 @@
     nice python bench/sweep.py [--real-seeds 6] [--chunks 3] [--batch 6]
 
 * real: the same real rollouts (two zoo policies, one per task, ``--real-seeds`` evaluation seeds each; MuJoCo at
-  64x64, perception scoring with degradations) in one process (today) and in one worker process per core
-  (``evaluate.real_workers``; the default). Steady state: seconds per rollout after each worker's first one, so
-  the workers' start (a spawned interpreter importing JAX and compiling, paid once per sweep) is left out; the
-  start is printed.
+  64x64, perception scoring) in one process with every rollout also read degraded (today) and in one worker process
+  per core (``evaluate.real_workers``), with and without the degraded readings: the new default reads them on the
+  calibration conditions only (``SweepConfig.degradations``), so its cost is the two weighted by that share.
+  Steady state: seconds per rollout after each worker's first one, so the workers' start (a spawned interpreter
+  importing JAX and compiling, paid once per sweep) is left out; the start is printed.
 * online: the same batch of ``--batch`` initial conditions of one zoo policy inside the shipped world model, the
   first ``--chunks`` chunks (every chunk costs the same: static shapes), with today's sampler (8 forward Euler
   steps, 2 inverse re-read steps) and the new default's (``SweepConfig``'s ``sample_steps`` / ``inverse_steps``);
@@ -26,11 +27,12 @@ import time
 
 import numpy as np
 
-FULL = {"policies": 13, "real": 36 + 6 + 36, "online": 36 + 6}  # the full protocol (docs/sweep.md)
+FULL = {"policies": 13, "real": 36 + 6 + 36, "online": 36 + 6, "calibration": 6}  # the full protocol (docs/sweep.md)
 
 
-def real_cost(workers: int, n_seeds: int, root: str) -> tuple[float, float]:
-    """(steady seconds per real rollout, seconds until the first records) for ``workers`` processes."""
+def real_cost(workers: int, n_seeds: int, root: str, degrade: bool) -> tuple[float, float]:
+    """(steady seconds per real rollout, seconds until the first records) for ``workers`` processes, with or without
+    the perception scorer's reading of degraded copies."""
     from sc3_jax.evaluate import perception
     from sc3_jax.evaluate.real_workers import RealJob, RealSetup, run_real_jobs
     from sc3_jax.evaluate.scorers import PerceptionScorer
@@ -39,8 +41,8 @@ def real_cost(workers: int, n_seeds: int, root: str) -> tuple[float, float]:
     from sc3_jax.sim.zoo import ZOO
     specs = [next(n for n in _zoo_names() if ZOO[n].task == t) for t in ("bussing", "reverse")]
     resolved = {s: _resolve(s) for s in specs}
-    jobs = [RealJob(s, resolved[s][0], resolved[s][1], 10_000_000 + i) for s in specs for i in range(n_seeds)]
-    setup = RealSetup(root, (64, 64), str(perception.DEFAULT_WEIGHTS), 240, 2, True)
+    jobs = [RealJob(s, resolved[s][0], resolved[s][1], 10_000_000 + i, degrade) for s in specs for i in range(n_seeds)]
+    setup = RealSetup(root, (64, 64), str(perception.DEFAULT_WEIGHTS), 240, 2)
     env = make_env((64, 64))
     scorer = PerceptionScorer(perception.load(perception.DEFAULT_WEIGHTS))
     t0, arrivals = time.perf_counter(), []
@@ -96,14 +98,21 @@ def main(argv=None) -> None:
     new = SweepConfig()
     workers = new.workers or default_workers()
     with tempfile.TemporaryDirectory() as d1, tempfile.TemporaryDirectory() as d2:
-        real_old, start_old = real_cost(1, a.real_seeds, d1)
-        real_new, start_new = real_cost(workers, a.real_seeds, d2)
+        real_old, start_old = real_cost(1, a.real_seeds, d1, True)
+        real_clean, start_new = real_cost(workers, a.real_seeds, d2, False)
+    with tempfile.TemporaryDirectory() as d3:
+        real_degraded, _ = real_cost(workers, a.real_seeds, d3, True)
+    # the new default reads degraded copies of the calibration conditions' real rollouts only
+    share = {"all": 1.0, "none": 0.0, "calibration": FULL["calibration"] / FULL["real"]}[new.degradations]
+    real_new = share * real_degraded + (1 - share) * real_clean
     online_old = online_cost(8, 2, a.chunks, a.batch)
     online_new = online_cost(new.sample_steps or 8, new.inverse_steps or 8, a.chunks, a.batch)
     h_old, h_new = hours(real_old, online_old), hours(real_new, online_new)
     print("| path | real s / rollout | online s / rollout | full protocol h |\n|---|---|---|---|")
     print(f"| today: 1 process, 8 + 2 Euler steps | {real_old:.2f} | {online_old:.1f} | {h_old:.2f} |")
-    print(f"| new default: {workers} real workers, {new.sample_steps} + {new.inverse_steps} Euler steps | "
+    print(f"(real, {workers} workers: {real_clean:.2f} s clean, {real_degraded:.2f} s also read degraded)")
+    print(f"| new default: {workers} real workers, degraded copies read on {new.degradations}, "
+          f"{new.sample_steps} + {new.inverse_steps} Euler steps | "
           f"{real_new:.2f} | {online_new:.1f} | {h_new:.2f} |")
     print(f"(until the first real records: {start_old:.1f} s in process, {start_new:.1f} s with {workers} workers)")
     print(f"sweep_cost: real_s={real_new:.2f} online_s={online_new:.1f} full_protocol_h={h_new:.2f} "

@@ -127,8 +127,9 @@ def _orbax_item(path: Path, step: int | None) -> tuple[Path, bool]:
     """(orbax item directory, whether the params sit under "params" in a whole train state)."""
     if (path / "params").is_dir():  # a `sc3 convert` output: params only
         return (path / "params").absolute(), False
-    mngr = ocp.CheckpointManager(path.absolute() / "checkpoints")
-    step = mngr.latest_step() if step is None else step
+    # a reader writes nothing: a manager would create a missing checkpoints/ directory
+    step = ocp.CheckpointManager(path.absolute() / "checkpoints").latest_step() \
+        if step is None and (path / "checkpoints").is_dir() else step
     if step is None:
         raise FileNotFoundError(f"no checkpoint under {path}/checkpoints (and no params.npz or params/)")
     return path.absolute() / "checkpoints" / str(step) / "state", True
@@ -162,17 +163,14 @@ def export(workdir: str | Path, out: str | Path, dtype=np.float16) -> Path:
 
 
 def save(out: str | Path, cfg: Config, stats: NormStats, params, dtype=np.float16) -> Path:
-    """An exported world model at ``out``. A learned tokenizer (``conv_ae``) travels with the model: copied to
-    ``out/tokenizer`` (float32: a few MB) and referred to by that relative path, which :func:`read_config` resolves
-    against the model directory. ``dtype="int8"`` stores every matrix as int8 with a float16 scale per output
-    channel (:func:`quantize_int8`) and the rest as float16: half the bytes, for models that must fit a repository."""
+    """An exported world model at ``out``, written as one (``atomic.replacing_dir``): a reader, a failure or a kill
+    sees the previous model or this one whole, never one's params with the other's config; files another tool put
+    in ``out`` (``diagnose.json``, ``state_reader.npz``) stay. A learned tokenizer (``conv_ae``) travels with the
+    model: copied to ``out/tokenizer`` (float32: a few MB) and referred to by that relative path, which
+    :func:`read_config` resolves against the model directory. ``dtype="int8"`` stores every matrix as int8 with a
+    float16 scale per output channel (:func:`quantize_int8`) and the rest as float16: half the bytes, for models
+    that must fit a repository."""
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    if cfg.model.tokenizer == "conv_ae":
-        src = Path(cfg.model.tokenizer_path)
-        if src.resolve() != (out / "tokenizer").resolve():
-            shutil.copytree(src, out / "tokenizer", dirs_exist_ok=True)
-        cfg = dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, tokenizer_path="tokenizer"))
     int8 = isinstance(dtype, str) and dtype == "int8"
     arrays = {}
     for k, v in _flatten(params):
@@ -181,9 +179,13 @@ def save(out: str | Path, cfg: Config, stats: NormStats, params, dtype=np.float1
             arrays[k], arrays[k + SCALE_SUFFIX] = quantize_int8(v)
         else:
             arrays[k] = v.astype(np.float16 if int8 else dtype)
-    atomic.save_npz(out / "params.npz", **arrays)
-    atomic.write_json(out / "config.json", dataclasses.asdict(cfg))
-    stats.save(out / "norm_stats.json")
+    with atomic.replacing_dir(out) as tmp:
+        if cfg.model.tokenizer == "conv_ae":  # copied even from out/tokenizer itself: the new directory needs it
+            shutil.copytree(Path(cfg.model.tokenizer_path), tmp / "tokenizer")
+            cfg = dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, tokenizer_path="tokenizer"))
+        atomic.save_npz(tmp / "params.npz", **arrays)
+        atomic.write_json(tmp / "config.json", dataclasses.asdict(cfg))
+        stats.save(tmp / "norm_stats.json")
     return out
 
 
@@ -202,10 +204,10 @@ def save_converted(out: str | Path, cfg: Config, params) -> Path:
     """A ``sc3 convert`` output at ``out``: config.json and the params as an orbax tree (no norm stats: a converted
     model has not seen our data)."""
     out = Path(out)
-    atomic.write_json(out / "config.json", dataclasses.asdict(cfg))
     ckpt = ocp.StandardCheckpointer()
     ckpt.save((out / "params").absolute(), params)
     ckpt.wait_until_finished()
+    atomic.write_json(out / "config.json", dataclasses.asdict(cfg))  # last: a directory without it is not a model
     return out
 
 

@@ -14,99 +14,138 @@ REMAT_POLICIES = ("none", "dots", "block")  # lightest to heaviest recompute
 
 @dataclasses.dataclass(frozen=True)
 class ModelConfig:
+    """The world model: the transformer, its tokenizer, and the Cosmos3 conventions it can switch on."""
+
     dim: int = 128
+    """width of the transformer's residual stream (every token's embedding)"""
     depth: int = 4
+    """transformer layers (each an attention block and a gated MLP; their parameters are stacked on a leading
+    "layers" axis and run with lax.scan: one compiled block whatever the depth)"""
     num_heads: int = 4
+    """query heads per attention layer; a multiple of num_kv_heads"""
     num_kv_heads: int = 2
+    """key/value heads per attention layer (grouped-query attention: num_heads / num_kv_heads query heads share one)"""
     head_dim: int = 32
+    """channels per attention head; twice the sum of rope_axes_dim (the rotary embedding rotates channel pairs, split
+    over time, row and column)"""
     mlp_dim: int = 384
-    rope_axes_dim: tuple[int, int, int] = (6, 5, 5)  # (time, row, col) frequency sections; sum = head_dim / 2
+    """hidden width of each layer's gated MLP"""
+    rope_axes_dim: tuple[int, int, int] = (6, 5, 5)
+    """rotary frequencies driven by each position axis (time, row, col), interleaved as Cosmos3 does; must sum to
+    head_dim / 2"""
     rope_theta: float = 10000.0
-    time_embed_dim: int = 256  # sinusoid channels of the noise-level embedding
+    """rotary base: frequencies are 1 / rope_theta ** (2 i / head_dim)"""
+    time_embed_dim: int = 256
+    """sinusoid channels of the noise-level embedding (and of the context-noise embedding)"""
     norm_eps: float = 1e-6
-    # Tokenizer: "pixel" = non-overlapping p x p pixel patches (exact round trip).
-    tokenizer: str = "pixel"  # or "conv_ae" (learned autoencoder) / "wan2.1" / "wan2.2" (Wan VAE); patch_size is then
-    # the latent patch
-    tokenizer_path: str | None = None  # conv_ae: a `sc3 train-tokenizer` output (workdir/tokenizer); Wan: diffusers
-    # VAE directory (None: random weights)
+    """epsilon of every RMS norm (layer norms, query/key norms, final norm)"""
+    tokenizer: str = "pixel"
+    """frames <-> tokens: "pixel" (non-overlapping patch_size x patch_size pixel patches: an exact round trip),
+    "conv_ae" (a learned conv autoencoder, `sc3 train-tokenizer`), "wan2.1" / "wan2.2" (a Wan VAE, 4x time
+    compression)"""
+    tokenizer_path: str | None = None
+    """conv_ae: a `sc3 train-tokenizer` output (WORKDIR/tokenizer); Wan: a diffusers VAE directory (None: random
+    weights, for plumbing only). The pixel tokenizer reads none"""
     patch_size: int = 4
+    """side of each token's square patch: in pixels for the "pixel" tokenizer, in latent cells for the learned ones"""
     channels: int = 3
+    """values per pixel the "pixel" tokenizer packs into a token (3: RGB); a converted Cosmos3 config records its
+    VAE's latent channels here (the other tokenizers take theirs from their weights)"""
     num_views: int = 3
+    """camera views (len(data.views)) the per-view weights are sized for: the view embedding, the pose-conditioning
+    position embedding, the action_reads_frames projection"""
     action_dim: int = 7
+    """entries of an action (xyz delta, rotation-vector delta, gripper target) and of an end-effector pose"""
     num_action_domains: int = 1
-    view_embedding: bool = True  # per-view learned embedding on video tokens (off for Cosmos3-compatible configs)
-    # Shortcuts that make small models learn dynamics in CPU-minutes (off for Cosmos3-compatible configs; none of
-    # them touches the context tokens, so context caching stays exact):
-    #  anchor_conditioning: each future frame token also sees the 3x3 neighbourhood of its patch in the last
-    #    context frame (channel-concatenation conditioning, as video diffusion models do with conditioning latents);
-    #  action_to_frames: future frame K+j's tokens also see action j and the running sum of actions 0..j;
-    #  action_reads_frames: action j's token also sees the difference of the two frames it connects (all views).
-    # Each feature reads clean tokens only, so no clean token ever depends on a noisy one.
-    # Without them, each of these relations must first be discovered through attention.
+    """sets of action input/output projection weights, one per embodiment (Cosmos3's num_embodiment_domains); our
+    training and rollouts use domain 0"""
+    view_embedding: bool = True
+    """add a learned per-view embedding to every video token (off for Cosmos3-compatible configs)"""
+    # The three shortcuts below make small models learn dynamics in CPU-minutes; without them each relation must
+    # first be discovered through attention. Each reads clean tokens only (no clean token ever depends on a noisy
+    # one) and none touches the context tokens, so context caching stays exact. Off for Cosmos3-compatible configs.
     anchor_conditioning: bool = False
+    """shortcut: each future frame token also sees the 3x3 neighbourhood of its patch in the last context frame
+    (channel-concatenation conditioning, as video diffusion models do with conditioning latents)"""
     action_to_frames: bool = False
+    """shortcut: future frame K+j's tokens also see (clean) action j and the running sum of actions 0..j"""
     action_reads_frames: bool = False
-    # Pose conditioning (the robot's pose is given, not inferred, as in Ctrl-World): the absolute end-effector pose
-    # and gripper command of the last context frame and of every future frame -- integrated from the commanded
-    # actions by ``imagination_state`` in training and rollouts alike -- embedded and added to all of that frame's
-    # video tokens, plus a learned absolute (view, row, col) embedding so a token can tell whether the gripper is
-    # near it. Future poses are withheld (a learned "unknown" embedding) whenever the actions are targets (inverse
-    # mode), since they are integrated from those very actions.
+    """shortcut: action j's token also sees the difference of the two frames it connects, in every view (when both
+    are clean)"""
     pose_conditioning: bool = False
-    # Context-noise level embedding (anti-drift, as GameNGen): training noises the clean context frames with a
-    # random level (flow.context_noise_max) and tells the model that level; rollouts use a small fixed level
-    # (sample.context_noise). Off: context tokens are always exactly clean.
-    context_noise: bool = False    # "residual": the network predicts clean future frames as (last context frame + zero-initialised output) and
-    # clean actions as (0 + output); the velocity is derived from it. "velocity": predicts eps - x directly
-    # (what pretrained Cosmos3 checkpoints do). Residual is what made tiny CPU models learn.
+    """give the robot's pose instead of leaving it to be inferred (as Ctrl-World): the end-effector pose and gripper
+    command of the last context frame and of every future frame -- integrated from the commanded actions in training
+    and rollouts alike -- embedded and added to that frame's video tokens, plus a learned absolute (view, row, col)
+    embedding so a token can tell whether the gripper is near it. Future poses are withheld (a learned "unknown"
+    embedding) whenever the actions are targets (inverse mode), since they are integrated from those very actions.
+    Needs the sc3 layout"""
+    context_noise: bool = False
+    """tell the model the noise level of its context frames (anti-drift, as GameNGen): training noises the clean
+    context with a random level up to flow.context_noise_max, rollouts with sample.context_noise. Off: the context
+    is always exactly clean"""
     prediction: str = "residual"
-    # "full": every token attends to every token. "causal": context tokens attend only to context, other clean
-    # tokens only to clean tokens, noisy tokens to everything; so clean keys/values can be computed once per
-    # rollout chunk and reused by every sampler step (the context in forward mode, all frames in inverse mode).
+    """how the network's output is read: "residual" predicts clean future frames as (last context frame +
+    zero-initialised output) and clean actions as (0 + output), the velocity derived from them -- what made tiny
+    CPU models learn; "velocity" predicts eps - x directly (what pretrained Cosmos3 checkpoints do)"""
     context_attention: str = "full"
-    dtype: str = "float32"  # activation dtype
+    """which tokens attend to which: "full": every token to every token. "causal": context tokens only to the
+    context, other clean tokens only to clean tokens, noisy tokens to everything; so clean keys/values are computed
+    once per rollout chunk and reused by every sampler step (the context in forward mode, all frames in inverse
+    mode)"""
+    dtype: str = "float32"
+    """compute dtype every matmul casts weights and activations to (e.g. "bfloat16"); norms, softmax and the loss
+    stay float32"""
     param_dtype: str = "float32"
-    # Rematerialisation of each layer in the backward pass: "none" (keep every activation), "dots" (keep only the
-    # layer's weight matmul outputs, jax.checkpoint_policies.dots_with_no_batch_dims_saveable: recompute norms,
-    # rotary, attention and activations), "block" (keep only each layer's input, recompute the whole block).
-    # True / False are read as "block" / "none". sc3 plan picks the lightest one that fits.
+    """dtype parameters are created in; training needs float32 (the master weights), bfloat16 is a storage format"""
     remat: str = "none"
-    # lax.scan over the stacked layers (one compiled block, fast compiles at any depth). False unrolls the scan:
-    # same math; XLA's cost analysis counts a loop body once, so FLOP counting compiles the unrolled form.
+    """what each layer keeps for the backward pass: "none" (every activation), "dots" (only its weight matmul
+    outputs: jax.checkpoint_policies.dots_with_no_batch_dims_saveable recomputes norms, rotary, attention and
+    activations), "block" (only its input; the whole block is recomputed). True / False read as "block" / "none";
+    `sc3 plan` picks the lightest one that fits"""
     scan_layers: bool = True
-    # Attention over the packed token sequence (sc3_jax/model/attention.py). "dense": fp32 scores [Hq, N, M] written
-    # out per layer (the default; the only mode before the others existed). "blockwise": flash attention in plain
-    # JAX (lax.scan over key blocks, online softmax, flash backward): O(N) memory, any backend. "fused": the cuDNN
-    # kernel (jax.nn.dot_product_attention) on GPU where the mask and dtype allow it, else "blockwise". With a mesh
-    # that has a ``context`` axis (MeshConfig.context > 1) the token sequence is split over that axis and attention
-    # runs under ``jax.shard_map`` (sc3_jax/model/context_parallel.py): "context_parallel" all-gathers keys/values,
-    # "ring" passes key/value blocks around the ring; each device runs the blockwise kernel. Same math and
-    # parameters in every mode; without a context axis the last two fall back to "blockwise".
+    """lax.scan over the stacked layers (one compiled block: fast compiles at any depth). False unrolls the scan:
+    same math; XLA's cost analysis counts a loop body once, so FLOP counting compiles the unrolled form"""
     attention_impl: str = "dense"
-    attention_block: int = 512  # tokens per query / key tile of the blockwise kernel (static; last tile padded)
-    # Cosmos3 compatibility (diffusers ``Cosmos3OmniTransformer``; sc3_jax/model/cosmos3.py, convert.py). With the
-    # defaults below nothing changes. ``layout="cosmos3"`` computes what Cosmos3OmniTransformer computes for a packed
-    # [text | video | actions] sequence: its mRoPE position ids (text arange(L); then offset L + mrope_margin;
-    # video t = offset + frame * base_fps / fps, row/col = patch row/col; action i t = offset + (i + 1) *
-    # (base_fps / temporal_compression) / fps, row = col = 0), its timestep convention (sinusoid of
-    # floor(1000 t) * timestep_scale), its rotary inverse frequencies, and outputs zeroed at clean tokens. With
-    # ``text_pathway`` prompt token ids (``Inputs.text``) run through separate "understanding" weights (causal among
-    # text) whose per-layer keys/values every generation token also attends to. Cosmos3-compatible configs turn
-    # view_embedding and the shortcuts off and use prediction="velocity".
-    layout: str = "sc3"  # "sc3" | "cosmos3"
+    """attention over the packed token sequence (sc3_jax/model/attention.py), same math and parameters in every
+    mode: "dense" (fp32 scores [Hq, N, M] written out per layer), "blockwise" (flash attention in plain JAX: O(N)
+    memory, any backend), "fused" (the cuDNN kernel on GPU where mask and dtype allow, else "blockwise"),
+    "context_parallel" / "ring" (the token sequence split over the mesh's context axis, mesh.context > 1: keys/values
+    all-gathered / passed around a ring, each device running the blockwise kernel; "blockwise" without that axis)"""
+    attention_block: int = 512
+    """tokens per query / key tile of the blockwise kernel (static; the last tile padded)"""
+    # Cosmos3 compatibility (diffusers Cosmos3OmniTransformer; sc3_jax/model/cosmos3.py, convert.py): with the
+    # defaults below nothing changes. Cosmos3-compatible configs also turn view_embedding and the shortcuts off and
+    # use prediction="velocity".
+    layout: str = "sc3"
+    """token layout and position conventions: "sc3" (ours), or "cosmos3": compute what Cosmos3OmniTransformer
+    computes for a packed [text | video | actions] sequence -- its mRoPE position ids, its timestep convention
+    (sinusoid of floor(1000 t) * timestep_scale), its rotary frequencies, outputs zeroed at clean tokens, any number
+    of actions per token frame"""
     text_pathway: bool = False
-    vocab_size: int = 0  # text vocabulary (embed_tokens / lm_head rows) when text_pathway
-    # the prompt's token ids (from the checkpoint's own text tokenizer, e.g. of "" or of the task family) that every
-    # sample is conditioned on when no ``Inputs.text`` is given: lets training and rollouts of a text_pathway model
-    # (a converted Cosmos3 checkpoint) run without a tokenizer in the loop. One fixed prompt: no padding, so exact.
+    """run prompt token ids through separate "understanding" weights (causal among text) whose per-layer
+    keys/values every generation token also attends to (Cosmos3; needs layout "cosmos3" and vocab_size > 0)"""
+    vocab_size: int = 0
+    """text vocabulary: rows of the token embedding and LM head (text_pathway only)"""
     prompt_ids: tuple[int, ...] = ()
-    base_fps: float = 24.0  # Cosmos3 position ids: time advances base_fps / fps per (latent) frame
-    fps: float = 24.0  # pixel frame rate of a window at stride 1 (a sample's fps is fps / stride)
-    temporal_compression: int = 4  # pixel frames per latent frame (Wan VAE: 4); actions per latent frame
-    mrope_margin: int = 15000  # gap between the text positions and the first video position
-    fps_modulation: bool = True  # False: integer time positions (frame index) as Cosmos3 without fps modulation
-    reset_spatial_ids: bool = True  # False: row/col positions also start at the offset
+    """the prompt's token ids (from the checkpoint's own text tokenizer, e.g. of "" or of the task family) every
+    sample is conditioned on when none is given: lets a text_pathway model (a converted Cosmos3 checkpoint) train and
+    roll out without a tokenizer in the loop. One fixed prompt: no padding, so exact"""
+    base_fps: float = 24.0
+    """cosmos3 layout: time positions advance base_fps / fps per (latent) frame"""
+    fps: float = 24.0
+    """cosmos3 layout: pixel frame rate of a window at stride 1 (a sample's fps is fps / stride)"""
+    temporal_compression: int = 4
+    """cosmos3 layout: pixel frames per latent frame (Wan VAE: 4), i.e. actions per latent frame, in the time
+    positions"""
+    mrope_margin: int = 15000
+    """cosmos3 layout: gap between the last text position and the first video position"""
+    fps_modulation: bool = True
+    """cosmos3 layout: time positions scaled by the sample's fps; False: integer time positions (frame index), as
+    Cosmos3 without fps modulation"""
+    reset_spatial_ids: bool = True
+    """cosmos3 layout: row/col positions start at 0; False: they also start at the text offset"""
     timestep_scale: float = 0.001
+    """cosmos3 layout: the timestep embedding is a sinusoid of floor(1000 t) * timestep_scale"""
 
     def __post_init__(self):
         if 2 * sum(self.rope_axes_dim) != self.head_dim:
@@ -139,111 +178,181 @@ class ModelConfig:
 
 @dataclasses.dataclass(frozen=True)
 class DataConfig:
-    path: str = "runs/synthetic/episodes"  # an episode dataset (sc3_jax/data/episodes.py)
+    """The training data: which episodes, which views, and how training windows are cut from them."""
+
+    path: str = "runs/synthetic/episodes"
+    """the episode dataset to train on (the format of sc3_jax/data/episodes.py: `sc3 demo`, `sc3 sim demos`,
+    `sc3 data import-lerobot` write it)"""
     views: tuple[str, ...] = ("left", "right", "wrist")
+    """camera views read from the dataset, in the model's view order"""
     image_size: tuple[int, int] = (16, 16)
-    context_frames: int = 2  # K clean context frames
-    future_frames: int = 4  # l' predicted frames (and actions) per window
-    strides: tuple[int, ...] = (1, 2)  # multi-FPS: frame stride drawn per sample from these
-    pseudo_action_prob: float = 0.5  # replace recorded actions by ones derived from end-effector poses
-    batch_size: int = 8  # global batch
+    """(height, width) of the frames; must match the dataset's"""
+    context_frames: int = 2
+    """K: clean context frames at the start of each window"""
+    future_frames: int = 4
+    """l': frames (and actions) predicted per window, after the context"""
+    strides: tuple[int, ...] = (1, 2)
+    """multi-FPS: each window's frame stride is drawn from these (recorded actions composed over the stride)"""
+    pseudo_action_prob: float = 0.5
+    """probability that a window's recorded actions are replaced by ones derived from its end-effector poses"""
+    batch_size: int = 8
+    """global batch (summed over processes and devices); divisible by the process count and by train.grad_accum"""
     seed: int = 0
-    read_threads: int = 0  # 0 = read in the training thread
+    """seed of the window order (shuffled per epoch) and of each window's stride / pseudo-action draws"""
+    read_threads: int = 0
+    """threads reading batches ahead (same order, same resumable state); 0 = read in the training thread"""
 
 
 @dataclasses.dataclass(frozen=True)
 class ModeConfig:
-    # Per-sample probabilities of forward dynamics, cross-view inpainting, inverse dynamics.
+    """The training modes, drawn per sample: which tokens are noisy targets (sc3_jax/modes.py)."""
+
     probs: tuple[float, float, float] = (0.8, 0.1, 0.1)
+    """per-sample probabilities of forward dynamics (future frames noisy), cross-view inpainting (future frames of
+    all views but one noisy; needs two views or more) and inverse dynamics (actions noisy); normalised to sum 1"""
 
 
 @dataclasses.dataclass(frozen=True)
 class FlowConfig:
-    # Noise levels t are drawn logit-normal (SD3): t = sigmoid(mean + std * n). A positive mean spends more of the
-    # training on high noise, where a world model must actually predict from its context and actions.
+    """Rectified-flow training: the distribution of noise levels, the loss weights, context noise."""
+
     t_logit_mean: float = 0.0
+    """noise levels are logit-normal (SD3): t = sigmoid(t_logit_mean + t_logit_std * n). A positive mean spends
+    more of the training on high noise, where a world model must actually predict from its context and actions; the
+    sampler's time grid follows the same distribution"""
     t_logit_std: float = 1.0
-    # Per-modality loss weights. Modes mix video-only and action-only losses in one batch; when their scales differ
-    # by 10x+ (residual video targets are small), Adam's shared second moments starve the smaller one.
+    """spread of the logit-normal noise levels (see t_logit_mean)"""
     video_loss_weight: float = 1.0
+    """weight of the video tokens' loss. Modes mix video-only and action-only losses in one batch; when their scales
+    differ by 10x+ (residual video targets are small), Adam's shared second moments starve the smaller one"""
     action_loss_weight: float = 1.0
-    # anti-drift: each sample's clean context frames get x = (1 - s) x + s eps with s ~ U(0, context_noise_max)
-    # (needs model.context_noise, which gives s to the model). Loss targets are never noised by it.
+    """weight of the action tokens' loss (see video_loss_weight)"""
     context_noise_max: float = 0.0
+    """anti-drift: each sample's clean context frames become (1 - s) x + s eps with s ~ U(0, context_noise_max)
+    (needs model.context_noise, which gives s to the model); loss targets are never noised. 0: off"""
 
 
 @dataclasses.dataclass(frozen=True)
 class TrainConfig:
+    """The training run: where it writes, how long it runs, the optimiser, logging and checkpoints."""
+
     workdir: str = "runs/tiny"
+    """run directory: config.json, norm_stats.json, checkpoints/, metrics.jsonl, tensorboard/ (and cached latents);
+    rerunning with the same workdir resumes the run"""
     steps: int = 2000
+    """optimizer steps to train to (a resumed run continues up to this; the learning-rate schedule follows it)"""
     lr: float = 1e-4
+    """peak learning rate: linear warm-up from 0, then cosine decay to 0 at train.steps"""
     warmup_steps: int = 100
+    """steps of linear learning-rate warm-up"""
     weight_decay: float = 0.05
+    """AdamW weight decay, on weight matrices only (not on norms, biases or embeddings)"""
     b1: float = 0.9
+    """Adam beta1 (first-moment decay)"""
     b2: float = 0.99
+    """Adam beta2 (second-moment decay)"""
     grad_clip: float = 1.0
-    # micro-batches per step (gradient accumulation): activations of batch_size / grad_accum samples at a time,
-    # same optimizer update as one big batch up to the per-micro-batch noise draws. sc3 plan says when it is needed.
+    """global gradient-norm clipping threshold"""
     grad_accum: int = 1
-    # start from these params instead of a random init (a `sc3 train` workdir, an exported world model or a
-    # `sc3 convert` output); fresh optimizer, step 0, and the source's action normalisation. Ignored once this
-    # run has a checkpoint of its own (resume wins).
+    """micro-batches per step (gradient accumulation): activations of data.batch_size / grad_accum samples at a
+    time, the same optimizer update as one big batch up to the per-micro-batch noise draws. `sc3 plan` says when it
+    is needed"""
     init_from: str | None = None
+    """start from these params instead of a random init (a `sc3 train` workdir, an exported world model or a
+    `sc3 convert` output): fresh optimizer, step 0, and the source's action normalisation. Ignored once this run
+    has a checkpoint of its own (resume wins)"""
     seed: int = 0
+    """seed of the parameter init and of the training randomness (modes, noise levels, noise)"""
     log_every: int = 10
+    """steps between writes of the metrics (metrics.jsonl, TensorBoard, the progress bar's loss)"""
     ckpt_every: int = 200
+    """steps between checkpoints (the last step and a preemption are always saved)"""
     keep_checkpoints: int = 3
+    """checkpoints kept in workdir/checkpoints (older ones deleted)"""
     async_checkpointing: bool = True
+    """write checkpoints in the background while training goes on"""
     tensorboard: bool = True
+    """also write the metrics as TensorBoard events (workdir/tensorboard)"""
     progress: bool = True
+    """show progress bars (training, latent caching)"""
 
 
 @dataclasses.dataclass(frozen=True)
 class MeshConfig:
-    data: int = -1  # -1: all devices not used by the other axes
+    """The device mesh: how many devices each parallelism axis spans (their product is the device count)."""
+
+    data: int = -1
+    """data-parallel devices (the batch split, parameters replicated); -1: all devices not used by the other axes"""
     fsdp: int = 1
+    """fully sharded data-parallel devices: the batch split, and every weight split over them too"""
     tensor: int = 1
-    # context parallelism: the token sequence of every sample is split over this many devices (needs
-    # model.attention_impl "context_parallel" or "ring"). 1 = no "context" mesh axis at all (meshes as before).
+    """tensor-parallel devices: attention heads and MLP hidden units split over them"""
     context: int = 1
+    """context parallelism: the token sequence of every sample split over this many devices (needs
+    model.attention_impl "context_parallel" or "ring"); 1 = no context mesh axis at all (meshes as before)"""
 
 
 @dataclasses.dataclass(frozen=True)
 class SampleConfig:
-    steps: int = 10  # Euler steps from t = 1 to t = 0
-    # Euler steps of the inverse-dynamics re-read in a rollout (None: ``steps``). It only yields U_chunk (never the
-    # frames or the outcomes), and it is a third of a rollout's cost at 8 steps: fewer steps make sweeps cheaper
+    """The sampler (evaluation, diagnostics and rollouts)."""
+
+    steps: int = 10
+    """Euler steps from t = 1 to t = 0 per sampler call (in a rollout: of the forward-dynamics frames)"""
     inverse_steps: int | None = None
-    context_noise: float = 0.0  # noise level put on the context at inference (models trained with context noise)
+    """Euler steps of the inverse-dynamics re-read in a rollout (None: steps). It only yields U_chunk (never the
+    frames or the outcomes), and it is a third of a rollout's cost at 8 steps: fewer steps make sweeps cheaper"""
+    context_noise: float = 0.0
+    """noise level put on the context at inference (only read by models trained with model.context_noise)"""
 
 
 @dataclasses.dataclass(frozen=True)
 class RolloutConfig:
-    policy_chunk: int = 25  # actions proposed per policy call
-    keep_frames: int = 16  # l: predicted frames kept as context per chunk (l' = data.future_frames)
+    """Closed-loop rollouts of a policy inside the world model (sc3_jax/rollout.py)."""
+
+    policy_chunk: int = 25
+    """actions proposed per policy call; at least data.future_frames x (policy_hz / control_hz)"""
+    keep_frames: int = 16
+    """l: predicted frames of each chunk kept (executed, pushed into the context, averaged into U_chunk); in
+    [1, data.future_frames]"""
     episode_seconds: float = 20.0
-    control_hz: float = 10.0  # the model's frame rate in a rollout (frame stride = data fps / control_hz)
-    # the policy's action rate (None = control_hz). When higher, each group of policy_hz / control_hz raw actions is
-    # composed into one model-rate action (as the data pipeline composes recorded actions for strided windows).
+    """length of an imagined episode: episode_seconds x control_hz / keep_frames chunks (rounded up)"""
+    control_hz: float = 10.0
+    """the model's frame rate in a rollout (frame stride = data fps / control_hz, an integer): one model action per
+    predicted frame"""
     policy_hz: float | None = None
-    tau: float = 0.02  # stop once U_chunk > tau (in tau_units)
-    # U_chunk's units, the one convention of `sc3 rollout`, `sc3 sweep` and the report: "raw" (metres / radians /
-    # gripper metres, the paper's units for tau = 0.02) or "normalised" (per-dimension unit variance, the model's
-    # units; with per-dimension stds of a few mm, U there is ~50-100x the raw value)
+    """the policy's action rate (None = control_hz). When higher, each group of policy_hz / control_hz raw actions
+    is composed into one model-rate action (as the data pipeline composes recorded actions for strided windows)"""
+    tau: float = 0.02
+    """termination threshold: a rollout stops at the first chunk whose U_chunk exceeds tau (in tau_units)"""
     tau_units: str = "raw"
+    """U_chunk's units, the one convention of `sc3 rollout`, `sc3 sweep` and the report: "raw" (metres / radians /
+    gripper metres, the paper's units for tau = 0.02) or "normalised" (per-dimension unit variance, the model's
+    units; with per-dimension stds of a few mm, U there is ~50-100x the raw value)"""
 
 
 @dataclasses.dataclass(frozen=True)
 class Config:
+    """A world-model experiment: every setting of training, sampling and rollouts. Named configs live in
+    configs/NAME.py; any field can be overridden as --SECTION.FIELD VALUE."""
+
     name: str = "tiny"
+    """the config's name: a label (config.json, `sc3 demo`, `sc3 plan`, diagnostics); changes nothing else"""
     model: ModelConfig = ModelConfig()
+    """the world model"""
     data: DataConfig = DataConfig()
+    """the training data and windows"""
     modes: ModeConfig = ModeConfig()
+    """the training-mode mixture"""
     flow: FlowConfig = FlowConfig()
+    """rectified-flow noise levels and loss weights"""
     train: TrainConfig = TrainConfig()
+    """the training run"""
     mesh: MeshConfig = MeshConfig()
+    """the device mesh"""
     sample: SampleConfig = SampleConfig()
+    """the sampler"""
     rollout: RolloutConfig = RolloutConfig()
+    """rollouts in the world model"""
 
 
 def configs_dir() -> Path:

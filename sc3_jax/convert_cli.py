@@ -1,44 +1,64 @@
-"""``sc3 convert``: Cosmos3 transformer weights between diffusers and sc3_jax.
+"""Cosmos3 transformer weights between diffusers and sc3_jax, written atomically (``sc3 convert`` is
+``commands/convert.py``).
 
-    sc3 convert --from diffusers DIR --to OUT     diffusers Cosmos3OmniTransformer dir -> OUT/config.json + OUT/params
-                                                  (an orbax checkpoint of the params), which `sc3 train
-                                                  --train.init-from OUT` and `sc3 rollout` read
-    sc3 convert --from sc3 RUN --to DIR           a `sc3 train` workdir / exported model / convert output ->
-                                                  config.json + diffusion_pytorch_model.safetensors for PyTorch users
+    from_diffusers(DIR, OUT)   a diffusers Cosmos3OmniTransformer dir -> OUT/config.json + OUT/params (an orbax
+                               checkpoint of the params), which `sc3 train --train.init-from OUT` and `sc3 rollout` read
+    to_diffusers(RUN, DIR)     a `sc3 train` workdir / exported model / convert output -> config.json +
+                               diffusion_pytorch_model.safetensors for PyTorch users
 
 Every key and shape is checked both ways (model/convert.py); nothing is written unless the whole conversion
 succeeded, so a failed run never leaves a half-written OUT.
 """
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import shutil
 import tempfile
 from pathlib import Path
 
-
 DTYPES = ("float32", "bfloat16", "float16")
 
 
-def from_diffusers(src: str, out: str, dtype: str = "float32") -> Path:
+@dataclasses.dataclass(frozen=True)
+class Converted:
+    """What a conversion wrote: the directory, its top-level entries, the parameter count, the storage dtype."""
+
+    out: Path
+    files: tuple[str, ...]
+    params: int
+    dtype: str
+
+
+def _count(params) -> int:
+    import jax
+
+    return int(sum(x.size for x in jax.tree.leaves(params)))
+
+
+def from_diffusers(src: str, out: str, dtype: str = "float32") -> Converted:
     from sc3_jax import checkpoint
     from sc3_jax.config import Config
     from sc3_jax.model import convert
     mcfg, params = convert.load_diffusers(src, dtype=dtype)
     cfg = Config(model=dataclasses.replace(mcfg, param_dtype=dtype))
-    return _write_atomically(out, lambda tmp: checkpoint.save_converted(tmp, cfg, params))
+    return _written(_write_atomically(out, lambda tmp: checkpoint.save_converted(tmp, cfg, params)), params, dtype)
 
 
-def to_diffusers(src: str, out: str, dtype: str = "float32") -> Path:
+def to_diffusers(src: str, out: str, dtype: str = "float32") -> Converted:
     import jax.numpy as jnp
 
     from sc3_jax import checkpoint
     from sc3_jax.model import convert
     cfg = checkpoint.read_config(src)
     params = checkpoint.load_params(src, cfg)
-    return _write_atomically(out, lambda tmp: convert.save_diffusers(cfg.model, params, str(tmp),
+    path = _write_atomically(out, lambda tmp: convert.save_diffusers(cfg.model, params, str(tmp),
                                                                      dtype=jnp.dtype(dtype)))
+    return _written(path, params, dtype)
+
+
+def _written(out: Path, params, dtype: str) -> Converted:
+    return Converted(out, tuple(sorted(p.name + ("/" if p.is_dir() else "") for p in out.iterdir())), _count(params),
+                     dtype)
 
 
 def _write_atomically(out: str, write) -> Path:
@@ -54,15 +74,3 @@ def _write_atomically(out: str, write) -> Path:
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     return out_p
-
-
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="sc3 convert", description=__doc__.split("\n\n")[0])
-    ap.add_argument("--from", dest="src_kind", required=True, choices=("diffusers", "sc3"))
-    ap.add_argument("src", help="source directory")
-    ap.add_argument("--to", required=True, help="output directory (must not exist or be empty)")
-    ap.add_argument("--dtype", default="float32", choices=DTYPES)
-    a = ap.parse_args(argv)
-    fn = from_diffusers if a.src_kind == "diffusers" else to_diffusers
-    print(f"wrote {fn(a.src, a.to, a.dtype)}")
-    return 0

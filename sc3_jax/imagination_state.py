@@ -1,8 +1,11 @@
-"""The robot state inside an imagined rollout (there is no simulator to read it from).
+"""The robot state inside an imagined rollout (there is no simulator to read it from): the jnp twins of
+``sc3_jax/data/action_space.py``, for the action space the world model was trained in (every function takes it,
+static; default the simulated benchmark's delta_ee). Absolute targets: the state is the last target. Velocities:
+integrated at ``dt`` seconds per action, target dimensions as absolute ones.
 
-The state is the end-effector pose ``(x, y, z, rotvec, gripper)`` (float32 [7], the episode format's ``ee_pose``).
-Each commanded raw action ``a = (dx, dy, dz, axis-angle r, gripper target)`` is integrated onto it open loop, with
-the conventions of ``sc3_jax/data/rotations.py`` (world-frame rotation deltas):
+For delta_ee, the state is the end-effector pose ``(x, y, z, rotvec, gripper)`` (float32 [7], the episode format's
+``ee_pose``). Each commanded raw action ``a = (dx, dy, dz, axis-angle r, gripper target)`` is integrated onto it open
+loop, with the conventions of ``sc3_jax/data/rotations.py`` (world-frame rotation deltas):
 
     xyz     <- xyz + a[:3]
     R       <- R(a[3:6]) @ R          (stored back as a rotation vector, angle in [0, pi])
@@ -16,6 +19,8 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+
+from sc3_jax.data.action_space import DELTA_EE, ActionSpace
 
 
 def _skew(v):
@@ -57,19 +62,32 @@ def matrix_to_rotvec(m):
     return v * scale[..., None]
 
 
-def step(state, action):
-    """One commanded raw action [7] applied to the state [7]."""
+def step(state, action, space: ActionSpace = DELTA_EE, dt: float = 1.0):
+    """One commanded raw action [A] applied to the state [A] (``dt``: its seconds, for velocities)."""
+    if space.kind == "absolute":
+        return action.astype(state.dtype)
+    if space.kind == "velocity":
+        return _targets(state + action * dt, action, space).astype(state.dtype)
     rot = matrix_to_rotvec(rotvec_to_matrix(action[3:6]) @ rotvec_to_matrix(state[3:6]))
     return jnp.concatenate([state[:3] + action[:3], rot, action[6:7]]).astype(state.dtype)
 
 
-def compose(actions, ratio: int):
-    """Raw actions [n * ratio, 7] -> [n, 7], each group of ``ratio`` consecutive actions as one action (translations
-    summed, rotations chained with later ones on the left, the last gripper target), the jnp twin of
-    ``sc3_jax.data.pipeline.compose_actions``."""
+def _targets(x, action, space: ActionSpace):
+    """``x`` with the velocity space's target dimensions taken from ``action`` (same leading shape)."""
+    return x.at[..., list(space.targets)].set(action[..., list(space.targets)]) if space.targets else x
+
+
+def compose(actions, ratio: int, space: ActionSpace = DELTA_EE):
+    """Raw actions [n * ratio, A] -> [n, A], each group of ``ratio`` consecutive actions as one action, the jnp twin
+    of ``ActionSpace.compose`` (delta_ee: translations summed, rotations chained with later ones on the left, the
+    last gripper target; absolute: the last target; velocity: the mean)."""
     if ratio == 1:
         return actions
     g = actions.reshape(-1, ratio, actions.shape[-1])
+    if space.kind == "absolute":
+        return g[:, -1]
+    if space.kind == "velocity":
+        return _targets(g.mean(1), g[:, -1], space).astype(actions.dtype)
     mats = rotvec_to_matrix(g[..., 3:6])  # [n, ratio, 3, 3]
     m = mats[:, 0]
     for j in range(1, ratio):
@@ -77,18 +95,19 @@ def compose(actions, ratio: int):
     return jnp.concatenate([g[..., :3].sum(1), matrix_to_rotvec(m), g[:, -1, 6:7]], -1).astype(actions.dtype)
 
 
-def integrate(state, actions):
-    """States after each of ``actions`` [n, 7]: returns (final state [7], states [n, 7])."""
+def integrate(state, actions, space: ActionSpace = DELTA_EE, dt: float = 1.0):
+    """States after each of ``actions`` [n, A]: returns (final state [A], states [n, A])."""
 
     def body(s, a):
-        s = step(s, a)
+        s = step(s, a, space, dt)
         return s, s
 
     return jax.lax.scan(body, state, actions)
 
 
-def frame_poses(state, actions):
-    """The pose condition of a chunk (``ModelConfig.pose_conditioning``): ``state`` [7] (the pose at the last
-    context frame) and the poses after each of ``actions`` [n, 7] (model-rate actions, one per predicted frame)
-    -> [n + 1, 7]. The data pipeline computes the same from recorded windows (``pipeline.integrate_poses``)."""
-    return jnp.concatenate([state[None], integrate(state, actions)[1]], axis=0)
+def frame_poses(state, actions, space: ActionSpace = DELTA_EE, dt: float = 1.0):
+    """The pose condition of a chunk (``ModelConfig.pose_conditioning``): ``state`` [A] (the imagined state at the
+    last context frame) and the states after each of ``actions`` [n, A] (model-rate actions, one per predicted
+    frame, ``dt`` seconds each) -> [n + 1, A]. The data pipeline computes the same from recorded windows
+    (``ActionSpace.integrate``)."""
+    return jnp.concatenate([state[None], integrate(state, actions, space, dt)[1]], axis=0)

@@ -1,6 +1,6 @@
 """``sc3 plan``: what a config costs on a mesh of accelerators, without allocating the model.
 
-    sc3 plan --config paper --mesh data=4,fsdp=8 --device gb200 [--mfu 0.4] [--compile] [--set data.batch_size=256]
+    sc3 plan --config paper --mesh data=4,fsdp=8 --device gb200 [--mfu 0.4] [--compile] [--data.batch-size 256]
 
 Everything starts from abstract shapes (``jax.eval_shape``): nothing of the model is allocated, so a 2B-parameter
 config plans on a laptop in seconds.
@@ -26,12 +26,11 @@ config plans on a laptop in seconds.
 """
 from __future__ import annotations
 
-import argparse
-import ast
 import dataclasses
 import functools
 import math
-import sys
+
+from sc3_jax.errors import UserError
 
 # device: (approximate vendor peak dense BF16 FLOP/s per chip, HBM bytes per chip)
 DEVICES: dict[str, tuple[float, float]] = {
@@ -50,31 +49,25 @@ def parse_mesh(text: str):
     sizes = {k: 1 for k in MESH_KEYS}
     for part in filter(None, (p.strip() for p in text.split(","))):
         key, sep, value = part.partition("=")
-        if not sep or key.strip() not in sizes:
-            raise ValueError(f"--mesh: expected AXIS=SIZE with AXIS in {MESH_KEYS}, got {part!r}")
+        if not sep or key.strip() not in sizes or not value.strip().lstrip("-").isdigit():
+            raise UserError(f"--mesh: expected AXIS=SIZE with AXIS in {', '.join(MESH_KEYS)} and SIZE an integer, "
+                            f"got {part!r}")
         sizes[key.strip()] = int(value)
     if any(v < 1 for v in sizes.values()):
-        raise ValueError(f"--mesh: every axis size must be >= 1 (the planner needs explicit sizes), got {sizes}")
+        raise UserError(f"--mesh: every axis size must be >= 1 (the planner needs explicit sizes), got {text!r}")
     return MeshConfig(**sizes)
 
 
-def apply_overrides(cfg, assignments: list[str]):
-    """``section.field=value`` (value a Python literal, else a string) -> a new Config."""
-    from sc3_jax.config import replace
-
-    for a in assignments:
-        key, sep, value = a.partition("=")
-        section, dot, field = key.strip().partition(".")
-        if not (sep and dot):
-            raise ValueError(f"--set: expected SECTION.FIELD=VALUE, got {a!r}")
-        try:
-            value = ast.literal_eval(value)
-        except (ValueError, SyntaxError):
-            pass
-        if isinstance(value, list):
-            value = tuple(value)
-        cfg = replace(cfg, **{section: {field.replace("-", "_"): value}})
-    return cfg
+def config_flag(key: str, value) -> str:
+    """The command-line option that sets config field ``key`` ("section.field") to ``value``, as every command
+    spells config overrides (``commands.parse_with_config``): ``--model.attention-impl ring``."""
+    section, _, field = key.partition(".")
+    name = field.replace("_", "-")
+    if isinstance(value, bool):
+        return f"--{section}.{'' if value else 'no-'}{name}"
+    if isinstance(value, (tuple, list)):
+        value = " ".join(map(str, value))
+    return f"--{section}.{name} {value}"
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -296,15 +289,15 @@ def plan(cfg, mesh_cfg, device: str, mfu: float = 0.4, compile: bool = False, ch
     from sc3_jax.model import dit
 
     if device not in DEVICES:
-        raise ValueError(f"unknown device {device!r}; known: {', '.join(DEVICES)}")
+        raise UserError(f"--device: unknown device {device!r}; known: {', '.join(DEVICES)}")
     if not 0 < mfu <= 1:
-        raise ValueError(f"--mfu must be in (0, 1], got {mfu}")
+        raise UserError(f"--mfu must be in (0, 1], got {mfu}")
     peak, hbm = DEVICES[device]
     sizes = _sizes(mesh_cfg)
     n = math.prod(sizes.values())
     if cfg.data.batch_size % (sizes["data"] * sizes["fsdp"]):
-        raise ValueError(f"global batch {cfg.data.batch_size} does not divide over data x fsdp = "
-                         f"{sizes['data'] * sizes['fsdp']}")
+        raise UserError(f"--data.batch-size: global batch {cfg.data.batch_size} does not divide over data x fsdp = "
+                        f"{sizes['data'] * sizes['fsdp']} of --mesh; change either")
     from sc3_jax import checkpoint
     from sc3_jax.model import tokenizer
 
@@ -328,7 +321,7 @@ def plan(cfg, mesh_cfg, device: str, mfu: float = 0.4, compile: bool = False, ch
     out["total_bytes"] = sum(out[f"{k}_bytes"] for k in ("params", "optimizer", "other", "grads", "activations"))
     if sizes["context"] > 1 and cfg.model.attention_impl == "dense":
         out["notes"].append("mesh has context > 1 but model.attention_impl is 'dense': the sequence is not split "
-                            "(use --set model.attention_impl=ring)")
+                            f"(use {config_flag('model.attention_impl', 'ring')})")
     out["fits"] = out["total_bytes"] <= 0.9 * hbm
     out["flops_source"] = "compiled" if compile else "lowered"
     out["step_flops"] = train_step_flops(cfg, compiled=compile)
@@ -387,11 +380,8 @@ def format_plan(p: dict) -> str:
     ]
     if p["fit"]:
         f = p["fit"]
-        sets = " ".join(f"--set {k}={v}" for k, v in (("model.attention_impl", f["attention_impl"]),
-                                                        ("model.remat", f["remat"]),
-                                                        ("train.grad_accum", f["microbatches"])))
         lines += [f"plan that fits: attention {f['attention_impl']}, remat {f['remat']}, {f['microbatches']} "
-                  f"micro-batch{'es' if f['microbatches'] > 1 else ''} per step ({sets})",
+                  f"micro-batch{'es' if f['microbatches'] > 1 else ''} per step ({_fit_flags(f)})",
                   f"  activations  {_gb(f['activations_bytes'])}  (ESTIMATE), total {_gb(f['total_bytes']).strip()} "
                   f"of {p['hbm_bytes'] / 1e9:.0f} GB",
                   f"  train step: {f['step_flops']:.4g} FLOPs; at MFU {p['mfu']:.2f}: {f['step_seconds']:.3g} s/step; "
@@ -401,34 +391,29 @@ def format_plan(p: dict) -> str:
                      f"Euler steps each): {p['chunk_flops']:.4g} FLOPs (lowered XLA cost analysis)")
         lines.append(f"  at MFU {p['mfu']:.2f} on one {p['device']}: {p['chunk_seconds']:.3g} s/chunk")
     lines += [f"note: {n}" for n in p["notes"]]
+    lines.append(verdict(p))
     return "\n".join(lines)
 
 
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="sc3 plan", description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--config", default="tiny", help="config name or path (NAME[:ARG])")
-    ap.add_argument("--mesh", default="data=1", help="AXIS=SIZE,... over data, fsdp, tensor, context (missing = 1)")
-    ap.add_argument("--device", default="h100", choices=sorted(DEVICES))
-    ap.add_argument("--mfu", type=float, default=0.4, help="assumed fraction of the device's peak FLOP/s")
-    ap.add_argument("--compile", action="store_true",
-                    help="compile (CPU-cheap configs only): exact bench/train_step.py FLOPs and, if the mesh fits on "
-                         "local devices, measured per-device activation memory")
-    ap.add_argument("--no-chunk", action="store_true", help="skip the rollout-chunk estimate")
-    ap.add_argument("--set", action="append", default=[], metavar="SECTION.FIELD=VALUE",
-                    help="config override, e.g. --set data.batch_size=256 --set model.attention_impl=ring")
-    args = ap.parse_args(argv)
-    from sc3_jax.config import load_config
-
-    try:
-        cfg = apply_overrides(load_config(args.config), args.set)
-        p = plan(cfg, parse_mesh(args.mesh), args.device, args.mfu, args.compile, not args.no_chunk)
-    except ValueError as e:
-        print(f"sc3 plan: error: {e}", file=sys.stderr)
-        return 2
-    print(format_plan(p))
-    return 0
+def _fit_flags(fit: dict) -> str:
+    return " ".join(config_flag(k, v) for k, v in (("model.attention_impl", fit["attention_impl"]),
+                                                   ("model.remat", fit["remat"]),
+                                                   ("train.grad_accum", fit["microbatches"])))
 
 
-if __name__ == "__main__":
-    sys.exit(main())
+def verdict(p: dict) -> str:
+    """The plan in one line: whether the train step fits in 90% of the device's memory, what takes the memory when
+    it does not, and the options that make it fit."""
+    budget = 0.9 * p["hbm_bytes"]
+    where = f"{p['devices']} x {p['device']}"
+    if p["fits"]:
+        return (f"verdict: fits on {where}: {p['total_bytes'] / 1e9:.2f} GB per device of a {budget / 1e9:.0f} GB "
+                f"budget (90% of HBM); memory is per device, FLOPs global, times assume MFU {p['mfu']:.2f}")
+    parts = {k: p[f"{k}_bytes"] for k in ("params", "optimizer", "grads", "activations", "other")}
+    big = max(parts, key=parts.get)
+    why = (f"does not fit on {where}: {p['total_bytes'] / 1e9:.2f} GB per device > {budget / 1e9:.0f} GB (90% of "
+           f"HBM), {big} {parts[big] / 1e9:.2f} GB of it")
+    if p["fit"]:
+        return f"verdict: {why}; it fits with {_fit_flags(p['fit'])}"
+    return (f"verdict: {why}; no attention kernel, remat or micro-batching fits: split the sequence (--mesh "
+            f"...,context=N {config_flag('model.attention_impl', 'ring')}) or shard over more devices")

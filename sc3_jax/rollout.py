@@ -20,13 +20,17 @@ Decisions (see docs/rollout.md for more):
   still computes the later chunks (on the frozen context) so shapes stay static. Their U values are emitted but are
   not those of an untruncated rollout: to sweep tau after the fact run once with ``tau=inf`` and cut with
   ``evaluate.results.terminated_at`` -- identical, up to the termination chunk, to a run with that tau.
-* U is the mean over the l kept steps of the L2 norm over the 7 action dimensions, in ``cfg.rollout.tau_units``:
+* U is the mean over the l kept steps of the L2 norm over the A action dimensions, in ``cfg.rollout.tau_units``:
   "raw" (the paper's units, in which its tau = 0.02 is set; the default) or "normalised" (per-dimension unit
   variance). Both are emitted (``u_raw``, ``u``); the one in tau_units decides termination.
 * Frames advance at ``control_hz``: the model runs with frame stride ``round(data_fps / control_hz)`` (20 Hz data,
   10 Hz control -> 2) and one policy action per predicted frame.
-* State: no simulator, so the commanded actions are integrated onto the initial end-effector pose
-  (``sc3_jax.imagination_state``); only the l executed actions of each chunk are integrated.
+* Actions and state: in the action space the world model was trained in (``NormStats.action_space``, from its
+  ``norm_stats.json``; ``data/action_space.py``): delta_ee for the simulated benchmark, absolute targets or
+  velocities of any dimension A. No simulator, so the commanded actions are integrated onto the initial state
+  (``sc3_jax.imagination_state``; delta_ee: the end-effector pose, absolute: the last target, velocity: at 1 /
+  policy_hz seconds per action); only the l executed actions of each chunk are integrated. A policy's declared
+  ``action_dim`` (and its first chunk's shape, by ``jax.eval_shape``) is checked before anything compiles.
 * Randomness: episode ``b`` has its own key; chunk ``c`` uses ``fold_in(key_b, c)`` split into (policy, FD, ID)
   keys. Results therefore do not depend on the batch composition or the number of devices, and the host loop
   (:meth:`Rollout.run_host`) reproduces the scan (:meth:`Rollout.run`) by driving the very same per-chunk functions
@@ -49,9 +53,11 @@ import numpy as np
 
 from sc3_jax import flow, imagination_state, modes, sharding
 from sc3_jax.config import Config, MeshConfig
+from sc3_jax.data.action_space import DELTA_EE, ActionSpace
+from sc3_jax.errors import UserError
 from sc3_jax.model import dit
 from sc3_jax.model.tokenizer import make_tokenizer, to_uint8, to_unit, window_tokens
-from sc3_jax.policies.base import JaxPolicy, as_host
+from sc3_jax.policies.base import JaxPolicy, as_host, check_dims
 
 
 # ================================================================================================================
@@ -72,6 +78,22 @@ class RolloutSpec:
     context_noise: float = 0.0  # noise level on the context at inference (models trained with context noise)
     tau_units: str = "raw"  # the units U_chunk is compared with tau in (RolloutConfig.tau_units)
     inverse_steps: int | None = None  # Euler steps of the inverse-dynamics re-read (None: steps)
+    action_space: ActionSpace = DELTA_EE  # what the actions mean (compose, imagined state, holding still)
+    data_fps: float = 20.0  # the frame rate of the data the model was trained on
+
+    @property
+    def action_dim(self) -> int:
+        return self.action_space.dim
+
+    @property
+    def model_dt(self) -> float:
+        """Seconds per model-rate action (one predicted frame)."""
+        return self.stride / self.data_fps
+
+    @property
+    def raw_dt(self) -> float:
+        """Seconds per raw policy action."""
+        return self.model_dt / self.ratio
 
     @property
     def raw_needed(self) -> int:
@@ -83,8 +105,14 @@ class RolloutSpec:
         return self.num_chunks * self.keep
 
 
-def make_spec(cfg: Config, data_fps: float = 20.0, num_chunks: int | None = None) -> RolloutSpec:
+def make_spec(cfg: Config, data_fps: float = 20.0, num_chunks: int | None = None,
+              action_space: ActionSpace | None = None) -> RolloutSpec:
+    """``action_space``: the world model's (``NormStats.action_space``); None: the simulated benchmark's delta_ee."""
     r, d = cfg.rollout, cfg.data
+    space = DELTA_EE if action_space is None else action_space
+    if space.dim != cfg.model.action_dim:
+        raise UserError(f"the action space (norm_stats.json) is {space.dim}-D, the model's "
+                        f"model.action_dim is {cfg.model.action_dim}")
     if not 1 <= r.keep_frames <= d.future_frames:
         raise ValueError(f"rollout.keep_frames={r.keep_frames} must be in [1, data.future_frames={d.future_frames}]")
     ratio = (r.policy_hz or r.control_hz) / r.control_hz
@@ -103,18 +131,19 @@ def make_spec(cfg: Config, data_fps: float = 20.0, num_chunks: int | None = None
         num_chunks = math.ceil(r.episode_seconds * r.control_hz / r.keep_frames - 1e-9)
     return RolloutSpec(len(d.views), tuple(d.image_size), d.context_frames, d.future_frames, r.keep_frames,
                        r.policy_chunk, int(num_chunks), int(round(stride)), cfg.sample.steps, ratio,
-                       float(cfg.sample.context_noise), r.tau_units, cfg.sample.inverse_steps)
+                       float(cfg.sample.context_noise), r.tau_units, cfg.sample.inverse_steps, space,
+                       float(data_fps))
 
 
 class InitialConditions(NamedTuple):
     frames: Any  # uint8 [B, V, K, H, W, 3] the first K context frames (at the rollout's stride)
-    state: Any  # float32 [B, 7] end-effector pose at the last context frame
+    state: Any  # float32 [B, A] imagined state at the last context frame (delta_ee: the end-effector pose)
     task: Any  # int32 [B]
 
 
 class Carry(NamedTuple):  # one episode (no batch axis); vmapped
     context: jax.Array  # [V, K, H, W, 3] frames in [-1, 1] (tokenised at every chunk)
-    state: jax.Array  # [7]
+    state: jax.Array  # [A]
     done: jax.Array  # bool []
     chunk: jax.Array  # int32 []
 
@@ -161,9 +190,9 @@ class ChunkFns:
         return obs, jax.random.key_data(self.keys(key_data, carry.chunk)[0])
 
     def model_step(self, params, norm, carry: Carry, actions, key_data, tau, raw: bool = True):
-        """Algorithm 1 after the policy: ``actions`` [C, 7] -> (next carry, emitted arrays). ``raw``: the policy's
+        """Algorithm 1 after the policy: ``actions`` [C, A] -> (next carry, emitted arrays). ``raw``: the policy's
         actions at ``policy_hz`` (composed ``ratio`` at a time to the model's rate); else already model-rate actions
-        (offline replay). ``norm`` [2, 7]: the per-dimension action mean and std."""
+        (offline replay). ``norm``: (action mean [A], action std [A], state mean, state std), ``NormStats.arrays``."""
         s, m = self.spec, self.model_cfg
         K, T, l, V = s.context, s.predict, s.keep, s.views
         Kt, Tt = self.window  # token frames (= K, T unless the tokenizer compresses time)
@@ -171,13 +200,14 @@ class ChunkFns:
         mean, std = norm[0], norm[1]
         actions = actions.astype(jnp.float32)
         r = s.ratio if raw else 1
-        model_actions = imagination_state.compose(actions[:T * r], r)  # [T, 7] raw units, model rate
-        a = (model_actions - mean) / std  # normalised [T, 7]
+        space = s.action_space
+        model_actions = imagination_state.compose(actions[:T * r], r, space)  # [T, A] raw units, model rate
+        a = (model_actions - mean) / std  # normalised [T, A]
         stride = jnp.full((1,), s.stride, jnp.int32)
         ctx = self.tok.encode(carry.context)[None]  # [1, V, Kt, P, D]
         video = jnp.concatenate([ctx, jnp.zeros((1, V, Tt) + ctx.shape[3:], ctx.dtype)], axis=2)
         # pose condition: the pose at the last context frame, then integrated with the commanded actions
-        pose = (imagination_state.frame_poses(carry.state, model_actions) - norm[2]) / norm[3]
+        pose = (imagination_state.frame_poses(carry.state, model_actions, space, s.model_dt) - norm[2]) / norm[3]
         sample = functools.partial(flow.sample, params, m, steps=s.steps, grid=self.grid, fcfg=self.flow_cfg,
                                    context_frames=Kt, pose=pose[None] if m.pose_conditioning else None,
                                    context_noise=s.context_noise)
@@ -201,7 +231,8 @@ class ChunkFns:
             kept = self.tok.decode(video[0], s.image_size)[:, K:K + l]
         context = jnp.concatenate([carry.context, kept.astype(carry.context.dtype)], axis=1)[:, -K:]
         # the l executed steps: l * r raw actions; the state at each kept frame is every r-th integrated state
-        state, states = imagination_state.integrate(carry.state, actions[:l * r])
+        state, states = imagination_state.integrate(carry.state, actions[:l * r], space,
+                                                    s.raw_dt if raw else s.model_dt)
         new = Carry(jnp.where(done, carry.context, context), jnp.where(done, carry.state, state), done,
                     carry.chunk + 1)
         emit = {"frames": to_uint8(kept), "actions": model_actions[:l],
@@ -221,9 +252,9 @@ class Rollout:
 
         frames uint8 [B, V, N*l, H, W, 3]   predicted frames kept per chunk (invalid ones after termination too)
         initial_frames uint8 [B, V, K, H, W, 3]
-        actions float32 [B, N*l, 7]         commanded raw actions a[0:l] of every chunk
-        reread  float32 [B, N*l, 7]         raw actions re-read by the inverse mode
-        states  float32 [B, N*l, 7]         imagined end-effector pose after each commanded action
+        actions float32 [B, N*l, A]         commanded raw actions a[0:l] of every chunk
+        reread  float32 [B, N*l, A]         raw actions re-read by the inverse mode
+        states  float32 [B, N*l, A]         imagined state after each commanded action (delta_ee: the pose)
         u float32 [B, N], done bool [B, N]  U_chunk (normalised units) and done' after each chunk; valid = ~done
         u_raw float32 [B, N]                the same mean L2 distance in raw action units
         tau_units str                       which of the two decided termination (rollout.tau_units)
@@ -233,12 +264,15 @@ class Rollout:
     def __init__(self, cfg: Config, norm_stats, mesh=None, data_fps: float = 20.0, num_chunks: int | None = None,
                  cache: bool = True, state_reader=None):
         self.cfg = cfg
-        self.spec = make_spec(cfg, data_fps, num_chunks)
+        self.spec = make_spec(cfg, data_fps, num_chunks, norm_stats.action_space)
+        if state_reader is not None and self.spec.action_space.kind != "delta_ee":
+            raise UserError(f"a state reader sets the gripper entry of an end-effector pose; this world model's "
+                            f"actions are {self.spec.action_space.kind}")
         self.mesh = mesh if mesh is not None else sharding.make_mesh(MeshConfig(-1, 1, 1))
         self._batch = sharding.batch_sharding(self.mesh)
         self._repl = sharding.replicated(self.mesh)
         self.batch_multiple = self.mesh.shape["data"] * self.mesh.shape["fsdp"]
-        self.norm = jax.device_put(norm_stats.as_array(), self._repl)
+        self.norm = jax.device_put(tuple(norm_stats.arrays()), self._repl)
         self.chunk_fns, self._init, self._observe, self._model_step_fn, self._scan_policy, self._scan_actions = \
             _compiled(cfg.model, cfg.flow, self.spec, cache, state_reader and state_reader.apply)
         # context-parallel attention traces under the mesh; a no-op for meshes without a "context" axis
@@ -266,6 +300,15 @@ class Rollout:
         return jax.device_put(x, self._batch)
 
     def _inputs(self, ics: InitialConditions, keys):
+        s = self.spec
+        want = (s.views, s.context, *s.image_size, 3)
+        if tuple(np.shape(ics.frames)[1:]) != want:
+            raise UserError(f"initial frames [B, views, K, H, W, 3] = {list(np.shape(ics.frames))}, the world model "
+                            f"takes [B, {', '.join(map(str, want))}] (data.views, data.context_frames, "
+                            f"data.image_size)")
+        if np.shape(ics.state)[1:] != (s.action_dim,):
+            raise UserError(f"initial state {list(np.shape(ics.state))}, the world model's imagined state is "
+                            f"[B, {s.action_dim}] ({s.action_space.kind} actions)")
         B = np.shape(ics.frames)[0]
         n = -(-B // self.batch_multiple) * self.batch_multiple
         frames, state = self._pad(ics.frames, n), self._pad(np.asarray(ics.state, np.float32), n)
@@ -276,6 +319,7 @@ class Rollout:
     def run(self, params, policy: JaxPolicy, ics: InitialConditions, keys, tau: float | None = None) -> dict:
         """Closed loop, the whole episode in one jitted ``lax.scan``; ``keys`` from :func:`episode_keys`."""
         self._check_chunk(policy.chunk, policy.name)
+        self.check_policy(policy)
         tau = self.cfg.rollout.tau if tau is None else tau
         B, frames, state, task, keys = self._inputs(ics, keys)
         params, policy_params = self.place_params(params), jax.device_put(policy.params, self._repl)
@@ -284,12 +328,13 @@ class Rollout:
         return self._finish(jax.device_get(emits), ics, B, tau, chunk_axis=0)
 
     def run_offline(self, params, ics: InitialConditions, actions, keys, tau: float = math.inf) -> dict:
-        """Open loop: ``actions`` raw [B, N, >= l', 7] (the recorded actions of each chunk, :func:`chunk_actions`)
+        """Open loop: ``actions`` raw [B, N, >= l', A] (the recorded actions of each chunk, :func:`chunk_actions`)
         replace the policy. Scoring the frames against the recorded ones is the caller's (``evaluate.metrics``)."""
         actions = np.asarray(actions, np.float32)
-        if actions.shape[1] != self.spec.num_chunks or actions.shape[2] < self.spec.predict:
+        if actions.ndim != 4 or actions.shape[1] != self.spec.num_chunks or actions.shape[2] < self.spec.predict \
+                or actions.shape[3] != self.spec.action_dim:
             raise ValueError(f"actions {list(actions.shape)}: expected [B, {self.spec.num_chunks}, "
-                             f">={self.spec.predict}, 7]")
+                             f">={self.spec.predict}, {self.spec.action_dim}]")
         B, frames, state, task, keys = self._inputs(ics, keys)
         emits = self._scan_actions(self.place_params(params), self.norm, frames, state, task, keys, jnp.float32(tau),
                                    self._pad(actions, len(keys)))
@@ -302,6 +347,7 @@ class Rollout:
         episode -> the jitted model step. A JaxPolicy is wrapped with ``as_host``; a host policy whose ``infer``
         takes ``rng`` gets the same per-chunk key as the scan, so both paths agree. ``skip_done=True`` does not query
         the policy for finished episodes (saves remote calls; their later, invalid chunks then differ from ``run``)."""
+        self.check_policy(policy)
         if isinstance(policy, JaxPolicy):
             policy = as_host(policy)
         self._check_chunk(policy.chunk, type(policy).__name__)
@@ -318,16 +364,18 @@ class Rollout:
         for _ in chunks:
             obs, k_pol = jax.device_get(self._observe(carry, task, keys, self.reader_params))
             done = np.asarray(jax.device_get(carry.done))
-            acts = np.zeros((len(k_pol), self.spec.policy_chunk, 7), np.float32)
+            A = self.spec.action_dim
+            acts = np.zeros((len(k_pol), self.spec.policy_chunk, A), np.float32)
             for b in range(B):  # padded episodes copy episode B-1: reuse its actions
                 if skip_done and done[b]:
                     continue
                 ob = {k: v[b] for k, v in obs.items()}
                 a = policy.infer(ob, rng=jax.random.wrap_key_data(k_pol[b])) if takes_rng else policy.infer(ob)
                 a = np.asarray(a, np.float32)
-                if a.ndim != 2 or a.shape[0] < self.spec.raw_needed or a.shape[1] != 7:
-                    raise ValueError(f"policy returned actions of shape {list(a.shape)}, expected "
-                                     f"[>={self.spec.raw_needed}, 7]")
+                if a.ndim != 2 or a.shape[0] < self.spec.raw_needed or a.shape[1] != A:
+                    raise UserError(f"policy {type(policy).__name__} returned actions of shape {list(a.shape)}, "
+                                    f"the world model takes [>={self.spec.raw_needed}, {A}] "
+                                    f"({self.spec.action_space.kind} actions)")
                 acts[b] = a[:self.spec.policy_chunk] if a.shape[0] >= self.spec.policy_chunk else np.pad(
                     a, ((0, self.spec.policy_chunk - a.shape[0]), (0, 0)), mode="edge")
             acts[B:] = acts[B - 1]
@@ -337,6 +385,28 @@ class Rollout:
         return self._finish(stacked, ics, B, tau, chunk_axis=0)
 
     # -- helpers -----------------------------------------------------------------------------------------------
+    def check_policy(self, policy) -> None:
+        """One-line UserError, before anything compiles, when ``policy`` declares other action / state dimensions
+        than this world model's; a JaxPolicy's output shape is also traced (``jax.eval_shape``, nothing runs)."""
+        s = self.spec
+        name = getattr(policy, "name", None) or type(policy).__name__
+        check_dims(policy, s.action_dim, s.action_dim, name,
+                   f"the world model ({s.action_space.kind} actions, model.action_dim)")
+        if isinstance(policy, JaxPolicy):
+            obs = {"images": jax.ShapeDtypeStruct((s.views, *s.image_size, 3), jnp.uint8),
+                   "state": jax.ShapeDtypeStruct((s.action_dim,), jnp.float32),
+                   "task": jax.ShapeDtypeStruct((), jnp.int32)}
+            try:
+                out = jax.eval_shape(policy.apply, policy.params, obs, jax.random.key(0))
+            except (TypeError, ValueError) as e:  # e.g. a matmul sized for another state: say which sides
+                first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+                raise UserError(f"policy {name!r} cannot take this world model's observation (images "
+                                f"[{s.views}, {s.image_size[0]}, {s.image_size[1]}, 3], state [{s.action_dim}]): "
+                                f"{first}") from e
+            if len(out.shape) != 2 or out.shape[1] != s.action_dim:
+                raise UserError(f"policy {name!r} returns actions of shape {list(out.shape)}, the world model takes "
+                                f"[chunk, {s.action_dim}] ({s.action_space.kind} actions, model.action_dim)")
+
     def _check_chunk(self, chunk: int, name: str):
         if chunk < self.spec.raw_needed:
             raise ValueError(f"policy {name} proposes {chunk} actions per call; the world model predicts "
@@ -390,7 +460,7 @@ def _compiled(model_cfg, flow_cfg, spec: RolloutSpec, cache: bool, reader=None):
 # Initial conditions and recorded actions from an episode store
 # ================================================================================================================
 def from_episode(ep, views, spec: RolloutSpec, start: int = 0, task: int = 0):
-    """(initial conditions of one episode [no batch axis], recorded raw actions [N, l', 7], recorded frames
+    """(initial conditions of one episode [no batch axis], recorded raw actions [N, l', A], recorded frames
     [V, N*l, H, W, 3]) for an offline rollout starting at frame ``start``. Rollout step i (i = 0 is the last
     context frame) is episode frame ``start + stride * (K - 1 + i)``; its action is the composition of the
     ``stride`` recorded actions in between (:func:`chunk_actions`)."""
@@ -405,22 +475,29 @@ def from_episode(ep, views, spec: RolloutSpec, start: int = 0, task: int = 0):
     actions = chunk_actions(np.asarray(ep.actions)[frame_at(0):], s)
     tgt_idx = [frame_at(i) for i in range(1, s.num_frames + 1)]
     targets = np.stack([np.asarray(ep.frames[v])[tgt_idx] for v in views])
-    return (frames, np.asarray(ep.ee_pose[frame_at(0)], np.float32), np.int32(task)), actions, targets
+    return (frames, initial_state(ep, s, frame_at(0)), np.int32(task)), actions, targets
+
+
+def initial_state(ep, spec: RolloutSpec, t: int) -> np.ndarray:
+    """float32 [A]: the imagined state a rollout starting at frame ``t`` of episode ``ep`` begins from (what was
+    measured there: delta_ee the end-effector pose, else the recorded state where it has the action's dimension;
+    ``ActionSpace.initial_state``)."""
+    return spec.action_space.initial_state(ep.actions, ep.ee_pose, getattr(ep, "state", None), t)
 
 
 def chunk_actions(actions: np.ndarray, spec: RolloutSpec) -> np.ndarray:
-    """Recorded raw actions [T, 7] at the data rate, from the last context frame on -> the model-rate actions of
-    every chunk [N, l', 7] (``stride`` recorded actions composed into one, ``pipeline.compose_actions``); after the
-    recording ends the robot holds still (zero motion, last gripper command)."""
+    """Recorded raw actions [T, A] at the data rate, from the last context frame on -> the model-rate actions of
+    every chunk [N, l', A] (``stride`` recorded actions composed into one, ``pipeline.compose_actions``); after the
+    recording ends the robot holds still (``ActionSpace.hold``: delta_ee zero motion with the last gripper command,
+    absolute the last target)."""
     from sc3_jax.data.pipeline import compose_actions
     r = spec.stride  # recorded (data-rate) actions per model step
     need = ((spec.num_chunks - 1) * spec.keep + spec.predict) * r
     a = np.asarray(actions, np.float32)
+    spec.action_space.check(a, "recorded actions")
     if len(a) < need:
-        hold = np.zeros((need - len(a), 7), np.float32)
-        hold[:, 6] = a[-1, 6]
-        a = np.concatenate([a, hold])
-    model_rate = np.stack([compose_actions(a, i * r, r) for i in range(need // r)])
+        a = np.concatenate([a, spec.action_space.hold(a[-1], need - len(a))])
+    model_rate = np.stack([compose_actions(a, i * r, r, spec.action_space) for i in range(need // r)])
     return np.stack([model_rate[c * spec.keep: c * spec.keep + spec.predict] for c in range(spec.num_chunks)])
 
 

@@ -12,7 +12,6 @@ with ``--export-only``) the autoencoder with its latent statistics is written to
 """
 from __future__ import annotations
 
-import argparse
 import collections
 import dataclasses
 import json
@@ -25,27 +24,12 @@ import numpy as np
 import optax
 import orbax.checkpoint as ocp
 
+from sc3_jax import atomic
 from sc3_jax.data.episodes import EpisodeStore
+from sc3_jax.errors import UserError
 from sc3_jax.evaluate.metrics import psnr_from_mse
 from sc3_jax.model import autoencoder as ae
-
-
-@dataclasses.dataclass(frozen=True)
-class TokenizerTrainConfig:
-    data: str = "runs/bussing/demos"
-    heldout: str | None = None  # a separate episode store for the held-out evaluation (default: no evaluation)
-    workdir: str = "runs/tokenizer"
-    views: tuple[str, ...] = ("left", "right", "wrist")
-    steps: int = 3000
-    batch_size: int = 32
-    lr: float = 2e-3
-    warmup_steps: int = 100
-    moving_weight: float = 4.0
-    moving_threshold: float = 0.06  # |pixel - temporal median| in [-1, 1] units (any channel) to count as moving
-    seed: int = 0
-    ckpt_every: int = 250
-    eval_frames: int = 256  # held-out images per view for the evaluation
-    progress: bool = True
+from sc3_jax.tokenizer_config import TokenizerTrainConfig
 
 
 # -- data ---------------------------------------------------------------------------------------------------------
@@ -56,10 +40,10 @@ class ImageSampler:
         self.store = EpisodeStore(root)
         self.ids = self.store.episode_ids()
         if not self.ids:
-            raise ValueError(f"{root}: no episodes to train a tokenizer on")
+            raise UserError(f"{root}: no episodes to train a tokenizer on (--data / --heldout: an episode store)")
         missing = [v for v in views if v not in self.store.views]
         if missing:
-            raise ValueError(f"{root}: dataset views {self.store.views} lack {missing}")
+            raise UserError(f"{root}: dataset views {self.store.views} lack {missing} (--views)")
         self.views = tuple(views)
         self.lengths = np.array([self.store.load(e, mmap=True, validate=False).length for e in self.ids])
         self._cache: collections.OrderedDict = collections.OrderedDict()
@@ -80,19 +64,22 @@ class ImageSampler:
             self._cache.popitem(last=False)
         return ep, med
 
-    def draw(self, rng: np.random.Generator, n: int, threshold: float):
-        """(images uint8 [n, H, W, 3], moving float32 [n, H, W, 1], view index int [n])."""
+    def draw(self, rng: np.random.Generator, n: int, threshold: float, medians: bool = False):
+        """(images uint8 [n, H, W, 3], moving float32 [n, H, W, 1], view index int [n]) and, with ``medians``, each
+        image's episode temporal median of its view (uint8 [n, H, W, 3]: the scene with nothing moving)."""
         eps = rng.integers(len(self.ids), size=n)
         ts = (rng.random(n) * self.lengths[eps]).astype(np.int64)
         vs = rng.integers(len(self.views), size=n)
-        imgs, masks = [], []
+        imgs, masks, meds = [], [], []
         for e, t, v in zip(eps, ts, vs):
             ep, med = self._episode(int(e))
             img = np.asarray(ep.frames[self.views[v]][t])
             imgs.append(img)
             diff = np.abs(img.astype(np.float32) - med[self.views[v]]).max(-1, keepdims=True) / 127.5
             masks.append((diff > threshold).astype(np.float32))
-        return np.stack(imgs), np.stack(masks), vs
+            meds.append(med[self.views[v]])
+        out = np.stack(imgs), np.stack(masks), vs
+        return out + (np.clip(np.round(np.stack(meds)), 0, 255).astype(np.uint8),) if medians else out
 
     def batch(self, seed: int, i: int, n: int, threshold: float):
         return self.draw(np.random.default_rng([seed, i]), n, threshold)
@@ -152,21 +139,25 @@ def psnr(pred_u8: np.ndarray, true_u8: np.ndarray, mask: np.ndarray | None = Non
 
 def evaluate(params, stats, store_root: str, views, n: int, threshold: float, seed: int = 1) -> dict:
     """Reconstruction PSNR per view on ``n`` random images of each view of a held-out store: over the whole frame
-    and over moving pixels."""
+    and over moving pixels; beside each, the same PSNR of a static baseline, the episode's temporal median of that
+    view (what a tokenizer that drops everything that moves would score: on moving pixels the tokenizer must beat
+    it by far)."""
     sampler = ImageSampler(store_root, tuple(views))
     rt = jax.jit(lambda x: ae.decode(params, stats, ae.encode(params, stats, x)))
     out = {}
     rng = np.random.default_rng(seed)
     for vi, v in enumerate(views):
-        imgs, masks = [], []
+        imgs, masks, meds = [], [], []
         while sum(len(i) for i in imgs) < n:
-            im, mk, vs = sampler.draw(rng, 256, threshold)
+            im, mk, vs, md = sampler.draw(rng, 256, threshold, medians=True)
             imgs.append(im[vs == vi])
             masks.append(mk[vs == vi])
-        im, mk = np.concatenate(imgs)[:n], np.concatenate(masks)[:n]
+            meds.append(md[vs == vi])
+        im, mk, md = np.concatenate(imgs)[:n], np.concatenate(masks)[:n], np.concatenate(meds)[:n]
         rec = np.concatenate([np.asarray(rt(im[i:i + 128])) for i in range(0, n, 128)])
         rec = np.clip(np.round((rec + 1) * 127.5), 0, 255).astype(np.uint8)
-        out[v] = {"psnr": psnr(rec, im), "psnr_moving": psnr(rec, im, mk), "moving_fraction": float(mk.mean())}
+        out[v] = {"psnr": psnr(rec, im), "psnr_moving": psnr(rec, im, mk), "moving_fraction": float(mk.mean()),
+                  "static_psnr": psnr(md, im), "static_psnr_moving": psnr(md, im, mk)}
     return out
 
 
@@ -177,15 +168,15 @@ def train(cfg: TokenizerTrainConfig, ae_cfg: ae.AEConfig, stop_at: int | None = 
     meta = {"train": dataclasses.asdict(cfg), "ae": dataclasses.asdict(ae_cfg)}
     cfg_path = workdir / "tokenizer_config.json"
     if cfg_path.exists():
-        old = json.loads(cfg_path.read_text())
+        old = atomic.read_json(cfg_path, "restore it, or use another --workdir")
         if old["ae"] != meta["ae"]:
-            raise ValueError(f"{workdir} holds a tokenizer with architecture {old['ae']}; this run asks for "
-                             f"{meta['ae']}: use another --workdir")
-    cfg_path.write_text(json.dumps(meta, indent=1))
+            raise UserError(f"{workdir} holds a tokenizer with architecture {old['ae']}; this run asks for "
+                            f"{meta['ae']}: use another --workdir")
+    atomic.write_json(cfg_path, meta)
     sampler = ImageSampler(cfg.data, cfg.views)
     h, w = sampler.image_size
     if h % ae_cfg.downsample or w % ae_cfg.downsample:
-        raise ValueError(f"image size {(h, w)} is not a multiple of the downsampling {ae_cfg.downsample}")
+        raise UserError(f"{cfg.data}: image size {(h, w)} is not a multiple of --ae.downsample {ae_cfg.downsample}")
     opt, step_fn = make_step(cfg)
     mngr = ocp.CheckpointManager(workdir / "checkpoints",
                                  options=ocp.CheckpointManagerOptions(max_to_keep=2, save_interval_steps=cfg.ckpt_every))
@@ -198,6 +189,7 @@ def train(cfg: TokenizerTrainConfig, ae_cfg: ae.AEConfig, stop_at: int | None = 
     if cfg.progress:
         from tqdm.auto import tqdm
         bar = tqdm(total=cfg.steps, initial=start, desc="train-tokenizer", dynamic_ncols=True)
+    atomic.drop_cut_line(workdir / "metrics.jsonl")  # a line cut by a kill would glue to the next one
     log = (workdir / "metrics.jsonl").open("a")
     t0 = time.perf_counter()
     end = cfg.steps if stop_at is None else min(stop_at, cfg.steps)
@@ -232,48 +224,22 @@ def export(cfg: TokenizerTrainConfig, ae_cfg: ae.AEConfig, params, sampler: Imag
                                                      ae_cfg.latent_channels]}
     if cfg.heldout:
         result["heldout"] = evaluate(params, stats, cfg.heldout, cfg.views, cfg.eval_frames, cfg.moving_threshold)
-    (out / "eval.json").write_text(json.dumps(result, indent=1))
+    atomic.write_json(out / "eval.json", result)
     return result
 
 
-def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="sc3 train-tokenizer", description=__doc__.split("\n\n")[0])
-    for f in dataclasses.fields(TokenizerTrainConfig):
-        _add(p, f, TokenizerTrainConfig)
-    for f in dataclasses.fields(ae.AEConfig):
-        _add(p, f, ae.AEConfig, prefix="ae.")
-    p.add_argument("--export-only", action="store_true", help="write workdir/tokenizer from the latest checkpoint")
-    a = vars(p.parse_args(argv))
-    cfg = TokenizerTrainConfig(**{f.name: a[f.name] for f in dataclasses.fields(TokenizerTrainConfig)})
-    ae_cfg = ae.AEConfig(**{f.name: a["ae." + f.name] for f in dataclasses.fields(ae.AEConfig)})
-    if a["export_only"]:
-        cfg = dataclasses.replace(cfg, steps=0)
-        mngr = ocp.CheckpointManager(Path(cfg.workdir).absolute() / "checkpoints")
-        if mngr.latest_step() is None:
-            raise SystemExit(f"{cfg.workdir}: no checkpoint to export")
-        opt = make_optimizer(cfg)
-        params = ae.init(ae_cfg, jax.random.key(cfg.seed))
-        state = mngr.restore(mngr.latest_step(), args=ocp.args.StandardRestore(
-            {"params": params, "opt_state": opt.init(params), "step": jnp.zeros((), jnp.int32)}))
-        result = export(cfg, ae_cfg, state["params"], ImageSampler(cfg.data, cfg.views))
-    else:
-        result = train(cfg, ae_cfg)
-    print(json.dumps(result, indent=1))
-    return 0
-
-
-def _add(p, f, cls, prefix=""):
-    default = getattr(cls(), f.name)
-    name = "--" + (prefix + f.name).replace("_", "-")
-    dest = prefix + f.name
-    if isinstance(default, bool):
-        p.add_argument(name, dest=dest, action=argparse.BooleanOptionalAction, default=default)
-    elif isinstance(default, tuple):
-        p.add_argument(name, dest=dest, nargs="+", default=default, type=type(default[0]) if default else str)
-    else:
-        typ = type(default) if default is not None else str
-        p.add_argument(name, dest=dest, type=typ, default=default)
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())
+def export_latest(cfg: TokenizerTrainConfig, ae_cfg: ae.AEConfig) -> dict:
+    """``export`` of the latest checkpoint in ``cfg.workdir`` (no training step): ``sc3 train-tokenizer
+    --export-only``."""
+    root = Path(cfg.workdir).absolute() / "checkpoints"
+    mngr = ocp.CheckpointManager(root) if root.is_dir() else None  # (a manager would create the directory)
+    if mngr is None or mngr.latest_step() is None:
+        raise UserError(f"{cfg.workdir}: no checkpoint to export (train first: the same command without "
+                        f"--export-only)")
+    cfg = dataclasses.replace(cfg, steps=0)
+    opt = make_optimizer(cfg)
+    params = ae.init(ae_cfg, jax.random.key(cfg.seed))
+    state = mngr.restore(mngr.latest_step(), args=ocp.args.StandardRestore(
+        {"params": params, "opt_state": opt.init(params), "step": jnp.zeros((), jnp.int32)}))
+    mngr.close()
+    return export(cfg, ae_cfg, state["params"], ImageSampler(cfg.data, cfg.views))

@@ -175,9 +175,12 @@ def create_state(cfg: Config, mesh):
 # Train-state checkpoints (resuming: optimizer state and data position; checkpoint.py reads a model's params)
 # ================================================================================================================
 def checkpoint_manager(cfg: Config) -> ocp.CheckpointManager:
+    # cleanup_tmp_directories: a checkpoint a kill left half-written (orbax writes it under a temporary name and
+    # renames it when complete, so it is never read) is deleted when the run resumes
     options = ocp.CheckpointManagerOptions(max_to_keep=cfg.train.keep_checkpoints,
                                            save_interval_steps=cfg.train.ckpt_every,
-                                           enable_async_checkpointing=cfg.train.async_checkpointing)
+                                           enable_async_checkpointing=cfg.train.async_checkpointing,
+                                           cleanup_tmp_directories=True)
     return ocp.CheckpointManager(Path(cfg.train.workdir).absolute() / "checkpoints", options=options)
 
 
@@ -207,6 +210,8 @@ class MetricsLog:
         self.path = workdir / "metrics.jsonl"
         self.is_primary = jax.process_index() == 0
         self.tb = None
+        if self.is_primary:  # a line cut by a kill would be glued to the next one: drop it (its step reruns)
+            atomic.drop_cut_line(self.path)
         if tensorboard and self.is_primary:
             from tensorboardX import SummaryWriter
             self.tb = SummaryWriter(str(workdir / "tensorboard"))
@@ -230,14 +235,11 @@ class MetricsLog:
 
 
 def read_metrics(workdir: str | Path) -> dict[int, dict]:
-    """step -> row; a step logged twice (a run resumed from an earlier checkpoint) keeps the latest row."""
-    rows = {}
-    path = Path(workdir) / "metrics.jsonl"
-    if path.exists():
-        for line in path.read_text().splitlines():
-            row = json.loads(line)
-            rows[row["step"]] = row
-    return rows
+    """step -> row; a step logged twice (a run resumed from an earlier checkpoint) keeps the latest row. A last line
+    cut by a kill (or being written) is left out; a damaged one is a one-line ``UserError``."""
+    rows = atomic.read_jsonl(Path(workdir) / "metrics.jsonl", "a metrics row",
+                             "delete that line (the log is informational: training does not read it)")
+    return {row["step"]: row for row in rows}
 
 
 # ================================================================================================================
@@ -316,6 +318,7 @@ def train(cfg: Config, mesh=None, stop_at: int | None = None) -> dict:
     workdir = Path(cfg.train.workdir)
     workdir.mkdir(parents=True, exist_ok=True)
     if jax.process_index() == 0:
+        atomic.remove_stale(workdir, recursive=True)  # temporaries of writers killed in an earlier attempt
         atomic.write_json(workdir / "config.json", dataclasses.asdict(cfg))
     mesh = sharding.make_mesh(cfg.mesh) if mesh is None else mesh
     _, _, data_iter = prepare_data(cfg)

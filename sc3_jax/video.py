@@ -6,15 +6,19 @@ from pathlib import Path
 
 import numpy as np
 
+from sc3_jax import atomic
+
 
 def write_mp4(path: str | Path, frames: np.ndarray, fps: float = 20) -> None:
-    """``frames`` uint8 RGB [T, H, W, 3] -> ``path`` (mp4v codec)."""
+    """``frames`` uint8 RGB [T, H, W, 3] -> ``path`` (mp4v codec), written whole or not at all (``atomic``: a kill
+    mid-video leaves the previous file, not a truncated one)."""
     import cv2
     frames = np.asarray(frames)
     h, w = frames.shape[1:3]
-    vw = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), float(fps), (w, h))
-    if not vw.isOpened():
-        raise RuntimeError(f"OpenCV could not open an mp4v writer for {path}")
-    for f in frames:
-        vw.write(np.ascontiguousarray(f[..., ::-1]))  # RGB -> OpenCV's BGR
-    vw.release()
+    with atomic.replacing(path) as tmp:  # the temporary keeps the .mp4 suffix OpenCV picks the container by
+        vw = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*"mp4v"), float(fps), (w, h))
+        if not vw.isOpened():
+            raise RuntimeError(f"OpenCV could not open an mp4v writer for {path}")
+        for f in frames:
+            vw.write(np.ascontiguousarray(f[..., ::-1]))  # RGB -> OpenCV's BGR
+        vw.release()

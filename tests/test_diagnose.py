@@ -1,4 +1,4 @@
-"""sc3 diagnose (sc3_jax/evaluate/diagnose.py): the metric pieces on hand-built frames, and the whole table on a tiny
+"""sc3 diagnose (sc3_jax/evaluate/diagnose*.py): the metric pieces on hand-built frames, and the whole table on a tiny
 "copy the last frame" world model (residual prediction with zero output weights, i.e. an untrained one) over two
 short simulated episodes, where every model figure must equal its copy-last baseline exactly."""
 import contextlib
@@ -17,7 +17,9 @@ from sc3_jax import checkpoint, train
 from sc3_jax.config import load_config, replace
 from sc3_jax.data.episodes import Episode, EpisodeStore
 from sc3_jax.data.norm_stats import NormStats
+from sc3_jax.cli import main as cli
 from sc3_jax.evaluate import diagnose as dg
+from sc3_jax.evaluate import diagnose_outcomes
 
 
 def test_moving_mask_and_pooled_psnr_on_a_constructed_pair():
@@ -66,8 +68,9 @@ def _tiny_store(root, n=2, steps=40):
 def _copy_last_model(root):
     cfg = load_config("bussing_sim")
     assert cfg.model.prediction == "residual"  # zero-initialised output: predicts the last context frame
+    # 3 sampler steps of its own: `sc3 diagnose` samples as the sweep does (SweepConfig's 2 steps, 1 to re-read U)
     cfg = replace(cfg, model=dict(dim=32, depth=1, num_heads=2, num_kv_heads=1, head_dim=16, mlp_dim=64,
-                                  rope_axes_dim=(4, 2, 2)), sample=dict(steps=2))
+                                  rope_axes_dim=(4, 2, 2)), sample=dict(steps=3))
     params = jax.device_get(train.init_state(cfg)["params"])
     stats = NormStats(np.zeros(7, np.float32), np.full(7, 0.02, np.float32))
     return checkpoint.save(root / "wm", cfg, stats, params, np.float32)
@@ -80,7 +83,7 @@ def run(tmp_path_factory):
     wm = _copy_last_model(root)
     out = io.StringIO()
     with contextlib.redirect_stdout(out):
-        rc = dg.main([str(wm), "--data", str(store.root), "--out", str(root / "result.json"), "--no-progress"])
+        rc = cli(["diagnose", str(wm), "--data", str(store.root), "--out", str(root / "result.json"), "--no-progress"])
     assert rc == 0
     return store, dg.load_result(root / "result.json"), out.getvalue()
 
@@ -92,8 +95,24 @@ def test_table_prints_every_section(run):
         assert f"### {heading}" in text
     for view in ("left", "right", "wrist"):
         assert f"| {view} | 0.8 s |" in text and f"| {view} | 8 s | 0 |" in text  # 2 s episodes: no 8 s point
-    assert text == dg.render_table(result) + "\n"  # the CLI prints exactly the rendering of the saved result
+    # the CLI prints exactly the rendering of the saved result, then the sampler and the gates' verdicts
+    table, tail = text[:len(dg.render_table(result))], text[len(dg.render_table(result)):].splitlines()
+    assert table == dg.render_table(result)
     assert len(result["gates"]) == len(dg.GATES)
+    failed = [g["gate"] for g in result["gates"] if not g["pass"]]
+    assert tail[2] == f"gates: {len(dg.GATES) - len(failed)} of {len(dg.GATES)} pass; failed:"
+    assert [line.split(": ")[0] for line in tail[3:-1]] == [f"  FAIL {g}" for g in failed]
+    assert tail[-1].startswith("result: ") and tail[-1].endswith("result.json")
+
+
+def test_diagnose_samples_as_the_sweep_does(run):
+    """The world model's own 3 steps are replaced by the sweep's sampler settings (one set for every command)."""
+    from sc3_jax.evaluate.sweep import SweepConfig
+
+    _, result, text = run
+    st, sweep = result["settings"], SweepConfig()
+    assert (st["sample_steps"], st["inverse_steps"]) == (sweep.sample_steps, sweep.inverse_steps)
+    assert f"{sweep.sample_steps} sampler steps (U re-read in {sweep.inverse_steps})" in text
 
 
 def test_copy_last_model_scores_exactly_the_copy_last_baseline(run):
@@ -166,7 +185,7 @@ def test_outcome_agreement_compares_criteria_not_category_spellings():
                                                    "lifting": lifting, "placing": placing, "outcome": outcome}
     physics = [obj("cup", True, True, "no failure"), obj("bowl", False, False, "lifting")]
     imagined = [obj("cup", True, True, "no_failure"), obj("bowl", True, False, "placing")]
-    sec = dg._outcome_section([{"episode": "e", "imagined": imagined, "real_perception": physics,
+    sec = diagnose_outcomes.outcome_section([{"episode": "e", "imagined": imagined, "real_perception": physics,
                                 "physics": physics, "covered": True}], None)
     r = sec["imagined_vs_physics"]
     assert sec["reference"] == "physics" and r["n_objects"] == 2
@@ -176,7 +195,6 @@ def test_outcome_agreement_compares_criteria_not_category_spellings():
 
 def test_diagnose_table_compares_models_with_a_baseline(run, tmp_path, capsys):
     from sc3_jax.evaluate import diagnose_table as dt
-    from sc3_jax.cli import main as cli
 
     _, result, _ = run
     cfg = json.loads(Path(result["world_model"], "config.json").read_text())

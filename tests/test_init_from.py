@@ -42,7 +42,8 @@ def test_init_from_loads_params_fresh_optimizer_and_source_stats(source, kind):
     _, stats, params = checkpoint.load(src)
     if kind == "exported":
         # a different norm-stats file in the exported dir proves the fine-tune reads the *source's* stats
-        stats = NormStats(**{f.name: np.asarray(getattr(stats, f.name)) * 2 for f in dataclasses.fields(stats)})
+        stats = dataclasses.replace(stats, **{k: np.asarray(getattr(stats, k)) * 2
+                                              for k in ("mean", "std", "pose_mean", "pose_std")})
         src = checkpoint.save(tmp / "exported", src_cfg, stats, jax.device_get(params), np.float32)
     cfg = replace(_cfg(data, tmp / f"ft_{kind}"), train=dict(init_from=str(src)))
     state = train.create_state(cfg, sharding.make_mesh(cfg.mesh))  # all 8 host devices: placed sharded

@@ -19,7 +19,6 @@ def test_tiny_model_learns_the_synthetic_dynamics(tmp_path):
                    env=optimised_env(), check=True, timeout=1800)
     m = json.loads((tmp_path / "demo_metrics.json").read_text())
     print(m)
-    assert m["fd_psnr"] > m["copy_last_psnr"] + 0.5, "forward dynamics must beat repeating the last frame"
-    assert m["fd_psnr"] > m["fd_shuffled_psnr"] + 0.5, "true actions must beat shuffled ones (actions are used)"
-    assert m["id_mse"] < 0.7 * m["mean_action_mse"], "inverse dynamics must beat predicting the mean action"
-    assert m["cvi_psnr"] > m["mean_frame_psnr"] + 1.0, "inpainting must beat the mean frame"
+    from sc3_jax.demo import verdicts  # the margins `sc3 demo` prints its PASS / FAIL against: one home
+    failed = [v for v in verdicts(m) if not v.passed]
+    assert not failed, f"the tiny model does not beat its baselines by their margins: {failed}"

@@ -231,11 +231,11 @@ def test_sim_export_import_roundtrip(tmp_path):
     pytest.importorskip("mujoco")
     import sc3_jax.sim  # noqa: F401
     from sc3_jax.data.episodes import EpisodeStore
-    from sc3_jax.data.lerobot_cli import main
+    from sc3_jax.cli import main
     from sc3_jax.sim.demos import generate_demos
 
     generate_demos(tmp_path / "demos", 2, seed=0, image_size=(64, 64), progress=False)
-    assert main(["export-lerobot", str(tmp_path / "demos"), "--out", str(tmp_path / "lr")]) == 0
+    assert main(["data", "export-lerobot", str(tmp_path / "demos"), "--out", str(tmp_path / "lr")]) == 0
     root = tmp_path / "lr"
     info = json.loads((root / "meta" / "info.json").read_text())
     src = EpisodeStore(tmp_path / "demos")
@@ -252,7 +252,7 @@ def test_sim_export_import_roundtrip(tmp_path):
     np.testing.assert_allclose(stats["action"]["std"], actions.std(0), atol=1e-6)
     assert np.shape(stats["observation.images.left"]["mean"]) == (3, 1, 1)
 
-    assert main(["import-lerobot", str(root), "--out", str(tmp_path / "back")]) == 0
+    assert main(["data", "import-lerobot", str(root), "--out", str(tmp_path / "back")]) == 0
     back = EpisodeStore(tmp_path / "back")
     assert back.views == src.views and back.fps == src.fps and len(back) == 2
     for a, b in zip(eps, (back.load(e) for e in back.episode_ids()), strict=True):
@@ -263,7 +263,7 @@ def test_sim_export_import_roundtrip(tmp_path):
             assert np.abs(a.frames[v].astype(float) - b.frames[v]).mean() < MAX_MAE, v
     # importing again skips what is there; a bad root is a clean error, not a traceback
     assert import_lerobot(root, tmp_path / "back")["skipped"] == 2
-    assert main(["import-lerobot", str(tmp_path / "nothing"), "--out", str(tmp_path / "x")]) == 2
+    assert main(["data", "import-lerobot", str(tmp_path / "nothing"), "--out", str(tmp_path / "x")]) == 2
 
 
 def test_import_needs_a_7d_pose(datasets, tmp_path):
@@ -274,6 +274,11 @@ def test_import_needs_a_7d_pose(datasets, tmp_path):
     assert out["written"] == 3 and out["fps"] == 10
     from sc3_jax.data.episodes import EpisodeStore
 
-    ep = EpisodeStore(tmp_path / "b").load("lerobot000002")
-    assert ep.length == 8 and not ep.ee_pose.any() and ep.prompt == TASKS[2]
-    assert ep.frames["left"].shape == (8, 16, 24, 3) and ep.meta["ee_pose_source"] == "missing (zeros)"
+    store = EpisodeStore(tmp_path / "b")
+    ep = store.load("lerobot000002")
+    # no pose is written as none (not zeros that pseudo-actions would read as a robot standing still); the 5-D
+    # observation.state is kept as the state, the 7-D actions read as the benchmark's delta_ee (no declaration)
+    assert ep.length == 8 and ep.ee_pose is None and ep.prompt == TASKS[2] and not store.has_pose
+    assert ep.frames["left"].shape == (8, 16, 24, 3) and ep.meta["ee_pose_source"] == "none"
+    np.testing.assert_array_equal(ep.state, _episodes()[2].state[::2])
+    assert store.state_dim == 5 and store.action_space.kind == "delta_ee"

@@ -21,7 +21,6 @@ from sc3_jax.policies.openpi_client import (PolicyConnectionError, PolicyServerE
 from sc3_jax.policies.openpi_mappings import (ALOHA, ALOHA_CAMERAS, DEFAULT_PROMPTS, DROID, LIBERO, ActionMap,
                                              get_mapping)
 from sc3_jax.policies.openpi_server import PolicyServer, serve
-from sc3_jax.policies.serve_cli import build_policy_server
 
 CHUNK = 5
 
@@ -451,9 +450,11 @@ def test_serve_nonblocking_and_shutdown_idempotent():
 
 
 def test_serve_policy_cli_builds_server():
-    server = build_policy_server(["--policy", f"{__name__}:tiny_policy", "--host", "127.0.0.1", "--port", "0",
-                                  "--family", "libero", "--image-size", "48", "64", "--task-prompt", "3=wipe it",
-                                  "--log-level", "WARNING"]).start()
+    from sc3_jax.commands import parse, serve_policy
+
+    server = serve_policy.build_server(parse(serve_policy.Args, [
+        "--policy", f"{__name__}:tiny_policy", "--host", "127.0.0.1", "--port", "0", "--family", "libero",
+        "--image-size", "48", "64", "--task-prompt", "3=wipe it", "--log-level", "WARNING"], "serve-policy")).start()
     try:
         assert server.mapping.name == "libero" and server.mapping.our_image_size == (48, 64)
         assert server.metadata["policy"] == "tiny" and server.metadata["family"] == "libero"

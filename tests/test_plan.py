@@ -7,7 +7,11 @@ import numpy as np
 import pytest
 
 from sc3_jax import plan, sharding, train
+from sc3_jax.cli import main
+from sc3_jax.commands import parse_with_config
+from sc3_jax.commands.plan import Args as PlanArgs
 from sc3_jax.config import MeshConfig, load_config, replace
+from sc3_jax.errors import UserError
 
 
 def test_tiny_flops_match_bench_cost_analysis():
@@ -42,20 +46,29 @@ def test_state_bytes_match_real_shardings():
     assert got["params"] == real["params"] and got["optimizer"] == real["opt_state"]
 
 
-def test_parse_mesh_and_overrides():
+def test_parse_mesh_and_config_flags():
     assert plan.parse_mesh("data=4,fsdp=8") == MeshConfig(4, 8, 1, 1)
     assert plan.parse_mesh("fsdp=2, context=4") == MeshConfig(1, 2, 1, 4)
-    with pytest.raises(ValueError):
-        plan.parse_mesh("pipeline=2")
-    cfg = plan.apply_overrides(load_config("tiny"), ["data.batch_size=16", "model.attention_impl=ring",
-                                                     "data.image_size=[8, 8]"])
-    assert (cfg.data.batch_size, cfg.model.attention_impl, cfg.data.image_size) == (16, "ring", (8, 8))
+    for bad in ("pipeline=2", "data=x", "data=0"):
+        with pytest.raises(UserError, match="--mesh"):
+            plan.parse_mesh(bad)
+    # the overrides the plan suggests are options the command parses, into the fields they name
+    flags = [plan.config_flag("data.batch_size", 16), plan.config_flag("model.attention_impl", "ring"),
+             plan.config_flag("data.image_size", (8, 8)), plan.config_flag("model.scan_layers", False)]
+    assert flags[:2] == ["--data.batch-size 16", "--model.attention-impl ring"]
+    _, cfg = parse_with_config(PlanArgs, " ".join(flags).split(), "plan", lambda a: load_config(a.config))
+    assert (cfg.data.batch_size, cfg.model.attention_impl, cfg.data.image_size, cfg.model.scan_layers) == (
+        16, "ring", (8, 8), False)
 
 
 def test_paper_plan_from_abstract_shapes(capsys):
-    assert plan.main(["--config", "paper", "--mesh", "data=4,fsdp=8", "--device", "gb200", "--mfu", "0.4"]) == 0
+    assert main(["plan", "--config", "paper", "--mesh", "data=4,fsdp=8", "--device", "gb200", "--mfu", "0.4"]) == 0
     out = capsys.readouterr().out
     assert "parameters: 2,030,756,871" in out and "32 devices" in out and "2500 TFLOP/s" in out
+    # ends with the verdict: dense attention's scores do not fit; the options that fit, in the one override spelling
+    verdict = out.strip().splitlines()[-1]
+    assert verdict.startswith("verdict: does not fit on 32 x gb200") and "activations" in verdict
+    assert "it fits with --model.attention-impl fused --model.remat " in verdict and "--set" not in out
     p = plan.plan(load_config("paper"), MeshConfig(4, 8, 1, 1), "gb200", 0.4, chunk=False)
     assert 5.0e17 < p["step_flops"] < 6.0e17  # ~ (6 + 2 remat) x 2.0e9 x 12.9M tokens + attention
     assert p["params_bytes"] == pytest.approx(p["params"] * 4 / 8, rel=1e-3)  # fp32, split over fsdp=8

@@ -89,9 +89,8 @@ def test_websocket_server(server):
 
 def test_every_command_resolves_every_spelling(server, monkeypatch):
     """sc3 sweep (needs a task), sc3 serve-policy, sc3 sim eval and sc3 rollout all call ``resolve``."""
-    from sc3_jax import rollout_cli
     from sc3_jax.evaluate import sweep
-    from sc3_jax.policies import serve_cli
+    from sc3_jax.commands import parse, serve_policy
     from sc3_jax.sim import cli as sim_cli
     from sc3_jax.sim import policy_eval
 
@@ -100,10 +99,14 @@ def test_every_command_resolves_every_spelling(server, monkeypatch):
     with pytest.raises(ValueError, match="needs its task"):
         sweep._resolve("zero")
     for spec in ("zero", "rev_confused", f"{__name__}:make_policy"):
-        s = serve_cli.build_policy_server(["--policy", spec, "--host", "127.0.0.1", "--port", "0",
-                                           "--log-level", "WARNING"])
+        s = serve_policy.build_server(parse(serve_policy.Args, ["--policy", spec, "--host", "127.0.0.1", "--port",
+                                                                "0", "--log-level", "WARNING"], "serve-policy"))
         s.shutdown()
-    assert "policies/resolve.py" in rollout_cli._parser().format_help().replace("\n", " ").replace("  ", " ")
+    import docstring_parser
+
+    from sc3_jax.commands import rollout as rollout_cmd
+    policy_help = {d.arg_name: d.description for d in docstring_parser.parse_from_object(rollout_cmd.Args).params}
+    assert "policies/resolve.py" in policy_help["policy"].replace("\n", " ")
     seen = []
 
     class Stop(Exception):

@@ -274,15 +274,18 @@ def test_offline_replay_with_recorded_actions(tmp_path, setup):
     assert np.all(out["terminated_at"] == -1)
 
 
-def test_cli_writes_arrays_and_videos(tmp_path, setup):
+def test_cli_writes_arrays_and_videos(tmp_path, setup, capsys):
+    """`sc3 rollout` end to end; its sampler is the sweep's (SweepConfig's defaults), not the checkpoint's 3 steps."""
     import dataclasses
     import json
 
     import cv2
 
-    from sc3_jax import rollout_cli, train
+    from sc3_jax import train
+    from sc3_jax.cli import main
+    from sc3_jax.evaluate.sweep import SweepConfig
 
-    cfg = replace(setup[0], data=dict(path=str(tmp_path / "eps")),
+    cfg = replace(setup[0], data=dict(path=str(tmp_path / "eps")), sample=dict(steps=3),
                   train=dict(workdir=str(tmp_path / "run"), async_checkpointing=False))
     _store(tmp_path)
     mngr = train.checkpoint_manager(cfg)
@@ -291,9 +294,10 @@ def test_cli_writes_arrays_and_videos(tmp_path, setup):
     STATS.save(tmp_path / "run" / "norm_stats.json")
     (tmp_path / "run" / "config.json").write_text(json.dumps(dataclasses.asdict(cfg)))
     assert config_from_dict(json.loads((tmp_path / "run" / "config.json").read_text())) == cfg
-    rc = rollout_cli.main(["--checkpoint", str(tmp_path / "run"), "--policy", "linear", "--initial-conditions",
-                           str(tmp_path / "eps"), "--out", str(tmp_path / "out"), "--num-chunks", str(N),
-                           "--tau", "inf", "--offline", "--no-progress"])
+    # N chunks of l = 3 frames at 10 Hz: 0.9 s (what --num-chunks N said before the config's own fields)
+    rc = main(["rollout", "--checkpoint", str(tmp_path / "run"), "--policy", "linear", "--initial-conditions",
+               str(tmp_path / "eps"), "--out", str(tmp_path / "out"), "--rollout.episode-seconds", "0.9",
+               "--rollout.tau", "inf", "--offline", "--no-progress"])
     assert rc == 0
     z = np.load(tmp_path / "out" / "rollout.npz")
     assert z["frames"].shape == (B, 3, N * 3, 8, 8, 3) and z["u"].shape == (B, N)
@@ -302,6 +306,13 @@ def test_cli_writes_arrays_and_videos(tmp_path, setup):
     assert off["psnr"].shape == (B, 3, N * 3)
     summary = json.loads((tmp_path / "out" / "summary.json").read_text())
     assert summary["termination_rate"] == 0.0 and set(summary["offline_psnr_per_view"]) == {"left", "right", "wrist"}
+    sweep = SweepConfig()
+    assert (summary["sample_steps"], summary["inverse_steps"]) == (sweep.sample_steps, sweep.inverse_steps)
+    assert summary["u_mean"] == pytest.approx(float(z["u_raw"].mean()))  # raw units, every chunk ran
+    assert summary["stopped"] == 0 and not summary["success"]["available"]  # 8x8 frames: not the scorer's
+    out = capsys.readouterr().out
+    assert "stopped at tau = inf: 0 of 3 episodes" in out and "no success estimate: the perception scorer" in out
+    assert out.strip().splitlines()[-1].startswith(f"wrote {tmp_path / 'out'}/: rollout.npz, summary.json")
     cap = cv2.VideoCapture(str(tmp_path / "out" / "ep000000_left.mp4"))
     count = 0
     while cap.read()[0]:

@@ -67,7 +67,11 @@ def test_sweep_writes_every_rollout(setup):
     assert {r["seed"] for r in recs if r["mode"] == "online"} == set(blocks["evaluation"] + blocks["calibration"])
     assert {r["seed"] for r in recs if r["mode"] == "offline"} == set(blocks["evaluation"])
     real = [r for r in recs if r["mode"] == "real"]
-    assert all(set(r["perception_degraded"]) == {"blur", "patch_noise", "colour_shift"} for r in real)
+    # degraded copies are read on the calibration conditions' real rollouts only (SweepConfig.degradations)
+    degraded = {r["seed"] for r in real if "perception_degraded" in r}
+    assert degraded == set(blocks["calibration"])
+    assert all(set(r["perception_degraded"]) == {"blur", "patch_noise", "colour_shift"} for r in real
+               if "perception_degraded" in r)
     assert {r["split"] for r in recs} == {"in_distribution", "out_of_distribution"}
     for r in recs:
         assert len(r["objects"]) == 3 and all(set(metrics.CRITERIA) <= set(o) for o in r["objects"])
@@ -92,8 +96,18 @@ def test_validate_rescores_real_rollouts_as_the_sweep_scored_them(setup):
     got = validate(cfg.out, perception.load(root / "perception.npz"), score_stride=stride)
     truth = [r["objects"] for r in real]
     assert got["clean"] == agreement([r["perception"] for r in real], truth)
-    for kind in ("blur", "patch_noise", "colour_shift"):
-        assert got[kind] == agreement([r["perception_degraded"][kind] for r in real], truth)
+    # the sweep read degraded copies of the calibration rollouts only: rescored, they are what it recorded
+    from sc3_jax.evaluate.scorers import PerceptionScorer, RolloutView
+    from sc3_jax.sim.tasks import make_initial_condition
+    scorer = PerceptionScorer(perception.load(root / "perception.npz"))
+    degraded = [r for r in real if "perception_degraded" in r]
+    # validate reads every rollout clean and degraded (and names the majority-guess floor beside them)
+    assert degraded and set(got) - {"majority_guess"} == {"clean"} | set(degraded[0]["perception_degraded"])
+    for r in degraded:
+        ic = make_initial_condition(r["seed"], r["task"])
+        view = RolloutView(r["id"], ResultsStore(cfg.out).load_arrays(r["id"])["frames"], ic.objects,
+                           ic.destinations())
+        assert scorer.score_real(view, r["seed"], stride, True)[1] == r["perception_degraded"]
 
 
 def test_report_shows_the_world_models_diagnose_gates(setup):
@@ -263,7 +277,7 @@ def test_real_from_links_the_real_rollouts_and_refuses_another_protocol(setup, t
     other = tmp_path / "other.npz"
     perception.save(other, perception.init(jax.random.key(2)))
     for k, (change, match) in enumerate(((dict(episode_seconds=1.2), "episode_seconds"),
-                                         (dict(degradations=False), "degradations"),
+                                         (dict(degradations="none"), "degradations"),
                                          (dict(perception=str(other)), "perception_sha256"),
                                          (dict(real_from=str(retasked)), "task"),
                                          (dict(modes=("online",)), "modes"))):
@@ -271,6 +285,28 @@ def test_real_from_links_the_real_rollouts_and_refuses_another_protocol(setup, t
         with pytest.raises(ValueError, match=match):
             sweep.run_sweep(bad)
         assert not Path(bad.out).exists()
+
+
+def test_real_from_a_store_of_records_only_copies_the_records(setup, tmp_path):
+    """An archived store keeps results.jsonl and sweep.json only (docs/stores/): its real records start a sweep
+    whose world-model modes need no frames; offline replay, which needs the real actions, is refused."""
+    import shutil
+    _, cfg = setup
+    archived = tmp_path / "archived"
+    archived.mkdir()
+    for f in ("results.jsonl", "sweep.json"):
+        shutil.copy(Path(cfg.out) / f, archived / f)
+    one = dataclasses.replace(cfg, out=str(tmp_path / "one"), policies=POLICIES[:1], modes=("real",), episodes=2,
+                              calibration_episodes=0, ceiling_episodes=0, real_from=str(archived))
+    sweep.run_sweep(one)
+    got = ResultsStore(one.out).records()
+    want = {r["id"]: r for r in ResultsStore(cfg.out).records() if r["id"] in {g["id"] for g in got}}
+    assert len(got) == 2 and all(g == want[g["id"]] for g in got)
+    assert not any(ResultsStore(one.out).array_path(g["id"]).exists() for g in got)
+    bad = dataclasses.replace(one, out=str(tmp_path / "bad"), modes=("real", "offline"))
+    with pytest.raises(ValueError, match="offline"):
+        sweep.run_sweep(bad)
+    assert not Path(bad.out).exists()
 
 
 def test_reading_a_store_never_writes_and_its_sweep_repairs_a_cut_line(tmp_path):
@@ -477,3 +513,15 @@ def test_remote_policy_over_the_openpi_protocol(setup, tmp_path):
     assert len(recs["online"]["u"]) == 2
     with pytest.raises(ValueError, match="NAME=ws://HOST:PORT@TASK"):
         resolve.resolve("x=ws://127.0.0.1:1@nowhere")
+
+
+def test_degradations_choice_reads_legacy_booleans_and_refuses_others():
+    from sc3_jax.errors import UserError
+    assert [sweep.degradations_choice(v) for v in (True, False, "calibration", "all", "none")] == \
+        ["all", "none", "calibration", "all", "none"]
+    with pytest.raises(UserError, match="choose from"):
+        sweep.degradations_choice("some")
+    assert [sweep.degraded_block("calibration", b) for b in ("evaluation", "calibration", "ceiling")] == \
+        [False, True, False]
+    assert all(sweep.degraded_block("all", b) for b in ("evaluation", "ceiling"))
+    assert not any(sweep.degraded_block("none", b) for b in ("evaluation", "calibration"))

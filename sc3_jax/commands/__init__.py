@@ -1,13 +1,23 @@
 """One module per ``sc3`` command: its options are a frozen dataclass ``Args`` parsed by tyro (each field's docstring
-is its ``--help`` text), and ``main(argv) -> int`` calls the library functions. ``sc3_jax/cli.py`` dispatches here;
-library modules keep functions, not ``main()``s."""
+is its ``--help`` text), and ``main(argv) -> int`` calls the library functions. A command with subcommands (``sc3
+sim``, ``sc3 data``) has ``SUBCOMMANDS = {name: Args}`` instead. ``sc3_jax/cli.py`` dispatches here; library modules
+keep functions, not ``main()``s.
+
+Every command that builds or loads a world model takes its config's fields the same way: ``--SECTION.FIELD VALUE``
+(``sc3 train --help`` lists them all), applied over the named config or the loaded world model's config
+(``parse_with_config``)."""
 from __future__ import annotations
 
+import sys
+from collections.abc import Callable
 from typing import TypeVar
 
 import tyro
 
 T = TypeVar("T")
+
+CONFIG_OVERRIDES = ("World-model config: any --SECTION.FIELD VALUE of `sc3 train --help` overrides the model's own "
+                    "config, e.g. --sample.steps 8 --rollout.tau 0.05.")
 
 
 def parse(args: type[T], argv: list[str], command: str) -> T:
@@ -16,7 +26,38 @@ def parse(args: type[T], argv: list[str], command: str) -> T:
     return tyro.cli(args, args=argv, prog=f"sc3 {command}", config=(tyro.conf.PositionalMetavarFromFieldName,))
 
 
+def parse_with_config(args: type[T], argv: list[str], command: str, base: Callable[[T], object]):
+    """(``args``, Config): the command's own options, then every ``--SECTION.FIELD VALUE`` left over applied to
+    ``base(parsed args)`` (the named config, or the config of the world model the command loads). One spelling of
+    config overrides for every command; an unknown option is refused by the second parse, naming it."""
+    from sc3_jax.config import Config
+
+    a, rest = tyro.cli(args, args=argv, prog=f"sc3 {command}", return_unknown_args=True,
+                       config=(tyro.conf.PositionalMetavarFromFieldName,))
+    cfg = base(a)
+    if rest:
+        cfg = tyro.cli(Config, default=cfg, args=rest, prog=f"sc3 {command}")
+    return a, cfg
+
+
 def one_or_more(name: str):
     """For a positional ``tuple[str, ...]``: tyro parses it as zero or more values, shown optional; this shows it as
     argparse's ``nargs="+"`` did (the command itself refuses an empty one)."""
     return tyro.conf.arg(metavar=f"{name} [{name} ...]", help_behavior_hint="(required)")
+
+
+def run_group(group: str, about: str, subcommands: dict[str, type], run: dict[str, Callable], argv: list[str]) -> int:
+    """``sc3 GROUP SUB [OPTIONS]``: ``--help`` lists the subcommands (each Args docstring's first line); a missing or
+    unknown one is a usage error (status 2) with the list; else ``run[SUB](parse(subcommands[SUB], ...))``."""
+    width = max(map(len, subcommands))
+    listing = "subcommands:\n" + "\n".join(f"  {n:<{width}}  {a.__doc__.strip().splitlines()[0]}"
+                                           for n, a in subcommands.items())
+    usage = f"usage: sc3 {group} SUBCOMMAND [OPTIONS]   (sc3 {group} SUBCOMMAND --help for its options)"
+    if argv and argv[0] in ("-h", "--help"):
+        print(f"{usage}\n\n{about}\n\n{listing}")
+        return 0
+    if not argv or argv[0] not in subcommands:
+        what = f"unknown subcommand {argv[0]!r}" if argv else "missing subcommand"
+        print(f"{usage}\nsc3 {group}: error: {what}\n\n{listing}", file=sys.stderr)
+        return 2
+    return run[argv[0]](parse(subcommands[argv[0]], argv[1:], f"{group} {argv[0]}"))

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import dataclasses
 from typing import Annotated
-from pathlib import Path
 
 import tyro
 
@@ -29,6 +28,7 @@ def main(argv: list[str]) -> int:
     a = parse(Args, argv, "diagnose-table")
     if not a.models:  # tyro takes a positional tuple as zero or more; argparse asked for one at least
         raise UserError("give at least one world-model directory")
+    from sc3_jax import atomic
     from sc3_jax.evaluate import diagnose_table
 
     rows = {}
@@ -40,5 +40,5 @@ def main(argv: list[str]) -> int:
     text = diagnose_table.table(rows, a.baseline)
     print(text)
     if a.out:
-        Path(a.out).write_text(text + "\n")
+        atomic.write_text(a.out, text + "\n")
     return 0

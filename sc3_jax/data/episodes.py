@@ -5,13 +5,23 @@ Layout (all arrays plain ``.npy`` so readers can memory-map them and touch only 
 
     root/
       dataset.json                 {"format": "sc3-episodes", "version": 1, "views": [...], "fps": 20,
-                                    "action_dim": 7, "image_size": [H, W]}
+                                    "action_dim": A, "image_size": [H, W],
+                                    "action_space": {"kind": "delta_ee" | "absolute" | "velocity", "dim": A,
+                                                     "names": [...]},
+                                    "state": {"dim": S, "names": [...]} or null, "ee_pose": true | false}
       <episode_id>/
         frames/<view>.npy          uint8   [T, H, W, 3]  one file per camera view
-        actions.npy                float32 [T, 7]  action[t] is applied after frame t:
-                                                   (dx, dy, dz, axis-angle rx, ry, rz, gripper target)
-        ee_pose.npy                float32 [T, 7]  end-effector pose at frame t: (x, y, z, axis-angle, gripper)
+        actions.npy                float32 [T, A]  action[t] is applied after frame t, in the declared action space
+                                                   (``data/action_space.py``; the simulated benchmark's delta_ee:
+                                                   dx, dy, dz, axis-angle rx, ry, rz, gripper target)
+        ee_pose.npy                float32 [T, 7]  end-effector pose at frame t: (x, y, z, axis-angle, gripper);
+                                                   only where dataset.json says "ee_pose": true
+        state.npy                  float32 [T, S]  proprioceptive state at frame t (e.g. joint positions); only
+                                                   where dataset.json declares a "state"
         meta.json                  {"prompt": str, "length": T, "labels": {...}, ...free-form metadata}
+
+A store written before these declarations (no "action_space", no "ee_pose" key) reads as the simulated benchmark's:
+delta_ee actions of its action_dim, an ee_pose, no state.
 
 Episodes are written to a temporary directory and renamed into place, so a crash or a bad episode never leaves a
 half-written episode and never touches episodes already written. Every validation error names the episode and
@@ -30,6 +40,7 @@ from typing import Any
 import numpy as np
 
 from sc3_jax import atomic
+from sc3_jax.data.action_space import ActionSpace
 from sc3_jax.errors import UserError
 
 FORMAT = "sc3-episodes"
@@ -49,10 +60,11 @@ class EpisodeError(UserError):
 class Episode:
     episode_id: str
     frames: dict[str, np.ndarray]  # view -> uint8 [T, H, W, 3]
-    actions: np.ndarray  # float32 [T, 7]
-    ee_pose: np.ndarray  # float32 [T, 7]
+    actions: np.ndarray  # float32 [T, A]
+    ee_pose: np.ndarray | None  # float32 [T, 7]; None where the dataset recorded no end-effector pose
     prompt: str = ""
     meta: dict[str, Any] = dataclasses.field(default_factory=dict)
+    state: np.ndarray | None = None  # float32 [T, S] proprioceptive state, where the dataset declares one
 
     @property
     def length(self) -> int:
@@ -60,8 +72,11 @@ class Episode:
 
 
 def validate_episode(ep: Episode, views: list[str], action_dim: int = ACTION_DIM,
-                     image_size: tuple[int, int] | None = None, min_length: int = 1) -> None:
-    """Raise EpisodeError naming the episode and field for the first problem found."""
+                     image_size: tuple[int, int] | None = None, min_length: int = 1, has_pose: bool = True,
+                     state_dim: int | None = None) -> None:
+    """Raise EpisodeError naming the episode and field for the first problem found. ``has_pose`` / ``state_dim``:
+    what the dataset declares (an ee_pose [T, 7]; a state [T, state_dim]); an array it does not declare is refused
+    too, so nothing is silently dropped."""
     name = ep.episode_id
     actions = np.asarray(ep.actions)
     if actions.ndim != 2 or actions.shape[1] != action_dim:
@@ -71,11 +86,17 @@ def validate_episode(ep: Episode, views: list[str], action_dim: int = ACTION_DIM
         raise EpisodeError(name, "length", f"episode has {length} steps, at least {min_length} are needed")
     if not np.all(np.isfinite(actions)):
         raise EpisodeError(name, "actions", f"contains NaN/inf at steps {_bad_steps(actions)}")
-    pose = np.asarray(ep.ee_pose)
-    if pose.shape != (length, 7):
-        raise EpisodeError(name, "ee_pose", f"expected shape [{length}, 7], got {list(pose.shape)}")
-    if not np.all(np.isfinite(pose)):
-        raise EpisodeError(name, "ee_pose", f"contains NaN/inf at steps {_bad_steps(pose)}")
+    for field, x, dim, declared in (("ee_pose", ep.ee_pose, 7, has_pose), ("state", ep.state, state_dim,
+                                                                           state_dim is not None)):
+        if not declared:
+            if x is not None:
+                raise EpisodeError(name, field, "the dataset declares none (dataset.json): create the store with it")
+            continue
+        x = np.asarray(x)
+        if x.shape != (length, dim):
+            raise EpisodeError(name, field, f"expected shape [{length}, {dim}], got {list(x.shape)}")
+        if not np.all(np.isfinite(x)):
+            raise EpisodeError(name, field, f"contains NaN/inf at steps {_bad_steps(x)}")
     for view in views:
         if view not in ep.frames:
             raise EpisodeError(name, f"frames/{view}", f"missing view (have {sorted(ep.frames)})")
@@ -93,25 +114,44 @@ def _bad_steps(x: np.ndarray) -> list[int]:
 
 
 class EpisodeStore:
-    """Reads and writes one episode directory. ``create=True`` starts a new dataset (or reopens a compatible one)."""
+    """Reads and writes one episode directory. ``create=True`` starts a new dataset (or reopens a compatible one)
+    with the given declarations: ``action_space`` (default: delta_ee of ``action_dim``), ``state_dim`` /
+    ``state_names`` (a proprioceptive state per frame; None: none), ``has_pose`` (an end-effector pose per frame)."""
 
     def __init__(self, root: str | os.PathLike, views: list[str] | None = None, fps: float | None = None,
-                 image_size: tuple[int, int] | None = None, action_dim: int = ACTION_DIM, create: bool = False):
+                 image_size: tuple[int, int] | None = None, action_dim: int | None = None, create: bool = False,
+                 action_space: ActionSpace | None = None, state_dim: int | None = None,
+                 state_names: list[str] | None = None, has_pose: bool = True):
         self.root = Path(root)
         header = self.root / "dataset.json"
+        if action_space is None:
+            action_space = ActionSpace(dim=ACTION_DIM if action_dim is None else action_dim)
+        elif action_dim is not None and action_dim != action_space.dim:
+            raise ValueError(f"action_dim {action_dim} but action_space is {action_space.dim}-D")
+        state = None if state_dim is None else {"dim": int(state_dim), "names": list(
+            state_names or [f"s{i}" for i in range(int(state_dim))])}
+        if state is not None and len(state["names"]) != state["dim"]:
+            raise ValueError(f"{len(state['names'])} state names for a {state_dim}-D state")
+        if action_space.kind == "velocity" and (state is None or state["dim"] != action_space.dim):
+            raise UserError(f"velocity actions integrate from a recorded state of their dimension "
+                            f"{action_space.dim}: declare one (state_dim), not {state and state['dim']}")
+        declared = {"action_dim": action_space.dim, "action_space": action_space.to_dict(), "state": state,
+                    "ee_pose": bool(has_pose)}
         if header.exists():
             info = atomic.read_json(header)
             if info.get("format") != FORMAT:
-                raise ValueError(f"{header}: not an sc3 episode dataset (format={info.get('format')!r})")
-            for key, want in (("views", views), ("fps", fps), ("action_dim", action_dim if create else None)):
-                if want is not None and info[key] != (list(want) if key == "views" else want):
-                    raise ValueError(f"{header}: dataset has {key}={info[key]!r}, asked for {want!r}")
+                raise UserError(f"{header}: not an sc3 episode dataset (format={info.get('format')!r})")
+            have = {**info, **_declared(info)}
+            asked = {k: v for k, v in (("views", views and list(views)), ("fps", fps)) if v is not None}
+            for key, want in {**asked, **(declared if create else {})}.items():
+                if have[key] != want:
+                    raise UserError(f"{header}: dataset has {key}={have[key]!r}, asked for {want!r}")
         elif create:
             if views is None or fps is None or image_size is None:
                 raise ValueError("creating a dataset needs views, fps and image_size")
             self.root.mkdir(parents=True, exist_ok=True)
             info = {"format": FORMAT, "version": VERSION, "views": list(views), "fps": fps,
-                    "action_dim": action_dim, "image_size": list(image_size)}
+                    "image_size": list(image_size), **declared}
             atomic.write_json(header, info)
         else:
             raise FileNotFoundError(f"{self.root}: no dataset.json (not an sc3 episode dataset)")
@@ -120,6 +160,12 @@ class EpisodeStore:
         self.fps: float = info["fps"]
         self.action_dim: int = info["action_dim"]
         self.image_size: tuple[int, int] = tuple(info["image_size"])
+        self.action_space: ActionSpace = ActionSpace.from_dict(info.get("action_space"), self.action_dim,
+                                                               f"{header}: action_space")
+        self.has_pose: bool = bool(info.get("ee_pose", True))
+        st = info.get("state")
+        self.state_dim: int | None = None if st is None else int(st["dim"])
+        self.state_names: tuple[str, ...] = () if st is None else tuple(st.get("names") or ())
 
     # -- reading ---------------------------------------------------------------------------------------------
     def episode_ids(self) -> list[str]:
@@ -144,22 +190,31 @@ class EpisodeStore:
             if not path.exists():
                 raise EpisodeError(episode_id, f"frames/{view}", f"missing view file {path}")
             frames[view] = np.load(path, mmap_mode=mode)
-        arrays = {}
-        for field in ("actions", "ee_pose"):
+        arrays = {"ee_pose": None, "state": None}
+        for field in self.array_fields():
             path = d / f"{field}.npy"
             if not path.exists():
                 raise EpisodeError(episode_id, field, f"missing file {path}")
             arrays[field] = np.load(path)
         meta = json.loads((d / "meta.json").read_text())
-        ep = Episode(episode_id, frames, arrays["actions"], arrays["ee_pose"], meta.get("prompt", ""), meta)
+        ep = Episode(episode_id, frames, arrays["actions"], arrays["ee_pose"], meta.get("prompt", ""), meta,
+                     arrays["state"])
         if validate:
-            validate_episode(ep, self.views, self.action_dim, self.image_size, min_length)
+            self.validate(ep, min_length)
         return ep
+
+    def array_fields(self) -> tuple[str, ...]:
+        """The per-episode arrays besides frames this dataset has (``<field>.npy``)."""
+        return ("actions",) + (("ee_pose",) if self.has_pose else ()) + (("state",) if self.state_dim else ())
+
+    def validate(self, ep: Episode, min_length: int = 1) -> None:
+        validate_episode(ep, self.views, self.action_dim, self.image_size, min_length, self.has_pose,
+                         self.state_dim)
 
     # -- writing ---------------------------------------------------------------------------------------------
     def write(self, ep: Episode, overwrite: bool = False) -> Path:
         """Validate then write atomically. Raises (writing nothing) on a bad episode."""
-        validate_episode(ep, self.views, self.action_dim, self.image_size)
+        self.validate(ep)
         final = self.root / ep.episode_id
         if final.exists() and not overwrite:
             raise FileExistsError(f"episode {ep.episode_id!r} already exists in {self.root}")
@@ -168,8 +223,8 @@ class EpisodeStore:
             (tmp / "frames").mkdir()
             for view in self.views:
                 np.save(tmp / "frames" / f"{view}.npy", np.ascontiguousarray(ep.frames[view], dtype=np.uint8))
-            np.save(tmp / "actions.npy", np.asarray(ep.actions, np.float32))
-            np.save(tmp / "ee_pose.npy", np.asarray(ep.ee_pose, np.float32))
+            for field in self.array_fields():
+                np.save(tmp / f"{field}.npy", np.asarray(getattr(ep, field), np.float32))
             meta = {**ep.meta, "prompt": ep.prompt, "length": ep.length}
             (tmp / "meta.json").write_text(json.dumps(meta, indent=1, default=_json_default))
             if final.exists():
@@ -179,6 +234,13 @@ class EpisodeStore:
             shutil.rmtree(tmp, ignore_errors=True)
             raise
         return final
+
+
+def _declared(info: dict) -> dict:
+    """The declarations of a dataset.json as it is read (defaults for stores written before them)."""
+    return {"action_dim": info["action_dim"],
+            "action_space": ActionSpace.from_dict(info.get("action_space"), info["action_dim"]).to_dict(),
+            "state": info.get("state"), "ee_pose": bool(info.get("ee_pose", True))}
 
 
 def _json_default(x):

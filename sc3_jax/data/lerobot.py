@@ -15,7 +15,9 @@ Frames are decoded lazily: :meth:`LeRobotEpisodes.window` decodes just the reque
 keyframe), :meth:`LeRobotEpisodes.episode` returns the tabular data at once and decodes ``frames`` on first access.
 Every problem with the input raises :class:`LeRobotError` naming the file or key at fault.
 
-:func:`import_lerobot` converts a dataset into our episode store (``sc3_jax.data.episodes``).
+:func:`import_lerobot` converts a dataset into our episode store (``sc3_jax.data.episodes``), with the action space
+the dataset is declared to have (LeRobot's info.json has no such declaration: the caller gives it, or our own
+export's ``sc3_action_space`` entry does).
 """
 from __future__ import annotations
 
@@ -36,6 +38,8 @@ except ImportError as e:  # pragma: no cover - depends on the install
 
 SUPPORTED_VERSIONS = ("v2.0", "v2.1", "v3.0")
 IMAGE_PREFIX = "observation.images."
+# info.json key of our action-space declaration (LeRobot has none): our export writes it, import reads it back
+INFO_ACTION_SPACE = "sc3_action_space"
 _OPTIONAL = object()  # sentinel: "use observation.state if the dataset has it"
 
 
@@ -56,9 +60,10 @@ class LeRobotEpisode:
     """One episode, resampled to the reader's fps. Tabular fields are arrays; ``frames`` decodes on first access."""
 
     def __init__(self, source: LeRobotEpisodes, index: int, episode_index: int, timestamps: np.ndarray,
-                 actions: np.ndarray, state: np.ndarray | None, prompt: str, tasks: list[str]):
+                 actions: np.ndarray, state: np.ndarray | None, prompt: str, tasks: list[str],
+                 pose: np.ndarray | None = None):
         self._source, self.index, self.episode_index = source, index, episode_index
-        self.timestamps, self.actions, self.state = timestamps, actions, state
+        self.timestamps, self.actions, self.state, self.pose = timestamps, actions, state, pose
         self.prompt, self.tasks = prompt, tasks
         self.fps = source.fps
 
@@ -85,7 +90,7 @@ class LeRobotEpisodes:
         LeRobot actions are usually absolute targets; delta actions should be imported at the native rate and
         composed by the training pipeline's strides instead).
     action_key / state_key: column names. ``state_key=None`` ignores the state; by default ``observation.state``
-        is used when present.
+        is used when present. ``pose_key``: a column read as ``pose`` too (None: none).
     cache_size: how many decoded (episode, view, span) windows to keep, least recently used out first; 0 = none.
     tolerance_s: how far a decoded video frame may sit from the requested time (default a quarter frame period).
     """
@@ -93,7 +98,7 @@ class LeRobotEpisodes:
     def __init__(self, root: str | os.PathLike, views: list[str] | dict[str, str] | None = None,
                  wrist_views: list[str] | None = None, fps: float | None = None, action_key: str = "action",
                  state_key: str | None = _OPTIONAL, cache_size: int = 0,  # type: ignore[assignment]
-                 tolerance_s: float | None = None):
+                 tolerance_s: float | None = None, pose_key: str | None = None):
         self.root = Path(root)
         info_path = self.root / "meta" / "info.json"
         if not info_path.exists():
@@ -125,6 +130,9 @@ class LeRobotEpisodes:
         elif state_key is not None and state_key not in self.features:
             raise LeRobotError(info_path, f"state key {state_key!r} not in features {sorted(self.features)}")
         self.state_key = state_key
+        if pose_key is not None and pose_key not in self.features:
+            raise LeRobotError(info_path, f"pose key {pose_key!r} not in features {sorted(self.features)}")
+        self.pose_key = pose_key
         self.tolerance_s = 0.25 / self.source_fps if tolerance_s is None else tolerance_s
         self.tasks = self._read_tasks()
         self._episodes = self._read_episodes()
@@ -214,8 +222,9 @@ class LeRobotEpisodes:
             self._rows.move_to_end(i)
             return self._rows[i]
         ep = self._episode_row(i)
-        cols = ["timestamp", self.action_key] + ([self.state_key] if self.state_key else [])
+        cols = ["timestamp", self.action_key] + [k for k in (self.state_key, self.pose_key) if k]
         cols += [c for c in ("frame_index", "task_index") if c in self.features]
+        cols = list(dict.fromkeys(cols))
         table = self._read_rows(ep, cols)
         out = {c: _to_numpy(table[c]) for c in cols}
         if "frame_index" in out and not np.array_equal(out["frame_index"], np.arange(table.num_rows)):
@@ -241,8 +250,9 @@ class LeRobotEpisodes:
         else:
             prompt = tasks[0] if tasks else ""
         state = tab[self.state_key][s].astype(np.float32) if self.state_key else None
+        pose = tab[self.pose_key][s].astype(np.float32) if self.pose_key else None
         return LeRobotEpisode(self, i, int(ep["episode_index"]), tab["timestamp"][s],
-                              tab[self.action_key][s].astype(np.float32), state, prompt, tasks)
+                              tab[self.action_key][s].astype(np.float32), state, prompt, tasks, pose)
 
     # -- frames ------------------------------------------------------------------------------------------------
     def window(self, i: int, start: int, stop: int, views: list[str] | None = None) -> dict[str, np.ndarray]:
@@ -437,30 +447,67 @@ def _to_numpy(col: pa.ChunkedArray) -> np.ndarray:
 def import_lerobot(root: str | os.PathLike, out: str | os.PathLike, views=None, wrist_views=None,
                    fps: float | None = None, image_size: tuple[int, int] | None = None, action_key: str = "action",
                    pose_key: str | None = "observation.state", allow_missing_pose: bool = False,
-                   progress: bool = False) -> dict:
+                   progress: bool = False, *, action_space: str | None = None,
+                   action_names: list[str] | None = None, action_targets: list[int] | None = None,
+                   state_key: str | None = _OPTIONAL) -> dict:  # type: ignore[assignment]
     """Convert the LeRobot dataset at ``root`` into an episode store at ``out``.
 
-    ``pose_key`` must be a 7-D feature to become our ``ee_pose``; ``allow_missing_pose`` writes zeros instead (and
-    says so in each episode's meta) for datasets without one. ``image_size`` resizes every view (our store has one
-    size for all views). Episodes are named ``lerobot{episode_index:06d}``; existing ones are skipped (resumable).
+    The action space (``data/action_space.py``): ``action_space`` ("delta_ee", "absolute" or "velocity") with
+    ``action_names`` (default: the feature's own names) and, for velocities, ``action_targets`` (indices of
+    position-target dimensions such as a gripper); else our own export's ``sc3_action_space`` entry in info.json;
+    else, for 7-D actions, the simulated benchmark's delta_ee (how stores were imported before declarations).
+    Other actions without a declaration are refused (one line saying what to pass).
+
+    ``pose_key``: a 7-D feature that becomes our ``ee_pose`` (x, y, z, rotation vector, gripper). delta_ee actions
+    need one unless ``allow_missing_pose`` (then the store has no ee_pose: no pseudo-actions, motion relative to the
+    start); for other action spaces it is optional (used where it names a 7-D feature other than the state).
+    ``state_key``: the proprioceptive state feature of any size (default ``observation.state`` when present and not
+    already the ee_pose; None: none), stored as ``state``. ``image_size`` resizes every view (our store has one size
+    for all views). Episodes are named ``lerobot{episode_index:06d}``; existing ones are skipped (resumable).
     """
+    from .action_space import ActionSpace, names_of
     from .episodes import Episode, EpisodeStore
 
     src = LeRobotEpisodes(root, views=views, wrist_views=wrist_views, fps=fps, action_key=action_key,
                           state_key=None)
-    has_pose = pose_key in src.features and list(src.features[pose_key]["shape"]) == [7]
-    if not has_pose and not allow_missing_pose:
-        shape = src.features[pose_key]["shape"] if pose_key in src.features else "missing"
+    feats, info_path = src.features, Path(root) / "meta" / "info.json"
+    dim = int(np.prod(feats[action_key]["shape"]))
+    declared = src.info.get(INFO_ACTION_SPACE)
+    if action_space is not None:
+        space = ActionSpace(action_space, dim, tuple(action_names or names_of(feats[action_key].get("names"), dim)),
+                            tuple(action_targets or ()))
+    elif declared is not None:
+        space = ActionSpace.from_dict(declared, dim, f"{info_path}: {INFO_ACTION_SPACE}")
+    elif dim == 7:
+        space = ActionSpace("delta_ee", 7)
+    else:
+        raise LeRobotError(info_path, f"{dim}-D {action_key!r} and no action-space declaration: pass action_space "
+                                      f"'absolute' (position targets), 'velocity' or 'delta_ee'")
+    is_pose = lambda k: k in feats and list(feats[k]["shape"]) == [7]  # noqa: E731
+    if state_key is _OPTIONAL:
+        state_key = "observation.state" if "observation.state" in feats else None
+        if space.kind == "delta_ee" and state_key == pose_key and is_pose(pose_key):
+            state_key = None  # the benchmark's layout: observation.state is the pose
+    elif state_key is not None and state_key not in feats:
+        raise LeRobotError(info_path, f"state key {state_key!r} not in features {sorted(feats)}")
+    has_pose = is_pose(pose_key) and (space.kind == "delta_ee" or pose_key != state_key)
+    if space.kind == "delta_ee" and not has_pose and not allow_missing_pose:
+        shape = feats[pose_key]["shape"] if pose_key in feats else "missing"
         raise LeRobotError(pose_key, f"our ee_pose needs a 7-D feature, this one is {shape}; pass another pose "
                                      f"key or allow_missing_pose")
-    src.state_key = pose_key if has_pose else None
-    sizes = {tuple(src.features[k]["shape"][:2]) for k in src.cameras.values()}
+    src.pose_key, src.state_key = (pose_key if has_pose else None), state_key
+    state_dim = int(np.prod(feats[state_key]["shape"])) if state_key else None
+    state_names = (names_of(feats[state_key].get("names"), state_dim) or None) if state_key else None
+    if space.kind == "velocity" and state_dim != dim:
+        raise LeRobotError(info_path, f"velocity actions integrate from a recorded state of their dimension {dim}; "
+                                      f"state key {state_key!r} is {state_dim or 'missing'}: pass state_key")
+    sizes = {tuple(feats[k]["shape"][:2]) for k in src.cameras.values()}
     if image_size is None and len(sizes) > 1:
         raise LeRobotError(root, f"cameras have different sizes {sorted(sizes)}: pass image_size to resize them")
     size = tuple(image_size) if image_size is not None else sizes.pop()
     fps_out = int(src.fps) if float(src.fps).is_integer() else src.fps  # keep "fps": 20 as our stores write it
-    store = EpisodeStore(out, views=src.views, fps=fps_out, image_size=size,
-                         action_dim=int(src.features[action_key]["shape"][0]), create=True)
+    store = EpisodeStore(out, views=src.views, fps=fps_out, image_size=size, create=True, action_space=space,
+                         state_dim=state_dim, state_names=state_names, has_pose=has_pose)
     written = skipped = 0
     for i in range(len(src)):
         ep = src.episode(i)
@@ -469,16 +516,17 @@ def import_lerobot(root: str | os.PathLike, out: str | os.PathLike, views=None, 
             skipped += 1
             continue
         frames = {v: _resize(f, size) for v, f in ep.frames.items()}
-        pose = ep.state if has_pose else np.zeros((ep.length, 7), np.float32)
         meta = {"source": "lerobot", "lerobot_root": str(Path(root).resolve()), "episode_index": ep.episode_index,
                 "tasks": ep.tasks, "source_fps": src.source_fps, "camera_keys": src.cameras,
                 "wrist_views": list(src.wrist_views), "timestamps": ep.timestamps.tolist(),
-                "ee_pose_source": pose_key if has_pose else "missing (zeros)"}
-        store.write(Episode(eid, frames, ep.actions, pose, ep.prompt, meta))
+                "ee_pose_source": pose_key if has_pose else "none", "state_source": state_key or "none"}
+        store.write(Episode(eid, frames, ep.actions.reshape(ep.length, dim), ep.pose, ep.prompt, meta,
+                            None if ep.state is None else ep.state.reshape(ep.length, state_dim)))
         written += 1
         if progress:
             print(f"  {eid}: {ep.length} frames", flush=True)
-    return {"out": str(out), "written": written, "skipped": skipped, "views": src.views, "fps": fps_out}
+    return {"out": str(out), "written": written, "skipped": skipped, "views": src.views, "fps": fps_out,
+            "action_space": space.to_dict(), "state_dim": state_dim, "ee_pose": has_pose}
 
 
 def _resize(frames: np.ndarray, size: tuple[int, int]) -> np.ndarray:

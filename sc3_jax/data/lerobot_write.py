@@ -34,7 +34,9 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from sc3_jax import atomic
-from .lerobot import IMAGE_PREFIX
+from .action_space import DELTA_EE_NAMES
+from .action_space import POSE_NAMES as _POSE_NAMES
+from .lerobot import IMAGE_PREFIX, INFO_ACTION_SPACE
 
 VERSIONS = ("v3.0", "v2.1")
 CHUNKS_SIZE = 1000
@@ -42,19 +44,25 @@ V3_DATA_PATH = "data/chunk-{chunk_index:03d}/file-{file_index:03d}.parquet"
 V3_VIDEO_PATH = "videos/{video_key}/chunk-{chunk_index:03d}/file-{file_index:03d}.mp4"
 V2_DATA_PATH = "data/chunk-{episode_chunk:03d}/episode_{episode_index:06d}.parquet"
 V2_VIDEO_PATH = "videos/chunk-{episode_chunk:03d}/{video_key}/episode_{episode_index:06d}.mp4"
-ACTION_NAMES = ["dx", "dy", "dz", "rx", "ry", "rz", "gripper"]  # our delta end-effector action
-POSE_NAMES = ["x", "y", "z", "rx", "ry", "rz", "gripper"]  # our ee_pose
+ACTION_NAMES = list(DELTA_EE_NAMES)  # our delta end-effector action
+POSE_NAMES = list(_POSE_NAMES)  # our ee_pose
+POSE_KEY = "observation.ee_pose"  # where an ee_pose goes when observation.state holds another state
 _INDEX_COLUMNS = ("frame_index", "episode_index", "index", "task_index")
 
 
 @dataclasses.dataclass
 class RawEpisode:
-    """One episode in LeRobot terms: camera feature key -> uint8 [T, H, W, 3], action [T, D], state [T, S]."""
+    """One episode in LeRobot terms: camera feature key -> uint8 [T, H, W, 3], action [T, D], state [T, S], and
+    any other float vector features (feature key -> [T, n], e.g. ``observation.ee_pose``)."""
 
     frames: dict[str, np.ndarray]
     action: np.ndarray
     task: str
     state: np.ndarray | None = None
+    vectors: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)
+
+    def vector_features(self) -> list[tuple[str, np.ndarray | None]]:
+        return [("observation.state", self.state), ("action", self.action), *self.vectors.items()]
 
 
 # -- video ------------------------------------------------------------------------------------------------------
@@ -159,8 +167,9 @@ def _jsonable(stats: dict[str, dict[str, np.ndarray]]) -> dict:
 def write_lerobot(out: str | os.PathLike, episodes: Iterable[RawEpisode], fps: int, version: str = "v3.0",
                   codec: str = "h264", image_dtype: str = "video", crf: int | None = None,
                   episodes_per_file: int = 1000, names: dict[str, list[str]] | None = None,
-                  robot_type: str = "unknown", overwrite: bool = False) -> dict:
+                  robot_type: str = "unknown", overwrite: bool = False, info: dict | None = None) -> dict:
     """Write ``episodes`` as a LeRobot dataset at ``out``. ``image_dtype``: "video" (mp4) or "image" (PNG in parquet).
+    ``info``: extra ``meta/info.json`` entries (e.g. our action-space declaration, ``INFO_ACTION_SPACE``).
 
     Returns a summary dict (episodes, frames, tasks, path).
     """
@@ -177,7 +186,7 @@ def write_lerobot(out: str | os.PathLike, episodes: Iterable[RawEpisode], fps: i
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
     try:
         summary = _Writer(tmp, fps, version, codec, image_dtype, crf, episodes_per_file, names or {},
-                          robot_type).run(iter(episodes))
+                          robot_type, info or {}).run(iter(episodes))
         if out.exists():
             shutil.rmtree(out)
         os.replace(tmp, out)
@@ -189,10 +198,10 @@ def write_lerobot(out: str | os.PathLike, episodes: Iterable[RawEpisode], fps: i
 
 class _Writer:
     def __init__(self, root: Path, fps: int, version: str, codec: str, image_dtype: str, crf: int | None,
-                 episodes_per_file: int, names: dict, robot_type: str):
+                 episodes_per_file: int, names: dict, robot_type: str, extra_info: dict):
         self.root, self.fps, self.version, self.codec = root, fps, version, codec
         self.image_dtype, self.crf, self.per_file = image_dtype, crf, max(1, episodes_per_file)
-        self.names, self.robot_type = names, robot_type
+        self.names, self.robot_type, self.extra_info = names, robot_type, extra_info
         self.tasks: dict[str, int] = {}
         self.rows: list[dict] = []  # per-episode metadata
         self.stats: list[dict] = []  # per-episode stats
@@ -215,7 +224,7 @@ class _Writer:
 
     def _features(self, ep: RawEpisode) -> dict:
         feats = {}
-        for key, x in (("observation.state", ep.state), ("action", ep.action)):
+        for key, x in ep.vector_features():
             if x is not None:
                 d = np.asarray(x).shape[1]
                 feats[key] = {"dtype": "float32", "shape": [d], "names": self.names.get(key, [f"{key}_{i}"
@@ -253,7 +262,7 @@ class _Writer:
         length = len(ep.action)
         if sorted(ep.frames) != sorted(self.cameras):
             raise ValueError(f"episode {e}: cameras {sorted(ep.frames)}, expected {sorted(self.cameras)}")
-        for key, x in [("action", ep.action), ("observation.state", ep.state), *ep.frames.items()]:
+        for key, x in [*ep.vector_features(), *ep.frames.items()]:
             if key in self.features and (x is None or len(x) != length or
                                          list(np.shape(x)[1:]) != self.features[key]["shape"]):
                 raise ValueError(f"episode {e}, {key}: shape {np.shape(x)} does not match {length} actions / "
@@ -276,7 +285,7 @@ class _Writer:
             elif key in self.cameras:  # image dtype
                 arrays.append(pa.array([{"bytes": _png(img), "path": None} for img in ep.frames[key]], field.type))
             else:
-                x = ep.action if key == "action" else ep.state
+                x = dict(ep.vector_features())[key]
                 arrays.append(_vector(x))
                 stats[key] = _stats(x)
         for key in self.cameras:
@@ -371,7 +380,7 @@ class _Writer:
             _write_jsonl(meta / "episodes_stats.jsonl", [{"episode_index": r["episode_index"], "stats": _jsonable(s)}
                                                          for r, s in zip(self.rows, self.stats, strict=True)])
         info["features"] = self.features
-        atomic.write_json(meta / "info.json", info, indent=4)
+        atomic.write_json(meta / "info.json", {**info, **self.extra_info}, indent=4)
 
 
 def _write_jsonl(path: Path, rows: list[dict]) -> None:
@@ -382,8 +391,10 @@ def _write_jsonl(path: Path, rows: list[dict]) -> None:
 def export_store(store, out: str | os.PathLike, version: str = "v3.0", codec: str = "h264",
                  image_dtype: str = "video", crf: int | None = None, views: list[str] | None = None,
                  robot_type: str = "sc3_sim", overwrite: bool = False) -> dict:
-    """Export an episode store (path or EpisodeStore): ``ee_pose`` -> ``observation.state``, ``actions`` ->
-    ``action``, view ``v`` -> ``observation.images.v``, prompt -> task. Episodes go in sorted id order."""
+    """Export an episode store (path or EpisodeStore): ``actions`` -> ``action``, the recorded ``state`` ->
+    ``observation.state`` (a store without one: its ``ee_pose`` there, as the simulated benchmark's), an ``ee_pose``
+    beside a state -> ``observation.ee_pose``, view ``v`` -> ``observation.images.v``, prompt -> task, the action
+    space -> ``info.json`` ``sc3_action_space`` (import reads it back). Episodes go in sorted id order."""
     from .episodes import EpisodeStore
 
     store = store if isinstance(store, EpisodeStore) else EpisodeStore(store)
@@ -392,8 +403,13 @@ def export_store(store, out: str | os.PathLike, version: str = "v3.0", codec: st
     def episodes() -> Iterator[RawEpisode]:
         for eid in store.episode_ids():
             ep = store.load(eid, mmap=True)
-            yield RawEpisode({IMAGE_PREFIX + v: ep.frames[v] for v in views}, ep.actions, ep.prompt, ep.ee_pose)
+            state, extra = (ep.state, {POSE_KEY: ep.ee_pose} if store.has_pose else {}) if store.state_dim \
+                else (ep.ee_pose, {})
+            yield RawEpisode({IMAGE_PREFIX + v: ep.frames[v] for v in views}, ep.actions, ep.prompt, state, extra)
 
-    names = {"observation.state": POSE_NAMES, "action": ACTION_NAMES} if store.action_dim == 7 else {}
+    space = store.action_space
+    names = {"action": list(space.names), POSE_KEY: POSE_NAMES,
+             "observation.state": list(store.state_names) if store.state_dim else POSE_NAMES}
     return write_lerobot(out, episodes(), store.fps, version=version, codec=codec, image_dtype=image_dtype, crf=crf,
-                         names=names, robot_type=robot_type, overwrite=overwrite)
+                         names=names, robot_type=robot_type, overwrite=overwrite,
+                         info={INFO_ACTION_SPACE: space.to_dict()})

@@ -1,6 +1,10 @@
-"""Action and pose normalisation statistics (``norm_stats.json``): part of a trained world model (the units its
-params learned), computed once from a training store, applied by the data pipeline and by rollouts. Numpy only:
-loading a world model does not import the data pipeline."""
+"""Action and state normalisation statistics (``norm_stats.json``): part of a trained world model (the units its
+params learned, and the action space those units belong to), computed once from a training store, applied by the
+data pipeline and by rollouts. Numpy only: loading a world model does not import the data pipeline.
+
+The "pose" statistics are those of the imagined robot state the model is conditioned on (its ``pose`` input): the
+end-effector pose for delta_ee actions, the targets for absolute ones, the recorded state for velocities
+(``ActionSpace.state_series``). That state lives in the action's space, so both have the action's dimension."""
 from __future__ import annotations
 
 import dataclasses
@@ -10,6 +14,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from sc3_jax import atomic
+from sc3_jax.data.action_space import ActionSpace
 
 if TYPE_CHECKING:
     from sc3_jax.data.episodes import EpisodeStore
@@ -19,43 +24,67 @@ STD_FLOOR = 1e-3
 
 @dataclasses.dataclass(frozen=True)
 class NormStats:
-    mean: np.ndarray  # float32 [7]
-    std: np.ndarray  # float32 [7], floored at STD_FLOOR
-    pose_mean: np.ndarray | None = None  # float32 [7] of ee_pose (default 0: stats files from before poses)
-    pose_std: np.ndarray | None = None  # float32 [7], floored at STD_FLOOR (default 1)
+    mean: np.ndarray  # float32 [A]
+    std: np.ndarray  # float32 [A], floored at STD_FLOOR
+    pose_mean: np.ndarray | None = None  # float32 [S] of the imagined state (default 0: files from before poses)
+    pose_std: np.ndarray | None = None  # float32 [S], floored at STD_FLOOR (default 1)
+    # the action space these statistics are in; None: the simulated benchmark's delta_ee 7-D (files from before
+    # declarations), read back as that
+    action_space: ActionSpace | None = None
 
     def __post_init__(self):
         object.__setattr__(self, "mean", np.asarray(self.mean, np.float32).reshape(-1))
         object.__setattr__(self, "std", np.maximum(np.asarray(self.std, np.float32).reshape(-1), STD_FLOOR))
         n = self.mean.shape[0]
+        space = self.action_space if self.action_space is not None else ActionSpace(dim=n)
+        if space.dim != n:
+            raise ValueError(f"norm stats of {n}-D actions in a {space.dim}-D action space")
+        object.__setattr__(self, "action_space", space)
         pm = np.zeros(n) if self.pose_mean is None else self.pose_mean
         ps = np.ones(n) if self.pose_std is None else self.pose_std
         object.__setattr__(self, "pose_mean", np.asarray(pm, np.float32).reshape(-1))
         object.__setattr__(self, "pose_std", np.maximum(np.asarray(ps, np.float32).reshape(-1), STD_FLOOR))
 
+    @property
+    def action_dim(self) -> int:
+        return int(self.mean.shape[0])
+
+    @property
+    def state_dim(self) -> int:
+        return int(self.pose_mean.shape[0])
+
     @classmethod
-    def from_actions(cls, actions: np.ndarray) -> "NormStats":
+    def from_actions(cls, actions: np.ndarray, action_space: ActionSpace | None = None) -> "NormStats":
         a = np.asarray(actions, np.float64).reshape(-1, np.shape(actions)[-1])
-        return cls(a.mean(0), a.std(0))
+        return cls(a.mean(0), a.std(0), action_space=action_space)
 
     @classmethod
     def from_store(cls, store: EpisodeStore) -> "NormStats":
-        """Over all recorded actions of every episode (each episode validated; EpisodeError names a bad one)."""
+        """Over all recorded actions and imagined-state values of every episode (each episode validated;
+        EpisodeError names a bad one). Without any recorded state values (delta_ee without ee_pose) the state
+        statistics are 0 / 1."""
+        space = store.action_space
         total, total_sq, count = 0.0, 0.0, 0
         p_total, p_sq = 0.0, 0.0
         for eid in store.episode_ids():
             ep = store.load(eid, mmap=True)
-            a, p = ep.actions.astype(np.float64), ep.ee_pose.astype(np.float64)
+            series = space.state_series(ep.actions, ep.ee_pose, ep.state)
+            a = ep.actions.astype(np.float64)
             total = total + a.sum(0)
             total_sq = total_sq + (a * a).sum(0)
-            p_total, p_sq = p_total + p.sum(0), p_sq + (p * p).sum(0)
+            if series is not None:
+                p = np.asarray(series).astype(np.float64)
+                p_total, p_sq = p_total + p.sum(0), p_sq + (p * p).sum(0)
             count += a.shape[0]
         if count == 0:
             raise ValueError(f"{store.root}: no episodes to compute action statistics from")
-        mean, p_mean = total / count, p_total / count
+        mean = total / count
         var = np.maximum(total_sq / count - mean * mean, 0.0)
+        if np.ndim(p_total) == 0:  # no recorded state values
+            return cls(mean, np.sqrt(var), action_space=space)
+        p_mean = p_total / count
         p_var = np.maximum(p_sq / count - p_mean * p_mean, 0.0)
-        return cls(mean, np.sqrt(var), p_mean, np.sqrt(p_var))
+        return cls(mean, np.sqrt(var), p_mean, np.sqrt(p_var), space)
 
     def normalize(self, a: np.ndarray) -> np.ndarray:
         return ((np.asarray(a, np.float32) - self.mean) / self.std).astype(np.float32)
@@ -64,15 +93,20 @@ class NormStats:
         return (np.asarray(a, np.float32) * self.std + self.mean).astype(np.float32)
 
     def normalize_pose(self, p: np.ndarray) -> np.ndarray:
+        """The imagined state (``pose`` condition) in the model's units."""
         return ((np.asarray(p, np.float32) - self.pose_mean) / self.pose_std).astype(np.float32)
 
+    def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """float32 (action mean [A], action std [A], state mean [S], state std [S]): what rollouts take on device."""
+        return self.mean, self.std, self.pose_mean, self.pose_std
+
     def as_array(self) -> np.ndarray:
-        """float32 [4, 7]: action mean, action std, pose mean, pose std (what rollouts take on device)."""
-        return np.stack([self.mean, self.std, self.pose_mean, self.pose_std]).astype(np.float32)
+        """float32 [4, A]: action mean, action std, pose mean, pose std (state and action of one size)."""
+        return np.stack(self.arrays()).astype(np.float32)
 
     def to_dict(self) -> dict:
         return {"mean": self.mean.tolist(), "std": self.std.tolist(), "pose_mean": self.pose_mean.tolist(),
-                "pose_std": self.pose_std.tolist()}
+                "pose_std": self.pose_std.tolist(), "action_space": self.action_space.to_dict()}
 
     def save(self, path: str | os.PathLike) -> None:
         atomic.write_json(path, self.to_dict())
@@ -81,4 +115,6 @@ class NormStats:
     def load(cls, path: str | os.PathLike) -> "NormStats":
         d = atomic.read_json(path)
         pose = [np.array(d[k], np.float32) if k in d else None for k in ("pose_mean", "pose_std")]
-        return cls(np.array(d["mean"], np.float32), np.array(d["std"], np.float32), *pose)
+        mean = np.array(d["mean"], np.float32)
+        space = ActionSpace.from_dict(d.get("action_space"), mean.shape[0], f"{path}: action_space")
+        return cls(mean, np.array(d["std"], np.float32), *pose, space)

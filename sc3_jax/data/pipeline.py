@@ -4,9 +4,12 @@ A *window* starting at frame ``t0`` with stride ``s`` holds frames ``t0 + s*i`` 
 view (K = ``cfg.context_frames`` clean context frames, T = ``cfg.future_frames`` future frames) and T actions: action
 ``j`` moves frame ``K-1+j`` to frame ``K+j`` (frame indices ``t = t0 + s*(K-1+j)`` -> ``t + s``):
 
-- recorded (stride 1): ``actions[t]``; stride s > 1: the s recorded deltas ``actions[t..t+s-1]`` composed
-  (xyz summed, rotations composed exactly ``R(a_{t+s-1}) ... R(a_t)``, gripper = last target ``actions[t+s-1, 6]``);
-- pseudo (probability ``cfg.pseudo_action_prob`` per sample): from end-effector poses,
+- recorded (stride 1): ``actions[t]``; stride s > 1: the s recorded actions ``actions[t..t+s-1]`` composed as the
+  dataset's action space says (``data/action_space.py``; delta_ee: xyz summed, rotations composed exactly
+  ``R(a_{t+s-1}) ... R(a_t)``, gripper = last target ``actions[t+s-1, 6]``; absolute targets: the last one;
+  velocities: the mean);
+- pseudo (probability ``cfg.pseudo_action_prob`` per sample; delta_ee datasets with an ``ee_pose`` only, any other
+  dataset refuses a non-zero probability): from end-effector poses,
   ``(xyz_{t+s} - xyz_t, rotvec(R_{t+s} R_t^T), gripper target actions[t+s-1, 6])``.
 
 The gripper entry has one meaning everywhere: the *commanded* target width (what a policy outputs and what
@@ -15,10 +18,11 @@ object: on an expert episode the two differ by up to 5.6 cm).
 
 Both are normalised with ``NormStats`` (per-dimension mean/std over all recorded actions of the store).
 
-Every window also carries the *pose condition* ``pose`` [T + 1, 7]: the end-effector pose of frame K-1 (its gripper
-entry the command in force, ``actions[t-1, 6]``) and of every future frame, integrated from that pose with the
-window's actions -- the numpy twin of ``imagination_state.frame_poses``, which rollouts use -- normalised with the
-pose statistics of ``NormStats``.
+Every window also carries the *pose condition* ``pose`` [T + 1, A]: the imagined robot state of frame K-1
+(``ActionSpace.start_state``; delta_ee: the end-effector pose with the gripper command in force, ``actions[t-1, 6]``)
+and of every future frame, integrated from it with the window's actions (``ActionSpace.integrate``, at ``s / fps``
+seconds per action) -- the numpy twin of ``imagination_state.frame_poses``, which rollouts use -- normalised with
+the state statistics of ``NormStats``.
 
 Batch i of process p is a deterministic function of (cfg.seed, i, p, process_count): the index of all valid
 (episode, start) pairs (valid for the largest stride) is shuffled per epoch, repeated forever, per-sample draws
@@ -37,9 +41,10 @@ from typing import NamedTuple
 import grain
 import numpy as np
 
-from sc3_jax.data import rotations
+from sc3_jax.data.action_space import DELTA_EE, ActionSpace
 from sc3_jax.data.episodes import Episode, EpisodeStore
 from sc3_jax.data.norm_stats import NormStats
+from sc3_jax.errors import UserError
 
 _OPEN_LOCK = threading.Lock()
 
@@ -54,72 +59,46 @@ def window_span(stride: int, context_frames: int, future_frames: int) -> int:
     return (context_frames + future_frames - 1) * stride + 1
 
 
-def compose_actions(actions: np.ndarray, t: int, stride: int) -> np.ndarray:
-    """The single action equivalent to recorded ``actions[t : t+stride]`` (float32 [7])."""
-    a = np.asarray(actions[t:t + stride], np.float64)
-    if a.shape[0] != stride:
+def compose_actions(actions: np.ndarray, t: int, stride: int, space: ActionSpace = DELTA_EE) -> np.ndarray:
+    """The single action equivalent to recorded ``actions[t : t+stride]`` (float32 [A])."""
+    a = actions[t:t + stride]
+    if len(a) != stride:
         raise IndexError(f"need actions[{t}:{t + stride}], episode has {len(actions)}")
-    out = np.empty(7)
-    out[:3] = a[:, :3].sum(0)
-    if stride == 1:
-        out[3:6] = a[0, 3:6]
-    else:
-        m = np.eye(3)
-        for r in a[:, 3:6]:  # later rotations act on the left (world frame)
-            m = rotations.rotvec_to_matrix(r) @ m
-        out[3:6] = rotations.matrix_to_rotvec(m)
-    out[6] = a[-1, 6]
-    return out.astype(np.float32)
+    return space.compose(a)
 
 
 def pseudo_actions(ee_pose: np.ndarray, frame_indices: np.ndarray, actions: np.ndarray | None = None) -> np.ndarray:
-    """Actions between consecutive given frames from end-effector poses: float32 [len(frame_indices) - 1, 7].
-    The gripper entry is the command in force at the end of each interval, ``actions[t_next - 1, 6]`` (the one
-    meaning the gripper entry has everywhere); without ``actions`` the measured gap ``ee_pose[t_next, 6]`` stands
-    in for it (data that recorded no commands)."""
-    idx = np.asarray(frame_indices)
-    p = np.asarray(ee_pose, np.float64)[idx]
-    out = np.empty((len(p) - 1, 7))
-    out[:, :3] = p[1:, :3] - p[:-1, :3]
-    out[:, 3:6] = rotations.relative_rotvec(p[:-1, 3:6], p[1:, 3:6])
-    out[:, 6] = p[1:, 6] if actions is None else np.asarray(actions)[idx[1:] - 1, 6]
-    return out.astype(np.float32)
+    """Actions between consecutive given frames from end-effector poses: float32 [len(frame_indices) - 1, 7]
+    (``ActionSpace.pseudo``: the gripper entry is the command in force at the end of each interval)."""
+    return DELTA_EE.pseudo(ee_pose, frame_indices, actions)
 
 
 def start_pose(actions: np.ndarray, ee_pose: np.ndarray, t: int) -> np.ndarray:
     """The pose condition of frame t: the measured pose with the gripper command in force (``actions[t-1, 6]``;
     at t = 0 none was given yet, so the measured gap)."""
-    p = np.asarray(ee_pose[t], np.float32).copy()
-    if t > 0:
-        p[6] = actions[t - 1, 6]
-    return p
+    return DELTA_EE.start_state(actions, ee_pose, None, t)
 
 
-def integrate_poses(pose: np.ndarray, actions: np.ndarray) -> np.ndarray:
-    """float32 [n + 1, 7]: ``pose`` and the poses after each of ``actions`` [n, 7] (xyz summed, rotations composed
-    on the left, gripper = command); the numpy twin of ``imagination_state.frame_poses``. The rotations are
-    converted in two batched calls and composed as matrices: per-step conversions cost more than the rest of a
-    training window (a data-loading bottleneck on an accelerator)."""
-    pose, actions = np.asarray(pose, np.float64), np.asarray(actions, np.float64)
-    steps = rotations.rotvec_to_matrix(actions[:, 3:6])  # [n, 3, 3]
-    mats = [rotations.rotvec_to_matrix(pose[3:6])]
-    for m in steps:
-        mats.append(m @ mats[-1])
-    out = np.empty((len(actions) + 1, 7))
-    out[0] = pose
-    out[1:, :3] = pose[:3] + np.cumsum(actions[:, :3], axis=0)
-    out[1:, 3:6] = rotations.matrix_to_rotvec(np.stack(mats[1:])) if len(actions) else 0.0
-    out[1:, 6] = actions[:, 6]
-    return out.astype(np.float32)
+def integrate_poses(pose: np.ndarray, actions: np.ndarray, space: ActionSpace = DELTA_EE,
+                    dt: float = 1.0) -> np.ndarray:
+    """float32 [n + 1, A]: ``pose`` and the imagined states after each of ``actions`` [n, A] (``dt`` seconds per
+    action, for velocities); the numpy twin of ``imagination_state.frame_poses``."""
+    return space.integrate(pose, actions, dt)
 
 
-def window_actions(actions: np.ndarray, ee_pose: np.ndarray, start: int, stride: int, context_frames: int,
-                   future_frames: int, pseudo: bool) -> np.ndarray:
-    """Un-normalised float32 [T, 7] actions of a window (see the module docstring)."""
+def window_actions(actions: np.ndarray, ee_pose: np.ndarray | None, start: int, stride: int, context_frames: int,
+                   future_frames: int, pseudo: bool, space: ActionSpace = DELTA_EE) -> np.ndarray:
+    """Un-normalised float32 [T, A] actions of a window (see the module docstring)."""
     idx = window_frame_indices(start, stride, context_frames, future_frames)[context_frames - 1:]
     if pseudo:
-        return pseudo_actions(ee_pose, idx, actions)
-    return np.stack([compose_actions(actions, int(t), stride) for t in idx[:-1]])
+        return space.pseudo(ee_pose, idx, actions)
+    return np.stack([compose_actions(actions, int(t), stride, space) for t in idx[:-1]])
+
+
+def window_pose(space: ActionSpace, actions: np.ndarray, ee_pose: np.ndarray | None, state: np.ndarray | None,
+                t: int, window_acts: np.ndarray, dt: float) -> np.ndarray:
+    """Un-normalised float32 [T + 1, A] pose condition of a window whose frame K-1 is episode frame ``t``."""
+    return space.integrate(space.start_state(actions, ee_pose, state, t), window_acts, dt)
 
 
 # -- episode access ---------------------------------------------------------------------------------------------
@@ -162,12 +141,12 @@ class _EpisodeReader:
 
 
 class _TrajectoryReader:
-    """Picklable, thread-safe cache of every episode's ``actions`` and ``ee_pose`` (a few kB each), for windows
-    whose frames come from the latent cache: parsing an episode's meta.json on every LRU miss cost more than the
-    rest of the window."""
+    """Picklable, thread-safe cache of every episode's ``actions``, ``ee_pose`` and ``state`` (those the store has;
+    a few kB each), for windows whose frames come from the latent cache: parsing an episode's meta.json on every LRU
+    miss cost more than the rest of the window."""
 
-    def __init__(self, root: str, episode_ids: list[str]):
-        self.root, self.episode_ids = root, list(episode_ids)
+    def __init__(self, root: str, episode_ids: list[str], fields: tuple[str, ...] = ("actions", "ee_pose")):
+        self.root, self.episode_ids, self.fields = root, list(episode_ids), tuple(fields)
         self._init_cache()
 
     def _init_cache(self):
@@ -175,7 +154,7 @@ class _TrajectoryReader:
         self._lock = threading.Lock()
 
     def __getstate__(self):
-        return {"root": self.root, "episode_ids": self.episode_ids}
+        return {"root": self.root, "episode_ids": self.episode_ids, "fields": self.fields}
 
     def __setstate__(self, state):
         self.__dict__.update(state)
@@ -186,7 +165,7 @@ class _TrajectoryReader:
         if tr is None:
             d = os.path.join(self.root, self.episode_ids[i])
             with _OPEN_LOCK:  # np.load's header parsing is not thread-safe (see _EpisodeReader.get)
-                tr = _Trajectory(np.load(os.path.join(d, "actions.npy")), np.load(os.path.join(d, "ee_pose.npy")))
+                tr = _Trajectory(**{f: np.load(os.path.join(d, f"{f}.npy")) for f in self.fields})
             with self._lock:
                 self._cache[i] = tr
         return tr
@@ -194,7 +173,8 @@ class _TrajectoryReader:
 
 class _Trajectory(NamedTuple):
     actions: np.ndarray
-    ee_pose: np.ndarray
+    ee_pose: np.ndarray | None = None
+    state: np.ndarray | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -212,10 +192,13 @@ def build_index(store: EpisodeStore, cfg) -> WindowIndex:
     views = tuple(cfg.views)
     missing = [v for v in views if v not in store.views]
     if missing:
-        raise ValueError(f"{store.root}: dataset views {store.views} lack {missing} (DataConfig.views={views})")
+        raise UserError(f"{store.root}: dataset views {store.views} lack {missing} (data.views={list(views)})")
     if tuple(store.image_size) != tuple(cfg.image_size):
-        raise ValueError(f"{store.root}: dataset image size {tuple(store.image_size)}, "
-                         f"DataConfig.image_size={tuple(cfg.image_size)}")
+        raise UserError(f"{store.root}: dataset image size {list(store.image_size)}, "
+                        f"data.image_size={list(cfg.image_size)}")
+    refusal = store.action_space.pseudo_refusal(store.has_pose) if cfg.pseudo_action_prob > 0 else None
+    if refusal:
+        raise UserError(f"{store.root}: data.pseudo_action_prob={cfg.pseudo_action_prob}, but {refusal}")
     if not cfg.strides or min(cfg.strides) < 1:
         raise ValueError(f"strides must be positive integers, got {cfg.strides}")
     span = window_span(max(cfg.strides), cfg.context_frames, cfg.future_frames)
@@ -233,8 +216,9 @@ def build_index(store: EpisodeStore, cfg) -> WindowIndex:
 class _MakeWindow:
     """random_map transform: (episode number, start) + per-sample rng -> one training window."""
 
-    def __init__(self, reader: _EpisodeReader, cfg, stats: NormStats, latents=None):
-        self.reader, self.stats, self.latents = reader, stats, latents
+    def __init__(self, reader: _EpisodeReader, cfg, stats: NormStats, latents=None, fps: float = 20.0):
+        self.reader, self.stats, self.latents, self.fps = reader, stats, latents, float(fps)
+        self.space = stats.action_space
         self.views = tuple(cfg.views)
         self.K, self.T = cfg.context_frames, cfg.future_frames
         self.strides = tuple(int(s) for s in cfg.strides)
@@ -246,8 +230,9 @@ class _MakeWindow:
         ep_num, start = int(pair[0]), int(pair[1])
         ep = self.reader.get(ep_num)
         idx = window_frame_indices(start, stride, self.K, self.T)
-        acts = window_actions(ep.actions, ep.ee_pose, start, stride, self.K, self.T, pseudo)
-        pose = integrate_poses(start_pose(ep.actions, ep.ee_pose, int(idx[self.K - 1])), acts)
+        acts = window_actions(ep.actions, ep.ee_pose, start, stride, self.K, self.T, pseudo, self.space)
+        pose = window_pose(self.space, ep.actions, ep.ee_pose, ep.state, int(idx[self.K - 1]), acts,
+                           stride / self.fps)
         out = {"actions": self.stats.normalize(acts), "pose": self.stats.normalize_pose(pose),
                "stride": np.int32(stride), "pseudo": np.bool_(pseudo), "episode": np.int32(ep_num),
                "start": np.int32(start)}
@@ -285,20 +270,25 @@ def make_dataset(cfg, store: EpisodeStore, stats: NormStats, process_index: int 
                  index: WindowIndex | None = None, latents=None) -> grain.MapDataset:
     """Infinite ``MapDataset`` of this process's local batches (``ds[i]`` = local batch i): dict with
     ``frames`` uint8 [b, V, K+T, H, W, 3] (V in cfg.views order; with ``latents``, a ``latent_cache.LatentReader``,
-    ``latents`` float16 [b, V, K+T, h, w, C] instead), ``actions`` float32 [b, T, 7] (normalised), ``pose``
-    float32 [b, T+1, 7] (normalised pose condition), ``stride`` int32 [b], ``pseudo`` bool [b], plus
-    ``episode``/``start`` int32 [b] (provenance, for debugging), where b = cfg.batch_size // process_count."""
+    ``latents`` float16 [b, V, K+T, h, w, C] instead), ``actions`` float32 [b, T, A] (normalised), ``pose``
+    float32 [b, T+1, A] (normalised pose condition), ``stride`` int32 [b], ``pseudo`` bool [b], plus
+    ``episode``/``start`` int32 [b] (provenance, for debugging), where b = cfg.batch_size // process_count.
+    ``stats`` must be in the store's action space (a fine-tune keeps its source's units, not its space)."""
+    if not stats.action_space.same_kind(store.action_space):
+        raise UserError(f"{store.root}: dataset.json declares {store.action_space.kind} "
+                        f"{store.action_space.dim}-D actions, the norm stats are of {stats.action_space.kind} "
+                        f"{stats.action_space.dim}-D ones (a world model trained on another robot)")
     if cfg.batch_size % process_count:
         raise ValueError(f"batch_size {cfg.batch_size} is not divisible by process_count {process_count}")
     if not 0 <= process_index < process_count:
         raise ValueError(f"process_index {process_index} not in [0, {process_count})")
     index = index if index is not None else build_index(store, cfg)
-    reader = (_TrajectoryReader(str(store.root), index.episode_ids) if latents is not None
+    reader = (_TrajectoryReader(str(store.root), index.episode_ids, store.array_fields()) if latents is not None
               else _EpisodeReader(str(store.root), index.episode_ids, tuple(cfg.views)))
     samples = (grain.MapDataset.source(index.pairs)
                .shuffle(seed=int(cfg.seed))
                .repeat()
-               .random_map(_MakeWindow(reader, cfg, stats, latents), seed=int(cfg.seed) + 1))
+               .random_map(_MakeWindow(reader, cfg, stats, latents, store.fps), seed=int(cfg.seed) + 1))
     local_batch = cfg.batch_size // process_count
     num_local = (len(samples) // cfg.batch_size) * local_batch
     local = (grain.MapDataset.range(num_local)

@@ -14,11 +14,12 @@ cells to fill with 0/1 (criteria as in docs/sim.md).
 from __future__ import annotations
 
 import csv
-import json
+import io
 from pathlib import Path
 
 import numpy as np
 
+from sc3_jax import atomic
 from sc3_jax.evaluate.metrics import CRITERIA
 from sc3_jax.evaluate.results import ResultsStore
 
@@ -65,18 +66,20 @@ def export_blinded(results: str | Path, out: str | Path, key_path: str | Path | 
         ic = make_initial_condition(rec["seed"], rec["task"])
         key[cid] = {"rollout": rec["id"], "objects": list(ic.objects)}
         rows += [{"clip_id": cid, "instruction": ic.prompt, "object": o} for o in ic.objects]
-    with open(out / "annotations.csv", "w", newline="") as fh:
-        w = csv.DictWriter(fh, COLUMNS)
-        w.writeheader()
-        w.writerows(rows)
-    key_path.write_text(json.dumps(key, indent=1))
+    text = io.StringIO(newline="")  # the csv module's own line ends (\r\n), as a file opened with newline=""
+    w = csv.DictWriter(text, COLUMNS)
+    w.writeheader()
+    w.writerows(rows)
+    atomic.write_text(out / "annotations.csv", text.getvalue())
+    atomic.write_json(key_path, key)
     return out / "annotations.csv", key_path
 
 
 def import_annotations(csv_path: str | Path, key_path: str | Path) -> dict[tuple[str, str], dict[str, bool]]:
     """The filled CSV -> ``{(rollout id, object): {criterion: bool}}``. Raises :class:`AnnotationError` for missing
     columns, unknown clip ids, unknown objects, duplicate or missing rows, and values other than 0/1."""
-    key = json.loads(Path(key_path).read_text())
+    key = atomic.read_json(key_path, "restore it from a copy, or export the same sweep again with the same "
+                          "seed (the same clip ids)")
     with open(csv_path, newline="") as fh:
         reader = csv.DictReader(fh)
         missing_cols = [c for c in ("clip_id", "object") + CRITERIA if c not in (reader.fieldnames or [])]

@@ -21,9 +21,9 @@ a curve whose floor moves between points would compare checkpoints on different 
 """
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
+from sc3_jax import atomic
 from sc3_jax.evaluate import intervals, report
 from sc3_jax.evaluate.results import SPLIT_ORDER, ResultsStore, seed_blocks
 
@@ -33,7 +33,7 @@ FIELDS = ("label", "store", "steps", "batch", "device", "hours")
 
 def read_spec(path: str | Path) -> dict:
     """The curve spec at ``path``, checked (every point has every field; ``store`` may start with ``~``)."""
-    spec = json.loads(Path(path).read_text())
+    spec = atomic.read_json(path, "fix the curve spec (a JSON file, see sc3_jax/evaluate/curve.py)")
     points = spec.get("points") or []
     if not points:
         raise ValueError(f"{path}: no points")
@@ -169,16 +169,18 @@ def plot(c: dict, path: Path) -> None:
         ax.legend(fontsize=7)
     fig.suptitle(c["title"], fontsize=10)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    with atomic.replacing(path) as tmp:  # the format from the target's suffix, not the temporary's
+        fig.savefig(tmp, dpi=110, format=Path(path).suffix[1:] or "png")
     plt.close(fig)
 
 
 def render(spec_path: str | Path, out: str | Path, draws: int = 2000) -> Path:
-    """Write curve.json, curve.md and curve.png to ``out``; returns curve.md."""
+    """Write curve.json, curve.md and curve.png to ``out``; returns curve.md. The three are staged and moved into
+    ``out`` together once all exist (curve.md last), so a failure or a kill leaves the previous curve as it was."""
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
     c = compute(read_spec(spec_path), draws)
-    (out / "curve.json").write_text(json.dumps(c, indent=1))
-    plot(c, out / "curve.png")
-    (out / "curve.md").write_text(markdown(c) + "\n![curve](curve.png)\n")
+    with atomic.staged(out, last=("curve.md",)) as stage:
+        atomic.write_json(stage / "curve.json", c)
+        plot(c, stage / "curve.png")
+        atomic.write_text(stage / "curve.md", markdown(c) + "\n![curve](curve.png)\n")
     return out / "curve.md"

@@ -12,11 +12,10 @@ is read against the spread of the same recipe trained with another seed (scripts
 """
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 
-from sc3_jax import modes
+from sc3_jax import atomic, modes
 from sc3_jax.errors import UserError
 from sc3_jax.evaluate.diagnose import GATES
 
@@ -75,8 +74,9 @@ def load(path: str | Path) -> tuple[str, dict]:
     if missing:
         raise FileNotFoundError(f"{path}: no {' or '.join(missing)} (run `sc3 diagnose {path} --data HELDOUT "
                                 f"--out {path}/diagnose.json` on a trained or exported world model)")
-    return label_of(path), summary(json.loads((path / "diagnose.json").read_text()),
-                                   json.loads((path / "config.json").read_text()))
+    fix = f"run `sc3 diagnose {path} --data HELDOUT --out {path}/diagnose.json` again"
+    return label_of(path), summary(atomic.read_json(path / "diagnose.json", fix),
+                                   atomic.read_json(path / "config.json", "restore it, or export the model again"))
 
 
 def _cell(key: str, value, base) -> str:

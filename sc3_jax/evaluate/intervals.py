@@ -26,6 +26,7 @@ import warnings
 
 import numpy as np
 
+from sc3_jax.errors import UserError
 from sc3_jax.evaluate import bootstrap, metrics
 from sc3_jax.evaluate.results import SPLIT_ORDER
 
@@ -134,7 +135,8 @@ def split_half(passes, counts, draws: int, seed: int) -> tuple[np.ndarray, np.nd
     """Rates [B, P, C] of the two halves of a random split of the n conditions, one split per draw."""
     n = counts.shape[1]
     if n < 2:
-        raise ValueError("split-half ceiling: need at least 2 evaluation conditions")
+        raise UserError("the split-half noise ceiling needs at least 2 evaluation conditions per policy; sweep "
+                        "more (--episodes) or a second real set (--ceiling-episodes)")
     order = np.argsort(np.random.default_rng(seed).random((draws, n)), axis=1)
     a = np.zeros((draws, n))
     np.put_along_axis(a, order[:, :n // 2], 1.0, axis=1)

@@ -21,6 +21,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from sc3_jax import atomic
 from sc3_jax.sim.convnet import dense_init, init_trunk, mlp, trunk_features
 from sc3_jax.sim.criteria import LIFT_CLEARANCE, inside_container
 from sc3_jax.sim.tasks import OBJECTS
@@ -32,6 +33,7 @@ WIDTHS = (16, 32, 32)
 HIDDEN = 256
 WIDTH_SCALE = 100.0  # the width head predicts centimetres
 DEFAULT_WEIGHTS = Path(__file__).with_name("perception.npz")
+_FIX = "train them again (`sc3 train-perception`), or restore the shipped ones with git"
 
 
 # -- labels from physics state ----------------------------------------------------------------------------------
@@ -120,15 +122,18 @@ def predict(params: dict, frames: np.ndarray, batch: int = 256) -> tuple[np.ndar
 def save(path: str | Path, params: dict, meta: dict | None = None) -> None:
     """Weights (float32) and ``meta`` (JSON), with the architecture under ``meta['arch']``."""
     flat = {"/".join(k): np.asarray(v, np.float32) for k, v in _flatten(params)}
-    np.savez_compressed(path, __meta__=json.dumps({**(meta or {}), "arch": arch(params)}), **flat)
+    path = Path(path)
+    if path.suffix != ".npz":  # the name np.savez gives it
+        path = path.with_name(path.name + ".npz")
+    atomic.save_npz(path, __meta__=json.dumps({**(meta or {}), "arch": arch(params)}), **flat)
 
 
 def load(path: str | Path = DEFAULT_WEIGHTS) -> dict:
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"perception weights {path} not found; train them with "
-                                f"`python -m sc3_jax.evaluate.perception_train --store DEMOS --out {path}`")
-    with np.load(path) as z:
+                                f"`sc3 train-perception --store DEMOS --out {path}`")
+    with atomic.open_npz(path, _FIX) as z:
         params: dict = {}
         for k in z.files:
             if k == "__meta__":
@@ -143,7 +148,7 @@ def load(path: str | Path = DEFAULT_WEIGHTS) -> dict:
 
 
 def load_meta(path: str | Path = DEFAULT_WEIGHTS) -> dict:
-    with np.load(path) as z:
+    with atomic.open_npz(path, _FIX) as z:
         return json.loads(str(z["__meta__"]))
 
 

@@ -26,6 +26,7 @@ class RealJob:
     name: str
     task: str
     seed: int
+    degradations: bool = False  # also score the frames' degraded copies (SweepConfig.degradations)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -36,7 +37,6 @@ class RealSetup:
     perception: str  # weights of the perception scorer
     max_steps: int
     score_stride: int
-    degradations: bool
 
 
 def default_workers() -> int:
@@ -63,7 +63,7 @@ class _Runner:
         s = self.setup
         rid = rollout_id(job.name, job.seed, "real")
         rec, arrays = run_real(self.env, job.name, job.task, self.policies[job.spec], job.seed, self.scorer,
-                               s.max_steps, s.score_stride, s.degradations)
+                               s.max_steps, s.score_stride, job.degradations)
         self.store.save_arrays(rid, **arrays)
         return rec
 
@@ -113,5 +113,16 @@ def run_real_jobs(jobs: list[RealJob], setup: RealSetup, workers: int, policies:
             yield job, runner(job)
         return
     ctx = mp.get_context("spawn")
-    with ctx.Pool(min(workers, len(jobs)), initializer=_init, initargs=(setup,)) as pool:
+    # the workers run MuJoCo and a small network on the CPU: on an accelerator machine they must not claim its memory
+    # (spawned processes take the environment as it is when the pool starts them)
+    before = os.environ.get("JAX_PLATFORMS")
+    os.environ["JAX_PLATFORMS"] = "cpu"
+    try:
+        pool = ctx.Pool(min(workers, len(jobs)), initializer=_init, initargs=(setup,))
+    finally:
+        if before is None:
+            os.environ.pop("JAX_PLATFORMS")
+        else:
+            os.environ["JAX_PLATFORMS"] = before
+    with pool:
         yield from zip(jobs, pool.imap(_work, jobs, chunksize=1))

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from sc3_jax import atomic
 from sc3_jax.evaluate import calibrate, intervals, metrics
 from sc3_jax.evaluate.calibrate import object_rows as _object_rows
 from sc3_jax.evaluate.merged import open_store
@@ -52,9 +53,12 @@ def _agreement(real: dict) -> dict:
     from sc3_jax.evaluate.scorers import agreement
     recs = list(real.values())
     out = {"clean": agreement([r["perception"] for r in recs], [r["objects"] for r in recs])}
-    kinds = sorted(set.intersection(*(set(r.get("perception_degraded", {})) for r in recs))) if recs else []
+    # degraded copies are read on a sample of the real rollouts (SweepConfig.degradations): each kind is scored on
+    # the rollouts that have it
+    kinds = sorted(set().union(*(r.get("perception_degraded", {}) for r in recs)))
     for k in kinds:
-        out[k] = agreement([r["perception_degraded"][k] for r in recs], [r["objects"] for r in recs])
+        have = [r for r in recs if k in r.get("perception_degraded", {})]
+        out[k] = agreement([r["perception_degraded"][k] for r in have], [r["objects"] for r in have])
     return out
 
 
@@ -322,9 +326,9 @@ def tables(t: dict) -> list[tuple[str, list[str], list[list[str]]]]:
                     [[f"not diagnosed: run `sc3 diagnose WORLD_MODEL --data HELDOUT --out {d['path']}`", "-", "-",
                       "-"]]))
     a = t["scorer_agreement"]
-    out.append(("Perception scorer vs physics on every real rollout of the sweep (evaluation, calibration and ceiling "
-                "seeds; agreement per criterion), "
-                "on clean frames and on frames degraded the way generated frames are",
+    out.append(("Perception scorer vs physics (agreement per criterion): on clean frames of every real rollout of the "
+                "sweep (evaluation, calibration and ceiling seeds), and on frames degraded the way generated frames "
+                "are, of the real rollouts the sweep read degraded (its `degradations`; 'objects' counts them)",
                 ["frames"] + list(metrics.CRITERIA) + ["outcome", "objects"],
                 [[k] + [_fmt(v[c]) for c in metrics.CRITERIA] + [_fmt(v["outcome"]), str(v["n_objects"])]
                  for k, v in a.items()]))
@@ -442,34 +446,36 @@ def side_by_side(store: ResultsStore, policy: str, seed: int, path: Path, fps: i
 
 
 def render(results: str | Path, out: str | Path, videos: int = 3, taus=None, draws: int = 2000) -> Path:
-    """Write report.md, report.html, report.json, plots and example videos to ``out``; returns report.md."""
+    """Write report.md, report.html, report.json, plots and example videos to ``out``; returns report.md. Every
+    file is written to a staging directory and moved into ``out`` only once all of them exist (report.md last), so
+    a failure (a damaged frames file, an unwritable ``out``) or a kill leaves the previous report as it was."""
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
     store = open_store(results)
     t = compute(results, taus, draws)
-    (out / "report.json").write_text(json.dumps(t, indent=1))
-    images = []
-    if t["main"]:
-        scatter(t, out / "correlation.png")
-        images.append("correlation.png")
-    if "termination" in t:
-        u_plot(store, t, out / "u_chunk.png")
-        images.append("u_chunk.png")
-    vids = []
-    for policy, _ in t["policies"]:
-        if len(vids) >= videos:
-            break
-        seed = t["config"]["seed0"]
-        name = f"{policy}_{seed}.mp4"
-        if side_by_side(store, policy, seed, out / name):
-            vids.append(name)
-    md = markdown(t)
-    md += "".join(f"\n![{i}]({i})\n" for i in images)
-    if vids:
-        md += "\n## Real | offline | online (rows: views)\n\n" + "".join(f"* [{v}]({v})\n" for v in vids)
-    elif videos:
-        md += ("\n(No videos: no policy has real, offline and online frames of its first evaluation seed in "
-               f"{store.root / 'rollouts'}; an archived store keeps only sweep.json and results.jsonl.)\n")
-    (out / "report.md").write_text(md)
-    (out / "report.html").write_text(_html(t, images, vids))
+    with atomic.staged(out, last=("report.md",)) as stage:
+        (stage / "report.json").write_text(json.dumps(t, indent=1))
+        images = []
+        if t["main"]:
+            scatter(t, stage / "correlation.png")
+            images.append("correlation.png")
+        if "termination" in t:
+            u_plot(store, t, stage / "u_chunk.png")
+            images.append("u_chunk.png")
+        vids = []
+        for policy, _ in t["policies"]:
+            if len(vids) >= videos:
+                break
+            seed = t["config"]["seed0"]
+            name = f"{policy}_{seed}.mp4"
+            if side_by_side(store, policy, seed, stage / name):
+                vids.append(name)
+        md = markdown(t)
+        md += "".join(f"\n![{i}]({i})\n" for i in images)
+        if vids:
+            md += "\n## Real | offline | online (rows: views)\n\n" + "".join(f"* [{v}]({v})\n" for v in vids)
+        elif videos:
+            md += ("\n(No videos: no policy has real, offline and online frames of its first evaluation seed in "
+                   f"{store.root / 'rollouts'}; an archived store keeps only sweep.json and results.jsonl.)\n")
+        (stage / "report.md").write_text(md)
+        (stage / "report.html").write_text(_html(t, images, vids))
     return out / "report.md"

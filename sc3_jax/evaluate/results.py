@@ -118,34 +118,17 @@ class ResultsStore:
     def records(self) -> list[dict]:
         """Every complete line (a line cut by a kill, or still being written by a running sweep, is left out).
         Reading never writes: a report or another sweep may read a store while its sweep runs."""
-        if not self.path.exists():
-            return []
-        raw = self.path.read_bytes()
-        out = []
-        for i, line in enumerate(raw[:raw.rfind(b"\n") + 1].split(b"\n"), 1):
-            if not line.strip():
-                continue
-            try:
-                rec = json.loads(line)
-                problem = None if isinstance(rec, dict) else "not a JSON object"
-            except ValueError as e:  # JSON, or bytes that are not UTF-8
-                problem = getattr(e, "msg", "not UTF-8 text")
-            if problem:
-                raise UserError(f"{self.path}:{i}: not a rollout record ({problem}); delete that line (resuming the "
-                                "sweep runs its rollout again) or restore the file")
-            out.append(rec)
-        return out
+        return atomic.read_jsonl(self.path, "a rollout record", "delete that line (resuming the sweep runs its "
+                                 "rollout again) or restore the file")
 
     def _repair(self):
-        """Drop a line cut by a kill, before this store's own sweep appends to it: the complete lines go to a new
-        file renamed over the old one, so a kill during the repair loses nothing."""
-        if self.path.exists():
-            raw = self.path.read_bytes()
-            if raw and not raw.endswith(b"\n"):
-                keep = raw[:raw.rfind(b"\n") + 1]
-                atomic.write_bytes(self.path, keep)
-                print(f"{self.path}: dropped its last line, cut by a kill ({len(raw) - len(keep)} bytes); its rollout "
-                      "runs again", file=sys.stderr)
+        """Before this store's own sweep appends to it: drop a line cut by a kill (atomic.drop_cut_line: nothing is
+        lost if this is killed too) and the temporaries killed writers left in the store."""
+        dropped = atomic.drop_cut_line(self.path)
+        if dropped:
+            print(f"{self.path}: dropped its last line, cut by a kill ({dropped} bytes); its rollout runs again",
+                  file=sys.stderr)
+        atomic.remove_stale(self.root, recursive=True)
 
     def done(self) -> set[str]:
         return {r["id"] for r in self.records()}

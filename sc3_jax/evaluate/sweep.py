@@ -48,65 +48,85 @@ STATE_READER_FILE = "state_reader.npz"
 
 @dataclasses.dataclass(frozen=True)
 class SweepConfig:
+    """Evaluate policies in the simulator and inside the world model; resumable (rerun the same command). Ends with
+    OUT/report/report.md. Every field is an option of `sc3 sweep` (--field-name VALUE)."""
+
     out: str = "runs/sweep"
-    world_model: str = str(SHIPPED_WORLD_MODEL)  # a training run dir (checkpoints/) or an exported dir (params.npz)
-    perception: str | None = None  # perception weights (None: the shipped ones)
-    # perception weights whose finger-gap head reads the gripper state the policy sees inside imagined rollouts
-    # (None: the world model's own state_reader.npz if it ships one, else the scorer's). Part of the rollouts, not
-    # of their scoring: `sc3 rescore` leaves it as it was
+    """the results store: results.jsonl, rollouts/, sweep.json, timing.json and report/ (rerun to resume)"""
+    world_model: str = str(SHIPPED_WORLD_MODEL)
+    """a training run dir (checkpoints/) or an exported dir (params.npz)"""
+    perception: str | None = None
+    """perception weights (None: the shipped ones)"""
     state_reader: str | None = None
-    # policies/resolve.py spellings with a task: zoo names, NAME=ws://HOST:PORT@TASK (openpi server),
-    # NAME=package.module:attr@TASK, ...; () = the zoo policies of `tasks`
+    """perception weights whose finger-gap head reads the gripper state the policy sees inside imagined rollouts
+    (None: the world model's own state_reader.npz if it ships one, else the scorer's). Part of the rollouts, not
+    of their scoring: `sc3 rescore` leaves it as it was"""
     policies: tuple[str, ...] = ()
-    # with no --policies: the zoo's policies of these tasks ("bussing": in distribution, "reverse": out of
-    # distribution). The quick protocol sweeps the in-distribution split only: on 2 cores its budget buys enough
-    # conditions to tell a model from a guess there, or too few for anything on both splits. None: every task (how
-    # stores written before this field read)
+    """policies/resolve.py spellings with a task: zoo names, NAME=ws://HOST:PORT@TASK (openpi server),
+    NAME=package.module:attr@TASK, ...; () = the zoo policies of `tasks`"""
     tasks: tuple[str, ...] | None = ("bussing",)
-    # the quick protocol by default: the 7 in-distribution policies x 18 evaluation + 3 calibration + 18 ceiling
-    # conditions, real and online (docs/sweep.md#the-quick-protocol: the fewest conditions at which the shipped
-    # model's paired difference to the policy-blind floor excludes 0 on r and MMRV). The full protocol: --tasks
-    # bussing reverse --episodes 36 --calibration-episodes 6 --ceiling-episodes 36 (--modes real offline online)
-    episodes: int = 18  # evaluation initial conditions per policy (simulator seeds seed0 + i)
+    """with no --policies: the zoo's policies of these tasks ("bussing": in distribution, "reverse": out of
+    distribution). The quick protocol sweeps the in-distribution split only: on 2 cores its budget buys enough
+    conditions to tell a model from a guess there, or too few for anything on both splits. None: every task (how
+    stores written before this field read)"""
+    episodes: int = 18
+    """evaluation initial conditions per policy (simulator seeds seed0 + i). The defaults are the quick protocol:
+    the 7 in-distribution policies x 18 evaluation + 3 calibration + 18 ceiling conditions, real and online
+    (docs/sweep.md#the-quick-protocol: the fewest conditions at which the shipped model's paired difference to
+    the policy-blind floor excludes 0 on r and MMRV). The full protocol: --tasks bussing reverse --episodes 36
+    --calibration-episodes 6 --ceiling-episodes 36 (--modes real offline online)"""
     seed0: int = 10_000_000
-    calibration_episodes: int = 3  # held-out conditions per policy for choosing tau (real + online; never evaluated)
-    calibration_seed0: int = 20_000_000  # first calibration seed (disjoint from every other block)
-    ceiling_episodes: int = 18  # second independent real set per policy, the noise ceiling (0: split-half estimate)
-    ceiling_seed0: int = 30_000_000  # first ceiling seed
-    # evaluation modes (results.EVAL_MODES); offline replay (PSNR, open-loop faithfulness) is not in the quick
-    # protocol: it would cost as much again as online
+    """first evaluation seed (the simulator's initial condition)"""
+    calibration_episodes: int = 3
+    """held-out conditions per policy for choosing tau (real + online; never evaluated)"""
+    calibration_seed0: int = 20_000_000
+    """first calibration seed (disjoint from every other block)"""
+    ceiling_episodes: int = 18
+    """second independent real set per policy, the noise ceiling (0: split-half estimate)"""
+    ceiling_seed0: int = 30_000_000
+    """first ceiling seed"""
     modes: tuple[str, ...] = ("real", "online")
-    # candidate U_chunk thresholds (the calibration picks one; the report's post-hoc table lists them all). In raw
-    # units (m, rad, gripper m) the paper's 0.02-0.05 is in the range our models' U takes; in normalised units
-    # (per-dimension unit variance) it would stop every rollout at once
+    """evaluation modes (results.EVAL_MODES); offline replay (PSNR, open-loop faithfulness) is not in the quick
+    protocol: it would cost as much again as online"""
     taus: tuple[float, ...] = (math.inf, 0.1, 0.07, 0.05, 0.02, 0.01)
-    # U_chunk's units: written into the world model's rollout.tau_units, so the sweep, the report and `sc3 rollout`
-    # with the same config share one convention ("raw" or "normalised")
+    """candidate U_chunk thresholds (the calibration picks one; the report's post-hoc table lists them all). In raw
+    units (m, rad, gripper m) the paper's 0.02-0.05 is in the range our models' U takes; in normalised units
+    (per-dimension unit variance) it would stop every rollout at once"""
     tau_units: str = "raw"
-    batch: int = 6  # initial conditions per world-model batch (the resume unit for offline/online)
+    """U_chunk's units: written into the world model's rollout.tau_units, so the sweep, the report and `sc3
+    rollout` with the same config share one convention ("raw" or "normalised")"""
+    batch: int = 6
+    """initial conditions per world-model batch (the resume unit for offline/online)"""
     rollout_seed: int = 0
-    degradations: bool = True  # also score real frames blurred / patch-noised / colour-shifted (scorer robustness)
-    # real and imagined horizon (None: the world model's rollout config). 12 s: a successful zoo episode takes 6.5-7.5 s,
-    # a failing one retries until the limit; 12 s keeps every success and costs 60% of the 20 s default
+    """seed of the world model's sampling noise (every episode's key is folded in from it)"""
+    degradations: str = "calibration"
+    """which real rollouts the perception scorer also reads blurred / patch-noised / colour-shifted (its robustness
+    to generated-looking frames: the report's "Perception scorer vs physics"): "calibration" (the calibration
+    conditions' only), "all" or "none". Each degraded reading costs as much as the clean one: on every real
+    rollout they were half of the real rollouts' time (bench/sweep.py), while the check needs only a sample of
+    objects. Stores written before this choice hold a boolean: true reads as "all", false as "none"."""
     episode_seconds: float | None = 12.0
-    # forward-dynamics Euler steps (None: the world model's config). 2 instead of the shipped model's 8 costs a third
-    # of the time per chunk at equal faithfulness: on 7 in-distribution policies x 12 conditions, paired against 8
-    # steps, r -0.016 [-0.078, +0.051], MMRV +0.011 [-0.065, +0.123] (docs/sweep.md#sampler-steps)
+    """real and imagined horizon (None: the world model's rollout config). 12 s: a successful zoo episode takes
+    6.5-7.5 s, a failing one retries until the limit; 12 s keeps every success and costs 60% of the 20 s default"""
     sample_steps: int | None = 2
-    # Euler steps of the inverse-dynamics re-read (None: the world model's config). It yields U_chunk only, never the
-    # frames or the outcomes; U read in 1 step correlates with U read in 8 at Pearson 0.981 (docs/sweep.md), and tau
-    # is calibrated on U read the same way
+    """forward-dynamics Euler steps (None: the world model's config). 2 instead of the shipped model's 8 costs a
+    third of the time per chunk at equal faithfulness: on 7 in-distribution policies x 12 conditions, paired
+    against 8 steps, r -0.016 [-0.078, +0.051], MMRV +0.011 [-0.065, +0.123] (docs/sweep.md#sampler-steps)"""
     inverse_steps: int | None = 1
-    # start from another store's real rollouts (hard links; same protocol and scorer): world models compared on one
-    # real set, which is paid for once (e.g. the checkpoints of a compute curve, docs/results.md)
+    """Euler steps of the inverse-dynamics re-read (None: the world model's config). It yields U_chunk only, never
+    the frames or the outcomes; U read in 1 step correlates with U read in 8 at Pearson 0.981 (docs/sweep.md),
+    and tau is calibrated on U read the same way"""
     real_from: str | None = None
-    # run a disjoint share "I/N" of the (policy, initial-condition batch) work into OUT/shard-I-of-N (None: all of
-    # it; under jax.distributed with several processes, the process's own share). `sc3 report OUT` reads the shards
-    # of OUT as one store; merged shards hold exactly the records of one unsharded sweep
+    """start from another store's real rollouts (hard links; same protocol and scorer): world models compared on
+    one real set, which is paid for once (e.g. the checkpoints of a compute curve, docs/results.md)"""
     shard: str | None = None
-    # processes running the real (simulated) rollouts (0: one per core); records do not depend on it
+    """run a disjoint share "I/N" of the (policy, initial-condition batch) work into OUT/shard-I-of-N (None: all of
+    it; under jax.distributed with several processes, the process's own share). `sc3 report OUT` reads the
+    shards of OUT as one store; merged shards hold exactly the records of one unsharded sweep"""
     workers: int = 0
-    progress: bool = True  # progress bar over rollouts
+    """processes running the real (simulated) rollouts (0: one per core); records do not depend on it"""
+    progress: bool = True
+    """progress bar over rollouts"""
 
     def to_json(self) -> dict:
         d = dataclasses.asdict(self)
@@ -142,15 +162,16 @@ def run_sweep(cfg: SweepConfig) -> Path:
     from sc3_jax.policies.base import JaxPolicy
     from sc3_jax.sim.policy_eval import make_env
 
+    cfg = dataclasses.replace(cfg, degradations=degradations_choice(cfg.degradations))
     bad = [m for m in cfg.modes if m not in EVAL_MODES]
     if bad or not cfg.modes:
-        raise ValueError(f"modes {list(cfg.modes)}: choose from {list(EVAL_MODES)}")
+        raise UserError(f"modes {list(cfg.modes)}: choose from {list(EVAL_MODES)}")
     if "offline" in cfg.modes and "real" not in cfg.modes:
-        raise ValueError("offline rollouts replay the real rollouts' actions: include 'real' in modes")
+        raise UserError("offline rollouts replay the real rollouts' actions: include 'real' in modes")
     if cfg.tau_units not in ("normalised", "raw"):
-        raise ValueError(f"tau_units {cfg.tau_units!r}: 'normalised' or 'raw'")
+        raise UserError(f"tau_units {cfg.tau_units!r}: 'normalised' or 'raw'")
     if cfg.real_from and ("real" not in cfg.modes or not cfg.episode_seconds):
-        raise ValueError("--real-from copies real rollouts: it needs 'real' in modes and an explicit "
+        raise UserError("--real-from copies real rollouts: it needs 'real' in modes and an explicit "
                          "--episode-seconds (the length both stores' real rollouts ran for)")
     cfg = dataclasses.replace(cfg, state_reader=default_state_reader(cfg), shard=shard_of(cfg))
     index, count = parse_shard(cfg.shard)
@@ -166,12 +187,8 @@ def run_sweep(cfg: SweepConfig) -> Path:
     ro = params = None
     if wm_modes:
         wcfg, stats, params = checkpoint.load(cfg.world_model)
-        from sc3_jax.config import replace
-        wcfg = replace(wcfg, sample={k: v for k, v in (("steps", cfg.sample_steps),
-                                                       ("inverse_steps", cfg.inverse_steps)) if v})
-        if cfg.episode_seconds:
-            wcfg = replace(wcfg, rollout=dict(episode_seconds=cfg.episode_seconds))
-        wcfg = replace(wcfg, rollout=dict(tau_units=cfg.tau_units))  # one unit convention
+        from sc3_jax.evaluate.world_model_defaults import evaluation_config
+        wcfg = evaluation_config(wcfg, cfg)  # the one set of evaluation settings (sc3 rollout / diagnose too)
         reader = perception.load(cfg.state_reader) if cfg.state_reader else p_params
         # a shard's batches run on its own process's devices: under jax.distributed every process runs a different
         # share, so a mesh over every host's devices would wait for programs the other processes never start
@@ -185,6 +202,7 @@ def run_sweep(cfg: SweepConfig) -> Path:
     max_steps = int(round(seconds * env.control_hz))
     units = work_units(len(policies), blocks, cfg.modes, cfg.batch)[index::count]
     real_seeds = sorted({(u.policy, s) for u in units if u.real for s in u.seeds})
+    degrade = {s for u in units if degraded_block(cfg.degradations, u.block) for s in u.seeds}
     # a refused --real-from source is refused before the store is created or written
     copies = real_to_copy(cfg.real_from, config, {n: t for n, t, _ in policies},
                           [(policies[p][0], s) for p, s in real_seeds], image_size, score_stride,
@@ -196,9 +214,9 @@ def run_sweep(cfg: SweepConfig) -> Path:
     bar = tqdm(total=total, initial=len(done), desc="sweep", unit="rollout", disable=not cfg.progress)
     timing = {"real": 0.0, "offline": 0.0, "online": 0.0}
     count_run = {"real": 0, "offline": 0, "online": 0}
-    jobs = [RealJob(specs[p], *policies[p][:2], s) for p, s in real_seeds
+    jobs = [RealJob(specs[p], *policies[p][:2], s, s in degrade) for p, s in real_seeds
             if rollout_id(policies[p][0], s, "real") not in done]
-    setup = RealSetup(str(store.root), image_size, weights, max_steps, score_stride, cfg.degradations)
+    setup = RealSetup(str(store.root), image_size, weights, max_steps, score_stride)
     t0 = time.time()
     for job, rec in run_real_jobs(jobs, setup, cfg.workers or default_workers(),
                                   {specs[p]: policies[p][2] for p in range(len(specs))}, env, scorer):
@@ -240,6 +258,22 @@ class Unit:
     seeds: tuple[int, ...]
     real: bool
     modes: tuple[tuple[str, int], ...]  # (world-model mode, fold-in offset of its episode keys)
+
+
+DEGRADATIONS = ("calibration", "all", "none")
+
+
+def degradations_choice(value) -> str:
+    """SweepConfig.degradations, with a store's legacy boolean read as it was meant (true: every real rollout)."""
+    value = {True: "all", False: "none"}.get(value, value) if isinstance(value, bool) else value
+    if value not in DEGRADATIONS:
+        raise UserError(f"--degradations {value!r}: choose from {', '.join(DEGRADATIONS)}")
+    return value
+
+
+def degraded_block(choice: str, block: str) -> bool:
+    """Whether the real rollouts of seed ``block`` are also scored on degraded frames."""
+    return choice == "all" or (choice == "calibration" and block == "calibration")
 
 
 # world-model modes per seed block, and the offset of the block's episode keys (blocks never share noise)
@@ -314,12 +348,13 @@ def real_to_copy(source: str | Path, config: dict, tasks: dict[str, str], pairs:
         return []  # nothing left to copy: the source is not read (it may have moved since)
     src = ResultsStore(source)
     if not (src.root / "sweep.json").exists():
-        raise ValueError(f"--real-from {source}: not a results store (no sweep.json)")
+        raise UserError(f"--real-from {source}: not a results store (no sweep.json)")
     theirs = src.config()
     keys = ("episode_seconds", "degradations", "perception_sha256")
+    theirs = dict(theirs, degradations=degradations_choice(theirs.get("degradations", True)))
     diff = {k: (theirs.get(k), config.get(k)) for k in keys if theirs.get(k) != config.get(k)}
     if diff:
-        raise ValueError(f"--real-from {source}: its real rollouts were run or scored otherwise (source, this "
+        raise UserError(f"--real-from {source}: its real rollouts were run or scored otherwise (source, this "
                          f"sweep): {diff}")
     every = src.records()
     recs = [r for r in every if r["id"] in want]
@@ -331,20 +366,29 @@ def real_to_copy(source: str | Path, config: dict, tasks: dict[str, str], pairs:
                                           if strides[r["id"]] != score_stride})):
         if bad:
             rid = next(iter(bad))
-            raise ValueError(f"--real-from {source}: {len(bad)} real rollouts differ in {what} from this sweep's "
+            raise UserError(f"--real-from {source}: {len(bad)} real rollouts differ in {what} from this sweep's "
                              f"(e.g. {rid}: {bad[rid]})")
+    if not src.array_path(recs[0]["id"]).exists():
+        # a records-only store (e.g. an archived one, docs/stores/): its outcomes serve online evaluation; offline
+        # replay needs the real actions, videos and `sc3 rescore` the frames
+        if "offline" in config.get("modes", ()):
+            raise UserError(f"--real-from {source}: it holds records without their arrays, and offline replay "
+                            "needs the real rollouts' actions: drop 'offline' from --modes")
+        return recs
     with np.load(src.array_path(recs[0]["id"])) as z:
         size = tuple(z["frames"].shape[-3:-1])
     if size != tuple(image_size):
-        raise ValueError(f"--real-from {source}: its frames are {size}, this world model's {tuple(image_size)}")
+        raise UserError(f"--real-from {source}: its frames are {size}, this world model's {tuple(image_size)}")
     return recs
 
 
 def link_real(store: ResultsStore, source: str | Path, recs: list[dict]) -> None:
     """Hard-link the arrays of ``recs`` (records of the store ``source``, from :func:`real_to_copy`) into
-    ``store`` and append the records."""
+    ``store``, where the source has them, and append the records."""
     src = ResultsStore(source) if recs else None
     for r in recs:
+        if not src.array_path(r["id"]).exists():
+            continue  # a records-only source (real_to_copy): the record is what is copied
         dst = store.array_path(r["id"])
         dst.parent.mkdir(parents=True, exist_ok=True)
         if dst.exists():
@@ -362,9 +406,14 @@ def link_real(store: ResultsStore, source: str | Path, recs: list[dict]) -> None
 def _resolve(spec: str):
     """(name, task, policy) of a sweep policy: any spelling of ``policies.resolve``, with a task."""
     from sc3_jax.policies.resolve import TASKS, resolve
-    r = resolve(spec)
+    try:
+        r = resolve(spec)
+    except UserError:
+        raise
+    except ValueError as e:  # an unknown name or a malformed spelling: the user's to fix
+        raise UserError(f"--policies {spec!r}: {e}") from None
     if r.task is None:
-        raise ValueError(f"policy {spec!r}: the sweep needs its task; expected NAME=SPEC@TASK (e.g. "
+        raise UserError(f"policy {spec!r}: the sweep needs its task; expected NAME=SPEC@TASK (e.g. "
                          f"NAME=ws://HOST:PORT@TASK) with TASK in {list(TASKS)}")
     return r.name, r.task, r.policy
 

@@ -20,7 +20,6 @@ Parameters are a plain dict of arrays (``init``); ``encode`` / ``decode`` are pu
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 from pathlib import Path
 
@@ -28,23 +27,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-
-@dataclasses.dataclass(frozen=True)
-class AEConfig:
-    latent_channels: int = 16
-    downsample: int = 4  # 2 ** k; image size must be a multiple of it
-    width: int = 128  # channels at the latent resolution
-    mid_width: int = 64  # channels at every intermediate resolution
-    out_width: int = 32  # channels of the last full-resolution convolution
-    blocks: int = 2  # residual blocks at the latent resolution (encoder and decoder each)
-
-    def __post_init__(self):
-        if self.downsample < 2 or self.downsample & (self.downsample - 1):
-            raise ValueError(f"downsample must be a power of two >= 2, got {self.downsample}")
-
-    @property
-    def levels(self) -> int:
-        return int(math.log2(self.downsample))
+from sc3_jax.tokenizer_config import AEConfig  # the architecture; ae.AEConfig for callers
 
 
 # -- layers -------------------------------------------------------------------------------------------------------
@@ -187,12 +170,9 @@ def save(directory: str | Path, cfg: AEConfig, image_size, params: dict, stats: 
     flat = {k: v.astype(dtype) for k, v in _flatten(params).items()}
     flat["stats/mean"] = np.asarray(stats["mean"], np.float32)
     flat["stats/std"] = np.asarray(stats["std"], np.float32)
-    tmp = d / ".ae_params.tmp.npz"
-    np.savez(tmp, **flat)
-    tmp.replace(d / "ae_params.npz")
-    meta = {"config": dataclasses.asdict(cfg), "image_size": list(image_size)}
-    (d / ".ae.json.tmp").write_text(json.dumps(meta, indent=1))
-    (d / ".ae.json.tmp").replace(d / "ae.json")
+    from sc3_jax import atomic  # ae.json last: a directory with it holds whole params
+    atomic.save_npz(d / "ae_params.npz", compressed=False, **flat)
+    atomic.write_json(d / "ae.json", {"config": dataclasses.asdict(cfg), "image_size": list(image_size)})
 
 
 def load(directory: str | Path) -> tuple[AEConfig, tuple[int, int], dict, dict]:
@@ -201,9 +181,10 @@ def load(directory: str | Path) -> tuple[AEConfig, tuple[int, int], dict, dict]:
     d = Path(directory)
     if not (d / "ae.json").exists():
         raise FileNotFoundError(f"{d}: no ae.json (train one with `sc3 train-tokenizer`)")
-    meta = json.loads((d / "ae.json").read_text())
+    from sc3_jax import atomic
+    meta = atomic.read_json(d / "ae.json", "train the tokenizer again (`sc3 train-tokenizer`)")
     cfg = AEConfig(**meta["config"])
-    with np.load(d / "ae_params.npz") as z:
+    with atomic.open_npz(d / "ae_params.npz", "train the tokenizer again (`sc3 train-tokenizer`)") as z:
         flat = {k: z[k] for k in z.files}
     like = jax.eval_shape(lambda: init(cfg, jax.random.key(0)))
     params = _unflatten(flat, like)

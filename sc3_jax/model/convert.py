@@ -26,6 +26,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from sc3_jax import atomic
 from sc3_jax.config import ModelConfig
 from sc3_jax.model import dit
 from sc3_jax.model.shapes import check_shapes
@@ -289,9 +290,10 @@ def save_diffusers(cfg: ModelConfig, params: dict, path: str, dtype=None, extra_
 
     os.makedirs(path, exist_ok=True)
     sd = state_dict_from_params(cfg, params, dtype)
-    save_file(sd, os.path.join(path, WEIGHTS_NAME), metadata={"format": "pt"})
+    with atomic.replacing(os.path.join(path, WEIGHTS_NAME)) as tmp:
+        save_file(sd, str(tmp), metadata={"format": "pt"})
     conf = config_to_diffusers(cfg)
     conf.update(extra_config or {})
-    with open(os.path.join(path, CONFIG_NAME), "w") as f:
-        json.dump(conf, f, indent=2)
+    # config.json last: from_pretrained reads a directory with one as complete
+    atomic.write_text(os.path.join(path, CONFIG_NAME), json.dumps(conf, indent=2))
     return path

@@ -2,9 +2,13 @@
 
 An observation is a dict of arrays (one sample, no batch axis):
     "images": uint8   [V, H, W, 3]  the views in dataset order (third-person views first, wrist last)
-    "state":  float32 [S]           proprioception; for our benchmarks the end-effector pose (x, y, z, rotvec, gripper)
+    "state":  float32 [S]           proprioception; inside a world model the imagined state, in the action's space
+                                    (``data/action_space.py``): for our benchmarks the end-effector pose (x, y, z,
+                                    rotvec, gripper), for absolute joint targets the last targets
     "task":   int32   []            task id (0 = bussing, 1 = reverse bussing, ...); the host-side prompt maps to it
-A policy returns an action chunk float32 [chunk, 7] of raw (unnormalised) delta end-effector actions.
+A policy returns an action chunk float32 [chunk, action_dim] of raw (unnormalised) actions in the robot's action space
+(for our benchmarks 7-D delta end-effector actions). ``check_dims`` compares what a policy declares with what a world
+model takes, before anything compiles.
 
 Two kinds:
   * ``JaxPolicy``: ``apply(params, obs, rng) -> actions``, a pure function, so it can run inside ``lax.scan``
@@ -21,6 +25,8 @@ from typing import Any, Callable, Protocol, runtime_checkable
 import jax
 import numpy as np
 
+from sc3_jax.errors import UserError
+
 
 @dataclasses.dataclass(frozen=True)
 class JaxPolicy:
@@ -29,6 +35,7 @@ class JaxPolicy:
     params: Any
     chunk: int = 25
     action_dim: int = 7
+    state_dim: int | None = None  # the observation state it reads (None: says nothing)
 
     def __call__(self, obs: dict, rng: jax.Array) -> jax.Array:
         return self.apply(self.params, obs, rng)
@@ -47,6 +54,7 @@ class JaxAsHost:
 
     def __init__(self, policy: JaxPolicy, rng: jax.Array | None = None):
         self.policy, self.chunk = policy, policy.chunk
+        self.action_dim, self.state_dim = policy.action_dim, policy.state_dim
         self._apply = jax.jit(policy.apply)
         self._rng = rng if rng is not None else jax.random.key(0)
 
@@ -58,3 +66,14 @@ class JaxAsHost:
 
 def as_host(policy: JaxPolicy, rng: jax.Array | None = None) -> JaxAsHost:
     return JaxAsHost(policy, rng)
+
+
+def check_dims(policy, action_dim: int, state_dim: int | None = None, name: str | None = None,
+               who: str = "the world model") -> None:
+    """One-line UserError when ``policy`` declares (``action_dim`` / ``state_dim`` attributes) other dimensions
+    than ``who`` takes. A policy that declares nothing passes; its chunks are checked when they arrive."""
+    name = name or getattr(policy, "name", None) or type(policy).__name__
+    for kind, want in (("action", action_dim), ("state", state_dim)):
+        got = getattr(policy, f"{kind}_dim", None)
+        if want is not None and got is not None and int(got) != int(want):
+            raise UserError(f"policy {name!r} has {got}-D {kind}s ({kind}_dim), {who} has {want}-D {kind}s")

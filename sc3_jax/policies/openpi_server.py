@@ -1,5 +1,6 @@
 """The server side of openpi's policy-server WebSocket protocol (see ``openpi_client.py`` for the wire format):
-serve one of our policies so that openpi clients, or ours, can query it. ``sc3 serve-policy`` is ``serve_cli.py``.
+serve one of our policies so that openpi clients, or ours, can query it. ``sc3 serve-policy`` is
+``commands/serve_policy.py``.
 """
 from __future__ import annotations
 

@@ -64,13 +64,8 @@ def write_episodes(out: str | Path, n_episodes: int, seed: int, runner, source: 
             skipped += 1
             continue
         r = runner(env, sim_seed, task)
-        meta = {"task": task, "sim_seed": sim_seed, **source,
-                "initial_condition": r.ic.to_json(), "control_hz": control_hz,
-                "labels": {"objects": [o.to_json() for o in r.outcomes],
-                           "success": success_rates(r.outcomes)},
-                "intent": {k: np.round(v, 5).tolist() for k, v in (r.intents or {}).items()},
-                "object_pos": np.round(r.object_pos, 4).tolist()}
-        store.write(Episode(eid, r.frames, r.actions, r.ee_pose, r.ic.prompt, meta))
+        store.write(Episode(eid, r.frames, r.actions, r.ee_pose, r.ic.prompt,
+                            episode_meta(r, task, sim_seed, source, control_hz)))
         outcomes += r.outcomes
         written += 1
         steps += r.length
@@ -79,6 +74,17 @@ def write_episodes(out: str | Path, n_episodes: int, seed: int, runner, source: 
     return {"out": str(out), "written": written, "skipped": skipped, "steps": steps, "seconds": dt,
             "demos_per_hour": written / dt * 3600 if written and dt > 0 else None,
             "success": success_rates(outcomes) if outcomes else None}
+
+
+def episode_meta(r, task: str, sim_seed: int, source: dict, control_hz: int) -> dict:
+    """An episode's ``meta``: what generated it (``source``), its initial condition, ground-truth labels, the expert's
+    intent (expert episodes) and the objects' positions per frame."""
+    return {"task": task, "sim_seed": sim_seed, **source,
+            "initial_condition": r.ic.to_json(), "control_hz": control_hz,
+            "labels": {"objects": [o.to_json() for o in r.outcomes],
+                       "success": success_rates(r.outcomes)},
+            "intent": {k: np.round(v, 5).tolist() for k, v in (r.intents or {}).items()},
+            "object_pos": np.round(r.object_pos, 4).tolist()}
 
 
 def _expert_runner(knobs: ExpertKnobs):
@@ -95,9 +101,9 @@ def _policy_runner(name: str):
 
 def store_contents(*roots: str | Path) -> dict:
     """What an episode store holds, read from each episode's ``meta.json`` (no frames loaded): episodes per task and
-    per source (expert knobs / zoo policy), and how many of each episode's objects were carried into the *other*
-    container (ground-truth language failures). An episode with every object in the other container is a
-    reverse-bussing episode in all but name; ``all_objects_swapped`` counts them."""
+    per source (a mixture's data-collection source, expert knobs or zoo policy), and how many of each episode's
+    objects were carried into the *other* container (ground-truth language failures). An episode with every object
+    in the other container is a reverse-bussing episode in all but name; ``all_objects_swapped`` counts them."""
     import collections
     import json
     tasks, sources, swapped, n_obj = collections.Counter(), collections.Counter(), collections.Counter(), 0
@@ -108,8 +114,9 @@ def store_contents(*roots: str | Path) -> dict:
                 continue
             m = json.loads((d / "meta.json").read_text())
             tasks[m.get("task", "?")] += 1
-            src = m.get("policy") or ",".join(f"{k}={v}" for k, v in sorted((m.get("knobs") or {}).items())
-                                              if v and k != "never_swap_all") or "clean expert"
+            src = m.get("source") or m.get("policy") or ",".join(
+                f"{k}={v}" for k, v in sorted((m.get("knobs") or {}).items()) if v and k != "never_swap_all"
+            ) or "clean expert"
             sources[src] += 1
             objs = m["labels"]["objects"]
             w = sum(not o["language"] for o in objs)

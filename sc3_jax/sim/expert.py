@@ -232,11 +232,14 @@ def finish(env: BussingEnv, traj: list[np.ndarray]) -> list[ObjectOutcome]:
 
 
 def run_expert_episode(env: BussingEnv, seed: int, task: str = "bussing", knobs: ExpertKnobs = ExpertKnobs(),
-                       record: bool = True, max_steps: int | None = None) -> EpisodeResult:
-    """Reset ``env`` to ``(seed, task)`` and let the expert bus it. Frame t is observed before action t."""
+                       record: bool = True, max_steps: int | None = None,
+                       expert: ScriptedExpert | None = None) -> EpisodeResult:
+    """Reset ``env`` to ``(seed, task)`` and let the expert bus it. Frame t is observed before action t.
+    ``expert``: another expert of the same interface (``sim/mixture.py``'s data-collection variants) in place of
+    ``ScriptedExpert(knobs, seed)``."""
     max_steps = max_steps or MAX_STEPS_20HZ * env.control_hz // 20
     env.reset(seed, task)
-    expert = ScriptedExpert(knobs, seed)
+    expert = expert if expert is not None else ScriptedExpert(knobs, seed)
     expert.reset(env)
     frames = {v: [] for v in env.views} if record else None
     actions, poses, traj = [], [], [env.object_positions()]

@@ -1,10 +1,8 @@
 """Measurements quoted in docs/sim.md: render time, demos/hour, share of pixels that change per view, expert success
-per task and per knob. ``python -m sc3_jax.sim.measure [--episodes N]`` prints one JSON object.
+per task and per knob. ``sc3 sim measure [--episodes N]`` prints them (``measure_all``) and says what each means.
 """
 from __future__ import annotations
 
-import argparse
-import json
 import tempfile
 import time
 
@@ -76,17 +74,11 @@ def expert_rates(episodes: int = 20) -> dict:
     return res
 
 
-def main(argv: list[str] | None = None) -> None:
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--episodes", type=int, default=20)
-    a = ap.parse_args(argv)
+def measure_all(episodes: int = 20) -> dict:
+    """Every measurement above, as quoted in docs/sim.md; ``episodes`` per expert task and per knob."""
     res = {"render_ms_per_3view_frame_64x64": render_ms((64, 64), 200)}
     res["render_ms_per_3view_frame_480x640"] = render_ms((480, 640), 30)
     res["changed_pixel_fraction"] = changed_pixel_fraction()
     res.update(demos_per_hour())
-    res.update(expert_rates(a.episodes))
-    print(json.dumps(res, indent=1))
-
-
-if __name__ == "__main__":
-    main()
+    res.update(expert_rates(episodes))
+    return res

@@ -16,6 +16,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
+from .. import atomic
 from ..policies.base import JaxAsHost, JaxPolicy, as_host
 from ..video import write_mp4
 from .criteria import ObjectOutcome, inside_container, success_rates
@@ -113,10 +114,9 @@ def evaluate_policy(policy, task: str = "bussing", episodes: int = 36, out: str 
     summary = {"policy": name, "task": task, "episodes": episodes, "seed0": seed0,
                "success": success_rates(all_outcomes), "seconds": time.time() - t0}
     if out is not None:
-        with open(out / "episodes.jsonl", "w") as fh:
-            for row in rows:
-                fh.write(json.dumps(row) + "\n")
-        (out / "summary.json").write_text(json.dumps(summary, indent=1))
+        # summary.json last: evaluate_zoo reads a policy with one as done
+        atomic.write_text(out / "episodes.jsonl", "".join(json.dumps(row) + "\n" for row in rows))
+        atomic.write_json(out / "summary.json", summary)
     return summary
 
 
@@ -131,7 +131,7 @@ def evaluate_zoo(out: str | Path, episodes: int = 36, videos: bool = True, names
     rows, rates = [], {}
     for name in names or list(ZOO):
         done = out / name / "summary.json"
-        s = json.loads(done.read_text()) if done.exists() else None
+        s = atomic.read_json(done, "delete it (this policy is then evaluated again)") if done.exists() else None
         if s is None or s.get("episodes") != episodes:
             s = evaluate_policy(load_policy(name), ZOO[name].task, episodes, out / name, videos=videos,
                                 progress=progress)
@@ -147,7 +147,7 @@ def evaluate_zoo(out: str | Path, episodes: int = 36, videos: bool = True, names
         sp = [max(r[c] for r in rs) - min(r[c] for r in rs) for c in ("language", "lifting", "placing")]
         spread.append(f"| {task} | {len(rs)} | " + " | ".join(f"{v:.2f}" for v in sp) + " |")
     table += "\n".join(spread) + "\n"
-    (out / "zoo_table.md").write_text(table)
+    atomic.write_text(out / "zoo_table.md", table)
     return table
 
 

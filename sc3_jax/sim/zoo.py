@@ -26,7 +26,7 @@ The policy sees only ``obs["images"]`` (uint8 [3, H, W, 3], resized to 64x64 ins
 ``obs["task"]``; ``apply(params, obs, rng)`` is pure, so it runs inside ``lax.scan`` and under ``vmap``.
 
 This module is the registry (networks, controller, ``ZOO``, loading); ``zoo_train.py`` reproduces the shipped weights:
-``python -m sc3_jax.sim.zoo_train train --workdir /tmp/sc3_zoo`` (see docs/sim.md).
+``sc3 sim zoo-train --workdir /tmp/sc3_zoo`` (see docs/sim.md).
 """
 from __future__ import annotations
 
@@ -37,6 +37,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .. import atomic
 from ..policies.base import JaxPolicy
 from . import scene as S
 from .convnet import dense_init, init_trunk, mlp, trunk_features
@@ -251,11 +252,11 @@ def zoo_names(task: str | None = None) -> list[str]:
 def save_params(path: str | Path, net: dict) -> None:
     """Weights ship as float16 (about 0.3 MB per policy); ``load_params`` casts them back to float32."""
     flat = {f"{k}/{kk}": np.asarray(v, np.float16) for k, d in net.items() for kk, v in d.items()}
-    np.savez_compressed(path, **flat)
+    atomic.save_npz(path, **flat)
 
 
 def load_params(path: str | Path) -> dict:
-    with np.load(path) as z:
+    with atomic.open_npz(path, "train them again (`sc3 sim zoo-train`), or restore the shipped ones with git") as z:
         net: dict = {}
         for key in z.files:
             a, b = key.split("/")
@@ -269,5 +270,5 @@ def load_policy(name: str, zoo_dir: str | Path | None = None) -> JaxPolicy:
         raise KeyError(f"unknown zoo policy {name!r}; known: {sorted(ZOO)}")
     path = Path(zoo_dir or ZOO_DIR) / ZOO[name].weights
     if not path.exists():
-        raise FileNotFoundError(f"{path}: zoo weights missing; train them with `python -m sc3_jax.sim.zoo_train train`")
+        raise FileNotFoundError(f"{path}: zoo weights missing; train them with `sc3 sim zoo-train`")
     return JaxPolicy(name, policy_apply, {"net": load_params(path), "knobs": ZOO[name].knobs.arrays()}, chunk=CHUNK)

@@ -1,14 +1,12 @@
 """Training the policy zoo's estimators (``zoo.py`` is the registry they are loaded from): generate the demo sets,
 train every run, write the weights and ``zoo/zoo.json``.
 
-    python -m sc3_jax.sim.zoo_train train --workdir /tmp/sc3_zoo     (see docs/sim.md)
-    python -m sc3_jax.sim.zoo_train manifest                         rewrite zoo.json from the registry
+    sc3 sim zoo-train --workdir /tmp/sc3_zoo     (see docs/sim.md)
+    sc3 sim zoo-manifest                         rewrite zoo.json from the registry
 """
 from __future__ import annotations
 
-import argparse
 import dataclasses
-import json
 import time
 from pathlib import Path
 
@@ -16,6 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .. import atomic
 from ..data.episodes import EpisodeStore
 from .demos import _expert_runner, write_episodes
 from .expert import ExpertKnobs
@@ -130,9 +129,10 @@ def write_manifest(out_dir: str | Path = ZOO_DIR, seconds: dict | None = None) -
     """``zoo.json``: every policy (estimator weights + control knobs + recipe), the training runs and demo sets.
     Training times measured earlier are kept unless ``seconds`` replaces them."""
     path = Path(out_dir) / "zoo.json"
-    old = json.loads(path.read_text()) if path.exists() else {}
+    old = (atomic.read_json(path, "restore it with git, or delete it (the measured training times go with it)")
+           if path.exists() else {})
     measured = {**old.get("training_seconds_measured", {}), **(seconds or {})}
-    path.write_text(json.dumps({
+    atomic.write_json(path, {
         "policies": {n: {**dataclasses.asdict(e), "knobs": {k: v for k, v in dataclasses.asdict(e.knobs).items()
                                                             if v != getattr(ControlKnobs(), k)}}
                      for n, e in ZOO.items()},
@@ -141,30 +141,8 @@ def write_manifest(out_dir: str | Path = ZOO_DIR, seconds: dict | None = None) -
         "runs": {k: {"demo_set": v[0], "max_episodes": v[1], "steps": v[2], "checkpoints": v[3]}
                  for k, v in RUNS.items()},
         "demo_sets": DEMO_SETS,
-        "command": "python -m sc3_jax.sim.zoo_train train --workdir /tmp/sc3_zoo",
+        "command": "sc3 sim zoo-train --workdir /tmp/sc3_zoo",
         "dtype": "float16 (cast to float32 on load)",
-        "training_seconds_measured": measured}, indent=1))
+        "training_seconds_measured": measured})
     return path
 
-
-def main(argv: list[str] | None = None) -> None:
-    ap = argparse.ArgumentParser(prog="python -m sc3_jax.sim.zoo_train")
-    sub = ap.add_subparsers(dest="cmd", required=True)
-    t = sub.add_parser("train", help="generate demos and train the zoo's networks")
-    t.add_argument("--workdir", default="/tmp/sc3_zoo")
-    t.add_argument("--out", default=str(ZOO_DIR))
-    t.add_argument("--runs", nargs="*", default=None)
-    sub.add_parser("list", help="list the zoo")
-    sub.add_parser("manifest", help="rewrite sc3_jax/sim/zoo/zoo.json from the registry (no training)")
-    a = ap.parse_args(argv)
-    if a.cmd == "train":
-        print(json.dumps(train_zoo(a.workdir, a.out, a.runs), indent=1, default=str))
-    elif a.cmd == "manifest":
-        print(write_manifest())
-    else:
-        for n, e in ZOO.items():
-            print(f"{n:20s} {e.task:8s} {e.weights:22s} {e.recipe}")
-
-
-if __name__ == "__main__":
-    main()

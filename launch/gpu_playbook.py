@@ -1,0 +1,497 @@
+"""The GPU playbook: one lease of one GPU machine (16 cores, 30 device-minutes, device calls of at most
+10 minutes) fine-tunes the shipped world model on the failure-rich mixture and measures it, exporting inside every
+call so that a lease cut short loses nothing already done.
+
+    python3 launch/gpu_playbook.py --phase preflight              here, before the lease: what travels, wheels
+    python3 launch/gpu_playbook.py --phase data  [--minutes 3]    mixture on every core (sc3 sim mixture)
+    python3 launch/gpu_playbook.py --phase train [--minutes 8.5]  fine-tune the shipped bussing_latent_gpu; again:
+                                                                   goes on (the trainer runs on between calls)
+    python3 launch/gpu_playbook.py --phase sweep [--minutes 8.5]  stop training, export, 72-condition sweep; again:
+                                                                   resumes the sweep
+    python3 launch/gpu_playbook.py --phase bench [--minutes 4]    bench/accelerator.py
+    python3 launch/gpu_playbook.py --phase all --dry-run          every phase on the CPU at tiny scale (a test)
+
+Every phase works in ``--run`` (kept on the machine between calls while it is held), is resumable (rerun it), ends
+within its ``--minutes`` with its export under ``--out`` (default ``$OUT``) and prints the minutes it and every
+earlier phase used (``RUN/phases.json``). Exports: ``data.log`` and ``data_stats.txt`` (`sc3 sim demos-stats`:
+the mixture's outcome mix against the zoo's real one); ``model_STEP.tgz[.NN]`` (the latest checkpoint as an int8
+export with the shipped model's state reader, in 15-MiB parts: ``cat model_STEP.tgz* | tar xz``), ``train.json``,
+``train.log``; ``sweep_store.tgz[.NN]`` (results.jsonl, sweep.json, timing.json, report/), ``sweep.json``,
+``sweep.log``; ``bench.log``, ``bench.json``. The call plan and the device minutes per phase: launch/README.md.
+
+On the GPU image the packages it lacks travel as wheels in ``.whl/`` and MuJoCo's EGL loaders as ``.deb`` files in
+``.gl/`` (device README); the playbook installs them once per machine (``/tmp/site``) before anything else.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+import shlex
+import shutil
+import signal
+import subprocess
+import sys
+import tarfile
+import time
+from pathlib import Path
+from typing import Literal
+
+ROOT = Path(__file__).resolve().parents[1]
+SHIPPED = ROOT / "sc3_jax" / "evaluate" / "shipped" / "bussing_latent_gpu"
+ARCHIVE = ROOT / "docs" / "stores" / "sweep72_gpu"  # the shipped model's 72-condition sweep: protocol and real rollouts
+SHIPPED_WINDOWS = 128_000  # bussing_latent_gpu: 2,000 steps x 64 windows (docs/world_model.md)
+PART = 15 * 2**20  # a returned file may not exceed 16 MiB
+SITE = Path("/tmp/site")
+MINUTES = {"data": 3.0, "train": 8.5, "sweep": 8.5, "bench": 4.0}  # each inside a 10-minute call, setup included
+EXPORT_SECONDS = 100  # int8 export of the 23.8M model on the CPU, and its packing (the lost call of 2026-11-24)
+TRAVEL_LIMIT = 64 * 2**20  # the working tree a device call sends (tracked, untracked-not-ignored, carried paths)
+# what the GPU image lacks (device KINDS.md, 2026-11-17), as wheel names: carried in .whl/
+GPU_MISSING = ("tyro", "docstring_parser", "typeguard", "grain", "array_record", "portpicker", "tensorboardx",
+               "mujoco", "mujoco_core", "mujoco_studio", "glfw", "pyopengl", "websockets")
+# the sweep protocol fields copied from the archived store's sweep.json (the paired comparison needs the same)
+PROTOCOL = ("episodes", "seed0", "calibration_episodes", "calibration_seed0", "ceiling_episodes", "ceiling_seed0",
+            "taus", "tau_units", "rollout_seed", "episode_seconds", "sample_steps", "inverse_steps")
+
+
+@dataclasses.dataclass(frozen=True)
+class Args:
+    """One phase of the GPU playbook (launch/README.md): data, train, sweep, bench; all: every phase in turn."""
+
+    phase: Literal["preflight", "data", "train", "sweep", "bench", "all"]
+    """preflight: on the driving machine, before the lease (what a call sends, the wheels); data: the mixture;
+    train: fine-tune (again: go on); sweep: stop training, export, sweep (again: resume); bench:
+    bench/accelerator.py; all: data, train, sweep, bench in turn (the dry run)"""
+    run: str = "/tmp/sc3_playbook"
+    """working directory on the machine (mixture/, train/, export_STEP/, sweep/, logs/, phases.json)"""
+    out: str | None = None
+    """where each phase's export goes (None: $OUT, else RUN/out)"""
+    minutes: float | None = None
+    """wall-clock budget of the phase, its export included (None: data 3, train 8.5, sweep 8.5, bench 4; no limit in
+    a dry run)"""
+    episodes: int = 6000
+    """mixture episodes to aim for (the data phase stops at its deadline; rerun to add more)"""
+    seed: int = 40
+    """mixture seed (sc3 sim mixture --seed)"""
+    recipe: str = "failure_rich"
+    """mixture recipe (sc3 sim mixture --recipe)"""
+    workers: int = 0
+    """processes for the mixture and the sweep's real rollouts (0: one per core)"""
+    windows: int = 3 * SHIPPED_WINDOWS
+    """training windows to reach (3x the shipped model's 128k); steps = windows / batch size"""
+    lr: float = 3e-4
+    """peak learning rate of the fine-tune (the config's 1e-3 is a from-scratch rate)"""
+    train_args: str = ""
+    """more `sc3 train` options, one string (e.g. "--train.warmup-steps 100")"""
+    sweep_batch: int = 26
+    """initial conditions per world-model batch in the sweep (26 = a third of a policy's 78 online rollouts)"""
+    real: Literal["archive", "run"] = "archive"
+    """archive: the sweep copies the real rollouts of docs/stores/sweep72_gpu (--real-from); run: it runs them on
+    the machine's cores"""
+    dry_run: bool = False
+    """tiny scale on the CPU: 3 episodes, 2 training steps of batch 2, 2 policies x 1 condition, bench --size tiny"""
+
+
+# -- the machine ----------------------------------------------------------------------------------------------
+def bootstrap(root: Path = ROOT) -> None:
+    """Install the carried wheels (``.whl/``) into ``/tmp/site`` and unpack the carried GL loaders (``.gl/``), once
+    per machine; then make them importable here and in every subprocess."""
+    wheels = sorted((root / ".whl").glob("*.whl"))
+    if wheels and not (SITE / ".installed").exists():
+        subprocess.run([sys.executable, "-m", "pip", "install", "-q", "--no-index", "--no-deps", "--no-compile",
+                        "--no-cache-dir", "--upgrade", "--target", str(SITE), *map(str, wheels)], check=True)
+        (SITE / ".installed").touch()
+    debs = sorted((root / ".gl").glob("*.deb"))
+    marker = Path("/tmp/.sc3_gl_unpacked")
+    if debs and not marker.exists():
+        for deb in debs:
+            subprocess.run(["dpkg", "-x", str(deb), "/"], check=True)
+        subprocess.run(["ldconfig"], check=True)
+        marker.touch()
+    paths = [str(root)] + ([str(SITE)] if (SITE / ".installed").exists() else [])
+    for p in reversed(paths):
+        if p not in sys.path:
+            sys.path.insert(0, p)
+    os.environ["PYTHONPATH"] = os.pathsep.join(paths + [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep)
+                                                        if p and p not in paths])
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    os.environ["PYTHONUNBUFFERED"] = "1"
+
+
+@dataclasses.dataclass
+class Ctx:
+    """A phase's paths and deadline."""
+    a: Args
+    run: Path
+    out: Path
+    deadline: float
+
+    @property
+    def sc3(self) -> list[str]:
+        return [sys.executable, "-m", "sc3_jax.cli"]
+
+    def left(self) -> float:
+        return self.deadline - time.time()
+
+    def log(self, name: str) -> Path:
+        (self.run / "logs").mkdir(parents=True, exist_ok=True)
+        return self.run / "logs" / f"{name}.log"
+
+
+def call(cmd: list[str], log: Path, seconds: float | None = None, env: dict | None = None) -> int:
+    """Run ``cmd`` (its own process group) with its output appended to ``log``; past ``seconds``, SIGTERM the group
+    (SIGKILL 30 s later). Returns the exit code (negative: killed)."""
+    with open(log, "a") as fh:
+        fh.write(f"\n$ {shlex.join(cmd)}\n")
+        fh.flush()
+        p = subprocess.Popen(cmd, stdout=fh, stderr=subprocess.STDOUT, cwd=ROOT, start_new_session=True,
+                             env={**os.environ, **(env or {})})
+        try:
+            return p.wait(timeout=None if seconds is None else max(seconds, 1))
+        except subprocess.TimeoutExpired:
+            _stop_group(p.pid, 30)
+            fh.write(f"[playbook] stopped at its deadline ({seconds:.0f} s)\n")
+            return p.wait()
+
+
+def _stop_group(pid: int, grace: float) -> None:
+    try:
+        os.killpg(pid, signal.SIGTERM)
+    except ProcessLookupError:
+        return
+    t = time.time()
+    while time.time() - t < grace and _alive(pid):
+        time.sleep(1)
+    if _alive(pid):
+        os.killpg(pid, signal.SIGKILL)
+
+
+def _alive(pid: int | None) -> bool:
+    if not pid:
+        return False
+    try:
+        os.kill(pid, 0)
+    except (ProcessLookupError, PermissionError):
+        return False
+    try:  # a zombie (exited, not reaped) is not alive
+        return Path(f"/proc/{pid}/stat").read_text().split(") ")[1][0] != "Z"
+    except (OSError, IndexError):
+        return True
+
+
+def ship(ctx: Ctx, name: str, files: list[tuple[Path, str]]) -> list[str]:
+    """``files`` (path, name inside) as ``OUT/name`` (a gzipped tar), split into 15-MiB parts ``name.NN`` when
+    larger. Returns the names written."""
+    tmp = ctx.run / f".{name}"
+    with tarfile.open(tmp, "w:gz") as tar:
+        for path, arc in files:
+            if path.exists():
+                tar.add(path, arc)
+    size = tmp.stat().st_size
+    if size <= PART:
+        shutil.move(tmp, ctx.out / name)
+        return [name]
+    names = []
+    with open(tmp, "rb") as fh:
+        for k in range(math.ceil(size / PART)):
+            names.append(f"{name}.{k:02d}")
+            (ctx.out / names[-1]).write_bytes(fh.read(PART))
+    tmp.unlink()
+    return names
+
+
+def tail(src: Path, dst: Path, nbytes: int = 400_000) -> None:
+    """The end of a log (the whole of it stays in RUN/logs)."""
+    if src.exists():
+        with open(src, "rb") as fh:
+            fh.seek(max(0, src.stat().st_size - nbytes))
+            dst.write_bytes(fh.read())
+
+
+# -- before the lease -----------------------------------------------------------------------------------------
+def travel_bytes(root: Path = ROOT) -> int:
+    """Bytes a device call sends: tracked and untracked-not-ignored files, plus the carried .whl/ and .gl/."""
+    def git(*args):
+        return subprocess.run(["git", "ls-files", "-z", *args], cwd=root, capture_output=True, text=True,
+                              check=True).stdout.split("\0")
+    files = {root / f for f in git() + git("--others", "--exclude-standard") if f}
+    files |= {f for d in (".whl", ".gl") for f in (root / d).glob("*")}
+    return sum(f.stat().st_size for f in files if f.is_file())
+
+
+def missing_wheels(root: Path = ROOT) -> list[str]:
+    """The packages of ``GPU_MISSING`` with no wheel in ``root/.whl``."""
+    have = {w.name.split("-")[0].lower().replace("-", "_") for w in (root / ".whl").glob("*.whl")}
+    return [n for n in GPU_MISSING if n not in have]
+
+
+def preflight(root: Path = ROOT) -> int:
+    size, missing = travel_bytes(root), missing_wheels(root)
+    gl = sorted(p.name for p in (root / ".gl").glob("*.deb"))
+    print(f"a device call would send {size / 2**20:.1f} MiB (limit {TRAVEL_LIMIT / 2**20:.0f} MiB: tracked and "
+          "untracked-not-ignored files, .whl/, .gl/)" + ("" if size <= TRAVEL_LIMIT else
+                                                         ": OVER, the call would be refused"))
+    print("wheels for the GPU image: " + ("all there" if not missing else f"missing {', '.join(missing)} "
+                                          "(launch/README.md, GPU playbook: pip download ... -d .whl)"))
+    print(f"GL loaders in .gl/: {len(gl)} .deb files" + ("" if gl else " (MuJoCo's EGL needs them: device README)"))
+    return int(size > TRAVEL_LIMIT or bool(missing) or not gl)
+
+
+# -- phases ---------------------------------------------------------------------------------------------------
+def phase_data(ctx: Ctx) -> dict:
+    a = ctx.a
+    store = ctx.run / "mixture"
+    workers = a.workers or os.cpu_count() or 1
+    episodes = 3 if a.dry_run else a.episodes
+    # every episode begun before the deadline must end before the call's: ~10 s for a 12-s controller episode
+    seconds = None if a.dry_run else max(ctx.left() - 45, 10)
+    cmd = ctx.sc3 + ["sim", "mixture", "--out", str(store), "--episodes", str(episodes), "--seed", str(a.seed),
+                     "--recipe", a.recipe, "--workers", str(min(workers, 2) if a.dry_run else workers),
+                     "--no-progress"] + ([] if seconds is None else ["--seconds", f"{seconds:.0f}"])
+    # MuJoCo and the controller's small jitted functions run on the CPU: 16 processes must not each take the GPU
+    rc = call(cmd, ctx.log("data"), None if seconds is None else ctx.left() - 15, {"JAX_PLATFORMS": "cpu"})
+    stats = subprocess.run(ctx.sc3 + ["sim", "demos-stats", "--store", str(store)], cwd=ROOT, capture_output=True,
+                           text=True, env={**os.environ, "JAX_PLATFORMS": "cpu"})
+    (ctx.out / "data_stats.txt").write_text(stats.stdout + stats.stderr)
+    tail(ctx.log("data"), ctx.out / "data.log")
+    n = len([d for d in store.glob("ep*") if (d / "meta.json").exists()]) if store.exists() else 0
+    return {"rc": rc, "episodes": n, "store": str(store), "exports": ["data_stats.txt", "data.log"]}
+
+
+def _latest_step(workdir: Path) -> int:
+    ck = workdir / "checkpoints"
+    steps = [int(p.name) for p in ck.iterdir() if p.name.isdigit()] if ck.exists() else []
+    return max(steps, default=0)
+
+
+def _train_target(ctx: Ctx) -> tuple[int, int]:
+    """(steps, batch size): the steps that reach ``--windows`` at the run's batch size."""
+    batch = 2 if ctx.a.dry_run else 64
+    cfg = ctx.run / "train" / "config.json"
+    if cfg.exists():
+        batch = json.loads(cfg.read_text())["data"]["batch_size"]
+    return (2 if ctx.a.dry_run else math.ceil(ctx.a.windows / batch)), batch
+
+
+def _trainer_cmd(ctx: Ctx, steps: int) -> list[str]:
+    a = ctx.a
+    opts = {"data.path": ctx.run / "mixture", "train.workdir": ctx.run / "train", "train.init-from": SHIPPED,
+            "train.steps": steps, "train.lr": a.lr, "train.ckpt-every": 250, "train.keep-checkpoints": 3}
+    if a.dry_run:  # float32 on the CPU, a checkpoint per step, nothing in the background
+        opts.update({"data.batch-size": 2, "data.read-threads": 1, "model.dtype": "float32",
+                     "train.warmup-steps": 1, "train.ckpt-every": 1, "train.log-every": 1})
+    flags = ["--train.no-progress"] + (["--train.no-async-checkpointing", "--train.no-tensorboard"] if a.dry_run
+                                       else [])
+    return (ctx.sc3 + ["train", "--config", "bussing_latent_gpu"] + [x for k, v in opts.items() for x in
+                                                                     (f"--{k}", str(v))]
+            + flags + shlex.split(a.train_args))
+
+
+def phase_train(ctx: Ctx) -> dict:
+    """Start (or find running) the background trainer, let it train until the phase's export time, export the
+    latest checkpoint. The trainer has its own session, so it trains on between calls while the machine is held."""
+    W = ctx.run / "train"
+    pidfile = ctx.run / "train.pid"
+    steps, _ = _train_target(ctx)
+    pid = int(pidfile.read_text()) if pidfile.exists() else None
+    if not _alive(pid) and _latest_step(W) < steps:
+        with open(ctx.log("train_run"), "a") as log:
+            pid = subprocess.Popen(_trainer_cmd(ctx, steps), stdout=log, stderr=subprocess.STDOUT, cwd=ROOT,
+                                   start_new_session=True, stdin=subprocess.DEVNULL).pid
+        pidfile.write_text(str(pid))
+        print(f"trainer started (pid {pid}): {W}, to step {steps}", flush=True)
+    last = time.time()
+    while _alive(pid) and ctx.left() > EXPORT_SECONDS:
+        time.sleep(min(10, max(ctx.left() - EXPORT_SECONDS, 0.1)))
+        if time.time() - last > 60:
+            row = _metrics(W)[-1:] or [{}]
+            print(f"  step {row[0].get('step', 0)} (loss {row[0].get('loss', float('nan')):.4f}, "
+                  f"{row[0].get('steps_per_s', 0):.2f} steps/s), checkpoint {_latest_step(W)}"
+                  + ("" if math.isinf(ctx.left()) else f", {ctx.left() / 60:.1f} min left"), flush=True)
+            last = time.time()
+    tail(ctx.log("train_run"), ctx.out / "train.log")
+    res = export(ctx)
+    return {**res, "exports": ["train.log"] + res["exports"], "trainer_running": _alive(pid)}
+
+
+def export(ctx: Ctx) -> dict:
+    """The latest checkpoint as an int8 export (``RUN/export_STEP``, with the shipped state reader) and, unless an
+    earlier call brought it back, ``OUT/model_STEP.tgz[.NN]``; the last metrics rows."""
+    W = ctx.run / "train"
+    step = _latest_step(W)
+    steps, batch = _train_target(ctx)
+    res = {"step": step, "target_steps": steps, "windows": step * batch, "target_windows": steps * batch,
+           "shipped_windows": SHIPPED_WINDOWS, "exports": []}
+    if not step:
+        res["error"] = "no checkpoint yet (see train.log)"
+        return res
+    model = ctx.run / f"export_{step}"
+    if not (model / "params.npz").exists():
+        code = ("import sys; from sc3_jax import checkpoint; cfg, stats, params = checkpoint.load(sys.argv[1], "
+                "int(sys.argv[2])); checkpoint.save(sys.argv[3], cfg, stats, params, 'int8')")
+        rc = call([sys.executable, "-c", code, str(W), str(step), str(model)], ctx.log("export"),
+                  env={"JAX_PLATFORMS": "cpu"})  # beside the trainer on the GPU, or after it
+        if rc != 0:
+            res["error"] = f"export of step {step} failed (rc {rc}; see logs/export.log)"
+            return res
+        shutil.copy(SHIPPED / "state_reader.npz", model / "state_reader.npz")  # the sweep's gripper-state reader
+    res["model"] = str(model)
+    shipped = ctx.run / "shipped_steps.json"
+    done = json.loads(shipped.read_text()) if shipped.exists() else []
+    if step not in done:
+        res["exports"] += ship(ctx, f"model_{step}.tgz", [(model, model.name)])
+        shipped.write_text(json.dumps(done + [step]))
+    res["last_metrics"] = _metrics(W)[-5:]
+    return res
+
+
+def _metrics(workdir: Path) -> list[dict]:
+    """The trainer's metrics rows (a line being written is left out)."""
+    path = workdir / "metrics.jsonl"
+    rows = []
+    for line in path.read_text().splitlines() if path.exists() else []:
+        try:
+            rows.append(json.loads(line))
+        except json.JSONDecodeError:
+            pass
+    return rows
+
+
+def _sweep_protocol(ctx: Ctx) -> list[str]:
+    """The archived store's protocol (the shipped model's 72-condition sweep), both splits; tiny in a dry run."""
+    if ctx.a.dry_run:
+        return ["--policies", "bus_bc_full", "bus_bc_small", "rev_bc_full", "--episodes", "1",
+                "--calibration-episodes", "1", "--ceiling-episodes", "1", "--episode-seconds", "1.6",
+                "--sample-steps", "1", "--inverse-steps", "1", "--taus", "inf", "0.05", "--degradations", "none"]
+    cfg = json.loads((ARCHIVE / "sweep.json").read_text())
+    flags = []
+    for k in PROTOCOL:
+        v = cfg[k]
+        flags += [f"--{k.replace('_', '-')}"] + ([str(x) for x in v] if isinstance(v, list) else [str(v)])
+    deg = cfg["degradations"]
+    deg = {True: "all", False: "none"}.get(deg, deg)
+    return ["--tasks", "bussing", "reverse", "--degradations", str(deg)] + flags
+
+
+def phase_sweep(ctx: Ctx) -> dict:
+    """Stop the trainer (it checkpoints on SIGTERM), export the final step, sweep it until the deadline (resumable),
+    ship the store."""
+    pidfile = ctx.run / "train.pid"
+    pid = int(pidfile.read_text()) if pidfile.exists() else None
+    if _alive(pid):
+        print(f"stopping the trainer (pid {pid}): it saves a checkpoint first", flush=True)
+        _stop_group(pid, 180)
+    res = {"model": export(ctx)}
+    res["exports"] = res["model"].pop("exports")
+    if "model" not in res["model"]:
+        return res
+    store = ctx.run / "sweep"
+    cmd = ctx.sc3 + ["sweep", "--out", str(store), "--world-model", res["model"]["model"], "--modes", "real",
+                     "online", "--batch", str(1 if ctx.a.dry_run else ctx.a.sweep_batch), "--workers",
+                     str(1 if ctx.a.dry_run else ctx.a.workers), "--no-progress"] + _sweep_protocol(ctx)
+    # the real rollouts' worker processes may start JAX too: none may take the GPU's memory up front
+    env = {"XLA_PYTHON_CLIENT_PREALLOCATE": "false"}
+    log = ctx.log("sweep")
+    seconds = None if ctx.a.dry_run else ctx.left() - 40
+    if ctx.a.real == "archive" and not ctx.a.dry_run:
+        start = log.stat().st_size if log.exists() else 0
+        rc = call(cmd + ["--real-from", str(ARCHIVE)], log, seconds, env)
+        if rc != 0 and "/rollouts/" in log.read_text()[start:] and ctx.left() > 120:
+            # the archive keeps records, not the rollouts' frames; a sweep that cannot copy records alone refuses
+            # it before writing anything: run the real rollouts here instead (16 cores: ~5 minutes)
+            print("[playbook] the sweep refused the archive's records without their arrays: running the real "
+                  "rollouts on this machine instead", flush=True)
+            rc = call(cmd, log, ctx.left() - 40, env)
+    else:
+        rc = call(cmd, log, seconds, env)
+    records = store / "results.jsonl"
+    lines = [json.loads(x) for x in records.read_text().splitlines() if x.strip()] if records.exists() else []
+    res.update(rc=rc, store=str(store), records={m: sum(r["mode"] == m for r in lines) for m in ("real", "online")},
+               report=(store / "report" / "report.md").exists())
+    res["exports"] += ship(ctx, "sweep_store.tgz", [(store / f, f) for f in ("results.jsonl", "sweep.json",
+                                                                               "timing.json", "report")])
+    tail(log, ctx.out / "sweep.log")
+    res["exports"].append("sweep.log")
+    return res
+
+
+def phase_bench(ctx: Ctx) -> dict:
+    args = ["--size", "tiny", "--repeats", "1", "--depth", "1"] if ctx.a.dry_run else []
+    rc = call([sys.executable, str(ROOT / "bench" / "accelerator.py"), *args], ctx.log("bench"),
+              None if ctx.a.dry_run else ctx.left() - 10)
+    tail(ctx.log("bench"), ctx.out / "bench.log")
+    last = [x for x in ctx.log("bench").read_text().splitlines() if x.startswith("accelerator ")]
+    return {"rc": rc, "result": last[-1] if last else None, "exports": ["bench.log"]}
+
+
+PHASES = {"data": phase_data, "train": phase_train, "sweep": phase_sweep, "bench": phase_bench}
+
+
+def run_phase(a: Args, name: str, run: Path, out: Path) -> dict:
+    minutes = None if a.dry_run else (a.minutes if a.minutes is not None else MINUTES[name])
+    t0 = time.time()
+    ctx = Ctx(a, run, out, math.inf if minutes is None else t0 + minutes * 60)
+    print(f"== phase {name}" + ("" if minutes is None else f" ({minutes:g} min)") + f": {run}", flush=True)
+    res = PHASES[name](ctx)
+    res["minutes"] = (time.time() - t0) / 60
+    book = run / "phases.json"
+    past = json.loads(book.read_text()) if book.exists() else []
+    past.append({"phase": name, "started": time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(t0)),
+                 "minutes": round(res["minutes"], 2)})
+    book.write_text(json.dumps(past, indent=1))
+    res["phases"] = past
+    (out / f"{name}.json").write_text(json.dumps(res, indent=1, default=str))
+    return res
+
+
+def report(name: str, res: dict) -> None:
+    """What the phase did, where its export is, what its numbers mean."""
+    if name == "data":
+        print(f"data: {res['episodes']} mixture episodes in {res['store']} (sc3 sim mixture rc {res['rc']}); "
+              "data_stats.txt sets their per-object outcomes beside the zoo's real ones")
+    elif name in ("train", "sweep"):
+        m = res if name == "train" else res["model"]
+        if "error" in m:
+            print(f"{name}: {m['error']}")
+        else:
+            print(f"model: step {m['step']} of {m['target_steps']} = {m['windows']:,} training windows "
+                  f"({m['windows'] / SHIPPED_WINDOWS:.2f}x the shipped model's {SHIPPED_WINDOWS:,}; target "
+                  f"{m['target_windows']:,}), int8 export {m['model']}"
+                  + (", trainer still running" if res.get("trainer_running") else ""))
+        if name == "sweep" and "store" in res:
+            print(f"sweep: {res['records']['real']} real and {res['records']['online']} online rollouts in "
+                  f"{res['store']} (rc {res['rc']}; rerun --phase sweep to go on); report: "
+                  f"{'written, report/report.md in sweep_store.tgz' if res['report'] else 'not yet'}")
+    elif name == "bench":
+        print(f"bench: {res['result'] or 'no result line (see bench.log)'}: train_mfu = model FLOPs / step time / "
+              "the device's peak, chunk_s = one closed-loop rollout chunk (bench/accelerator.py)")
+    print(f"exports in the out directory: {', '.join(res.get('exports', [])) or '(see above)'}, {name}.json")
+    print("device minutes per phase so far: " + ", ".join(f"{p['phase']} {p['minutes']:.1f}" for p in res["phases"])
+          + f"; {sum(p['minutes'] for p in res['phases']):.1f} in all (plus the machine's start, 1-2 min)",
+          flush=True)
+
+
+def main(argv: list[str] | None = None) -> int:
+    bootstrap()
+    import tyro
+    a = tyro.cli(Args, args=argv, prog="python3 launch/gpu_playbook.py")
+    if a.phase == "preflight":
+        return preflight()
+    run = Path(a.run)
+    out = Path(a.out or os.environ.get("OUT") or run / "out")
+    run.mkdir(parents=True, exist_ok=True)
+    out.mkdir(parents=True, exist_ok=True)
+    if a.dry_run:
+        os.environ.setdefault("JAX_PLATFORMS", "cpu")
+    rc = 0
+    for name in (list(PHASES) if a.phase == "all" else [a.phase]):
+        res = run_phase(a, name, run, out)
+        report(name, res)
+        failed = res.get("rc") not in (0, None) or "error" in res.get("model", res)
+        rc = rc or int(failed and a.dry_run)  # on the machine a deadline stop is expected; a dry run must pass
+    return rc
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

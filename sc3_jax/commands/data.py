@@ -1,0 +1,142 @@
+"""``sc3 data SUBCOMMAND ...``: convert between LeRobot datasets and our episode store (docs/lerobot.md).
+
+    sc3 data import-lerobot ROOT --out DIR [--views VIEW[=KEY] ...] [--wrist VIEW ...] [--fps N]
+                            [--image-size H W] [--action-key KEY] [--pose-key KEY] [--allow-missing-pose]
+    sc3 data export-lerobot STORE --out DIR [--version v3.0|v2.1] [--codec h264|av1] [--crf N]
+                            [--images video|image] [--views VIEW ...] [--overwrite]
+
+``--views left=observation.images.cam_high`` names a camera key as one of our views; a bare ``cam_high`` keeps its
+name (``observation.images.`` is implied). Views listed in ``--wrist`` are wrist cameras, the rest third-person
+(default: names containing "wrist"). The conversions themselves are ``data/lerobot.py`` and ``data/lerobot_write.py``.
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import Annotated, Literal
+
+import tyro
+
+from sc3_jax.commands import run_group
+from sc3_jax.errors import UserError
+
+
+@dataclasses.dataclass(frozen=True)
+class ImportLerobot:
+    """LeRobot dataset (v2.x / v3.0) -> our episode store; resumable (episodes already in --out are skipped)."""
+
+    root: tyro.conf.Positional[str]
+    """the LeRobot dataset's directory (holding meta/info.json)"""
+    out: str
+    """episode store to write (created if missing)"""
+    views: Annotated[tuple[str, ...] | None, tyro.conf.arg(metavar="VIEW[=KEY] ...")] = None
+    """cameras to import, in our view order: VIEW (the key observation.images.VIEW) or VIEW=FEATURE_KEY (default:
+    every camera, named after its key)"""
+    wrist: Annotated[tuple[str, ...] | None, tyro.conf.arg(metavar="VIEW ...")] = None
+    """which of our views are wrist cameras (default: those whose name contains "wrist")"""
+    fps: float | None = None
+    """subsample to this rate (an integer ratio to the dataset's fps; default: the dataset's)"""
+    image_size: Annotated[tuple[int, int] | None, tyro.conf.arg(metavar="H W")] = None
+    """resize every view to this height and width (needed when the cameras' sizes differ)"""
+    action_key: str = "action"
+    """the feature that becomes our actions"""
+    pose_key: str = "observation.state"
+    """the 7-D feature that becomes our ee_pose"""
+    allow_missing_pose: bool = False
+    """import delta_ee actions without a 7-D --pose-key: the store then has no ee_pose (no pseudo-actions)"""
+    action_space: Literal["delta_ee", "absolute", "velocity"] | None = None
+    """what the actions are (data/action_space.py): delta_ee (xyz, rotation vector, gripper: 7-D), absolute
+    (joint or end-effector targets) or velocity (default: the dataset's sc3_action_space entry if it has one, else
+    delta_ee for 7-D actions; other actions need this)"""
+    action_names: tuple[str, ...] | None = None
+    """one name per action dimension (default: the action feature's own names)"""
+    action_targets: tuple[int, ...] | None = None
+    """with --action-space velocity: the indices of dimensions that are position targets (e.g. a gripper)"""
+    state_key: str = "auto"
+    """the proprioceptive state feature, of any size, stored as the episodes' state ("auto":
+    observation.state when present and not already the ee_pose; "none": no state)"""
+
+
+@dataclasses.dataclass(frozen=True)
+class ExportLerobot:
+    """Our episode store -> LeRobot dataset (actions -> action, the state (else ee_pose) -> observation.state,
+    prompt -> task; the action space in info.json)."""
+
+    store: tyro.conf.Positional[str]
+    """the episode store to export (a directory holding dataset.json)"""
+    out: str
+    """LeRobot dataset directory to write"""
+    version: Literal["v3.0", "v2.1"] = "v3.0"
+    """LeRobot dataset format version"""
+    codec: Literal["h264", "av1"] = "h264"
+    """video codec of the mp4s"""
+    crf: int | None = None
+    """video quality, lower is better (default: 18 for h264, 30 for av1)"""
+    images: Literal["video", "image"] = "video"
+    """mp4 videos, or PNGs inside the parquet files"""
+    views: Annotated[tuple[str, ...] | None, tyro.conf.arg(metavar="VIEW ...")] = None
+    """the store's views to export (default: all)"""
+    overwrite: bool = False
+    """replace an existing --out"""
+
+
+SUBCOMMANDS: dict[str, type] = {"import-lerobot": ImportLerobot, "export-lerobot": ExportLerobot}
+
+
+def views_map(items: tuple[str, ...] | None) -> dict[str, str] | None:
+    """``("left=cam_high", "wrist")`` -> ``{"left": "cam_high", "wrist": "wrist"}`` (the reader resolves keys)."""
+    if not items:
+        return None
+    return dict(item.split("=", 1) if "=" in item else (item, item) for item in items)
+
+
+def _frames(store) -> int:
+    """Frames in every episode of ``store`` (memory-mapped: nothing is read but the small arrays)."""
+    return sum(store.load(e, mmap=True, validate=False).length for e in store.episode_ids())
+
+
+def _import(a: ImportLerobot) -> int:
+    from sc3_jax.data.episodes import EpisodeStore
+    from sc3_jax.data.lerobot import import_lerobot
+
+    s = import_lerobot(a.root, a.out, views=views_map(a.views), wrist_views=list(a.wrist) if a.wrist else None,
+                       fps=a.fps, image_size=a.image_size, action_key=a.action_key, pose_key=a.pose_key,
+                       allow_missing_pose=a.allow_missing_pose, progress=True, action_space=a.action_space,
+                       action_names=list(a.action_names) if a.action_names else None,
+                       action_targets=list(a.action_targets) if a.action_targets else None,
+                       **({} if a.state_key == "auto" else {"state_key": None if a.state_key == "none" else a.state_key}))
+    store = EpisodeStore(s["out"])
+    print(f"imported {s['written']} episodes ({s['skipped']} already there) from {a.root}; {s['out']} now holds "
+          f"{len(store)} episodes, {_frames(store)} frames of views {', '.join(store.views)} at {s['fps']} fps, "
+          f"{store.image_size[0]}x{store.image_size[1]}, actions {store.action_space.kind} {store.action_dim}-D")
+    print(f"train on it: sc3 train --config NAME --data.path {s['out']}")
+    return 0
+
+
+def _export(a: ExportLerobot) -> int:
+    from sc3_jax.data.episodes import EpisodeStore
+    from sc3_jax.data.lerobot_write import export_store
+
+    store = EpisodeStore(a.store)
+    s = export_store(store, a.out, version=a.version, codec=a.codec, image_dtype=a.images, crf=a.crf,
+                     views=list(a.views) if a.views else None, overwrite=a.overwrite)
+    how = f"{a.codec} mp4s" if a.images == "video" else "PNGs in parquet"
+    print(f"exported {s['episodes']} episodes, {s['frames']} frames, {s['tasks']} distinct task prompts from {a.store} "
+          f"-> {s['out']} (LeRobot {a.version}, {how}): views {', '.join(a.views or store.views)} as observation.images.VIEW, "
+          f"actions ({store.action_space.kind} {store.action_dim}-D) as action, "
+          + ("state as observation.state" + (", ee_pose as observation.ee_pose" if store.has_pose else "")
+             if store.state_dim else "ee_pose as observation.state"))
+    return 0
+
+
+_RUN = {"import-lerobot": _import, "export-lerobot": _export}
+
+
+def main(argv: list[str]) -> int:
+    try:
+        return run_group("data", "LeRobot datasets <-> our episode store (docs/lerobot.md).", SUBCOMMANDS, _RUN, argv)
+    except ModuleNotFoundError as err:  # the LeRobot extras (pyarrow, av) are optional
+        raise UserError(f"{err}: install the LeRobot extras (pip install -e '.[lerobot]')") from err
+    except (ValueError, RuntimeError) as err:  # a dataset or store we cannot convert as asked: LeRobotError & co
+        if isinstance(err, UserError):
+            raise
+        raise UserError(" ".join(str(err).split())) from err

@@ -1,0 +1,77 @@
+"""``sc3 diagnose WORLD_MODEL --data HELDOUT_STORE [--SECTION.FIELD VALUE ...]``: the checks that gate a world-model
+checkpoint, on held-out episodes (sc3_jax/evaluate/diagnose.py, docs/world_model.md#diagnostics)."""
+from __future__ import annotations
+
+import dataclasses
+from typing import Annotated
+
+import tyro
+
+from sc3_jax.commands import parse_with_config
+from sc3_jax.evaluate.diagnose import DiagnoseConfig
+
+D = DiagnoseConfig()  # the library's defaults, one home
+
+
+@dataclasses.dataclass(frozen=True)
+class Args:
+    """Diagnostics that gate a world-model checkpoint on held-out episodes: PSNR against copy-last / temporal-median
+    baselines, drift, true vs shuffled and counterfactual actions, inverse dynamics, offline outcome reproduction,
+    then the gates' verdicts. Sampled as `sc3 sweep` samples (sc3_jax/evaluate/world_model_defaults.py); every field
+    of the world model's config is an option: --SECTION.FIELD VALUE, e.g. --sample.steps 8 (the list: `sc3 train
+    --help`)."""
+
+    # metavar: tyro would hyphenate it (WORLD-MODEL)
+    world_model: Annotated[tyro.conf.Positional[str], tyro.conf.arg(metavar="WORLD_MODEL")]
+    """a `sc3 train` workdir or an exported world model"""
+    data: str
+    """held-out episode store"""
+    episodes: int | None = D.episodes
+    """N episodes evenly spaced over the store (default: all)"""
+    cf_starts: int = D.cf_starts
+    """counterfactual starts per episode"""
+    out: str | None = None
+    """also write the result as JSON here (WORLD_MODEL/diagnose.json is where `sc3 report` and `sc3 diagnose-table`
+    look)"""
+    seed: int = D.seed
+    """sampler noise and the action shuffle"""
+    max_seconds: float | None = D.max_seconds
+    """cap on the open-loop horizon in seconds (default: the longest episode)"""
+    batch: int = D.batch
+    """rollouts per jitted call (rounded up to the device count)"""
+    moving_threshold: float = D.moving_threshold
+    """a pixel moves when any channel differs from the last real context frame by more than this, in [-1, 1] units"""
+    horizons: tuple[float, ...] = D.horizons
+    """drift curve points in seconds"""
+    perception: str | None = D.perception
+    """perception weights for the outcome check (default: the shipped ones)"""
+    progress: bool = D.progress
+    """a progress bar on stderr (--no-progress: none, for batch logs)"""
+
+
+def evaluated_config(a: Args):
+    """The world model's config with the sweep's evaluation settings (SweepConfig's defaults), before any
+    --SECTION.FIELD override."""
+    from sc3_jax import checkpoint
+    from sc3_jax.evaluate.sweep import SweepConfig
+    from sc3_jax.evaluate.world_model_defaults import evaluation_config
+
+    return evaluation_config(checkpoint.read_config(a.world_model), SweepConfig())
+
+
+def main(argv: list[str]) -> int:
+    a, cfg = parse_with_config(Args, argv, "diagnose", evaluated_config)
+    from sc3_jax.evaluate import diagnose
+
+    fields = {f.name for f in dataclasses.fields(DiagnoseConfig)}
+    dc = DiagnoseConfig(**{k: v for k, v in dataclasses.asdict(a).items() if k in fields})
+    result = diagnose.diagnose(a.world_model, a.data, dc, model_config=cfg)
+    print(diagnose.render_table(result))
+    st = result["settings"]
+    print(f"sampler: {st['sample_steps']} forward Euler steps, U re-read in {st['inverse_steps']} (`sc3 sweep`'s "
+          "unless --sample.steps / --sample.inverse-steps say otherwise); what each gate means: "
+          "docs/world_model.md#diagnostics")
+    print("\n".join(diagnose.verdict(result)))
+    if a.out:
+        print(f"result: {diagnose.save_result(result, a.out)}")
+    return 0

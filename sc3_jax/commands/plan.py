@@ -1,0 +1,71 @@
+"""``sc3 plan --config NAME --mesh data=..,fsdp=.. --device DEVICE [--SECTION.FIELD VALUE ...]``: what a config costs
+on a mesh of accelerators, without allocating the model."""
+from __future__ import annotations
+
+import dataclasses
+from typing import Literal
+
+from sc3_jax.commands import parse_with_config
+from sc3_jax.errors import UserError
+from sc3_jax.plan import DEVICES, config_flag  # plan.py imports jax only inside its functions
+
+Device = Literal[tuple(DEVICES)]
+
+
+@dataclasses.dataclass(frozen=True)
+class Args:
+    """What a config costs on a mesh of accelerators: parameters, per-device memory of the train step, FLOPs per
+    step and per rollout chunk, and the times they imply; whether it fits, and if not, the options that make it fit.
+    Nothing is allocated (abstract shapes, lowered programs). Every field of the config is an option too:
+    --SECTION.FIELD VALUE, e.g. --data.batch-size 256 --model.attention-impl ring (the list: --help-config)."""
+
+    config: str = "tiny"
+    """a named config (`sc3 configs`) or a config file, optionally NAME:ARG (passed to its get_config)"""
+    mesh: str = "data=1"
+    """the planned mesh, AXIS=SIZE,... over data, fsdp, tensor, context (missing axes = 1); it replaces the config's
+    mesh section"""
+    device: Device = "h100"
+    """the accelerator: its approximate vendor dense-BF16 peak and memory per chip (plan.DEVICES)"""
+    mfu: float = 0.4
+    """assumed fraction of the device's peak FLOP/s that the times are computed at"""
+    compile: bool = False
+    """compile (CPU-cheap configs only): exact bench/train_step.py FLOPs and, if the mesh fits on this machine's
+    devices, measured per-device activation memory"""
+    chunk: bool = True
+    """estimate one rollout chunk's FLOPs and time (--no-chunk skips it)"""
+    help_config: bool = False
+    """list every --SECTION.FIELD option of the config, with its value in NAME, and exit"""
+
+
+def _refuse_old_spellings(argv: list[str]) -> None:
+    """`--set SECTION.FIELD=VALUE` (before every command took config fields one way) and `--mesh.AXIS N` (which the
+    plan would ignore: --mesh names the planned mesh): refused with the spelling to use."""
+    for i, token in enumerate(argv):
+        if token == "--set" or token.startswith("--set="):
+            value = token[len("--set="):] if "=" in token[:6] else (argv[i + 1] if i + 1 < len(argv) else "")
+            key, _, v = value.partition("=")
+            if "." in key:
+                v = v.strip().strip("[]()").replace(",", " ").split() if v.strip().startswith(("[", "(")) else v
+                hint = config_flag(key.strip(), v)
+            else:
+                hint = "--SECTION.FIELD VALUE"
+            raise UserError(f"--set is gone: write {hint} (every config field is an option; the list: "
+                            f"sc3 plan --config NAME --help-config)")
+        if token.startswith("--mesh."):
+            raise UserError(f"{token}: the planned mesh is --mesh AXIS=SIZE,... (e.g. --mesh data=4,fsdp=8,context=2)")
+
+
+def main(argv: list[str]) -> int:
+    import tyro
+
+    from sc3_jax.config import Config, load_config
+
+    _refuse_old_spellings(argv)
+    a, cfg = parse_with_config(Args, argv, "plan", lambda a: load_config(a.config))
+    if a.help_config:
+        tyro.cli(Config, default=cfg, args=["--help"], prog=f"sc3 plan --config {a.config}")
+    from sc3_jax import plan
+
+    p = plan.plan(cfg, plan.parse_mesh(a.mesh), a.device, a.mfu, a.compile, a.chunk)
+    print(plan.format_plan(p))  # ends with the verdict: fits or not, why, and the options that make it fit
+    return 0

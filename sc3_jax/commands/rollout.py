@@ -1,0 +1,145 @@
+"""``sc3 rollout --checkpoint WM --policy P --initial-conditions IC --out DIR [--SECTION.FIELD VALUE ...]``:
+closed-loop (and optionally offline) rollouts of a policy inside a trained world model -> arrays, videos and a
+summary (sc3_jax/rollout_io.py, docs/rollout.md).
+
+Writes ``OUT/rollout.npz`` (every array of ``Rollout.run``, see sc3_jax/rollout.py), ``OUT/summary.json``, one
+``OUT/<episode>_<view>.mp4`` per episode and view (context frames, then the kept frames up to termination) and, with
+``--offline`` (episode stores only), ``OUT/offline.npz`` with PSNR per frame and view against the recorded frames."""
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+from sc3_jax.commands import parse_with_config
+
+
+@dataclasses.dataclass(frozen=True)
+class Args:
+    """Closed-loop rollouts of a policy inside a trained world model, sampled as `sc3 sweep` samples it (its sampler
+    steps, horizon and U units: sc3_jax/evaluate/world_model_defaults.py). Every field of the world model's config is
+    an option: --SECTION.FIELD VALUE, e.g. --rollout.tau 0.05 --rollout.episode-seconds 6 --sample.steps 8 (the list:
+    `sc3 train --help`)."""
+
+    checkpoint: str
+    """a saved world model: a `sc3 train` workdir or an exported one (config.json, norm_stats.json, checkpoints/ or
+    params.npz)"""
+    policy: str
+    """a zoo name | zero | random | linear (built-in JAX policies) | ws://HOST:PORT (an openpi policy server, see
+    --family) | package.module:attr (a JaxPolicy / HostPolicy or a zero-argument factory of one): every spelling of
+    policies/resolve.py"""
+    initial_conditions: str
+    """an episode store (its first K frames at the rollout stride from --start, and the pose at the last of them) or
+    an .npz with frames uint8 [B, V, K, H, W, 3], state float32 [B, 7] and optionally task int32 [B]"""
+    out: str
+    """output directory: rollout.npz, summary.json, the videos (and offline.npz)"""
+    step: int | None = None
+    """checkpoint step of a training workdir (default: the latest)"""
+    family: str = "native"
+    """openpi observation mapping for ws:// policies"""
+    episodes: int | None = None
+    """use the first N initial conditions (default: all)"""
+    start: int = 0
+    """first frame of the initial context in each stored episode"""
+    task: int = 0
+    """task id given to the policy (episode stores carry none)"""
+    batch_size: int | None = None
+    """episodes per jitted call (default: all at once)"""
+    data_fps: float | None = None
+    """frame rate the model was trained at (default: the store's fps, else 20)"""
+    seed: int = 0
+    """sampler and policy noise: episode i's draws depend only on (seed, i)"""
+    offline: bool = False
+    """also replay the recorded actions open loop and compare with the recorded frames (episode stores only)"""
+    perception: str | None = None
+    """perception weights for the success estimate (default: the shipped ones)"""
+    video: bool = True
+    """one mp4 per episode and view (--no-video: none)"""
+    progress: bool = True
+    """progress bars on stderr (--no-progress: none, for batch logs)"""
+
+
+def evaluated_config(a: Args):
+    """The checkpoint's config with the sweep's evaluation settings (SweepConfig's defaults), before any
+    --SECTION.FIELD override."""
+    from sc3_jax import checkpoint
+    from sc3_jax.evaluate.sweep import SweepConfig
+    from sc3_jax.evaluate.world_model_defaults import evaluation_config
+
+    return evaluation_config(checkpoint.read_config(a.checkpoint), SweepConfig())
+
+
+def main(argv: list[str]) -> int:
+    a, cfg = parse_with_config(Args, argv, "rollout", evaluated_config)
+    import numpy as np
+
+    from sc3_jax import atomic, checkpoint, rollout, rollout_io
+    from sc3_jax.policies.resolve import resolve
+
+    stats = checkpoint.read_norm_stats(a.checkpoint)
+    params = checkpoint.load_params(a.checkpoint, cfg, a.step)
+    fps = rollout_io.data_fps(a.initial_conditions, a.data_fps)
+    ro = rollout.Rollout(cfg, stats, data_fps=fps)
+    ids, ics, store = rollout_io.load_initial_conditions(a.initial_conditions, cfg, ro.spec, a.episodes, a.start,
+                                                         a.task)
+    policy = resolve(a.policy, cfg.rollout.policy_chunk, a.family).policy
+    n, s, tau = len(ids), ro.spec, cfg.rollout.tau
+    size = a.batch_size or n
+    out = Path(a.out)
+    out.mkdir(parents=True, exist_ok=True)
+    keys = np.asarray(rollout.episode_keys(a.seed, n))
+    result = rollout_io.closed_loop(ro, params, policy, ics, keys, tau, size, a.progress)
+    atomic.save_npz(out / "rollout.npz", **result, episode_ids=np.asarray(ids))
+    u = rollout_io.u_summary(result, tau, cfg.rollout.tau_units)
+    summary = {"episodes": ids, "policy": a.policy, "seed": a.seed, "num_chunks": s.num_chunks, "keep_frames": s.keep,
+               "stride": s.stride, "control_hz": cfg.rollout.control_hz, "episode_seconds": cfg.rollout.episode_seconds,
+               # the sampler as it ran: forward-dynamics steps, and those of the re-read that yields U
+               "sample_steps": s.steps, "inverse_steps": s.inverse_steps or s.steps,
+               "termination_rate": result["termination_rate"], "terminated_at": result["terminated_at"].tolist(),
+               "mean_u": u.pop("u_mean_per_episode"), **u,
+               "success": rollout_io.success_estimate(result, ids, store, cfg, a.perception)}
+    if a.video:
+        summary["videos"] = rollout_io.write_videos(out, ids, result, cfg.data.views, cfg.rollout.control_hz)
+    if a.offline:
+        off, targets, n_off = rollout_io.offline(cfg, stats, params, store, ids, fps, s, a.start, a.task, keys, size,
+                                                 a.progress)
+        atomic.save_npz(out / "offline.npz", **off, targets=targets, episode_ids=np.asarray(ids))
+        summary["offline_psnr_per_view"] = dict(zip(cfg.data.views, np.nanmean(off["psnr_view"], 0).tolist()))
+        summary["offline_chunks"] = n_off
+    atomic.write_json(out / "summary.json", summary)
+    print("\n".join(_report(summary, out, a)))
+    return 0
+
+
+def _report(sm: dict, out: Path, a: Args) -> list[str]:
+    """What the rollouts did, what the numbers mean, and where they are."""
+    n = len(sm["episodes"])
+    lines = [f"rollout: {n} episodes of {a.policy} x {sm['num_chunks']} chunks of {sm['keep_frames']} frames "
+             f"({sm['episode_seconds']:g} s at {sm['control_hz']:g} Hz), {sm['sample_steps']} sampler steps, U re-read "
+             f"in {sm['inverse_steps']}",
+             f"U_chunk ({sm['tau_units']} action units; the policy's actions against those re-read from the imagined "
+             f"frames, lower = the model followed them): mean {sm['u_mean']:.4f}, median {sm['u_median']:.4f}, "
+             f"max {sm['u_max']:.4f} over the chunks run",
+             f"stopped at tau = {sm['tau']:g}: {sm['stopped']} of {n} episodes"
+             + (f" (in chunk {sm['stopped_at_chunk_mean'] + 1:.1f} of {sm['num_chunks']} on average; that chunk's "
+                "frames and the later ones are not kept)" if sm["stopped"] else "")]
+    sc = sm["success"]
+    if sc["available"]:
+        im, rec = sc["imagined"], sc["recorded_physics"]
+        lines.append(f"success estimate (perception scorer on the imagined frames, {im['n_objects']} objects in "
+                     f"{sc['episodes']} episodes): " + _rates(im))
+        if rec:
+            lines.append("  for reference, the recorded episodes from the same starts (their own actions, physics): "
+                         + _rates(rec))
+    else:
+        lines.append(f"no success estimate: {sc['note']}")
+    if "offline_psnr_per_view" in sm:
+        lines.append(f"offline replay of the recorded actions ({sm['offline_chunks']} chunks), PSNR against the "
+                     "recorded frames: " + ", ".join(f"{k} {v:.2f} dB" for k, v in sm["offline_psnr_per_view"].items()))
+    wrote = ["rollout.npz", "summary.json"] + (["offline.npz"] if a.offline else [])
+    lines.append(f"wrote {out}/: " + ", ".join(wrote) + (f", {len(sm['videos'])} videos (<episode>_<view>.mp4)"
+                                                          if a.video else ""))
+    return lines
+
+
+def _rates(r: dict) -> str:
+    return ", ".join(f"{c} {r[c]:.2f}" for c in ("language", "lifting", "placing"))

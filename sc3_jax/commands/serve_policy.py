@@ -1,0 +1,106 @@
+"""``sc3 serve-policy --policy SPEC [--family droid] [--port 8000] ...``: serve one of our policies over openpi's
+WebSocket protocol until interrupted (Ctrl-C); the server is ``policies/openpi_server.py``, the observation
+mappings ``policies/openpi_mappings.py`` (docs/openpi.md)."""
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+from typing import Annotated, Any, Callable, Literal
+
+import tyro
+
+from sc3_jax.commands import parse
+from sc3_jax.errors import UserError
+
+# openpi_mappings.PRESETS with "native" first (a test keeps them equal; spelled out so --help loads no policy code)
+FAMILIES = ("native", "droid", "libero", "aloha")
+
+
+@dataclasses.dataclass(frozen=True)
+class Args:
+    """Serve one of our policies over openpi's WebSocket protocol until Ctrl-C; an openpi client (or `--policy
+    ws://HOST:PORT` in our own commands) queries it."""
+
+    policy: str
+    """a zoo name, zero | random | linear, or package.module:attr of a JaxPolicy / HostPolicy or of a factory
+    returning one (every spelling of policies/resolve.py)"""
+    host: str = "0.0.0.0"
+    """interface to listen on (0.0.0.0: every one)"""
+    port: int = 8000
+    """port to listen on; 0 = any free port (printed)"""
+    family: Literal["native", "droid", "libero", "aloha"] = "native"
+    """observation keys the clients send (native = our own observation dict)"""
+    image_size: Annotated[tuple[int, int] | None, tyro.conf.arg(metavar="H W")] = None
+    """image size our policy expects (a family's images are un-letterboxed and resized to it)"""
+    num_views: int | None = None
+    """number of views our policy expects (default: the family's, e.g. 4 for aloha)"""
+    task_prompt: Annotated[tyro.conf.UseAppendAction[tuple[str, ...]], tyro.conf.arg(metavar="ID=PROMPT")] = ()
+    """a prompt -> task id entry of the family's table (repeatable; default: the bussing / reverse-bussing
+    prompts)"""
+    default_task: int | None = None
+    """task id for prompts not in the table"""
+    api_key: str | None = None
+    """require the header 'Authorization: Api-Key <key>' from clients"""
+    log_level: str = "INFO"
+    """logging level of the server (DEBUG, INFO, WARNING, ...)"""
+
+
+def _prompts(entries: tuple[str, ...]) -> dict[int, str]:
+    table = {}
+    for entry in entries:
+        tid, sep, prompt = entry.partition("=")
+        if not sep or not tid.strip().lstrip("-").isdigit():
+            raise UserError(f"--task-prompt expects ID=PROMPT with an integer ID, got {entry!r}")
+        table[int(tid)] = prompt
+    return table
+
+
+def build_server(a: Args, resolve: Callable[[str], Any] | None = None):
+    """The bound, not yet serving ``PolicyServer`` for ``a``. ``resolve`` (optional) turns ``a.policy`` into a
+    policy instead of ``policies.resolve``."""
+    from sc3_jax.policies.openpi_mappings import get_mapping
+    from sc3_jax.policies.openpi_server import PolicyServer
+
+    mapping = get_mapping(a.family)
+    if mapping is not None:
+        changes: dict[str, Any] = {"default_task": a.default_task}
+        if a.num_views is not None:
+            changes["num_views"] = a.num_views
+        if a.image_size:
+            changes["our_image_size"] = tuple(a.image_size)
+        if a.task_prompt:
+            changes["prompts"] = _prompts(a.task_prompt)
+        mapping = mapping.replace(**changes)
+    if resolve is None:  # after the options are checked: loading a policy can take seconds
+        from sc3_jax.policies.resolve import resolve as resolve_spec
+
+        resolve = lambda spec: resolve_spec(spec).policy  # noqa: E731
+    try:
+        policy = resolve(a.policy)
+    except (ValueError, ImportError) as e:  # a spelling, or a module:attr that does not import
+        raise UserError(f"--policy {a.policy}: {' '.join(str(e).split())}") from e
+    try:
+        return PolicyServer(policy, a.host, a.port, None, mapping, a.api_key)
+    except OSError as e:  # the address is taken, or not this machine's
+        raise UserError(f"--host {a.host} --port {a.port}: {e.strerror or e}; choose another --port (0: any free "
+                        "one)") from e
+    except ValueError as e:  # the policy does not fit --family (its action dimension)
+        raise UserError(f"--policy {a.policy} --family {a.family}: {e}") from e
+
+
+def main(argv: list[str]) -> int:
+    a = parse(Args, argv, "serve-policy")
+    if not isinstance(logging.getLevelName(a.log_level.upper()), int):
+        raise UserError(f"--log-level {a.log_level}: not a logging level (DEBUG, INFO, WARNING, ERROR)")
+    logging.basicConfig(level=a.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    from sc3_jax.policies.openpi_server import serve_until_interrupted
+
+    server = build_server(a)
+    print(f"serving {server.metadata['policy']} on {server.url} (family {server.metadata['family']}); health check: "
+          f"http://{server.url.split('://', 1)[1]}/healthz", flush=True)
+    print(f"metadata sent to every client: {json.dumps(server.metadata, default=str)}", flush=True)
+    print(f"query it from our commands as --policy NAME={server.url}@TASK; Ctrl-C stops it", flush=True)
+    serve_until_interrupted(server)
+    print(f"stopped serving {server.metadata['policy']} on {server.url}")
+    return 0

@@ -1,0 +1,40 @@
+"""``sc3 train --config NAME [--SECTION.FIELD VALUE ...]``: train (or resume) a world model."""
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+from sc3_jax.commands import parse_with_config
+
+
+@dataclasses.dataclass(frozen=True)
+class Args:
+    """Train a world model, or resume it exactly (rerun the same command). The model's views, image size and action
+    dimension are read from the dataset (--data.path: its dataset.json) unless given. Every field of the config is
+    an option: --SECTION.FIELD VALUE, e.g. --train.steps 100 --data.batch-size 16 --train.workdir runs/mine (the
+    list: `sc3 train --config NAME --help-config`)."""
+
+    config: str = "tiny"
+    """a named config (`sc3 configs`) or a config file, optionally NAME:ARG (passed to its get_config)"""
+    help_config: bool = False
+    """list every --SECTION.FIELD option of the config, with its value in NAME, and exit"""
+
+
+def main(argv: list[str]) -> int:
+    import tyro
+
+    from sc3_jax.config import Config, load_config
+
+    a, cfg = parse_with_config(Args, argv, "train", lambda a: load_config(a.config))
+    if a.help_config:
+        tyro.cli(Config, default=cfg, args=["--help"], prog=f"sc3 train --config {a.config}")
+    from sc3_jax import train
+    from sc3_jax.data.shape import explicit_fields, shape_from_dataset
+
+    # views, image size and action dimension come from the dataset unless given here (then they are checked)
+    # (no dataset there: train() says so, after refusing a changed config, which it checks first)
+    if (Path(cfg.data.path) / "dataset.json").is_file():
+        cfg = shape_from_dataset(cfg, cfg.data.path, explicit_fields(argv))
+    last = train.train(cfg)
+    print(f"done: step {last.get('step')} loss {last.get('loss', float('nan')):.4f} -> {cfg.train.workdir}")
+    return 0

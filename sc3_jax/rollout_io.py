@@ -1,0 +1,172 @@
+"""What ``sc3 rollout`` needs around ``rollout.Rollout``: initial conditions from an episode store or an ``.npz``,
+rollouts in batches of episodes, the offline replay of the recorded actions, videos, and the figures its summary
+reports (U_chunk, termination, a perception-scored success estimate)."""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+
+from sc3_jax import atomic
+from sc3_jax.errors import UserError
+
+
+def load_initial_conditions(path: str, cfg, spec, episodes: int | None, start: int, task: int):
+    """(ids, InitialConditions, store or None) of an episode store (its first K frames at the rollout stride from
+    frame ``start``, and the state measured at the last of them) or an ``.npz`` with ``frames`` uint8 [B, V, K, H, W, 3],
+    ``state`` float32 [B, 7] and optionally ``task`` int32 [B]; the first ``episodes`` of them (None: all)."""
+    from sc3_jax import rollout
+
+    p = Path(path)
+    if p.suffix == ".npz":
+        with atomic.open_npz(p, "write the initial conditions again") as z:
+            n = len(z["frames"]) if episodes is None else min(episodes, len(z["frames"]))
+            tasks = z["task"][:n] if "task" in z else np.full(n, task, np.int32)
+            ics = rollout.InitialConditions(z["frames"][:n], z["state"][:n].astype(np.float32), tasks.astype(np.int32))
+        return [f"ic{i:04d}" for i in range(n)], ics, None
+    from sc3_jax.data.episodes import EpisodeStore
+
+    store = EpisodeStore(p)
+    ids = store.episode_ids()[:episodes]
+    if not ids:
+        raise UserError(f"{p}: no episodes")
+    K, s = spec.context, spec.stride
+    items = []
+    for eid in ids:
+        ep = store.load(eid)
+        idx = [start + s * i for i in range(K)]
+        if idx[-1] >= ep.length:
+            raise UserError(f"{p}: episode {eid} has {ep.length} frames, the initial context needs frame {idx[-1]}; "
+                            "give a smaller --start")
+        frames = np.stack([np.asarray(ep.frames[v])[idx] for v in cfg.data.views])
+        items.append((frames, rollout.initial_state(ep, spec, idx[-1]), np.int32(task)))
+    return ids, rollout.stack_initial_conditions(items), store
+
+
+def data_fps(initial_conditions: str, given: float | None) -> float:
+    """The frame rate the model was trained at: ``given``, else the episode store's, else 20."""
+    if given is not None:
+        return given
+    meta = Path(initial_conditions) / "dataset.json"
+    if meta.exists():
+        return atomic.read_json(meta, "restore it (the episode store's metadata)")["fps"]
+    return 20.0
+
+
+def write_videos(out: Path, ids, result: dict, views, fps: float) -> list[str]:
+    """One mp4 per episode and view: the context frames, then the kept frames up to termination."""
+    from sc3_jax.video import write_mp4
+
+    written = []
+    for b, eid in enumerate(ids):
+        valid = result["frame_valid"][b]
+        for v, view in enumerate(views):
+            path = out / f"{eid}_{view}.mp4"
+            write_mp4(path, np.concatenate([result["initial_frames"][b, v], result["frames"][b, v][valid]]), fps)
+            written.append(path.name)
+    return written
+
+
+def run_batched(fn, n: int, size: int, progress: bool, desc: str) -> dict:
+    """Run ``fn(slice)`` over batches of ``size`` episodes and concatenate the per-episode arrays; adds
+    ``termination_rate`` (the fraction of episodes whose ``done`` ever turned on)."""
+    parts = []
+    it = [slice(i, min(i + size, n)) for i in range(0, n, size)]
+    if progress:
+        from tqdm import tqdm
+        it = tqdm(it, desc=desc, unit="batch")
+    for sl in it:
+        parts.append(fn(sl))
+    out = {}
+    for k, v in parts[0].items():
+        out[k] = np.concatenate([p[k] for p in parts]) if isinstance(v, np.ndarray) and v.ndim > 0 else v
+    out["termination_rate"] = float(out["done"].any(-1).mean())
+    return out
+
+
+def closed_loop(ro, params, policy, ics, keys, tau: float, size: int, progress: bool) -> dict:
+    """``policy`` acting inside the world model from ``ics``, ``size`` episodes per jitted call: JAX policies run
+    inside the scan, host policies between jitted chunk steps."""
+    from sc3_jax import rollout
+    from sc3_jax.policies.base import JaxPolicy
+
+    pick = lambda sl: rollout.InitialConditions(*(np.asarray(x)[sl] for x in ics))  # noqa: E731
+    if isinstance(policy, JaxPolicy):
+        return run_batched(lambda sl: ro.run(params, policy, pick(sl), keys[sl], tau), len(keys), size, progress,
+                           "rollout")
+    return run_batched(lambda sl: ro.run_host(params, policy, pick(sl), keys[sl], tau, progress=progress,
+                                              skip_done=True), len(keys), size, False, "rollout")
+
+
+def offline(cfg, stats, params, store, ids, fps: float, spec, start: int, task: int, keys, size: int,
+            progress: bool) -> tuple[dict, np.ndarray, int]:
+    """The recorded actions replayed open loop from each episode's start, as many chunks as every episode supports
+    (at most the closed-loop ``spec``'s): (the rollout's arrays with ``psnr`` [B, V, T] and ``psnr_view`` [B, V] against the
+    recorded frames, those frames, the chunks run)."""
+    from sc3_jax import rollout
+    from sc3_jax.evaluate.metrics import psnr_by_view
+
+    if store is None:
+        raise UserError("--offline replays recorded actions: give an episode store as --initial-conditions")
+    eps = [store.load(e) for e in ids]
+    n_off = min(min(rollout.max_offline_chunks(ep.length, spec, start) for ep in eps), spec.num_chunks)
+    if n_off < 1:
+        raise UserError(f"{store.root}: episodes too short for one offline chunk from frame {start}")
+    ro = rollout.Rollout(cfg, stats, data_fps=fps, num_chunks=n_off)
+    items = [rollout.from_episode(ep, cfg.data.views, ro.spec, start, task) for ep in eps]
+    ics = rollout.stack_initial_conditions([it[0] for it in items])
+    acts, tgts = np.stack([it[1] for it in items]), np.stack([it[2] for it in items])
+    pick = lambda sl: rollout.InitialConditions(*(np.asarray(x)[sl] for x in ics))  # noqa: E731
+    off = run_batched(lambda sl: ro.run_offline(params, pick(sl), acts[sl], keys[sl], math.inf), len(ids), size,
+                      progress, "offline")
+    off["psnr"], off["psnr_view"] = (x.astype(np.float32) for x in psnr_by_view(off["frames"], tgts,
+                                                                                 off["frame_valid"]))
+    return off, tgts, n_off
+
+
+def u_summary(result: dict, tau: float, tau_units: str) -> dict:
+    """U_chunk in ``tau_units`` over every chunk run (chunks after termination are not run), and how many episodes
+    stopped at tau and after how many chunks."""
+    u = result["u_raw" if tau_units == "raw" else "u"]  # [B, N]
+    ran = np.ones(u.shape, bool)
+    for b, t in enumerate(result["terminated_at"]):
+        if t >= 0:
+            ran[b, t + 1:] = False  # the terminating chunk itself ran (its U is what stopped it)
+    vals = u[ran]
+    stopped = result["terminated_at"][result["terminated_at"] >= 0]
+    return {"tau": tau, "tau_units": tau_units, "u_mean": float(vals.mean()), "u_median": float(np.median(vals)),
+            "u_max": float(vals.max()), "u_mean_per_episode": [float(u[b][ran[b]].mean()) for b in range(len(u))],
+            "stopped": int(len(stopped)),
+            "stopped_at_chunk_mean": float(stopped.mean()) if len(stopped) else None}
+
+
+def success_estimate(result: dict, ids, store, cfg, perception: str | None = None) -> dict:
+    """The perception scorer on each imagined rollout (its last context frame, then its frames up to termination,
+    as the sweep reads online rollouts): per-criterion success over the objects named by the episodes' meta.
+    ``{"available": False, "note": why}`` when the model's frames are not the scorer's or no object is named."""
+    from sc3_jax.evaluate.diagnose_outcomes import episode_objects, perception_scorer, success_rates
+    from sc3_jax.evaluate.scorers import RolloutView
+
+    if store is None:
+        return {"available": False, "note": "an .npz of initial conditions names no objects to score"}
+    scorer, note = perception_scorer(cfg.data.views, cfg.data.image_size, perception)
+    if scorer is None:
+        return {"available": False, "note": note}
+    imagined, recorded = [], []
+    for b, eid in enumerate(ids):
+        ep = store.load(eid)
+        objects, dests, physics = episode_objects(ep.meta)
+        if objects is None:
+            continue
+        frames = np.concatenate([result["initial_frames"][b][:, -1:], result["frames"][b][:, result["frame_valid"][b]]],
+                                1)
+        imagined.append(scorer.score(RolloutView(eid, frames, objects, dests)))
+        if physics is not None:
+            recorded.append(physics)
+    if not imagined:
+        return {"available": False, "note": f"{store.root}: no episode names its objects (meta.labels / "
+                                            "meta.initial_condition, as `sc3 sim demos` writes)"}
+    return {"available": True, "episodes": len(imagined), "imagined": success_rates(imagined),
+            # the recorded episodes' own outcomes: a reference for the same starts, under the recording's policy
+            "recorded_physics": success_rates(recorded) if recorded else None}
