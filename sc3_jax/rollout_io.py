@@ -15,7 +15,7 @@ from sc3_jax.errors import UserError
 def load_initial_conditions(path: str, cfg, spec, episodes: int | None, start: int, task: int):
     """(ids, InitialConditions, store or None) of an episode store (its first K frames at the rollout stride from
     frame ``start``, and the state measured at the last of them) or an ``.npz`` with ``frames`` uint8 [B, V, K, H, W, 3],
-    ``state`` float32 [B, 7] and optionally ``task`` int32 [B]; the first ``episodes`` of them (None: all)."""
+    ``state`` float32 [B, A] (the model's imagined state: A = its action dimension) and optionally ``task`` int32 [B]; the first ``episodes`` of them (None: all)."""
     from sc3_jax import rollout
 
     p = Path(path)
@@ -27,7 +27,10 @@ def load_initial_conditions(path: str, cfg, spec, episodes: int | None, start: i
         return [f"ic{i:04d}" for i in range(n)], ics, None
     from sc3_jax.data.episodes import EpisodeStore
 
+    from sc3_jax.data.shape import check_shape
+
     store = EpisodeStore(p)
+    check_shape(cfg, store)  # views, image size, action dimension: one line naming both sides, before any compile
     ids = store.episode_ids()[:episodes]
     if not ids:
         raise UserError(f"{p}: no episodes")
