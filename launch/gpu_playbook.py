@@ -48,8 +48,9 @@ MINUTES = {"data": 3.0, "train": 8.5, "sweep": 8.5, "bench": 4.0}  # each inside
 EXPORT_SECONDS = 100  # int8 export of the 23.8M model on the CPU, and its packing (the lost call of 2026-11-24)
 TRAVEL_LIMIT = 64 * 2**20  # the working tree a device call sends (tracked, untracked-not-ignored, carried paths)
 # what the GPU image lacks (device KINDS.md, 2026-11-17), as wheel names: carried in .whl/
+# (not mujoco_studio: the viewer, 12.8 MB, never imported by rendering; without it the tree fits the 64 MiB)
 GPU_MISSING = ("tyro", "docstring_parser", "typeguard", "grain", "array_record", "portpicker", "tensorboardx",
-               "mujoco", "mujoco_core", "mujoco_studio", "glfw", "pyopengl", "websockets")
+               "mujoco", "mujoco_core", "glfw", "pyopengl", "websockets")
 # the sweep protocol fields copied from the archived store's sweep.json (the paired comparison needs the same)
 PROTOCOL = ("episodes", "seed0", "calibration_episodes", "calibration_seed0", "ceiling_episodes", "ceiling_seed0",
             "taus", "tau_units", "rollout_seed", "episode_seconds", "sample_steps", "inverse_steps")
@@ -82,6 +83,9 @@ class Args:
     """training windows to reach (3x the shipped model's 128k); steps = windows / batch size"""
     lr: float = 3e-4
     """peak learning rate of the fine-tune (the config's 1e-3 is a from-scratch rate)"""
+    stop_trainer: bool = False
+    """train: stop the trainer (it checkpoints on SIGTERM) before the export, so that the export is the last step
+    trained and a sweep in the same call reuses it instead of exporting again (the last train call of a lease)"""
     train_args: str = ""
     """more `sc3 train` options, one string (e.g. "--train.warmup-steps 100")"""
     sweep_batch: int = 26
@@ -244,8 +248,9 @@ def phase_data(ctx: Ctx) -> dict:
     store = ctx.run / "mixture"
     workers = a.workers or os.cpu_count() or 1
     episodes = 3 if a.dry_run else a.episodes
-    # every episode begun before the deadline must end before the call's: ~10 s for a 12-s controller episode
-    seconds = None if a.dry_run else max(ctx.left() - 45, 10)
+    # every episode begun before the deadline must end before the call's (an episode is ~1.3 s of one core), and
+    # demos-stats needs ~10 s
+    seconds = None if a.dry_run else max(ctx.left() - 30, 10)
     cmd = ctx.sc3 + ["sim", "mixture", "--out", str(store), "--episodes", str(episodes), "--seed", str(a.seed),
                      "--recipe", a.recipe, "--workers", str(min(workers, 2) if a.dry_run else workers),
                      "--no-progress"] + ([] if seconds is None else ["--seconds", f"{seconds:.0f}"])
@@ -254,6 +259,11 @@ def phase_data(ctx: Ctx) -> dict:
     stats = subprocess.run(ctx.sc3 + ["sim", "demos-stats", "--store", str(store)], cwd=ROOT, capture_output=True,
                            text=True, env={**os.environ, "JAX_PLATFORMS": "cpu"})
     (ctx.out / "data_stats.txt").write_text(stats.stdout + stats.stderr)
+    try:  # its JSON head ships inside every export: `sc3 report` shows what the model was trained on
+        head, _ = json.JSONDecoder().raw_decode(stats.stdout)
+        (ctx.run / "data_stats.json").write_text(json.dumps(head, indent=1))
+    except ValueError:
+        pass
     tail(ctx.log("data"), ctx.out / "data.log")
     n = len([d for d in store.glob("ep*") if (d / "meta.json").exists()]) if store.exists() else 0
     return {"rc": rc, "episodes": n, "store": str(store), "exports": ["data_stats.txt", "data.log"]}
@@ -277,7 +287,7 @@ def _train_target(ctx: Ctx) -> tuple[int, int]:
 def _trainer_cmd(ctx: Ctx, steps: int) -> list[str]:
     a = ctx.a
     opts = {"data.path": ctx.run / "mixture", "train.workdir": ctx.run / "train", "train.init-from": SHIPPED,
-            "train.steps": steps, "train.lr": a.lr, "train.ckpt-every": 250, "train.keep-checkpoints": 3}
+            "train.steps": steps, "train.lr": a.lr, "train.ckpt-every": 100, "train.keep-checkpoints": 3}
     if a.dry_run:  # float32 on the CPU, a checkpoint per step, nothing in the background
         opts.update({"data.batch-size": 2, "data.read-threads": 1, "model.dtype": "float32",
                      "train.warmup-steps": 1, "train.ckpt-every": 1, "train.log-every": 1})
@@ -310,6 +320,9 @@ def phase_train(ctx: Ctx) -> dict:
                   f"{row[0].get('steps_per_s', 0):.2f} steps/s), checkpoint {_latest_step(W)}"
                   + ("" if math.isinf(ctx.left()) else f", {ctx.left() / 60:.1f} min left"), flush=True)
             last = time.time()
+    if ctx.a.stop_trainer and _alive(pid):
+        print(f"stopping the trainer (pid {pid}): it saves a checkpoint first", flush=True)
+        _stop_group(pid, 60)
     tail(ctx.log("train_run"), ctx.out / "train.log")
     res = export(ctx)
     return {**res, "exports": ["train.log"] + res["exports"], "trainer_running": _alive(pid)}
@@ -336,6 +349,8 @@ def export(ctx: Ctx) -> dict:
             res["error"] = f"export of step {step} failed (rc {rc}; see logs/export.log)"
             return res
         shutil.copy(SHIPPED / "state_reader.npz", model / "state_reader.npz")  # the sweep's gripper-state reader
+        if (ctx.run / "data_stats.json").exists():
+            shutil.copy(ctx.run / "data_stats.json", model / "data_stats.json")
     res["model"] = str(model)
     shipped = ctx.run / "shipped_steps.json"
     done = json.loads(shipped.read_text()) if shipped.exists() else []
@@ -473,7 +488,8 @@ def report(name: str, res: dict) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    bootstrap()
+    if "preflight" not in (sys.argv[1:] if argv is None else argv):  # the wheels are for the GPU image's Python
+        bootstrap()
     import tyro
     a = tyro.cli(Args, args=argv, prog="python3 launch/gpu_playbook.py")
     if a.phase == "preflight":

@@ -15,6 +15,7 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import errno
+import gzip
 import json
 import os
 import re
@@ -261,11 +262,17 @@ def read_json(path: str | os.PathLike, fix: str = "restore it or delete it"):
 def read_jsonl(path: str | os.PathLike, what: str, fix: str) -> list:
     """The JSON objects of an append-only JSONL file, one per complete line. A last line without its newline (cut by
     a kill, or being written right now) is left out; a damaged complete line is a one-line ``UserError``:
-    ``path:line: not WHAT (problem); FIX``. Reading never writes."""
+    ``path:line: not WHAT (problem); FIX``. Reading never writes. A ``.gz`` file is read decompressed (an archived
+    store's records)."""
     path = Path(path)
     if not path.exists():
         return []
     raw = path.read_bytes()
+    if path.suffix == ".gz":
+        try:
+            raw = gzip.decompress(raw)
+        except (OSError, EOFError) as e:
+            raise UserError(f"{path}: not a complete gzip file ({e}); {fix}") from None
     out = []
     for i, line in enumerate(raw[:raw.rfind(b"\n") + 1].split(b"\n"), 1):
         if not line.strip():

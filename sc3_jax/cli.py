@@ -15,7 +15,8 @@ commands:
   diagnose       sc3 diagnose WORLD_MODEL --data HELDOUT_STORE: checkpoint gates (PSNR vs baselines, drift, actions)
   diagnose-table sc3 diagnose-table DIR ... [--baseline NAME]: several models' diagnostics side by side (ablations)
   rollout        closed-loop / offline rollouts of a policy inside a trained world model
-  sweep          policies x initial conditions x {real, offline, online} on the simulated benchmark -> report
+  sweep          policies x initial conditions x {real, offline, online} on the simulated benchmark, or
+                 (--initial-conditions) held-out episodes of any robot with your own scorer -> report
   report         sc3 report RESULTS ... [--out DIR]: tables, plots and videos from a sweep's results store
   curve          sc3 curve SPEC.json --out DIR: faithfulness against training compute over several sweeps
   rescore        sc3 rescore RESULTS [--perception WEIGHTS]: re-score a store's stored frames with other scorer weights

@@ -230,6 +230,12 @@ class FlowConfig:
     context_noise_max: float = 0.0
     """anti-drift: each sample's clean context frames become (1 - s) x + s eps with s ~ U(0, context_noise_max)
     (needs model.context_noise, which gives s to the model); loss targets are never noised. 0: off"""
+    self_forcing: float = 0.0
+    """anti-drift: this fraction of forward-dynamics samples train on a rollout's next chunk, whose context is the
+    model's own prediction (as in closed loop): training windows grow by rollout.keep_frames = l frames, one extra
+    forward pass (no gradient) predicts the future of each window's first K + T frames in one Euler step from pure
+    noise, and a picked sample's context becomes the last K of [real context, first l predicted frames], its targets
+    the real frames after them (flow.self_forced_window). Per-frame tokenizers only. 0: off (windows as before)"""
 
 
 @dataclasses.dataclass(frozen=True)

@@ -77,16 +77,62 @@ def draw_t(rng, batch: int, fcfg: FlowConfig) -> jax.Array:
     return jnp.clip(t, 1e-3, 1.0)
 
 
+def self_forced_window(params, cfg: ModelConfig, video, actions, stride, rng, grid, fcfg: FlowConfig, shift: int,
+                       eligible, pose=None):
+    """Self-forced context (anti-drift, as ``noise_context``; RoboWorld's step forcing): in closed loop a chunk's
+    context is the model's own earlier prediction, in training it is real. Takes windows extended by ``shift``
+    frames -- video [B, V, K + T + shift], actions [B, T + shift], pose [B, T + shift + 1] -- and returns the K + T
+    frame training windows (video, actions, pose) and ``picked`` [B]: each ``eligible`` sample is picked with
+    probability ``fcfg.self_forcing`` (drawn from ``rng``). An unpicked sample gets its first K + T frames (the
+    window as without self-forcing); a picked one the window ``shift`` frames later -- with shift = l
+    (rollout.keep_frames), the rollout's next chunk -- whose context is what a rollout would feed it: the last K of
+    [real context, the model's prediction of the first ``shift`` future frames], and whose poses are integrated
+    through the first chunk's actions, as a rollout's are. That prediction is one forward pass of the whole batch
+    (static shapes; selected with ``jnp.where``): one Euler step from pure noise (``sample``, steps=1: the
+    conditional-mean estimate x0 = eps - v), forward dynamics from the real context, held constant for autodiff
+    (training learns from it, never through it). Later frames are real, so the loss targets stay real frames."""
+    B = video.shape[0]
+    T = actions.shape[1] - shift
+    F = video.shape[2] - shift
+    K = F - T
+    if not 1 <= shift <= T:
+        raise ValueError(f"self-forcing shift {shift} must be in [1, T = {T}] (rollout.keep_frames)")
+    k_pick, k_pred = jax.random.split(rng)
+    picked = eligible & (jax.random.uniform(k_pick, (B,)) < fcfg.self_forcing)
+    first = (video[:, :, :F], actions[:, :T], None if pose is None else pose[:, :T + 1])
+    later = (video[:, :, shift:shift + F], actions[:, shift:], None if pose is None else pose[:, shift:])
+    video_noisy, action_noisy = modes_lib.fixed(modes_lib.FD, B, video.shape[1], K, T)
+    const = jax.lax.stop_gradient
+    predicted, _ = sample(const(params), cfg, *first[:2], stride, video_noisy, action_noisy, k_pred, 1, grid,
+                          cache="none", fcfg=fcfg, pose=first[2])
+    fed = jnp.concatenate([video[:, :, :K], const(predicted[:, :, K:K + shift])], axis=2)[:, :, -K:]
+    later = (later[0].at[:, :, :K].set(fed.astype(later[0].dtype)),) + later[1:]
+
+    def pick(a, b):
+        return None if a is None else jnp.where(picked.reshape((B,) + (1,) * (a.ndim - 1)), b, a)
+    return (*(pick(a, b) for a, b in zip(first, later)), picked)
+
+
 def loss(params, cfg: ModelConfig, video, actions, stride, rng, probs, grid, fcfg: FlowConfig = FlowConfig(),
-         context_frames: int | None = None, pose=None):
+         context_frames: int | None = None, pose=None, self_forcing_shift: int = 0):
     """The training loss for a batch of clean tokens; modes, noise levels and noise drawn from ``rng``.
     ``context_frames``: see ``predict`` (token frames; default: frames - actions). ``pose``: see ``dit.Inputs``.
-    With ``fcfg.context_noise_max > 0`` the context frames are noised (``noise_context``) before anything else;
-    the targets stay the clean frames."""
+    With ``fcfg.self_forcing > 0`` the inputs are windows extended by ``self_forcing_shift`` frames, cut to the
+    training windows by ``self_forced_window`` (its picks among forward-dynamics samples) before anything else.
+    With ``fcfg.context_noise_max > 0`` the context frames are noised (``noise_context``) next; the targets stay the
+    clean frames."""
+    k_mode, k_t, k_ev, k_ea = jax.random.split(rng, 4)
+    picked = None
+    if fcfg.self_forcing > 0:
+        if context_frames is not None:
+            raise ValueError("flow.self_forcing needs one token frame per frame (context_frames None)")
+        mode, _ = modes_lib.draw(k_mode, video.shape[0], video.shape[1], probs)  # the same draw as below
+        video, actions, pose, picked = self_forced_window(params, cfg, video, actions, stride,
+                                                          jax.random.fold_in(rng, 11), grid, fcfg,
+                                                          self_forcing_shift, mode == modes_lib.FD, pose)
     B, V, F = video.shape[:3]
     T = actions.shape[1]
     K = F - T if context_frames is None else context_frames
-    k_mode, k_t, k_ev, k_ea = jax.random.split(rng, 4)
     clean = video
     context_level = None
     if fcfg.context_noise_max > 0:
@@ -113,6 +159,10 @@ def loss(params, cfg: ModelConfig, video, actions, stride, rng, probs, grid, fcf
         sel = (mode == m).astype(jnp.float32)
         metrics[f"loss_{name}"] = jnp.sum(per_sample * sel) / jnp.maximum(jnp.sum(sel), 1.0)
         metrics[f"frac_{name}"] = jnp.mean(sel)
+    if picked is not None:  # loss_forward counts these too; this is their share of the batch and their own loss
+        sel = picked.astype(jnp.float32)
+        metrics["loss_self_forced"] = jnp.sum(per_sample * sel) / jnp.maximum(jnp.sum(sel), 1.0)
+        metrics["frac_self_forced"] = jnp.mean(sel)
     return total, metrics
 
 

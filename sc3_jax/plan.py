@@ -74,9 +74,17 @@ def config_flag(key: str, value) -> str:
 # Pieces
 # ----------------------------------------------------------------------------------------------------------------
 def _flops(lowered, compiled: bool) -> float:
-    cost = lowered.compile().cost_analysis() if compiled else lowered.cost_analysis()
-    cost = cost[0] if isinstance(cost, (list, tuple)) else cost
-    return float(cost["flops"])
+    def count(c):
+        c = c[0] if isinstance(c, (list, tuple)) and c else c
+        return None if not c or "flops" not in c else float(c["flops"])
+    # the lowered module's count needs no compile, but some backends give none (CUDA under jax 0.11: None, seen on
+    # an H200 on 2026-11-26); the compiled module's count stands in there
+    flops = None if compiled else count(lowered.cost_analysis())
+    if flops is None:
+        flops = count(lowered.compile().cost_analysis())
+    if flops is None:
+        raise RuntimeError("XLA's cost analysis gave no FLOP count on this backend (lowered or compiled)")
+    return flops
 
 
 def _counting_cfg(cfg):

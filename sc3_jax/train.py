@@ -72,6 +72,30 @@ def state_shardings(cfg: Config, mesh):
 # ================================================================================================================
 # Step
 # ================================================================================================================
+def self_forcing_shift(cfg: Config) -> int:
+    """Frames every training window is extended by for ``flow.self_forcing``: l = rollout.keep_frames (a picked
+    sample trains on the rollout's next chunk, ``flow.self_forced_window``); 0 when it is off."""
+    f = cfg.flow.self_forcing
+    if not 0.0 <= f <= 1.0:
+        raise UserError(f"flow.self_forcing = {f}: a fraction of forward-dynamics samples, in [0, 1]")
+    if f == 0:
+        return 0
+    if context_token_frames(cfg) is not None:
+        raise UserError(f"flow.self_forcing = {f} needs one token frame per frame (tokenizer 'pixel' or 'conv_ae', "
+                        f"not {cfg.model.tokenizer!r}): set it to 0")
+    if not 1 <= cfg.rollout.keep_frames <= cfg.data.future_frames:
+        raise UserError(f"flow.self_forcing shifts windows by rollout.keep_frames = {cfg.rollout.keep_frames}: "
+                        f"set it in [1, data.future_frames = {cfg.data.future_frames}]")
+    return cfg.rollout.keep_frames
+
+
+def window_data(cfg: Config):
+    """The data config the pipeline reads windows with: ``cfg.data``, with self-forcing's extra frames (actions,
+    poses) after the future frames."""
+    shift = self_forcing_shift(cfg)
+    return dataclasses.replace(cfg.data, future_frames=cfg.data.future_frames + shift) if shift else cfg.data
+
+
 def make_train_step(cfg: Config):
     """One optimizer step. dtype policy (as MaxText's weight_dtype/dtype): params, gradients and Adam moments are
     float32 -- the master weights -- and ``model.dtype`` (e.g. bfloat16) is the compute dtype every matmul casts
@@ -90,6 +114,7 @@ def make_train_step(cfg: Config):
     grid = tok.grid(cfg.data.image_size)
     opt = make_optimizer(cfg)
     K_tok = context_token_frames(cfg)
+    shift = self_forcing_shift(cfg)
 
     A, B = cfg.train.grad_accum, cfg.data.batch_size
     if A < 1 or B % A:
@@ -99,7 +124,7 @@ def make_train_step(cfg: Config):
         video = tok.from_latents(batch["latents"]) if "latents" in batch else tok.encode(batch["frames"])
         loss_fn = lambda p: flow.loss(p, cfg.model, video, batch["actions"], batch["stride"], rng,  # noqa: E731
                                       cfg.modes.probs, grid, cfg.flow, context_frames=K_tok,
-                                      pose=batch.get("pose"))
+                                      pose=batch.get("pose"), self_forcing_shift=shift)
         (_, metrics), grads = jax.value_and_grad(loss_fn, has_aux=True)(params)
         return grads, metrics
 
@@ -134,7 +159,7 @@ def uses_latent_cache(cfg: Config) -> bool:
 
 
 def batch_shapes(cfg: Config) -> dict[str, jax.ShapeDtypeStruct]:
-    d = cfg.data
+    d = window_data(cfg)
     B, V, F = d.batch_size, len(d.views), d.context_frames + d.future_frames
     shapes = {"actions": jax.ShapeDtypeStruct((B, d.future_frames, cfg.model.action_dim), jnp.float32),
               "stride": jax.ShapeDtypeStruct((B,), jnp.int32)}
@@ -272,16 +297,17 @@ def prepare_data(cfg: Config):
         if jax.process_index() == 0:
             stats.save(stats_path)
     dataset = None
+    data = window_data(cfg)  # longer windows with flow.self_forcing
     if uses_latent_cache(cfg):
         from sc3_jax.data import latent_cache
         root = workdir / "latents"
         if jax.process_index() == 0:
             latent_cache.build(store, make_tokenizer(cfg.model), tuple(cfg.data.views), root,
                                progress=cfg.train.progress)
-        index = pipeline.build_index(store, cfg.data)
-        dataset = pipeline.make_dataset(cfg.data, store, stats, jax.process_index(), jax.process_count(), index,
+        index = pipeline.build_index(store, data)
+        dataset = pipeline.make_dataset(data, store, stats, jax.process_index(), jax.process_count(), index,
                                         latents=latent_cache.LatentReader(root, index.episode_ids))
-    it = pipeline.make_iterator(cfg.data, store, stats, jax.process_index(), jax.process_count(), dataset)
+    it = pipeline.make_iterator(data, store, stats, jax.process_index(), jax.process_count(), dataset)
     return store, stats, it
 
 
@@ -306,10 +332,16 @@ def check_workdir(cfg: Config) -> None:
     old, new = (dict(flat(json.loads(json.dumps(dataclasses.asdict(c))))) for c in
                 (config_from_dict(atomic.read_json(path, "restore it from a copy")), cfg))
     diff = [f"{k} {old.get(k)!r} -> {new.get(k)!r}" for k in sorted(old.keys() | new.keys())
-            if old.get(k) != new.get(k) and not k.startswith(RESUMABLE)]
+            if old.get(k) != new.get(k) and not (k.startswith(RESUMABLE) and not _sets_windows(k, old, new))]
     if diff:
         raise UserError(f"{path.parent} holds a run with another config (changed: {'; '.join(diff)}): resume it "
                         "with its own settings, or use another --train.workdir")
+
+
+def _sets_windows(key: str, old: dict, new: dict) -> bool:
+    """rollout.keep_frames is what flow.self_forcing shifts (and lengthens) training windows by: then it is
+    training data, not a rollout setting, and a resumed run keeps it."""
+    return key == "rollout.keep_frames" and bool(old.get("flow.self_forcing") or new.get("flow.self_forcing"))
 
 
 def train(cfg: Config, mesh=None, stop_at: int | None = None) -> dict:

@@ -461,6 +461,7 @@ def test_training_drives_the_cosmos3_layout_on_time_compressed_latents(monkeypat
         replace(tcfg, model=dict(prompt_ids=(10 ** 9,)))
 
 
+@pytest.mark.slow  # 80 s: the default run stays under 15 min on 2 cores; CI runs it
 def test_rollout_on_time_compressed_latents(monkeypatch):
     """Algorithm 1 with a 4x time-compressing VAE: the context is kept as frames and tokenised every chunk, the
     model predicts t = 2 token frames (8 frames) from k = 2 (5 frames), the *decoded* frames 5..8 are kept. Chunk 0

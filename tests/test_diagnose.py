@@ -101,7 +101,8 @@ def test_table_prints_every_section(run):
     assert len(result["gates"]) == len(dg.GATES)
     failed = [g["gate"] for g in result["gates"] if not g["pass"]]
     assert tail[2] == f"gates: {len(dg.GATES) - len(failed)} of {len(dg.GATES)} pass; failed:"
-    assert [line.split(": ")[0] for line in tail[3:-1]] == [f"  FAIL {g}" for g in failed]
+    assert [line.split(": ")[0] for line in tail[3:-2]] == [f"  FAIL {g}" for g in failed]
+    assert tail[-2].startswith("outcome set: 6 objects with physics labels in 2 episodes: too few")
     assert tail[-1].startswith("result: ") and tail[-1].endswith("result.json")
 
 

@@ -17,6 +17,7 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
+@pytest.mark.slow  # 71 s: the default run stays under 15 min on 2 cores; CI runs it
 def test_two_processes_match_one():
     port = free_port()
     worker = Path(__file__).with_name("_dist_worker.py")

@@ -113,14 +113,18 @@ def test_the_dry_run_takes_every_phase_through_on_the_cpu(tmp_path):
     with tarfile.open(tmp_path / "m.tgz") as tar:
         tar.extractall(tmp_path / "model")
     m = tmp_path / "model" / "export_2"
-    assert {"config.json", "params.npz", "norm_stats.json", "state_reader.npz", "tokenizer"} <= {
+    assert {"config.json", "params.npz", "norm_stats.json", "state_reader.npz", "tokenizer", "data_stats.json"} <= {
         f.name for f in m.iterdir()}
+    assert json.loads((m / "data_stats.json").read_text())["episodes"] == 3  # what it was fine-tuned on
     mine, shipped = (json.loads((d / "norm_stats.json").read_text()) for d in (m, pb.SHIPPED))
     assert all(mine[k] == v for k, v in shipped.items())  # fine-tuned in the shipped model's action units
     # sweep: real and online rollouts of both splits, and the report
     with tarfile.open(out / "sweep_store.tgz") as tar:
         recs = [json.loads(x) for x in tar.extractfile("results.jsonl").read().decode().splitlines()]
         assert "report/report.md" in tar.getnames()
+        # the report says what the model was trained on, and that reverse bussing is never in that data
+        md = tar.extractfile("report/report.md").read().decode()
+        assert "The world model's training data (3 episodes" in md and "never shows: reverse" in md
     assert {r["split"] for r in recs if r["mode"] == "online"} == {"in_distribution", "out_of_distribution"}
     assert sum(r["mode"] == "real" for r in recs) == 9 and sum(r["mode"] == "online" for r in recs) == 6
     # bench: its last line

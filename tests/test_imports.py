@@ -165,13 +165,13 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
     ("rollout", ("rollout", "imagination_state")),
     ("results", ("evaluate.results",)),
     ("scoring", ("evaluate.scorers", "evaluate.perception", "evaluate.perception_train",
-                 "evaluate.annotation", "evaluate.degrade", "evaluate.rescore")),
+                 "evaluate.annotation", "evaluate.degrade", "evaluate.rescore", "evaluate.labels")),
     ("diagnostics", ("evaluate.world_model", "evaluate.world_model_defaults", "evaluate.diagnose",
                      "evaluate.diagnose_video", "evaluate.diagnose_actions", "evaluate.diagnose_outcomes",
                      "evaluate.diagnose_report", "evaluate.diagnose_table", "rollout_io", "plan")),
-    ("sweep", ("evaluate.sweep", "evaluate.real_workers")),
+    ("sweep", ("evaluate.sweep", "evaluate.real_workers", "evaluate.ic_sweep")),
     ("report", ("evaluate.report", "evaluate.calibrate", "evaluate.intervals", "evaluate.bootstrap",
-                "evaluate.merged", "evaluate.curve")),
+                "evaluate.merged", "evaluate.curve", "evaluate.ic_ranking")),
     ("commands", ("cli", "commands", "convert_cli", "demo", "sim.cli")),
 ]
 

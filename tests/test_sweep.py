@@ -21,6 +21,7 @@ from sc3_jax import checkpoint, rollout, train
 from sc3_jax.config import load_config, replace
 from sc3_jax.data.norm_stats import NormStats
 from sc3_jax.evaluate import annotation, metrics, perception, report, sweep
+from sc3_jax.errors import UserError
 from sc3_jax.evaluate.results import EVAL_MODES, ResultsStore, rollout_id, seed_blocks
 from sc3_jax.evaluate.scorers import HumanScorer, RolloutView
 from sc3_jax.policies import resolve
@@ -225,13 +226,19 @@ def test_report_numbers_come_from_compute(setup, tmp_path):
 
 
 def test_report_from_an_archived_store_needs_only_its_two_json_files(setup, tmp_path):
-    """sweep.json + results.jsonl (kilobytes per rollout, committable) regenerate every table of a store whose
-    rollouts/ (frames, gigabytes) are gone; only the videos need the frames."""
+    """sweep.json + results.jsonl.gz (the repository's form, docs/stores/: a 20th of the records' size) regenerate
+    every table of a store whose rollouts/ (frames, gigabytes) are gone; only the videos need the frames. An
+    archived store refuses to be written to, with one line, and stays as it was."""
+    import gzip
     _, cfg = setup
     archive = tmp_path / "archive"
     archive.mkdir()
-    for name in ("sweep.json", "results.jsonl"):
-        shutil.copy(Path(cfg.out) / name, archive / name)
+    shutil.copy(Path(cfg.out) / "sweep.json", archive / "sweep.json")
+    (archive / "results.jsonl.gz").write_bytes(gzip.compress((Path(cfg.out) / "results.jsonl").read_bytes()))
+    assert ResultsStore(archive).archived and ResultsStore(archive).records() == ResultsStore(cfg.out).records()
+    with pytest.raises(UserError, match="archived store .* read-only"):
+        ResultsStore(archive, json.loads((archive / "sweep.json").read_text()))
+    assert sorted(f.name for f in archive.iterdir()) == ["results.jsonl.gz", "sweep.json"]
     # NaN-safe equality; read_from names the directory each report read
     same = lambda t: json.dumps({k: v for k, v in t.items() if k != "read_from"}, sort_keys=True, default=str)  # noqa: E731
     assert same(report.compute(archive)) == same(report.compute(cfg.out))
@@ -292,10 +299,11 @@ def test_real_from_a_store_of_records_only_copies_the_records(setup, tmp_path):
     whose world-model modes need no frames; offline replay, which needs the real actions, is refused."""
     import shutil
     _, cfg = setup
+    import gzip
     archived = tmp_path / "archived"
     archived.mkdir()
-    for f in ("results.jsonl", "sweep.json"):
-        shutil.copy(Path(cfg.out) / f, archived / f)
+    shutil.copy(Path(cfg.out) / "sweep.json", archived / "sweep.json")
+    (archived / "results.jsonl.gz").write_bytes(gzip.compress((Path(cfg.out) / "results.jsonl").read_bytes()))
     one = dataclasses.replace(cfg, out=str(tmp_path / "one"), policies=POLICIES[:1], modes=("real",), episodes=2,
                               calibration_episodes=0, ceiling_episodes=0, real_from=str(archived))
     sweep.run_sweep(one)

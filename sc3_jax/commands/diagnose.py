@@ -8,7 +8,7 @@ from typing import Annotated
 import tyro
 
 from sc3_jax.commands import parse_with_config
-from sc3_jax.evaluate.diagnose import DiagnoseConfig
+from sc3_jax.evaluate.diagnose import DiagnoseConfig, Stage
 
 D = DiagnoseConfig()  # the library's defaults, one home
 
@@ -47,6 +47,10 @@ class Args:
     """perception weights for the outcome check (default: the shipped ones)"""
     progress: bool = D.progress
     """a progress bar on stderr (--no-progress: none, for batch logs)"""
+    stages: tuple[Stage, ...] = D.stages
+    """the passes to run: teacher_forced (one chunk ahead, shuffled actions, inverse dynamics), counterfactual,
+    open_loop (drift and outcome reproduction); the others' sections and gates read "not run". --stages open_loop:
+    a large outcome set at the cost of its open-loop rollouts alone"""
 
 
 def evaluated_config(a: Args):

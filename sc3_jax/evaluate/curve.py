@@ -132,10 +132,11 @@ def markdown(c: dict) -> str:
     lines += ["| " + " | ".join([p["label"]] + [report.ci((p["vs_floor"][s] or {}).get(k)) for s in _SPLITS
                                                 for k in ("pearson", "mmrv")]) + " |" for p in c["points"]]
     if c.get("baseline"):
-        head = ["checkpoint"] + [f"{s.replace('_', ' ')} {k} - baseline" for s in _SPLITS for k in ("r", "MMRV")]
+        # here the pooled split too: "better than the baseline overall" is a question a curve's user asks
+        head = ["checkpoint"] + [f"{s.replace('_', ' ')} {k} - baseline" for s in SPLIT_ORDER for k in ("r", "MMRV")]
         lines += ["", f"Paired difference to the baseline, {c['baseline']}, on the same resampled conditions (r > 0 "
                   "and MMRV < 0 favour the checkpoint):", "", "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-        lines += ["| " + " | ".join([p["label"]] + [report.ci(p["vs_baseline"].get(s, {}).get(k)) for s in _SPLITS
+        lines += ["| " + " | ".join([p["label"]] + [report.ci(p["vs_baseline"].get(s, {}).get(k)) for s in SPLIT_ORDER
                                                     for k in ("pearson", "mmrv")]) + " |"
                   for p in c["points"] if p["label"] != c["baseline"]]
     return "\n".join(lines) + "\n"

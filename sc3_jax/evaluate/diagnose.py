@@ -18,6 +18,11 @@ store). Everything is computed first (:func:`diagnose` -> a JSON-able dict), the
 * gates (``diagnose_report.py``): each acceptance gate with value, threshold and pass/fail (``GATES``,
   docs/world_model.md).
 
+``DiagnoseConfig.stages`` picks the passes that run: "teacher_forced" (frames one chunk ahead, shuffled actions,
+inverse dynamics), "counterfactual", "open_loop" (drift and outcomes). A section of a pass not run reads
+``{"available": false, "note": "not run (--stages)"}`` and its gates neither pass nor fail (``"pass": null``), so a
+large outcome set costs only its open-loop rollouts.
+
 Moving pixels of a target frame: any channel differs from the reference frame (the last real context frame) by more
 than ``moving_threshold`` in [-1, 1] units (0.06 = 7.65 grey levels: above the renderer's anti-aliasing flicker,
 below the arm-on-table contrast).
@@ -32,17 +37,22 @@ import dataclasses
 import math
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 
 # numpy only, all of them: the module stays cheap for report.py to import
 from sc3_jax.evaluate import diagnose_actions, diagnose_outcomes, diagnose_video
 from sc3_jax.evaluate.diagnose_actions import AXES, InverseErrors, arm_centroid  # noqa: F401  (public names)
-from sc3_jax.evaluate.diagnose_report import (GATES, gates, load_result, render_table,  # noqa: F401
-                                              save_result, verdict)
+from sc3_jax.evaluate.diagnose_report import (GATES, NOT_RUN_NOTE, gates, load_result,  # noqa: F401
+                                              render_table, save_result, verdict)
 from sc3_jax.evaluate.diagnose_video import (PREDICTORS, ErrorSums, moving_mask, psnr_from_sums,  # noqa: F401
                                              squared_errors, temporal_median)
+
+
+Stage = Literal["teacher_forced", "counterfactual", "open_loop"]
+STAGES: tuple[Stage, ...] = ("teacher_forced", "counterfactual", "open_loop")  # the order they run in
+NOT_RUN = {"available": False, "note": NOT_RUN_NOTE}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -59,6 +69,7 @@ class DiagnoseConfig:
     min_arm_pixels: int = 4
     perception: str | None = None  # perception weights (None: the shipped ones)
     progress: bool = True
+    stages: tuple[Stage, ...] = STAGES  # the passes to run (module docstring); the others' sections read NOT_RUN
     # gates (see GATES)
     gate_margin_db: float = 3.0
     gate_actions_db: float = 2.0
@@ -144,6 +155,7 @@ def diagnose(world_model, heldout_store, config: DiagnoseConfig | None = None, *
     from sc3_jax.data.episodes import EpisodeStore
 
     dc = dataclasses.replace(config or DiagnoseConfig(), **overrides)
+    _check_stages(dc.stages)
     t0 = time.time()
     cfg, stats, params, name = load(world_model, model_config)
     store = heldout_store if isinstance(heldout_store, EpisodeStore) else EpisodeStore(heldout_store)
@@ -153,16 +165,24 @@ def diagnose(world_model, heldout_store, config: DiagnoseConfig | None = None, *
     bar = tqdm(total=len(p.eps), desc="diagnose", unit="episode", disable=not dc.progress)
     for g0 in range(0, len(p.eps), p.batch):  # episodes per step: one open-loop batch
         g = list(range(g0, min(g0 + p.batch, len(p.eps))))
-        for stage, run in (("teacher-forced", _teacher_forced), ("counterfactual", _counterfactual),
-                           ("open loop", _open_loop)):
-            bar.set_postfix_str(stage)
-            run(p, acc, g)
+        for stage, run in (("teacher_forced", _teacher_forced), ("counterfactual", _counterfactual),
+                           ("open_loop", _open_loop)):
+            if stage in dc.stages:
+                bar.set_postfix_str(stage)
+                run(p, acc, g)
         bar.update(len(g))
     bar.close()
     result = _result(p, acc, name, store, ids)
     result["gates"] = gates(result, dc)
     result["seconds"] = round(time.time() - t0, 1)
     return result
+
+
+def _check_stages(stages) -> None:
+    from sc3_jax.errors import UserError
+    bad = [s for s in stages if s not in STAGES]
+    if bad or not stages:
+        raise UserError(f"--stages {' '.join(map(str, stages)) or '(none)'}: name one or more of {' '.join(STAGES)}")
 
 
 def _episodes(store, cfg, n: int | None) -> list[str]:
@@ -201,7 +221,8 @@ def _plan(cfg, stats, params, store, ids, dc: DiagnoseConfig) -> _Plan:
     samples = diagnose_video.tf_starts(eps, tf.spec, keep, stride)
     medians = [np.stack([temporal_median(ep.frames[v]) for v in views]) for ep in eps]
     third = [i for i, v in enumerate(views) if "wrist" not in v]
-    scorer, note = diagnose_outcomes.perception_scorer(views, cfg.data.image_size, dc.perception)
+    scorer, note = diagnose_outcomes.perception_scorer(views, cfg.data.image_size, dc.perception) \
+        if "open_loop" in dc.stages else (None, None)
     return _Plan(
         dc=dc, cfg=cfg, stats=stats, params=params, views=views, third=third, eps=eps, tf=tf,
         ol=ro_mod.Rollout(cfg, stats, data_fps=store.fps, num_chunks=n_chunks), stride=stride, keep=keep, off=off,
@@ -209,7 +230,9 @@ def _plan(cfg, stats, params, store, ids, dc: DiagnoseConfig) -> _Plan:
         donors=diagnose_video.shuffle_donors(samples, np.random.default_rng(dc.seed)), medians=medians,
         first=[np.stack([np.asarray(ep.frames[v][0]) for v in views]) for ep in eps], steps_in=steps_in,
         horizon_steps=[int(round(h * hz)) for h in dc.horizons],
-        calib=diagnose_actions.calibrate(eps, views, third, medians, stride, dc), scorer=scorer, scorer_note=note,
+        # the camera fit reads every stride-th frame of every episode: only the counterfactual pass needs it
+        calib=diagnose_actions.calibrate(eps, views, third, medians, stride, dc) if "counterfactual" in dc.stages
+        else {}, scorer=scorer, scorer_note=note,
         id_mean=make_sampler(cfg, steps=1))
 
 
@@ -304,6 +327,7 @@ def _open_loop(p: _Plan, acc: _Sums, group: list[int]):
 
 def _result(p: _Plan, acc: _Sums, name: str, store, ids) -> dict:
     cfg, dc, spec = p.cfg, p.dc, p.tf.spec
+    ran = lambda stage, section: section() if stage in dc.stages else dict(NOT_RUN)  # noqa: E731
     return {
         "world_model": name, "data": str(store.root), "episodes": ids, "seconds": None,
         "settings": {**dataclasses.asdict(dc), "context_frames": cfg.data.context_frames,
@@ -313,10 +337,13 @@ def _result(p: _Plan, acc: _Sums, name: str, store, ids) -> dict:
                      "sample_steps": spec.steps, "inverse_steps": spec.inverse_steps or spec.steps,
                      "open_loop_chunks": p.ol.spec.num_chunks, "batch": p.batch},
         "views": p.views, "third_person_views": [p.views[i] for i in p.third],
-        "teacher_forced": diagnose_video.tf_section(acc.tf, p.views, cfg.data.future_frames / cfg.rollout.control_hz,
-                                                    len(p.samples), acc.u),
-        "drift": diagnose_video.drift_section(acc.ol, p.views, dc.horizons, p.horizon_steps),
-        "counterfactual": diagnose_actions.cf_section(acc.cf_rows, p.calib, p.views, p.third, dc),
-        "inverse_dynamics": acc.inverse.section(),
-        "outcomes": diagnose_outcomes.outcome_section(acc.outcomes, p.scorer_note),
+        "teacher_forced": ran("teacher_forced", lambda: diagnose_video.tf_section(
+            acc.tf, p.views, cfg.data.future_frames / cfg.rollout.control_hz, len(p.samples), acc.u)),
+        "drift": ran("open_loop", lambda: diagnose_video.drift_section(acc.ol, p.views, dc.horizons,
+                                                                       p.horizon_steps)),
+        "counterfactual": ran("counterfactual", lambda: diagnose_actions.cf_section(acc.cf_rows, p.calib, p.views,
+                                                                                   p.third, dc)),
+        "inverse_dynamics": ran("teacher_forced", acc.inverse.section),
+        "outcomes": ran("open_loop", lambda: diagnose_outcomes.outcome_section(acc.outcomes, p.scorer_note,
+                                                                               seed=dc.seed)),
     }

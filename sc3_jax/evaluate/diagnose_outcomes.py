@@ -4,7 +4,15 @@ where the rollout does not cover the whole episode or no labels exist, vs the pe
 the same window instead) and ``sc3 rollout``'s success estimate."""
 from __future__ import annotations
 
+import math
+
 import numpy as np
+
+BOOTSTRAP_DRAWS = 2000
+# objects with physics labels an outcome set needs to be read per category (issue 34's size): at 0.75 the binomial
+# 95% half-width is ~0.07 with 150 objects (more once episodes' correlation counts), ~0.11 with 60: a set of a few
+# dozen objects cannot tell a model at 0.67 from one at the 0.75 gate
+MIN_OBJECTS = 150
 
 
 def perception_scorer(views, image_size, weights: str | None = None):
@@ -48,8 +56,9 @@ def outcome(scorer, ep, ctx, pred, tgt, valid, steps_in: int) -> dict | None:
             "physics": physics if covered else None, "covered": covered}
 
 
-def outcome_section(rows, note) -> dict:
-    """Per-criterion agreement of the imagined outcomes with physics and with the scorer on real frames."""
+def outcome_section(rows, note, seed: int = 0, draws: int = BOOTSTRAP_DRAWS) -> dict:
+    """Per-criterion agreement of the imagined outcomes with physics and with the scorer on real frames; imagined vs
+    physics also per outcome category with intervals (:func:`physics_reproduction`, seeded by ``seed``)."""
     from sc3_jax.evaluate.metrics import CRITERIA, outcome_category
     rows = [r for r in rows if r is not None]
     category = lambda o: outcome_category({c: o[c] for c in CRITERIA})  # noqa: E731  (sim spells "no failure")
@@ -73,7 +82,55 @@ def outcome_section(rows, note) -> dict:
     return {"available": True, "n_episodes": len(rows),
             "reference": "physics" if vs_physics else "perception(real frames)",
             "imagined_vs_physics": vs_physics, "imagined_vs_real_perception": agree("imagined", "real_perception"),
-            "real_perception_vs_physics": agree("real_perception", "physics")}
+            "real_perception_vs_physics": agree("real_perception", "physics"),
+            "physics_reproduction": physics_reproduction(rows, seed, draws)}
+
+
+def physics_reproduction(rows, seed: int = 0, draws: int = BOOTSTRAP_DRAWS) -> dict | None:
+    """Imagined vs physics with 95% intervals, from the rows whose rollout covered the episode (None: none did).
+
+    Per physics outcome category (``metrics.outcome_category``): its objects and the fraction whose imagined
+    category is the same; the same agreement over every object and per criterion; the confusion table (physics
+    category -> imagined category -> objects). Intervals: percentile bootstrap resampling *episodes* (the objects of
+    one episode share its rollout, so they are not independent draws), one set of ``draws`` resamplings shared by
+    every figure, seeded; None with fewer than 2 episodes (nothing to resample)."""
+    from sc3_jax.evaluate.metrics import CATEGORIES, CRITERIA, outcome_category
+    rows = [r for r in rows if r is not None and r["physics"] is not None]
+    if not rows:
+        return None
+    category = lambda o: outcome_category({c: o[c] for c in CRITERIA})  # noqa: E731  (sim spells "no failure")
+    pairs = [[(a, b) for a, b in zip(r["imagined"], r["physics"], strict=True)] for r in rows]  # per episode
+    E = len(rows)
+    rng = np.random.default_rng(seed)
+    # weights[d, e]: how often resampling d draws episode e (E draws with replacement)
+    weights = rng.multinomial(E, np.full(E, 1.0 / E), size=draws) if E >= 2 else None
+
+    def stat(hit, keep=lambda im, ph: True) -> dict:
+        """Fraction of the kept (imagined, physics) objects where ``hit``, with its interval."""
+        num = np.array([sum(bool(hit(im, ph)) for im, ph in ep if keep(im, ph)) for ep in pairs], np.float64)
+        den = np.array([sum(bool(keep(im, ph)) for im, ph in ep) for ep in pairs], np.float64)
+        n = int(den.sum())
+        out = {"n_objects": n, "agreement": float(num.sum() / n) if n else math.nan, "ci95": None}
+        if weights is not None and n:
+            with np.errstate(invalid="ignore", divide="ignore"):
+                boot = (weights @ num) / (weights @ den)  # nan where a resampling holds none of these objects
+            boot = boot[np.isfinite(boot)]
+            if len(boot):
+                out["ci95"] = [float(x) for x in np.percentile(boot, [2.5, 97.5])]
+        return out
+
+    confusion = {c: {k: 0 for k in CATEGORIES} for c in CATEGORIES}
+    for ep in pairs:
+        for im, ph in ep:
+            confusion[category(ph)][category(im)] += 1
+    n = sum(len(ep) for ep in pairs)
+    return {"n_episodes": E, "n_objects": n, "draws": draws if weights is not None else 0, "seed": seed,
+            "enough_objects": n >= MIN_OBJECTS, "min_objects": MIN_OBJECTS,
+            "outcome": stat(lambda im, ph: category(im) == category(ph)),
+            "criteria": {c: stat(lambda im, ph, c=c: im[c] == ph[c]) for c in CRITERIA},
+            "categories": {c: stat(lambda im, ph: category(im) == category(ph), lambda im, ph, c=c: category(ph) == c)
+                           for c in CATEGORIES},
+            "confusion": confusion}
 
 
 def success_rates(outcomes: list[list[dict]]) -> dict[str, float]:

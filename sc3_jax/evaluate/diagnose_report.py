@@ -15,6 +15,8 @@ if TYPE_CHECKING:
     from sc3_jax.evaluate.diagnose import DiagnoseConfig
 
 
+NOT_RUN_NOTE = "not run (--stages)"  # diagnose.NOT_RUN's note: how a skipped section and its gates read
+SECTIONS = ("teacher_forced", "inverse_dynamics", "counterfactual", "drift", "outcomes")
 GATES = ("teacher-forced moving PSNR - copy-last, every third-person view (dB)",
          "teacher-forced moving PSNR - temporal median, every third-person view (dB)",
          "true - shuffled actions, moving PSNR, every view (dB)",
@@ -22,31 +24,53 @@ GATES = ("teacher-forced moving PSNR - copy-last, every third-person view (dB)",
          "drift curve reported per view")
 
 
+def ran(section: dict) -> bool:
+    """Whether a result's section was computed (``sc3 diagnose --stages`` leaves the others as a note)."""
+    return section.get("available", True) or section.get("note") != NOT_RUN_NOTE
+
+
+def not_run(result: dict) -> list[str]:
+    """The sections of ``result`` that ``--stages`` skipped."""
+    return [k for k in SECTIONS if not ran(result.get(k, {}))]
+
+
 def gates(result: dict, dc: DiagnoseConfig) -> list[dict]:
-    """Each gate of ``GATES`` on a :func:`diagnose` result: value, ``dc``'s threshold, pass, note."""
-    tf = result["teacher_forced"]["views"]
+    """Each gate of ``GATES`` on a :func:`diagnose` result: value, ``dc``'s threshold, pass, note. A gate whose
+    section was not run (``--stages``) reads value nan, pass None (neither pass nor fail)."""
     third = result["third_person_views"] or result["views"]
+    rows = []
+    if ran(result["teacher_forced"]):
+        tf = result["teacher_forced"]["views"]
 
-    def margin(base):
-        vals = [tf[v]["psnr"]["model"]["moving"] - tf[v]["psnr"][base]["moving"] for v in third]
-        return min(vals) if vals else math.nan
+        def margin(base):
+            vals = [tf[v]["psnr"]["model"]["moving"] - tf[v]["psnr"][base]["moving"] for v in third]
+            return min(vals) if vals else math.nan
 
-    shuffled = min(tf[v]["true_minus_shuffled_moving"] for v in result["views"])
-    oc = result["outcomes"]
-    if oc.get("available"):
-        ref = oc["imagined_vs_physics"] or oc["imagined_vs_real_perception"]
-        repro, note = ref["outcome"], f"outcome category vs {oc['reference']}, {ref['n_objects']} objects"
+        shuffled = min(tf[v]["true_minus_shuffled_moving"] for v in result["views"])
+        rows += [(GATES[0], margin("copy_last"), dc.gate_margin_db, ""),
+                 (GATES[1], margin("median"), dc.gate_margin_db, ""),
+                 (GATES[2], shuffled, dc.gate_actions_db, "")]
     else:
-        repro, note = math.nan, oc.get("note", "")
-    drift_ok = all(r[0]["n_episodes"] > 0 for r in result["drift"]["views"].values())
-    rows = [(GATES[0], margin("copy_last"), dc.gate_margin_db, ""),
-            (GATES[1], margin("median"), dc.gate_margin_db, ""),
-            (GATES[2], shuffled, dc.gate_actions_db, ""),
-            (GATES[3], repro, dc.gate_reproduction, note)]
+        rows += [(g, None, t, "") for g, t in zip(GATES[:3], (dc.gate_margin_db, dc.gate_margin_db,
+                                                               dc.gate_actions_db))]
+    oc = result["outcomes"]
+    if not ran(oc):
+        rows.append((GATES[3], None, dc.gate_reproduction, ""))
+    elif oc.get("available"):
+        ref = oc["imagined_vs_physics"] or oc["imagined_vs_real_perception"]
+        rows.append((GATES[3], ref["outcome"], dc.gate_reproduction,
+                     f"outcome category vs {oc['reference']}, {ref['n_objects']} objects"))
+    else:
+        rows.append((GATES[3], math.nan, dc.gate_reproduction, oc.get("note", "")))
     out = [{"gate": g, "value": v, "threshold": t, "pass": bool(math.isfinite(v) and v >= t), "note": n}
+           if v is not None else {"gate": g, "value": math.nan, "threshold": t, "pass": None, "note": NOT_RUN_NOTE}
            for g, v, t, n in rows]
-    out.append({"gate": GATES[4], "value": float(drift_ok), "threshold": 1.0, "pass": drift_ok,
-                "note": "horizons " + ", ".join(f"{h:g} s" for h in result["drift"]["horizons_s"])})
+    if ran(result["drift"]):
+        drift_ok = all(r[0]["n_episodes"] > 0 for r in result["drift"]["views"].values())
+        out.append({"gate": GATES[4], "value": float(drift_ok), "threshold": 1.0, "pass": drift_ok,
+                    "note": "horizons " + ", ".join(f"{h:g} s" for h in result["drift"]["horizons_s"])})
+    else:
+        out.append({"gate": GATES[4], "value": math.nan, "threshold": 1.0, "pass": None, "note": NOT_RUN_NOTE})
     return out
 
 
@@ -63,7 +87,8 @@ def _pct(x) -> str:
 
 
 def render_table(result: dict) -> str:
-    """Markdown of a :func:`diagnose` result (every number comes from ``result``)."""
+    """Markdown of a :func:`diagnose` result (every number comes from ``result``); a section ``--stages`` skipped
+    reads as one line."""
     st = result["settings"]
     L = [f"## World-model diagnostics: {result['world_model']}", "",
          f"held-out data {result['data']} ({len(result['episodes'])} episodes), K={st['context_frames']} "
@@ -71,65 +96,119 @@ def render_table(result: dict) -> str:
          f"{st['control_hz']:g} Hz (stride {st['stride']}), {st['sample_steps']} sampler steps"
          + (f" (U re-read in {st['inverse_steps']})" if st.get("inverse_steps") else "") +
          f", moving pixels: any channel > {st['moving_threshold']:g} from the last real context frame; PSNR in dB "
-         f"of pooled errors; {_f(result['seconds'], '{:.0f}')} s", ""]
-    tf = result["teacher_forced"]
-    L += [f"### One chunk ahead from real context (teacher-forced, {tf['horizon_s']:g} s, {tf['n_chunks']} chunks, "
-          f"mean U {_f(tf['u_mean'], '{:.3f}')})", "",
-          "| view | moving px | whole: model | copy-last | copy-first | median | moving: model | copy-last | "
-          "copy-first | median | shuffled actions | true - shuffled |",
-          "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+         f"of pooled errors; {_f(result['seconds'], '{:.0f}')} s"]
+    for key, heading, body in (
+            ("teacher_forced", "One chunk ahead from real context (teacher-forced{})", _teacher_forced_lines),
+            ("drift", "Drift (open loop from the first real frames, recorded actions){}", _drift_lines),
+            ("counterfactual", "Counterfactual actions{}", _counterfactual_lines),
+            ("inverse_dynamics", "Inverse dynamics on real frames{}", _inverse_lines),
+            ("outcomes", "Offline outcome reproduction (perception scorer on the open-loop rollout){}",
+             _outcome_lines)):
+        sec = result[key]
+        if ran(sec):
+            detail, lines = body(sec)
+            L += ["", f"### {heading.format(detail)}", ""] + lines
+        else:
+            L += ["", f"### {heading.format('')}", "", NOT_RUN_NOTE]
+    L += ["", "### Gates", "", "| gate | value | threshold | pass | note |", "|---|---|---|---|---|"]
+    for g in result["gates"]:
+        L.append(f"| {g['gate']} | {_f(g['value'])} | {g['threshold']:g} | {_pass(g)} | {g['note']} |")
+    return "\n".join(L) + "\n"
+
+
+def _teacher_forced_lines(tf: dict) -> tuple[str, list[str]]:
+    L = ["| view | moving px | whole: model | copy-last | copy-first | median | moving: model | copy-last | "
+         "copy-first | median | shuffled actions | true - shuffled |", "|" + "---|" * 12]
     for v, r in tf["views"].items():
         p = r["psnr"]
         L.append(f"| {v} | {_pct(r['moving_fraction'])} | " +
                  " | ".join(_f(p[k]["whole"]) for k in PREDICTORS) + " | " +
                  " | ".join(_f(p[k]["moving"]) for k in PREDICTORS) +
                  f" | {_f(p['shuffled']['moving'])} | {_f(r['true_minus_shuffled_moving'], '{:+.2f}')} |")
-    L += ["", "### Drift (open loop from the first real frames, recorded actions)", "",
-          "| view | horizon | episodes | moving px | whole: model | copy-last | copy-first | median | moving: model | "
-          "copy-last | copy-first | median |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]
-    for v, rows in result["drift"]["views"].items():
+    return f", {tf['horizon_s']:g} s, {tf['n_chunks']} chunks, mean U {_f(tf['u_mean'], '{:.3f}')}", L
+
+
+def _drift_lines(drift: dict) -> tuple[str, list[str]]:
+    L = ["| view | horizon | episodes | moving px | whole: model | copy-last | copy-first | median | moving: model | "
+         "copy-last | copy-first | median |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for v, rows in drift["views"].items():
         for r in rows:
             p = r["psnr"]
             L.append(f"| {v} | {r['horizon_s']:g} s | {r['n_episodes']} | {_pct(r['moving_fraction'])} | " +
                      " | ".join(_f(p[k]["whole"]) for k in PREDICTORS) + " | " +
                      " | ".join(_f(p[k]["moving"]) for k in PREDICTORS) + " |")
-    cf = result["counterfactual"]
-    L += ["", f"### Counterfactual actions (recorded chunk +- {100 * cf['distance_m']:g} cm in x / y, "
-              "arm centroid vs the temporal median)", "",
-          "| view | pairs | points the commanded way | correlation | gain | opposite commands opposite | "
-          "commanded px | imagined px | recorded-chunk arm error px | camera fit R^2 (row, col) |",
-          "|---|---|---|---|---|---|---|---|---|---|"]
+    return "", L
+
+
+def _counterfactual_lines(cf: dict) -> tuple[str, list[str]]:
+    L = ["| view | pairs | points the commanded way | correlation | gain | opposite commands opposite | "
+         "commanded px | imagined px | recorded-chunk arm error px | camera fit R^2 (row, col) |",
+         "|---|---|---|---|---|---|---|---|---|---|"]
     for v, r in cf["views"].items():
         r2 = cf["calibration_r2"].get(v)
         L.append(f"| {v} | {r['n_pairs']} | {_f(r['direction_agreement'])} | {_f(r['correlation'])} | "
                  f"{_f(r['gain'])} | {_f(r['opposite_fraction'])} | {_f(r['commanded_px'], '{:.1f}')} | "
                  f"{_f(r['imagined_px'], '{:.1f}')} | {_f(r['recorded_position_error_px'], '{:.1f}')} | "
                  + (f"{_f(r2[0])}, {_f(r2[1])}" if r2 else "") + " |")
-    idr = result["inverse_dynamics"]
-    L += ["", "### Inverse dynamics on real frames (normalised action units, MSE per dimension)", "",
-          "| ID (1 step, conditional mean) | floor: zero (training mean) | floor: held-out mean | "
-          "ratio to floor | steps |", "|---|---|---|---|---|",
-          f"| {_f(idr['mse'], '{:.3f}')} | {_f(idr['zero'], '{:.3f}')} | "
-          f"{_f(idr['mean_floor'], '{:.3f}')} | {_f(idr['ratio_to_floor'], '{:.3f}')} | {idr['n_steps']} |"]
-    oc = result["outcomes"]
-    L += ["", "### Offline outcome reproduction (perception scorer on the open-loop rollout)", ""]
+    return (f" (recorded chunk +- {100 * cf['distance_m']:g} cm in x / y, arm centroid vs the temporal median)",
+            L)
+
+
+def _inverse_lines(idr: dict) -> tuple[str, list[str]]:
+    return " (normalised action units, MSE per dimension)", [
+        "| ID (1 step, conditional mean) | floor: zero (training mean) | floor: held-out mean | ratio to floor | "
+        "steps |", "|---|---|---|---|---|",
+        f"| {_f(idr['mse'], '{:.3f}')} | {_f(idr['zero'], '{:.3f}')} | {_f(idr['mean_floor'], '{:.3f}')} | "
+        f"{_f(idr['ratio_to_floor'], '{:.3f}')} | {idr['n_steps']} |"]
+
+
+def _outcome_lines(oc: dict) -> tuple[str, list[str]]:
     if not oc.get("available"):
-        L.append(f"not available: {oc.get('note')}")
-    else:
-        L += ["| comparison | objects | language | lifting | placing | lifting and placing | outcome category |",
-              "|---|---|---|---|---|---|---|"]
-        for k, label in (("imagined_vs_physics", "imagined vs physics"),
-                         ("imagined_vs_real_perception", "imagined vs perception(real)"),
-                         ("real_perception_vs_physics", "perception(real) vs physics (scorer ceiling)")):
-            r = oc[k]
-            if r:
-                L.append(f"| {label} | {r['n_objects']} | {_f(r['language'])} | {_f(r['lifting'])} | "
-                         f"{_f(r['placing'])} | {_f(r['lifting_and_placing'])} | {_f(r['outcome'])} |")
-    L += ["", "### Gates", "", "| gate | value | threshold | pass | note |", "|---|---|---|---|---|"]
-    for g in result["gates"]:
-        L.append(f"| {g['gate']} | {_f(g['value'])} | {g['threshold']:g} | {'PASS' if g['pass'] else 'FAIL'} | "
-                 f"{g['note']} |")
-    return "\n".join(L) + "\n"
+        return "", [f"not available: {oc.get('note')}"]
+    L = ["| comparison | objects | language | lifting | placing | lifting and placing | outcome category |",
+         "|---|---|---|---|---|---|---|"]
+    for k, label in (("imagined_vs_physics", "imagined vs physics"),
+                     ("imagined_vs_real_perception", "imagined vs perception(real)"),
+                     ("real_perception_vs_physics", "perception(real) vs physics (scorer ceiling)")):
+        r = oc[k]
+        if r:
+            L.append(f"| {label} | {r['n_objects']} | {_f(r['language'])} | {_f(r['lifting'])} | "
+                     f"{_f(r['placing'])} | {_f(r['lifting_and_placing'])} | {_f(r['outcome'])} |")
+    if oc.get("physics_reproduction"):
+        L += [""] + _reproduction_lines(oc["physics_reproduction"])
+    return "", L
+
+
+# metrics' outcome categories (the first criterion an object fails) in the simulator's words (sim/mixture.py)
+CATEGORY_NAMES = {"no_failure": "placed", "placing": "dropped / off target", "lifting": "missed (never lifted)",
+                  "language": "wrong container"}
+
+
+def _ci(s: dict) -> str:
+    ci = s.get("ci95")
+    return _f(s["agreement"]) + (f" [{ci[0]:.2f}, {ci[1]:.2f}]" if ci else "")
+
+
+def _reproduction_lines(r: dict) -> list[str]:
+    """Imagined vs physics with intervals: agreement overall and per criterion, then per physics category with the
+    imagined categories it became (``diagnose_outcomes.physics_reproduction``)."""
+    how = (f"95% bootstrap interval over the {r['n_episodes']} episodes ({r['draws']} draws, seed {r['seed']})"
+           if r["draws"] else "no interval: a single episode")
+    cats = list(r["categories"])
+    L = [f"Imagined vs physics, {r['n_objects']} objects; value [{how}]", "",
+         "| agreement with physics | objects | imagined = physics |", "|---|---|---|",
+         f"| outcome category | {r['outcome']['n_objects']} | {_ci(r['outcome'])} |"]
+    L += [f"| {c} | {s['n_objects']} | {_ci(s)} |" for c, s in r["criteria"].items()]
+    L += ["", "| physics category | objects | imagined same category | " +
+          " | ".join(f"imagined {CATEGORY_NAMES.get(c, c)}" for c in cats) + " |", "|---|---|---|" + "---|" * len(cats)]
+    for c, s in r["categories"].items():
+        L.append(f"| {CATEGORY_NAMES.get(c, c)} | {s['n_objects']} | {_ci(s)} | " +
+                 " | ".join(str(r["confusion"][c][k]) for k in cats) + " |")
+    return L
+
+
+def _pass(g: dict) -> str:
+    return {True: "PASS", False: "FAIL"}.get(g["pass"], "not run")
 
 
 def save_result(result: dict, path: str | Path) -> Path:
@@ -163,11 +242,26 @@ def load_result(path: str | Path) -> dict:
 
 
 def verdict(result: dict) -> list[str]:
-    """The gates in a few lines: how many pass, and each failed one with its value against its threshold."""
-    g = result["gates"]
+    """The gates in a few lines: how many pass, each failed one with its value against its threshold; the passes
+    ``--stages`` skipped in one line; whether the outcome set is large enough to read per category."""
+    g = [x for x in result["gates"] if x["pass"] is not None]
     failed = [x for x in g if not x["pass"]]
-    out = [f"gates: {len(g) - len(failed)} of {len(g)} pass" + (" (the checkpoint passes every gate)" if not failed
-                                                                 else "; failed:")]
+    skipped = len(result["gates"]) - len(g)
+    if skipped:
+        out = [f"gates: {len(g) - len(failed)} of the {len(g)} run pass ({skipped} not run: --stages skipped "
+               f"{', '.join(not_run(result))})" + ("; failed:" if failed else "")]
+    else:
+        out = [f"gates: {len(g) - len(failed)} of {len(g)} pass" + (" (the checkpoint passes every gate)"
+                                                                     if not failed else "; failed:")]
     out += [f"  FAIL {x['gate']}: {_f(x['value'])}, needs >= {x['threshold']:g}" + (f" ({x['note']})" if x["note"]
                                                                                       else "") for x in failed]
+    oc = result["outcomes"]
+    r = oc.get("physics_reproduction")
+    if "physics_reproduction" in oc and not r:  # (results from before it existed say nothing)
+        out.append("outcome set: no episode's rollout covered it with physics labels (reproduction read against "
+                   "the perception scorer on real frames)")
+    elif r:
+        out.append(f"outcome set: {r['n_objects']} objects with physics labels in {r['n_episodes']} episodes: " +
+                   ("large enough to read per category" if r["n_objects"] >= r["min_objects"] else
+                    f"too few to tell 0.67 from 0.75 (needs >= {r['min_objects']})"))
     return out

@@ -42,7 +42,7 @@ def label_of(path: Path) -> str:
 def summary(result: dict, config: dict) -> dict:
     """The table's scalars from one diagnose result and the config of the model it diagnosed. A mode the model was
     never trained on gives None (its inverse-dynamics head is untrained, so its error means nothing)."""
-    tf = result["teacher_forced"]["views"]
+    tf = result["teacher_forced"].get("views", {})  # none where `sc3 diagnose --stages` skipped the pass
     third = result["third_person_views"] or result["views"]
     gate = {g["gate"]: g for g in result["gates"]}
     wrist = [v for v in result["views"] if v not in third]
@@ -52,17 +52,18 @@ def summary(result: dict, config: dict) -> dict:
 
     drift = []
     for v in third:
-        at = [r for r in result["drift"]["views"][v] if r["horizon_s"] == DRIFT_HORIZON_S and r["n_episodes"] > 0]
+        rows = result["drift"].get("views", {}).get(v, [])  # none where --stages skipped the open loop
+        at = [r for r in rows if r["horizon_s"] == DRIFT_HORIZON_S and r["n_episodes"] > 0]
         drift += [vs_copy_last(r["psnr"]) for r in at]
     trains_inverse = config["modes"]["probs"][modes.ID] > 0
     return {
         "tf_copy_last": gate[GATES[0]]["value"],
         "tf_median": gate[GATES[1]]["value"],
-        "wrist": min((vs_copy_last(tf[v]["psnr"]) for v in wrist), default=math.nan),
+        "wrist": min((vs_copy_last(tf[v]["psnr"]) for v in wrist if v in tf), default=math.nan),
         "actions": gate[GATES[2]]["value"],
         "drift": sum(drift) / len(drift) if drift else math.nan,
-        "direction": result["counterfactual"]["views"]["all"]["direction_agreement"],
-        "inverse": result["inverse_dynamics"]["ratio_to_floor"] if trains_inverse else None,
+        "direction": result["counterfactual"].get("views", {}).get("all", {}).get("direction_agreement", math.nan),
+        "inverse": result["inverse_dynamics"].get("ratio_to_floor", math.nan) if trains_inverse else None,
         "outcome": gate[GATES[3]]["value"],
         "gates_failed": sum(g.get("pass") is False for g in result["gates"]),
     }

@@ -137,6 +137,7 @@ def compute(results: str | Path, taus=None, draws: int = 2000, seed: int = 0) ->
         out["psnr"] = {**_psnr(pv), "views": _views(cfg["world_model"], pv.shape[1]),
                        "by_split": {s: _psnr(pv[split == s]) for s in SPLIT_ORDER[:-1] if (split == s).any()}}
     out["diagnose"] = _diagnose_gates(cfg["world_model"])
+    out["training_data"] = training_data(cfg["world_model"], {r["task"] for r in real.values()})
     out["read_from"] = str(store.root)  # the directory read (sweep.json's "out" is where the sweep wrote it)
     out["warnings"] = degenerate(policies)
     return out
@@ -197,6 +198,36 @@ def _diagnose_gates(world_model: str) -> dict:
     res = diagnose.load_result(path)
     return {"path": str(path), "data": res.get("data"), "episodes": len(res.get("episodes", [])),
             "gates": res["gates"]}
+
+
+def training_data(world_model: str, swept_tasks) -> dict | None:
+    """What the world model was trained on, from the ``data_stats.json`` shipped beside it (`sc3 sim demos-stats`'
+    JSON of its training store): the per-object outcome mix per data source, and which swept tasks its data never
+    shows (their rows are out of distribution by construction). None when the model ships no such file."""
+    path = Path(world_model) / "data_stats.json"
+    if not path.exists():
+        return None
+    d = json.loads(path.read_text())
+    o = d["outcomes"]
+    return {"path": str(path), "episodes": d["episodes"], "objects": d["objects"], "tasks": sorted(d["tasks"]),
+            "outcomes": {**o["sources"], "all": o["all"]},
+            "objects_in_other_container": d.get("objects_in_other_container", {}),
+            "all_objects_swapped": d.get("all_objects_swapped"),
+            "unseen_tasks": sorted(set(swept_tasks) - set(d["tasks"]))}
+
+
+def _training_data_table(d: dict) -> tuple[str, list[str], list[list[str]]]:
+    cats = ("lifted", "placed", "wrong_container", "dropped", "missed")
+    rows = [[src, str(v["episodes"]), str(v["objects"])] + [_fmt(v[c] / v["objects"], 2) for c in cats]
+            for src, v in d["outcomes"].items()]
+    other = ", ".join(f"{k}: {n}" for k, n in d["objects_in_other_container"].items())
+    unseen = (f"; swept tasks its data never shows: {', '.join(d['unseen_tasks'])} (out of distribution by "
+              "construction: neither their instruction nor their every-object mapping is in the data)"
+              if d["unseen_tasks"] else "")
+    return (f"The world model's training data ({d['episodes']} episodes, {d['objects']} objects, tasks "
+            f"{', '.join(d['tasks'])}; episodes by objects carried into the other container: {other}; every object "
+            f"swapped: {d['all_objects_swapped']}{unseen}; {d['path']}): per-object outcome shares (placed + "
+            "wrong_container + dropped + missed = 1)", ["source", "episodes", "objects", *cats], rows)
 
 
 def _with_intervals(by, sets, policies, chosen_tau, units, draws, seed) -> dict:
@@ -315,11 +346,13 @@ def tables(t: dict) -> list[tuple[str, list[str], list[list[str]]]]:
         rows = [[k, str(q["rollouts"])] + [_fmt(x, 2) for x in q["per_view"]] + [_fmt(q["mean"], 2)]
                 for k, q in list(p.get("by_split", {}).items()) + [(metrics.OVERALL, p)]]
         out.append(("Offline PSNR (dB, mean over valid frames)", ["split", "rollouts"] + p["views"] + ["mean"], rows))
+    if t.get("training_data"):
+        out.append(_training_data_table(t["training_data"]))
     d = t.get("diagnose") or {}
     if d.get("gates") is not None:
         out.append((f"World-model checkpoint gates (`sc3 diagnose` on {d['episodes']} held-out episodes of "
                     f"{d['data']}; {d['path']})", ["gate", "value", "threshold", "pass"],
-                    [[g["gate"], _fmt(g["value"], 2), f"{g['threshold']:g}", "PASS" if g["pass"] else "FAIL"]
+                    [[g["gate"], _fmt(g["value"], 2), f"{g['threshold']:g}", {True: "PASS", False: "FAIL"}.get(g["pass"], "not run")]
                      for g in d["gates"]]))
     elif d:
         out.append(("World-model checkpoint gates", ["gate", "value", "threshold", "pass"],

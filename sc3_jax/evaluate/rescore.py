@@ -40,6 +40,9 @@ def rescore(results: str | Path, weights: str | Path | None = None, state_reader
     from sc3_jax.evaluate.scorers import PerceptionScorer, RolloutView
     from sc3_jax.sim.tasks import make_initial_condition
     store = ResultsStore(results)
+    if store.archived:
+        raise UserError(f"{results}: an archived store (results.jsonl.gz) is read-only: re-score a copy with "
+                        "results.jsonl.gz gunzipped")
     recs = store.records()
     if not recs:
         raise UserError(f"{results}: no rollouts to re-score")

@@ -4,7 +4,9 @@ reads it (``report.py``, ``calibrate.py``, ``annotation.py``) without importing 
 Store layout (``out/``): ``sweep.json`` (the sweep's config, checked on resume: records without it are never
 resumed), ``results.jsonl`` (one JSON line per rollout, appended and flushed as each finishes; a line cut by a kill is
 dropped on resume), ``rollouts/<policy>/<seed>_<mode>.npz`` (frames and arrays, written atomically before their
-line). A damaged file is a ``UserError`` naming it (and the line), and changes nothing.
+line). A damaged file is a ``UserError`` naming it (and the line), and changes nothing. An *archived* store keeps
+``sweep.json`` and its records gzipped as ``results.jsonl.gz`` (a 20th of the size: how stores live in the
+repository, ``docs/stores/``); it reads like any other and refuses to be written to (copy it and gunzip the copy).
 
 *Evaluation modes* (``EVAL_MODES``, a record's ``"mode"``) say where a rollout ran: in the simulator ("real"), in the
 world model replaying the real actions ("offline") or with the policy acting inside it ("online"). They are not the
@@ -77,7 +79,16 @@ class ResultsStore:
         self.root = Path(root)
         self.path = self.root / "results.jsonl"
         if config is not None:
+            if self.archived:
+                raise UserError(f"{self.root} is an archived store (results.jsonl.gz, read-only): to add to it, copy "
+                                "it and `gunzip` results.jsonl.gz in the copy; to reuse its real rollouts, give it "
+                                "as --real-from")
             self._check_config(config)
+
+    @property
+    def archived(self) -> bool:
+        """Its records are only in ``results.jsonl.gz`` (a store kept in the repository): read-only."""
+        return not self.path.exists() and (self.root / "results.jsonl.gz").exists()
 
     def _check_config(self, config: dict):
         """Refuse (writing nothing) a store of another sweep, or one whose sweep is unknown or whose records do
@@ -118,6 +129,8 @@ class ResultsStore:
     def records(self) -> list[dict]:
         """Every complete line (a line cut by a kill, or still being written by a running sweep, is left out).
         Reading never writes: a report or another sweep may read a store while its sweep runs."""
+        if self.archived:
+            return atomic.read_jsonl(self.root / "results.jsonl.gz", "a rollout record", "restore the file")
         return atomic.read_jsonl(self.path, "a rollout record", "delete that line (resuming the sweep runs its "
                                  "rollout again) or restore the file")
 

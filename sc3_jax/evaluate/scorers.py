@@ -1,6 +1,7 @@
-"""Scorers: a rollout -> one outcome per object (``language``, ``lifting``, ``placing`` booleans + category).
+"""Scorers: a rollout -> one outcome per object (``language``, ``lifting``, ``placing`` booleans + category), or, for
+any robot, a rollout -> ``{criterion: bool}`` (the ``--scorer module:attr`` contract, at the end of this module).
 
-One interface, three kinds, interchangeable in a sweep:
+One interface, three kinds, interchangeable in a sweep of the simulated benchmark:
 
 * :class:`SimScorer` -- the simulator's physics ground truth (real rollouts only; ``sim/criteria.py``).
 * :class:`PerceptionScorer` -- reads only frames: the learned per-object predicates of ``perception.py`` (lifted,
@@ -25,22 +26,30 @@ stacked) misread, measured by the sweep (``scorer_agreement``).
 from __future__ import annotations
 
 import dataclasses
+import importlib
+import inspect
+from collections.abc import Callable, Mapping
 from typing import Protocol
 
 import numpy as np
 
+from sc3_jax.errors import UserError
 from sc3_jax.evaluate import perception
 from sc3_jax.evaluate.metrics import CRITERIA, outcome_category
 
 
 @dataclasses.dataclass
 class RolloutView:
-    """What a scorer may look at. ``physics``: the simulator's outcomes (real rollouts only)."""
+    """What a scorer may look at. ``physics``: the simulator's outcomes (real rollouts only). The benchmark's scorers
+    read ``objects`` / ``destinations``; a ``--scorer module:attr`` of any robot reads ``frames``, ``state`` and
+    ``instruction`` (``id``: the initial condition's episode id; never the policy's name: scoring is blind)."""
     id: str
     frames: np.ndarray  # uint8 [V, T, H, W, 3]
-    objects: tuple[str, ...]
-    destinations: dict[str, str]
+    objects: tuple[str, ...] = ()
+    destinations: dict[str, str] = dataclasses.field(default_factory=dict)
     physics: list[dict] | None = None
+    state: np.ndarray | None = None  # float32 [T, S] the (imagined) robot state at each frame, where there is one
+    instruction: str = ""  # the episode's prompt
 
 
 class Scorer(Protocol):
@@ -156,3 +165,63 @@ def agreement(scored: list[list[dict]], truth: list[list[dict]]) -> dict[str, fl
         raise ValueError("agreement: no objects")
     return {k: float(np.mean([a[k] == b[k] for a, b in pairs])) for k in CRITERIA + ("outcome",)} | \
         {"n_objects": len(pairs)}
+
+
+# ================================================================================================================
+# Any robot's scorer: ``--scorer module:attr`` (``sc3 sweep --initial-conditions``, docs/your_robot.md)
+# ================================================================================================================
+class OutcomeScorer(Protocol):
+    """The contract of a ``--scorer module:attr``: called with one :class:`RolloutView` -- ``frames`` uint8 [V, T, H,
+    W, 3] (the last initial context frame, then the imagined frames kept), ``state`` float32 [T, S] (the imagined
+    robot state at those frames) or None, ``id`` (the initial condition's episode id), ``instruction`` (its prompt)
+    -- it returns ``{criterion: bool}``, e.g. ``{"success": True}``, with the same criteria for every rollout."""
+
+    def __call__(self, rollout: RolloutView) -> Mapping[str, bool]: ...
+
+
+def load_outcome_scorer(spec: str) -> Callable[[RolloutView], dict[str, bool]]:
+    """The scorer ``spec`` = ``package.module:attr`` names: a function (called with each view), a class (built with
+    no arguments; then its ``score`` method, else the instance, is called) or an object with a ``score`` method or
+    ``__call__``. One-line UserError naming ``spec`` when it cannot be imported or called."""
+    mod_name, colon, attr = spec.partition(":")
+    if not colon or not mod_name or not attr:
+        raise UserError(f"--scorer {spec!r}: expected package.module:attr (a function or class taking a RolloutView "
+                        "and returning {criterion: bool})")
+    try:
+        obj = importlib.import_module(mod_name)
+        for part in attr.split("."):
+            obj = getattr(obj, part)
+    except ImportError as e:
+        raise UserError(f"--scorer {spec!r}: cannot import {mod_name!r} ({e}); is it on PYTHONPATH?") from None
+    except AttributeError:
+        raise UserError(f"--scorer {spec!r}: {mod_name!r} has no attribute {attr!r}") from None
+    if inspect.isclass(obj):
+        try:
+            obj = obj()
+        except TypeError as e:
+            raise UserError(f"--scorer {spec!r}: the class must build with no arguments ({e})") from None
+    fn = getattr(obj, "score", None) if not inspect.isfunction(obj) else None
+    fn = fn if callable(fn) else obj
+    if not callable(fn):
+        raise UserError(f"--scorer {spec!r}: {type(obj).__name__} is neither callable nor has a score method")
+    return fn
+
+
+def check_outcomes(spec: str, got, rollout_id: str, criteria: tuple[str, ...] | None = None) -> dict[str, bool]:
+    """A scorer's answer as ``{criterion: bool}``, or a one-line UserError naming ``spec`` and the rollout: not a
+    mapping, empty, a non-string key, a value that is not a boolean (``numpy.bool_`` is one; 0.7 or "yes" are not),
+    or criteria other than ``criteria`` (those of the rollouts scored before: every rollout answers the same ones)."""
+    where = f"--scorer {spec!r} on {rollout_id}"
+    if not isinstance(got, Mapping) or not got:
+        raise UserError(f"{where}: returned {type(got).__name__} {str(got)[:60]!r}, expected a non-empty dict "
+                        "{criterion: bool}, e.g. {'success': True}")
+    out = {}
+    for k, v in got.items():
+        if not isinstance(k, str) or not isinstance(v, (bool, np.bool_)):
+            raise UserError(f"{where}: entry {k!r}: {type(v).__name__} {str(v)[:30]!r}; expected a string criterion "
+                            "and a bool")
+        out[k] = bool(v)
+    if criteria is not None and tuple(sorted(out)) != tuple(criteria):
+        raise UserError(f"{where}: criteria {sorted(out)}, the rollouts before answered {list(criteria)}; return "
+                        "the same criteria for every rollout")
+    return out

@@ -38,6 +38,8 @@ from pathlib import Path
 
 import numpy as np
 
+from sc3_jax import atomic
+
 from .expert import ExpertKnobs, ScriptedExpert
 from .tasks import CONTAINERS, OBJECTS, destination
 
@@ -423,7 +425,7 @@ def store_outcomes(*roots: str | Path) -> dict:
 def default_zoo_real() -> Path:
     """The archived 72-condition sweep of the zoo (``docs/stores/sweep72_gpu``): its real rollouts are the zoo's
     measured outcomes (physics) on the evaluation conditions."""
-    return Path(__file__).resolve().parents[2] / "docs" / "stores" / "sweep72_gpu" / "results.jsonl"
+    return Path(__file__).resolve().parents[2] / "docs" / "stores" / "sweep72_gpu"
 
 
 def zoo_real_outcomes(path: str | Path | None = None) -> dict:
@@ -431,16 +433,15 @@ def zoo_real_outcomes(path: str | Path | None = None) -> dict:
     ``results.jsonl``; default ``default_zoo_real()``), evaluation conditions only (``seed`` < 20,000,000: not the
     calibration or ceiling sets), per policy and per task (``bussing`` = in distribution)."""
     p = Path(path) if path is not None else default_zoo_real()
-    p = p / "results.jsonl" if p.is_dir() else p
-    if not p.exists():
+    p = p.parent if p.name in ("results.jsonl", "results.jsonl.gz") else p
+    # a store's records, or an archived store's gzipped ones (results.py's layout, read without the evaluate layer)
+    f = next((p / n for n in ("results.jsonl", "results.jsonl.gz") if (p / n).exists()), None)
+    if f is None:
         raise FileNotFoundError(f"{p}: no sweep results store there")
     policies: dict[str, dict] = {}
     tasks: dict[str, dict] = {}
     seeds: set[int] = set()
-    for line in p.read_text().splitlines():
-        if not line.strip():
-            continue
-        r = json.loads(line)
+    for r in atomic.read_jsonl(f, "a rollout record", "restore the file"):
         if r.get("mode") != "real" or int(r["seed"]) >= 20_000_000:
             continue
         c = outcome_counts(r["objects"])

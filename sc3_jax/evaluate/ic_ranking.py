@@ -1,0 +1,359 @@
+"""The report of a simulator-free sweep (``ic_sweep.py``): the policies ranked by their imagined success, and -- where
+real outcomes of the same policies exist (``labels.py``) -- how faithfully the imagined per-policy rates follow the
+real ones. Every number comes from :func:`compute` (JSON-serialisable); :func:`render` formats it.
+
+Ranking: per policy and criterion the success rate over the evaluation conditions (tau = inf, the whole rollout)
+with a 95% bootstrap interval; the conditions are resampled with replacement, one resample per draw for every
+policy (paired: all policies were rolled out from the same conditions with the same noise). Policies are ranked by
+the rate of ``success`` when the scorer reports it, else by the mean over its criteria; each policy's rank is
+recomputed in every draw (``rank_interval``, and ``p_best``: the share of draws where it ranks first).
+
+Against real outcomes (points: policy x criterion, the criteria both sides report), each with a 95% interval:
+
+    online        imagined rates (tau = inf) vs real rates: Pearson r, MMRV (``bootstrap.pearson`` / ``mmrv``)
+    online_tau    the same rollouts cut at tau*, chosen on the held-out calibration conditions (highest r against
+                  the real rates, ``calibrate.choose_tau``). The real set is one set here (no simulator to draw a
+                  second one from), so tau* was chosen against the same real rates it is scored on: read the row as
+                  optimistic by the choice among the candidates
+    policy_blind  the floor: every policy gets the mean real rate per criterion (``intervals.policy_blind``); with a
+                  single criterion it is constant, so its r is undefined (nan) and only its MMRV reads
+    ceiling       split-half of the real episodes (each policy's own, at random, one split per draw): how well the
+                  real set agrees with itself at half its size (conservative)
+
+Draws resample the imagined conditions (paired across policies) and, independently, each policy's real episodes
+(real episodes are other starts, one set per policy). ``vs_floor``: evaluator minus floor on the same draws
+(``intervals.difference``): r > 0 and MMRV < 0 favour the world model.
+"""
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+from sc3_jax import atomic
+from sc3_jax.errors import UserError
+from sc3_jax.evaluate import bootstrap, calibrate, intervals
+from sc3_jax.evaluate.ic_sweep import KIND, REAL_FILE
+from sc3_jax.evaluate.results import ResultsStore
+
+ALL = ["all"]  # one "split": intervals' helpers pool every policy under metrics.OVERALL
+
+
+def is_ic_store(results: str | Path) -> bool:
+    """Whether ``results`` holds a simulator-free sweep (``sweep.json`` kind ``initial_conditions``)."""
+    p = Path(results) / "sweep.json"
+    return p.is_file() and atomic.read_json(p).get("kind") == KIND
+
+
+def compute(results: str | Path, real: tuple[str, ...] | list[str] | None = None, draws: int = 2000,
+            seed: int = 0) -> dict:
+    """Every number of the report of the store at ``results``. ``real``: real-outcome sources (``labels.py``;
+    None: those the sweep was given, ``real.json``; (): none)."""
+    from sc3_jax.evaluate import labels
+
+    store = ResultsStore(results)
+    if not is_ic_store(results):
+        raise UserError(f"{results}: not a simulator-free sweep (no sweep.json of kind {KIND!r}); a simulated "
+                        "sweep's store is read by `sc3 report`")
+    cfg = store.config()
+    if real is None:
+        saved = Path(results) / REAL_FILE
+        real = tuple(atomic.read_json(saved)["real"]) if saved.is_file() else ()
+    recs = [r for r in store.records() if r["mode"] == "online"]
+    if not recs:
+        raise UserError(f"{results}: no rollouts yet (rerun the sweep)")
+    names = list(cfg["policy_names"])
+    criteria = sorted(recs[0]["outcomes"])
+    by = {(r["policy"], r["seed"]): r for r in recs}
+    n, c0 = cfg["episodes"], cfg["calibration_seed0"]
+    ev_seeds, cal_seeds = list(range(cfg["seed0"], cfg["seed0"] + n)), list(range(c0, c0 + cfg["calibration_episodes"]))
+    units = cfg["tau_units"]
+    primary = "success" if "success" in criteria else None
+    w = bootstrap.multiplicities(n, draws, seed)
+    passes, counts = _grid(by, names, ev_seeds, criteria, lambda r: r["outcomes"])
+    point, dr = bootstrap.rates(passes, counts, np.ones((1, n))), bootstrap.rates(passes, counts, w)
+    out: dict = {"kind": KIND, "config": cfg, "read_from": str(store.root), "criteria": criteria,
+                 "ranked_by": primary or f"mean of {criteria}",
+                 "conditions": {"evaluation": n, "calibration": len(cal_seeds)},
+                 "rollouts": {"evaluation": int(counts.sum()),
+                              "calibration": sum((p, s) in by for p in names for s in cal_seeds)},
+                 "bootstrap": {"draws": draws, "seed": seed, "level": 0.95,
+                               "resampled": "evaluation conditions, paired across policies; real episodes, per "
+                                            "policy"},
+                 "policies": _ranking(names, criteria, primary, point, dr, counts), "warnings": []}
+    if counts.sum() < len(names) * n:
+        out["warnings"].append(f"incomplete sweep: {int(counts.sum())} of {len(names) * n} evaluation rollouts so "
+                               "far (rerun the sweep to resume); rates are over the rollouts there are")
+    out["real"] = None
+    if real:
+        out["real"] = _versus_real(labels.read(real), names, criteria, by, ev_seeds, cal_seeds, cfg["taus"], units,
+                                   passes, counts, w, draws, seed, out["warnings"])
+        out["real"]["sources"] = list(real)
+    return out
+
+
+def _grid(by: dict, names: list[str], seeds: list[int], criteria: list[str], pick):
+    """(passes [P, n, C], counts [P, n]) of one rollout per (policy, condition); 0 counts: not rolled out yet."""
+    passes = np.zeros((len(names), len(seeds), len(criteria)))
+    counts = np.zeros((len(names), len(seeds)))
+    for p, name in enumerate(names):
+        for i, s in enumerate(seeds):
+            r = by.get((name, s))
+            if r is not None:
+                o = pick(r)
+                counts[p, i] = 1
+                passes[p, i] = [o[c] for c in criteria]
+    return passes, counts
+
+
+def _score(rates: np.ndarray, criteria: list[str], primary: str | None) -> np.ndarray:
+    """[..., P, C] -> the ranking score [..., P]."""
+    return rates[..., criteria.index(primary)] if primary else np.nanmean(rates, -1)
+
+
+def _ranking(names, criteria, primary, point, dr, counts) -> list[dict]:
+    score, sdraws = _score(point[0], criteria, primary), _score(dr, criteria, primary)  # [P], [B, P]
+    with np.errstate(invalid="ignore"):
+        ranks = 1 + (sdraws[:, None, :] > sdraws[:, :, None]).sum(-1)  # [B, P]: 1 + policies scoring higher
+    key = np.nan_to_num(score, nan=-1.0)  # a policy without rollouts yet ranks last
+    order = sorted(range(len(names)), key=lambda p: (-key[p], names[p]))
+    out = []
+    for p in order:
+        lo, hi = np.percentile(ranks[:, p], [2.5, 97.5])
+        out.append({"policy": names[p], "rank": int(1 + (key > key[p]).sum()),  # ties share a rank
+                    "rollouts": int(counts[p].sum()), "score": bootstrap.summary(float(score[p]), sdraws[:, p]),
+                    "rank_interval": [int(lo), int(math.ceil(hi))], "p_best": float(np.mean(ranks[:, p] == 1)),
+                    "rates": {c: bootstrap.summary(float(point[0, p, k]), dr[:, p, k])
+                              for k, c in enumerate(criteria)}})
+    return out
+
+
+def _real_rates(eps, names: list[str], criteria: list[str], draws: int, seed: int):
+    """Per policy (in ``names`` order) its real rates [1, P, C] and their draws [B, P, C] (each policy's episodes
+    resampled on their own), and the episodes' passes per policy (for the split-half ceiling)."""
+    point, dr, per = np.zeros((1, len(names), len(criteria))), np.zeros((draws, len(names), len(criteria))), []
+    for p, name in enumerate(names):
+        x = np.array([[e.outcomes[c] for c in criteria] for e in eps if e.policy == name], float)  # [m, C]
+        wp = bootstrap.multiplicities(len(x), draws, seed + 1 + p)
+        point[0, p], dr[:, p] = x.mean(0), wp @ x / wp.sum(1, keepdims=True)
+        per.append(x)
+    return point, dr, per
+
+
+def _faith(ev_point, re_point, ev_draws, re_draws) -> dict:
+    """r and MMRV over every (policy, criterion) point, with intervals."""
+    flat = [x.reshape(len(x), -1) for x in (ev_point, re_point, ev_draws, re_draws)]
+    return {"points": int(flat[0].shape[1]),
+            **{k: bootstrap.summary(float(fn(flat[0], flat[1])[0]), fn(flat[2], flat[3]))
+               for k, fn in (("pearson", bootstrap.pearson), ("mmrv", bootstrap.mmrv))}}
+
+
+def _split_half(per: list[np.ndarray], draws: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """Rates [B, P, C] of two random halves of each policy's real episodes, one split per draw."""
+    rng = np.random.default_rng(seed)
+    a, b = (np.zeros((draws, len(per), per[0].shape[1])) for _ in range(2))
+    for p, x in enumerate(per):
+        h = len(x) // 2
+        for d in range(draws):
+            i = rng.permutation(len(x))
+            a[d, p], b[d, p] = x[i[:h]].mean(0), x[i[h:2 * h]].mean(0)
+    return a, b
+
+
+def _versus_real(eps, names, criteria, by, ev_seeds, cal_seeds, taus, units, passes, counts, w, draws, seed,
+                 warnings: list[str]) -> dict:
+    have = {e.policy for e in eps}
+    matched = [p for p in names if p in have]
+    if set(names) - have:
+        warnings.append(f"no real outcomes for {sorted(set(names) - have)}: left out of r / MMRV (real outcomes name "
+                        "policies as --policies NAME=SPEC does)")
+    if have - set(names):
+        warnings.append(f"real outcomes of {sorted(have - set(names))}, which this sweep did not roll out: ignored")
+    labelled = [set(e.outcomes) for e in eps if e.policy in matched]
+    shared = [c for c in criteria if labelled and all(c in x for x in labelled)]
+    if matched and not shared:
+        raise UserError(f"--real: the real labels ({sorted(set().union(*labelled))}) share no criterion with the "
+                        f"scorer's ({criteria}); name a scorer criterion as the labels do (e.g. 'success')")
+    out: dict = {"episodes": len(eps), "policies": {}, "criteria": shared, "faithfulness": None, "tau": None}
+    if not matched:
+        warnings.append("no policy of the sweep has real outcomes: nothing to compare")
+        return out
+    rp, rd, per = _real_rates(eps, matched, shared, draws, seed)
+    for p, name in enumerate(matched):
+        out["policies"][name] = {"episodes": len(per[p]),
+                                 "rates": {c: bootstrap.summary(float(rp[0, p, k]), rd[:, p, k])
+                                           for k, c in enumerate(shared)}}
+    if len(matched) < 2:
+        warnings.append(f"real outcomes for {len(matched)} policy only: r and MMRV compare policies, give at least 2")
+        return out
+    rows_p = [names.index(p) for p in matched]
+    cols = [criteria.index(c) for c in shared]
+    n = len(ev_seeds)
+    sub = lambda ps, cs: (ps[rows_p][:, :, cols], cs[rows_p])  # noqa: E731  matched policies, shared criteria
+    evaluators = {"online": sub(passes, counts)}
+    # tau*: on the held-out calibration conditions, against the real rates (see the module docstring)
+    cal = _tau_table(by, matched, cal_seeds, shared, taus, units, rp) if cal_seeds else []
+    if cal and any(e["cases"] for e in cal):
+        tau = calibrate.choose_tau(cal, "overall")
+        out["tau"] = {"calibration": cal, "chosen": str(tau), "units": units}
+        if math.isfinite(tau):  # tau* = inf: the online row itself
+            evaluators["online_tau"] = sub(*_grid(by, names, ev_seeds, criteria,
+                                                  lambda r: r["outcomes_by_cut"][str(calibrate.cut(r, tau, units))]))
+    floor_p, floor_d = intervals.policy_blind(rp, ALL * len(matched)), intervals.policy_blind(rd, ALL * len(matched))
+    rows = {}
+    for name, (ps, cs) in evaluators.items():
+        ep, ed = bootstrap.rates(ps, cs, np.ones((1, n))), bootstrap.rates(ps, cs, w)
+        rows[name] = _faith(ep, rp, ed, rd)
+        rows[name]["vs_floor"] = intervals.difference(ep, floor_p, rp, ed, floor_d, rd, ALL * len(matched)).get(
+            "overall")
+        if len(matched) >= 3:
+            rows[name]["per_criterion"] = {c: _faith(ep[..., k:k + 1], rp[..., k:k + 1], ed[..., k:k + 1],
+                                                     rd[..., k:k + 1]) for k, c in enumerate(shared)}
+    rows["policy_blind"] = _faith(floor_p, rp, floor_d, rd)
+    if min(len(x) for x in per) >= 2:
+        a, b = _split_half(per, draws, seed + 2)
+        ceil = _faith(a[:1], b[:1], a, b)
+        for k in ("pearson", "mmrv"):  # one split has no full-sample value: the median of the splits
+            d = bootstrap.pearson if k == "pearson" else bootstrap.mmrv
+            v = d(a.reshape(draws, -1), b.reshape(draws, -1))
+            ceil[k]["value"] = float(np.nanmedian(v)) if (~np.isnan(v)).any() else math.nan
+        ceil["method"] = f"split-half of each policy's real episodes ({min(len(x) for x in per) // 2}+ per half)"
+        rows["ceiling"] = ceil
+    out["faithfulness"] = rows
+    return out
+
+
+def _tau_table(by, matched, cal_seeds, shared, taus, units, rp) -> list[dict]:
+    """Per candidate tau: the calibration conditions' imagined rates, cut at tau, against the real rates."""
+    table = []
+    m = len(cal_seeds)
+    for t in taus:
+        tau = calibrate.parse_tau(t)
+        ps, cs = _grid(by, matched, cal_seeds, shared, lambda r: r["outcomes_by_cut"][str(calibrate.cut(r, tau,
+                                                                                                        units))])
+        ev = bootstrap.rates(ps, cs, np.ones((1, m)))
+        ok = ~np.isnan(ev).any()
+        cut_early = [calibrate.cut(by[k], tau, units) < by[k]["num_chunks"] for k in
+                     ((p, s) for p in matched for s in cal_seeds) if k in by]
+        table.append({"tau": str(tau), "cases": int(cs.sum()),
+                      "termination_rate": float(np.mean(cut_early)) if cut_early else math.nan,
+                      "faithfulness": {"overall": {
+                          "pearson": float(bootstrap.pearson(ev.reshape(1, -1), rp.reshape(1, -1))[0]) if ok
+                          else math.nan,
+                          "mmrv": float(bootstrap.mmrv(ev.reshape(1, -1), rp.reshape(1, -1))[0]) if ok
+                          else math.nan}}})
+    return table
+
+
+# ================================================================================================================
+# Rendering
+# ================================================================================================================
+def _f(x, nd=3) -> str:
+    return "-" if x is None else ("nan" if isinstance(x, float) and math.isnan(x) else f"{x:.{nd}f}")
+
+
+def ci(cell: dict | None, nd: int = 3) -> str:
+    return "-" if cell is None else f"{_f(cell['value'], nd)} [{_f(cell['lo'], nd)}, {_f(cell['hi'], nd)}]"
+
+
+ROWS = {"online": "world model, online (tau = inf)", "online_tau": "world model, online (calibrated tau*)",
+        "policy_blind": "policy-blind guess (floor)", "ceiling": "real vs real, split-half (ceiling)"}
+
+
+def tables(t: dict) -> list[tuple[str, list[str], list[list[str]]]]:
+    """(title, header, rows) of every table of the report."""
+    crit, b = t["criteria"], t["bootstrap"]
+    how = f"value [95% bootstrap interval, {b['draws']} draws]"
+    out = [(f"Ranking inside the world model: {t['conditions']['evaluation']} held-out initial conditions per "
+            f"policy, whole rollouts (tau = inf), scored by {t['config']['scorer']}; ranked by {t['ranked_by']}; "
+            f"{how}; rank interval and P(best) over the same draws",
+            ["rank", "policy", "score", "rank interval", "P(best)"] + crit + ["rollouts"],
+            [[str(p["rank"]), p["policy"], ci(p["score"]), f"{p['rank_interval'][0]}-{p['rank_interval'][1]}",
+              _f(p["p_best"], 2)] + [ci(p["rates"][c]) for c in crit] + [str(p["rollouts"])]
+             for p in t["policies"]])]
+    r = t.get("real")
+    if r:
+        out.append((f"Real outcomes ({', '.join(r['sources'])}), {how}", ["policy", "episodes"] + r["criteria"],
+                    [[p, str(v["episodes"])] + [ci(v["rates"][c]) for c in r["criteria"]]
+                     for p, v in r["policies"].items()]))
+    if r and r["faithfulness"]:
+        f = r["faithfulness"]
+        rows = [[ROWS[k], str(f[k]["points"]), ci(f[k]["pearson"]), ci(f[k]["mmrv"]),
+                 ci((f[k].get("vs_floor") or {}).get("pearson")), ci((f[k].get("vs_floor") or {}).get("mmrv"))]
+                for k in ROWS if k in f]
+        out.append((f"Faithfulness: imagined vs real per-policy rates (points: policy x criterion, {r['criteria']}); "
+                    f"{how}; r higher and MMRV lower is better; '- floor': paired difference to the policy-blind "
+                    "guess (r > 0, MMRV < 0 favour the world model)",
+                    ["evaluator", "points", "r", "MMRV", "r - floor", "MMRV - floor"], rows))
+        per = f["online"].get("per_criterion")
+        if per:
+            out.append(("Per criterion, online (tau = inf): points are the policies", ["criterion", "r", "MMRV"],
+                        [[c, ci(v["pearson"]), ci(v["mmrv"])] for c, v in per.items()]))
+    if r and r.get("tau"):
+        tt = r["tau"]
+        out.append((f"tau calibration on the {t['conditions']['calibration']} held-out calibration conditions per "
+                    f"policy against the real rates (U_chunk in {tt['units']} action units); chosen: highest r, ties "
+                    "lower MMRV, then larger tau. The real set is the one the faithfulness rows are scored on: the "
+                    "tau* row is optimistic by this choice", ["tau", "termination rate", "r", "MMRV", "rollouts"],
+                    [[e["tau"] + (" (chosen)" if e["tau"] == tt["chosen"] else ""), _f(e["termination_rate"], 2),
+                      _f(e["faithfulness"]["overall"]["pearson"]), _f(e["faithfulness"]["overall"]["mmrv"]),
+                      str(e["cases"])] for e in tt["calibration"]]))
+    return out
+
+
+def markdown(t: dict) -> str:
+    cfg = t["config"]
+    parts = [f"# Simulator-free sweep report\n\nWorld model `{cfg['world_model']}`, initial conditions "
+             f"`{cfg['initial_conditions']}` ({t['conditions']['evaluation']} evaluation + "
+             f"{t['conditions']['calibration']} calibration episodes), results `{t['read_from']}`; rollouts "
+             f"{t['rollouts']}. Recompute every number with `sc3_jax.evaluate.ic_ranking.compute(RESULTS)`.\n"]
+    parts += [f"\n**{w}**\n" for w in t["warnings"]]
+    for title, header, rows in tables(t):
+        parts.append(f"## {title}\n\n| " + " | ".join(header) + " |\n|" + "---|" * len(header) + "\n" +
+                     "".join("| " + " | ".join(r) + " |\n" for r in rows))
+    return "\n".join(parts)
+
+
+def summary(t: dict) -> list[str]:
+    """What the numbers say, in a few lines (the command's closing words)."""
+    p = t["policies"]
+    ranked = "".join((" = " if i and x["rank"] == p[i - 1]["rank"] else " > " if i else "") +
+                     f"{x['policy']} {ci(x['score'], 2)}" for i, x in enumerate(p))
+    lines = [f"ranking by {t['ranked_by']} inside the world model ({t['conditions']['evaluation']} conditions per "
+             f"policy, 95% intervals): {ranked}"]
+    if len(p) > 1:
+        lines.append(f"{p[0]['policy']} ranks first in {p[0]['p_best']:.0%} of the bootstrap draws"
+                     + ("" if p[0]["score"]["lo"] > p[1]["score"]["hi"] else
+                        f"; its interval overlaps {p[1]['policy']}'s: more conditions (--episodes) would tell them "
+                        "apart"))
+    r = t.get("real")
+    if r and r["faithfulness"]:
+        f = r["faithfulness"]
+        on, fl = f["online"], f["policy_blind"]
+        vs = on.get("vs_floor") or {}
+        lines.append(f"against the real outcomes ({r['episodes']} episodes): r {ci(on['pearson'])}, MMRV "
+                     f"{ci(on['mmrv'])}; policy-blind guess: r {ci(fl['pearson'])}, MMRV {ci(fl['mmrv'])}; paired "
+                     f"difference to it: r {ci(vs.get('pearson'))}, MMRV {ci(vs.get('mmrv'))}"
+                     + (f"; real vs real (split-half ceiling): r {ci(f['ceiling']['pearson'])}" if "ceiling" in f
+                        else ""))
+        better = [k for k, ok in (("r", (vs.get("pearson") or {}).get("lo", math.nan) > 0),
+                                  ("MMRV", (vs.get("mmrv") or {}).get("hi", math.nan) < 0)) if ok]
+        lines.append(f"the world model ranks these policies better than a policy-blind guess on {' and '.join(better)}"
+                     if better else "not distinguishable from a policy-blind guess at this many conditions and real "
+                     "episodes (the paired differences' intervals include 0)")
+    elif not r:
+        lines.append("no real outcomes given (--real): the ranking is the world model's alone, unvalidated")
+    return lines + t["warnings"]
+
+
+def render(results: str | Path, out: str | Path | None = None, real=None, draws: int = 2000) -> Path:
+    """Write report.md and report.json to ``out`` (default RESULTS/report), staged so a failure leaves the previous
+    report as it was; returns report.md."""
+    t = compute(results, real, draws)
+    out = Path(out) if out is not None else Path(results) / "report"
+    with atomic.staged(out, last=("report.md",)) as stage:
+        (stage / "report.json").write_text(json.dumps(t, indent=1))
+        (stage / "report.md").write_text(markdown(t))
+    return out / "report.md"

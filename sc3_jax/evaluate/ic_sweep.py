@@ -1,0 +1,220 @@
+"""Evaluation without a simulator (issue 33 item 3): rank policies inside a world model from held-out episodes.
+
+    sc3 sweep --initial-conditions HELDOUT --world-model RUN --policies a=pkg.mod:attr b=ws://HOST:PORT \
+              --scorer pkg.mod:score [--real REAL] --out DIR
+
+Each held-out episode of HELDOUT is one initial condition (its first K frames at the rollout stride from --start, and
+the robot state at the last of them: ``rollout_io.load_initial_conditions``, which checks the store's shape against
+the model's). Conditions ``0 .. episodes-1`` (in episode-id order) are the evaluation block; the next
+``calibration_episodes`` are held out for choosing the early-termination threshold tau (only against real outcomes,
+``ic_ranking.py``) and never ranked. Every policy acts inside the world model from every condition, closed loop
+and untruncated (tau = inf), ``batch`` conditions per world-model call (padded to one shape, so each policy
+compiles once); condition i's sampling noise depends only on (rollout_seed, i), so every policy meets the same
+draws. The ``--scorer`` (``scorers.load_outcome_scorer``: ``{criterion: bool}`` per rollout) reads the imagined
+frames and state of the whole rollout and of each shorter cut a candidate tau would produce.
+
+The store is the simulated sweep's (``results.py``): ``sweep.json`` (this config, with ``"kind":
+"initial_conditions"`` and the condition episode ids; a rerun with another config is refused), ``results.jsonl``
+(one line per rollout, appended after its arrays are written), ``rollouts/<policy>/<i>_online.npz`` (frames, actions,
+states, U). A rerun skips every rollout whose line exists; a killed run redoes at most one batch. Record::
+
+    {"id": "<policy>/<i>_online", "mode": "online", "policy": NAME, "seed": i, "episode": EPISODE_ID,
+     "block": "evaluation" | "calibration", "outcomes": {criterion: bool}  (the whole rollout, tau = inf),
+     "outcomes_by_cut": {"<chunks kept>": {criterion: bool}}  (each cut some candidate tau makes),
+     "u": [N], "u_raw": [N], "num_chunks": N, "frames_per_chunk": l, "stride": s}
+
+``--real`` sources are written to ``real.json`` beside (not in) ``sweep.json``: they change the report, not the
+rollouts, so a store is re-reported against other real outcomes without rolling out again.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+
+from sc3_jax import atomic
+from sc3_jax.errors import UserError
+from sc3_jax.evaluate.results import ResultsStore, rollout_id, terminated_at
+
+KIND = "initial_conditions"
+REAL_FILE = "real.json"  # the --real sources the report reads by default
+
+
+@dataclasses.dataclass(frozen=True)
+class ICSweepConfig:
+    """What the simulator-free sweep reads (``sc3 sweep --initial-conditions``; the same option names)."""
+    initial_conditions: str
+    world_model: str
+    policies: tuple[str, ...]
+    scorer: str
+    out: str
+    episodes: int = 18
+    calibration_episodes: int = 3
+    batch: int = 6
+    rollout_seed: int = 0
+    episode_seconds: float | None = None
+    sample_steps: int | None = 2
+    inverse_steps: int | None = 1
+    taus: tuple[float, ...] = (math.inf,)
+    tau_units: str = "raw"
+    start: int = 0
+    task: int = 0
+    real: tuple[str, ...] = ()
+    progress: bool = True
+
+    def to_json(self, conditions: list[str], names: list[str]) -> dict:
+        """sweep.json: everything that decides the records (not ``real``: the report's; not ``progress``)."""
+        d = {k: v for k, v in dataclasses.asdict(self).items() if k not in ("real",)}
+        d.update(kind=KIND, taus=[str(float(t)) for t in self.taus], conditions=conditions, policy_names=names,
+                 modes=["online"], seed0=0, calibration_seed0=self.episodes)
+        return json.loads(json.dumps(d))
+
+
+def blocks(cfg: ICSweepConfig) -> dict[str, list[int]]:
+    """Condition indices per block: evaluation 0..N-1, calibration N..N+C-1."""
+    n, c = cfg.episodes, cfg.calibration_episodes
+    return {"evaluation": list(range(n)), "calibration": list(range(n, n + c))}
+
+
+def _check(cfg: ICSweepConfig) -> None:
+    if not cfg.policies:
+        raise UserError("--initial-conditions: give the policies to rank, --policies NAME=SPEC ... (SPEC: "
+                        "package.module:attr, ws://HOST:PORT, zero | random | linear)")
+    if not cfg.scorer:
+        raise UserError("--initial-conditions needs --scorer package.module:attr: a function or class taking a "
+                        "RolloutView and returning {criterion: bool} (docs/your_robot.md)")
+    if cfg.episodes < 1 or cfg.calibration_episodes < 0 or cfg.batch < 1:
+        raise UserError(f"--episodes {cfg.episodes}, --calibration-episodes {cfg.calibration_episodes}, --batch "
+                        f"{cfg.batch}: need at least 1 evaluation condition, 0 or more calibration ones, batch >= 1")
+    if cfg.tau_units not in ("raw", "normalised"):
+        raise UserError(f"--tau-units {cfg.tau_units!r}: 'raw' or 'normalised'")
+
+
+def _resolve(specs: tuple[str, ...], chunk: int) -> list[tuple[str, str, object]]:
+    """(name, spec, policy) per --policies entry; names unique."""
+    from sc3_jax.policies.resolve import resolve
+
+    out = []
+    for spec in specs:
+        try:
+            r = resolve(spec, chunk)
+        except UserError:
+            raise
+        except (ValueError, TypeError, ImportError, AttributeError) as e:
+            raise UserError(f"--policies {spec!r}: {e}") from None
+        out.append((r.name, spec, r.policy))
+    names = [n for n, _, _ in out]
+    dup = sorted({n for n in names if names.count(n) > 1})
+    if dup:
+        raise UserError(f"--policies: the name(s) {dup} occur twice; name each as NAME=SPEC")
+    return out
+
+
+def cut(u: np.ndarray, tau: float) -> int:
+    """Chunks a rollout with U_chunk ``u`` [N] keeps under threshold ``tau``: those before the first with U > tau
+    (``calibrate.cut``'s rule, which the report applies to the stored ``u`` / ``u_raw``)."""
+    first = int(terminated_at(np.asarray(u)[None], tau)[0])
+    return len(u) if first < 0 else first
+
+
+def _mesh(batch: int):
+    """A mesh over as many local devices as divide the batch: every device busy, no batch padded beyond it."""
+    import jax
+
+    from sc3_jax import sharding
+    from sc3_jax.config import MeshConfig
+
+    devices = jax.local_devices()
+    d = max(k for k in range(1, min(batch, len(devices)) + 1) if batch % k == 0)
+    return sharding.make_mesh(MeshConfig(-1, 1, 1), devices[:d])
+
+
+def run(cfg: ICSweepConfig) -> Path:
+    """Run (or resume) the sweep; returns the store's directory. See the module docstring."""
+    import jax
+    from tqdm import tqdm
+
+    from sc3_jax import checkpoint, rollout, rollout_io
+    from sc3_jax.evaluate.scorers import RolloutView, check_outcomes, load_outcome_scorer
+    from sc3_jax.evaluate.world_model_defaults import evaluation_config
+
+    _check(cfg)
+    scorer = load_outcome_scorer(cfg.scorer)  # a bad spec is refused before the model loads
+    if cfg.real:
+        from sc3_jax.evaluate import labels
+        labels.read(cfg.real)  # unreadable real outcomes are refused before any rollout, not after hours of them
+    wcfg, stats, params = checkpoint.load(cfg.world_model)
+    wcfg = evaluation_config(wcfg, cfg)  # the sweep's sampler settings (sc3 rollout / diagnose share them)
+    ro = rollout.Rollout(wcfg, stats, mesh=_mesh(cfg.batch),
+                         data_fps=rollout_io.data_fps(cfg.initial_conditions, None))
+    s = ro.spec
+    policies = _resolve(cfg.policies, wcfg.rollout.policy_chunk)
+    for name, spec, policy in policies:  # dimensions first: one line naming both sides, before any compile
+        try:
+            ro.check_policy(policy)
+        except UserError as e:
+            raise UserError(f"--policies {spec}: {e} (world model {cfg.world_model})") from None
+    want = cfg.episodes + cfg.calibration_episodes
+    ids, ics, store = rollout_io.load_initial_conditions(cfg.initial_conditions, wcfg, s, want, cfg.start, cfg.task)
+    if len(ids) < want:
+        raise UserError(f"--initial-conditions {cfg.initial_conditions}: {len(ids)} episodes, the sweep needs "
+                        f"--episodes {cfg.episodes} + --calibration-episodes {cfg.calibration_episodes} = {want}: "
+                        "lower them or give more held-out episodes")
+    prompts = [atomic.read_json(store.root / e / "meta.json").get("prompt", "") if store else "" for e in ids]
+    results = ResultsStore(cfg.out, cfg.to_json(ids, [n for n, _, _ in policies]))
+    if cfg.real:
+        atomic.write_json(results.root / REAL_FILE, {"real": list(cfg.real)})
+    done = results.done()
+    criteria = next((tuple(sorted(r["outcomes"])) for r in results.records()), None)
+    taus = [float(t) for t in cfg.taus] + [math.inf]
+    units = [(name, spec, policy, block, idx[g:g + cfg.batch]) for name, spec, policy in policies
+             for block, idx in blocks(cfg).items() for g in range(0, len(idx), cfg.batch)]
+    total = len(policies) * want
+    bar = tqdm(total=total, initial=len(done), desc="sweep", unit="rollout", disable=not cfg.progress)
+    t0, ran = time.time(), 0
+    for name, spec, policy, block, idx in units:
+        rids = [rollout_id(name, i, "online") for i in idx]
+        if all(r in done for r in rids):
+            continue
+        sel = np.asarray(idx + [idx[-1]] * (cfg.batch - len(idx)))  # one shape for every batch: one compile
+        sub = rollout.InitialConditions(*(np.asarray(x)[sel] for x in ics))
+        keys = np.asarray(rollout.episode_keys(cfg.rollout_seed, len(sel), start=idx[0]))  # condition i: (seed, i)
+        try:
+            out = rollout_io.closed_loop(ro, params, policy, sub, keys, math.inf, len(sel), False)
+        except UserError as e:  # a host policy's chunks are checked as they arrive
+            raise UserError(f"--policies {spec}: {e} (world model {cfg.world_model})") from None
+        recs = []
+        for b, (i, rid) in enumerate(zip(idx, rids)):
+            frames = np.concatenate([out["initial_frames"][b][:, -1:], out["frames"][b]], 1)  # [V, 1 + N*l, ...]
+            states = np.concatenate([np.asarray(sub.state[b], np.float32)[None], out["states"][b]], 0)
+            u, u_raw = out["u"][b], out["u_raw"][b]
+            cuts = sorted({cut(u if cfg.tau_units == "normalised" else u_raw, t) for t in taus})
+            by_cut = {}
+            for c in cuts:
+                n = 1 + c * s.keep
+                view = RolloutView(ids[i], frames[:, :n], state=states[:n], instruction=prompts[i])
+                try:
+                    got = scorer(view)
+                except Exception as e:  # the user's code: its traceback, and which rollout it was reading
+                    e.add_note(f"while --scorer {cfg.scorer} scored {rid} ({c} of {s.num_chunks} chunks)")
+                    raise
+                by_cut[str(c)] = check_outcomes(cfg.scorer, got, rid, criteria)
+                criteria = criteria or tuple(sorted(by_cut[str(c)]))
+            results.save_arrays(rid, frames=frames, actions=out["actions"][b], states=out["states"][b], u=u,
+                                u_raw=u_raw)
+            recs.append({"id": rid, "mode": "online", "policy": name, "seed": i, "episode": ids[i], "block": block,
+                         "outcomes": by_cut[str(s.num_chunks)], "outcomes_by_cut": by_cut, "u": u.tolist(),
+                         "u_raw": u_raw.tolist(), "num_chunks": s.num_chunks, "frames_per_chunk": s.keep,
+                         "stride": s.stride})
+        results.append(recs)
+        ran += len(recs)
+        bar.update(len(recs))
+    bar.close()
+    atomic.write_json(results.root / "timing.json", {
+        "seconds_last_run": time.time() - t0, "rollouts_run": {"online": ran},
+        "devices": [str(d) for d in jax.local_devices()]})
+    return results.root

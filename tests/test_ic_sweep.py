@@ -1,0 +1,250 @@
+"""Evaluation without a simulator (issue 33 item 3): `sc3 sweep --initial-conditions` ranks policies inside a world
+model from held-out episodes of the tiny bimanual 14-D robot of test_any_robot.py, scored by a `module:attr` scorer,
+resumably, and compares the ranking with real outcomes (r / MMRV with intervals, next to the policy-blind floor).
+Policies, scorers and their faulty twins are defined here and named as `test_ic_sweep:ATTR`."""
+import csv
+import json
+import shutil
+
+import numpy as np
+import pytest
+
+from sc3_jax.cli import main
+from sc3_jax.data.action_space import ActionSpace
+from sc3_jax.data.episodes import Episode, EpisodeStore
+from sc3_jax.errors import UserError
+from sc3_jax.evaluate import labels
+from test_any_robot import A, H, W, bimanual  # noqa: F401  (the fixture: imported store + trained tiny model)
+
+CHUNK = 8  # the fixture model's rollout.policy_chunk
+
+
+# -- policies: absolute joint targets, a fixed offset from the state they observe each chunk ---------------------
+class Offset:
+    chunk, action_dim = CHUNK, A
+
+    def __init__(self, d: float, dim: int = A):
+        self.d, self.action_dim = d, dim
+
+    def infer(self, obs):
+        return np.repeat(np.asarray(obs["state"])[None, :self.action_dim] + self.d, CHUNK, 0).astype(np.float32)
+
+
+def hold():
+    return Offset(0.0)
+
+
+def half():
+    return Offset(0.1)
+
+
+def reach():
+    return Offset(0.3)
+
+
+def seven():
+    return Offset(0.0, dim=7)  # the benchmark's 7-D actions: not this robot's
+
+
+# -- scorers ---------------------------------------------------------------------------------------------------------
+SEEN = []  # what the scorer was shown
+
+
+def score(view):
+    """Outcomes from the imagined state: moved at all, and moved far (> 0.4 rad on average) = success."""
+    SEEN.append(view)
+    moved = float(np.mean(view.state[-1] - view.state[0]))
+    return {"success": moved > 0.4, "moved": bool(moved > 0.05)}
+
+
+def not_a_dict(view):
+    return 0.5
+
+
+# -- stores ----------------------------------------------------------------------------------------------------------
+def _conditions(store, root):
+    """The imported store's 2 episodes twice over (4 held-out conditions, as 4 episodes)."""
+    shutil.copytree(store.root, root)
+    for i, eid in enumerate(store.episode_ids()):
+        shutil.copytree(store.root / eid, root / f"lerobot{i + 2:06d}")
+    return root
+
+
+REAL = {"hold": ([0, 0, 0, 1], [0, 1, 0, 0]), "half": ([0, 0, 1, 0], [1, 1, 1, 0]),
+        "reach": ([1, 1, 1, 0], [1, 1, 1, 1])}  # policy -> (success, moved) of 4 real episodes each
+
+
+def _real_store(root):
+    st = EpisodeStore(root, views=["cam"], fps=20, image_size=(4, 4), create=True,
+                      action_space=ActionSpace("absolute", 1), has_pose=False)
+    for policy, (success, moved) in REAL.items():
+        for i, (s, m) in enumerate(zip(success, moved)):
+            st.write(Episode(f"{policy}{i}", {"cam": np.zeros((1, 4, 4, 3), np.uint8)}, np.zeros((1, 1), np.float32),
+                             None, "fold the towel", {"policy": policy, "labels": {"success": bool(s), "moved": bool(m),
+                                                                                   "objects": []}}))
+    return root
+
+
+def _sweep(ic, run, out, *extra, policies=("hold", "half", "reach"), scorer="test_ic_sweep:score"):
+    return main(["sweep", "--initial-conditions", str(ic), "--world-model", str(run), "--policies",
+                 *[f"{p}=test_ic_sweep:{p}" for p in policies], "--scorer", scorer, "--episodes", "2",
+                 "--calibration-episodes", "2", "--batch", "2", "--episode-seconds", "0.6", "--taus", "inf", "0.5",
+                 "--out", str(out), "--no-progress", *extra])
+
+
+def _error(capsys) -> str:
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("sc3 sweep: error: ") and "\n" not in err, err
+    return err
+
+
+@pytest.fixture(scope="module")
+def swept(bimanual, tmp_path_factory):  # noqa: F811
+    tmp = bimanual[0]
+    ic = _conditions(bimanual[4], tmp_path_factory.mktemp("ic") / "heldout")
+    real = _real_store(tmp_path_factory.mktemp("real") / "store")
+    out = tmp_path_factory.mktemp("sweep") / "out"
+    SEEN.clear()
+    assert _sweep(ic, tmp / "run", out, "--real", str(real)) == 0
+    return ic, tmp / "run", real, out, list(SEEN)
+
+
+def test_records_and_what_the_scorer_sees(swept):
+    ic, _, _, out, seen = swept
+    recs = [json.loads(x) for x in (out / "results.jsonl").read_text().splitlines()]
+    assert len(recs) == 3 * 4 and {r["mode"] for r in recs} == {"online"}
+    ids = EpisodeStore(ic).episode_ids()
+    assert sorted((r["policy"], r["seed"]) for r in recs) == sorted((p, i) for p in REAL for i in range(4))
+    for r in recs:
+        assert r["episode"] == ids[r["seed"]] and r["block"] == ("evaluation" if r["seed"] < 2 else "calibration")
+        assert r["num_chunks"] == 2 and len(r["u_raw"]) == 2 and r["outcomes"] == r["outcomes_by_cut"]["2"]
+        want = {"hold": (False, False), "half": (False, True), "reach": (True, True)}[r["policy"]]
+        assert (r["outcomes"]["success"], r["outcomes"]["moved"]) == want, r
+    v = seen[0]  # whole rollouts: the last context frame + 2 chunks of 3 frames, every view; the imagined joints
+    assert v.frames.dtype == np.uint8 and v.frames.shape[0] == 4 and v.frames.shape[2:] == (H, W, 3)
+    assert max(x.frames.shape[1] for x in seen) == 7 and v.state.shape == (v.frames.shape[1], A)
+    assert v.instruction == "fold the towel" and v.id in ids and not hasattr(v, "policy")
+    with np.load(out / "rollouts" / "reach" / "0_online.npz") as z:
+        assert z["frames"].shape == (4, 7, H, W, 3) and z["states"].shape == (6, A)
+    assert json.loads((out / "sweep.json").read_text())["kind"] == "initial_conditions"
+
+
+def test_rerun_adds_nothing(swept, capsys):
+    ic, run, real, out, _ = swept
+    before = (out / "results.jsonl").read_text()
+    SEEN.clear()
+    assert _sweep(ic, run, out, "--real", str(real)) == 0
+    assert (out / "results.jsonl").read_text() == before and not SEEN
+    said = capsys.readouterr().out
+    assert "ranking by success" in said and "report:" in said and "r " in said
+    assert _sweep(ic, run, out, "--real", str(real), policies=("hold", "reach")) == 2  # another sweep: refused
+    assert "different sweep" in _error(capsys)
+
+
+def test_ranking_and_faithfulness_in_report(swept):
+    out = swept[3]
+    t = json.loads((out / "report" / "report.json").read_text())
+    assert (out / "report" / "report.md").read_text().startswith("# Simulator-free sweep report")
+    ranked = [p["policy"] for p in t["policies"]]
+    assert ranked[0] == "reach" and t["policies"][0]["rank"] == 1 and t["policies"][0]["p_best"] == 1.0
+    rates = {p["policy"]: {c: v["value"] for c, v in p["rates"].items()} for p in t["policies"]}
+    assert rates["half"] == {"moved": 1.0, "success": 0.0} and rates["hold"] == {"moved": 0.0, "success": 0.0}
+    assert t["ranked_by"] == "success" and t["rollouts"] == {"evaluation": 6, "calibration": 6}
+    r = t["real"]
+    assert r["criteria"] == ["moved", "success"] and r["policies"]["half"]["rates"]["moved"]["value"] == 0.75
+    f = r["faithfulness"]
+    names = ("hold", "half", "reach")  # the sweep's order; criteria sorted: moved, success
+    im = np.array([[rates[p]["moved"], rates[p]["success"]] for p in names])
+    re = np.array([[np.mean(REAL[p][1]), np.mean(REAL[p][0])] for p in names])
+    online = f["online"]
+    assert online["points"] == 6 and abs(online["pearson"]["value"] - np.corrcoef(im.ravel(), re.ravel())[0, 1]) < 1e-9
+    assert r["tau"]["chosen"] in ("inf", "0.5") and ("online_tau" in f) == (r["tau"]["chosen"] != "inf")
+    assert {"online", "policy_blind", "ceiling"} <= set(f)
+    for row in f:
+        for k in ("pearson", "mmrv"):
+            cell = f[row][k]
+            assert {"value", "lo", "hi"} <= set(cell) and (np.isnan(cell["lo"]) or cell["lo"] <= cell["hi"])
+    assert online["pearson"]["lo"] <= online["pearson"]["value"] <= online["pearson"]["hi"]
+    assert online["vs_floor"]["pearson"]["value"] > 0  # the model knows which policy moves: better than a guess
+
+
+def test_sc3_report_reads_the_store_and_takes_other_real_outcomes(swept, tmp_path, capsys):
+    out, real = swept[3], swept[2]
+    assert main(["report", str(out), "--out", str(tmp_path / "a")]) == 0  # the sweep's own --real, as written
+    same = json.loads((tmp_path / "a" / "report.json").read_text())
+    assert same == json.loads((out / "report" / "report.json").read_text())
+    assert main(["report", str(out), "--out", str(tmp_path / "b"), "--real", str(real)]) == 0
+    assert json.loads((tmp_path / "b" / "report.json").read_text())["real"] == same["real"]
+    capsys.readouterr()
+    assert main(["report", str(out), "--out", str(tmp_path / "c"), "--real", str(tmp_path / "none")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("sc3 report: error: ") and "\n" not in err and "none" in err, err
+    assert not (tmp_path / "c").exists()
+
+
+def test_a_bad_scorer_spec_is_one_line(swept, capsys):
+    ic, run, _, out, _ = swept
+    for spec, words in (("test_ic_sweep:nope", "no attribute 'nope'"), ("no_such_module_x:f", "cannot import"),
+                        ("score", "package.module:attr")):
+        assert _sweep(ic, run, out.parent / "bad", scorer=spec) == 2
+        err = _error(capsys)
+        assert spec in err and words in err, err
+    assert not (out.parent / "bad").exists()  # refused before anything was written
+
+
+def test_a_scorer_answering_otherwise_is_one_line(swept, capsys):
+    ic, run, _, out, _ = swept
+    assert _sweep(ic, run, out.parent / "wrong", policies=("hold",), scorer="test_ic_sweep:not_a_dict") == 2
+    err = _error(capsys)
+    assert "test_ic_sweep:not_a_dict" in err and "float" in err and "{criterion: bool}" in err, err
+
+
+def test_policy_action_dim_mismatch_is_one_line(swept, capsys):
+    ic, run, _, out, _ = swept
+    assert _sweep(ic, run, out.parent / "seven", policies=("hold", "seven")) == 2
+    err = _error(capsys)
+    assert "seven=test_ic_sweep:seven" in err and "7-D" in err and "14-D" in err, err
+
+
+def test_real_outcome_sources(tmp_path):
+    pytest.importorskip("pyarrow")
+    st = _real_store(tmp_path / "st")
+    got = labels.read([str(st)])
+    assert len(got) == 12 and {e.policy for e in got} == set(REAL)
+    assert got[0].outcomes == {"success": False, "moved": True}  # half0 (sorted ids); "objects" is not a criterion
+    assert {e.policy for e in labels.read([f"other={st}"])} == {"other"}
+    path = tmp_path / "real.csv"
+    with open(path, "w", newline="") as fh:
+        csv.writer(fh).writerows([["policy", "episode", "success"], ["a", "e1", "true"], ["b", "e2", "0"]])
+    assert [(e.policy, e.outcomes) for e in labels.read([str(path)])] == [("a", {"success": True}),
+                                                                           ("b", {"success": False})]
+    path.write_text("policy,success\na,maybe\n")
+    with pytest.raises(UserError, match=r"real.csv:2: column 'success' is 'maybe'"):
+        labels.read([str(path)])
+    # a LeRobot dataset's next.success (any frame true = success), named by NAME=
+    pytest.importorskip("av")
+    from sc3_jax.data.lerobot_write import RawEpisode, write_lerobot
+
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    flags = {0: [False, False, True], 1: [False, False, False]}
+    eps = [RawEpisode({"observation.images.cam": np.zeros((3, 8, 8, 3), np.uint8)}, np.zeros((3, 2), np.float32),
+                      "t") for _ in flags]
+    write_lerobot(tmp_path / "lr", eps, 20, image_dtype="image")
+    for f in (tmp_path / "lr" / "data").glob("**/*.parquet"):  # LeRobot's column: a plain bool per frame
+        t = pq.read_table(f)
+        col = [flags[int(e)][int(i)] for e, i in zip(t["episode_index"].to_pylist(), t["frame_index"].to_pylist())]
+        pq.write_table(t.append_column("next.success", pa.array(col, pa.bool_())), f)
+    got = labels.read([f"pi0={tmp_path / 'lr'}"])
+    assert [(e.policy, e.outcomes["success"]) for e in got] == [("pi0", True), ("pi0", False)]
+    with pytest.raises(UserError, match="NAME="):
+        labels.read([str(tmp_path / "lr")])
+    # a store without the policy's name
+    bare = EpisodeStore(tmp_path / "bare", views=["cam"], fps=20, image_size=(4, 4), create=True,
+                        action_space=ActionSpace("absolute", 1), has_pose=False)
+    bare.write(Episode("e0", {"cam": np.zeros((1, 4, 4, 3), np.uint8)}, np.zeros((1, 1), np.float32), None, "",
+                       {"labels": {"success": True}}))
+    with pytest.raises(UserError) as e:
+        labels.read([str(tmp_path / "bare")])
+    assert "'policy'" in str(e.value) and "e0" in str(e.value) and "\n" not in str(e.value)
