@@ -18,6 +18,7 @@ from pathlib import Path
 from sc3_jax import atomic, modes
 from sc3_jax.errors import UserError
 from sc3_jax.evaluate.diagnose import GATES
+from sc3_jax.evaluate.diagnose_report import load_result
 
 # (key, column heading, higher is better)
 COLUMNS = (
@@ -75,8 +76,8 @@ def load(path: str | Path) -> tuple[str, dict]:
     if missing:
         raise FileNotFoundError(f"{path}: no {' or '.join(missing)} (run `sc3 diagnose {path} --data HELDOUT "
                                 f"--out {path}/diagnose.json` on a trained or exported world model)")
-    fix = f"run `sc3 diagnose {path} --data HELDOUT --out {path}/diagnose.json` again"
-    return label_of(path), summary(atomic.read_json(path / "diagnose.json", fix),
+    # load_result: the file spells non-finite numbers as strings ("nan": a gate --stages skipped)
+    return label_of(path), summary(load_result(path / "diagnose.json"),
                                    atomic.read_json(path / "config.json", "restore it, or export the model again"))
 
 
