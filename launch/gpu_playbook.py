@@ -102,6 +102,9 @@ def bootstrap(root: Path = ROOT) -> None:
     """Install the carried wheels (``.whl/``) into ``/tmp/site`` and unpack the carried GL loaders (``.gl/``), once
     per machine; then make them importable here and in every subprocess."""
     wheels = sorted((root / ".whl").glob("*.whl"))
+    tag = f"-cp{sys.version_info[0]}{sys.version_info[1]}-"
+    if any("-cp3" in w.name and tag not in w.name for w in wheels):  # the GPU image's Python's, not this one's
+        wheels = []  # (a dry run here, beside the wheels downloaded for a lease)
     if wheels and not (SITE / ".installed").exists():
         subprocess.run([sys.executable, "-m", "pip", "install", "-q", "--no-index", "--no-deps", "--no-compile",
                         "--no-cache-dir", "--upgrade", "--target", str(SITE), *map(str, wheels)], check=True)
@@ -488,7 +491,7 @@ def report(name: str, res: dict) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    if "preflight" not in (sys.argv[1:] if argv is None else argv):  # the wheels are for the GPU image's Python
+    if "preflight" not in (sys.argv[1:] if argv is None else argv):  # preflight runs here, before the lease
         bootstrap()
     import tyro
     a = tyro.cli(Args, args=argv, prog="python3 launch/gpu_playbook.py")
