@@ -23,6 +23,10 @@ config plans on a laptop in seconds.
 * A plan that fits, when the config does not: the memory-efficient attention kernel for the device, the lightest
   remat and the fewest micro-batches whose estimate fits (``fitting_plan``), with its own step FLOPs.
 * Times: FLOPs / (devices x peak x MFU). Peaks are approximate vendor dense-BF16 figures per chip (``DEVICES``).
+* Shape: views, image size, window, action (= imagined state) dimension and tokenizer all come from the config (a
+  store's dataset.json, through ``data.shape.shape_from_dataset``, in ``sc3 plan --data.path``); ``check_shape``
+  refuses, in one line naming the field, a shape the model cannot take, before anything is traced.
+* Wan VAE tokenizers: never allocated; their share is counted apart (``plan_vae.py``).
 """
 from __future__ import annotations
 
@@ -30,7 +34,9 @@ import dataclasses
 import functools
 import math
 
+from sc3_jax import xla_cost
 from sc3_jax.errors import UserError
+from sc3_jax.plan_vae import WAN, shape_only_vae, vae_config, vae_costs, vae_note
 
 # device: (approximate vendor peak dense BF16 FLOP/s per chip, HBM bytes per chip)
 DEVICES: dict[str, tuple[float, float]] = {
@@ -71,22 +77,78 @@ def config_flag(key: str, value) -> str:
 
 
 # ----------------------------------------------------------------------------------------------------------------
+# Shape: what the config says the robot and its cameras are, checked before anything is traced
+# ----------------------------------------------------------------------------------------------------------------
+def check_shape(cfg, chunk: bool = True, action_space=None, data_fps: float = 20.0) -> None:
+    """One-line UserError naming the field when the model cannot take the config's shape (views, image size,
+    window, action dimension, tokenizer); the library would otherwise fail deep inside a trace. ``chunk``: also the
+    rollout's window (rollout.keep_frames, rollout.policy_chunk)."""
+    d, m = cfg.data, cfg.model
+    V = len(d.views)
+    if V < 1:
+        raise UserError("data.views is empty: name the camera views, e.g. --data.views left right wrist")
+    if m.num_views != V:
+        raise UserError(f"model.num_views={m.num_views}, but data.views has {V} ({' '.join(d.views)}): set "
+                        f"{config_flag('model.num_views', V)} (or --data.views with {m.num_views} names)")
+    if m.action_dim < 1:
+        raise UserError(f"model.action_dim={m.action_dim}: an action needs at least one dimension")
+    if len(d.image_size) != 2 or min(d.image_size) < 1:
+        raise UserError(f"data.image_size={list(d.image_size)}: expected HEIGHT WIDTH, both positive")
+    for key, n in (("data.context_frames", d.context_frames), ("data.future_frames", d.future_frames),
+                   ("data.batch_size", d.batch_size)):
+        if n < 1:
+            raise UserError(f"{key}={n}: must be >= 1")
+    if V == 1 and cfg.modes.probs[1] > 0:
+        raise UserError(f"modes.probs={list(cfg.modes.probs)}: cross-view inpainting (the second entry) needs two "
+                        "views or more and data.views has one: set it to 0")
+    H, W = d.image_size
+    if m.tokenizer == "pixel" and (H % m.patch_size or W % m.patch_size):
+        raise UserError(f"data.image_size={[H, W]} is not a multiple of model.patch_size={m.patch_size} (pixel "
+                        "patches): change either")
+    if m.tokenizer == "conv_ae" and not m.tokenizer_path:
+        raise UserError("model.tokenizer_path: the conv_ae tokenizer needs one (a `sc3 train-tokenizer` output)")
+    if m.tokenizer in WAN:
+        vae = vae_config(m)
+        r, c = vae.spatial_ratio, vae.temporal_ratio
+        if H % r or W % r:
+            raise UserError(f"data.image_size={[H, W]} is not a multiple of {r}, the {m.tokenizer} VAE's spatial "
+                            "downsampling (model.tokenizer): change data.image_size")
+        if (d.context_frames - 1) % c:
+            raise UserError(f"data.context_frames={d.context_frames}: the {m.tokenizer} VAE ({c}x time compression) "
+                            f"needs 1 + {c} k context frames (e.g. {1 + c})")
+        if d.future_frames % c:
+            raise UserError(f"data.future_frames={d.future_frames}: the {m.tokenizer} VAE ({c}x time compression) "
+                            f"needs a multiple of {c}")
+        if m.layout != "cosmos3":
+            raise UserError(f"model.layout={m.layout!r}: {c}x time-compressed {m.tokenizer} tokens carry {c} actions "
+                            f"per token frame, which only the cosmos3 layout has: set --model.layout cosmos3")
+        for field in ("action_to_frames", "action_reads_frames"):  # the small-model shortcuts pair action j with
+            if getattr(m, field):  # future frame j
+                raise UserError(f"model.{field}: this shortcut needs one action per future token frame; "
+                                f"{m.tokenizer} token frames carry {c} actions: {config_flag(f'model.{field}', False)}")
+    if chunk:
+        from sc3_jax import rollout
+
+        try:  # its messages name the rollout field (rollout.keep_frames=..., rollout.policy_chunk=...)
+            rollout.make_spec(cfg, data_fps, num_chunks=1,
+                              action_space=default_action_space(cfg) if action_space is None else action_space)
+        except ValueError as e:
+            raise UserError(f"{e} (or plan without the rollout chunk: --no-chunk)") from None
+
+
+def default_action_space(cfg):
+    """The action space the planner assumes without a store: the simulated benchmark's delta_ee for 7-D actions,
+    absolute targets otherwise (e.g. 14 ALOHA joint targets). Costs do not depend on it; ``sc3 plan --data.path``
+    uses the store's declaration."""
+    from sc3_jax.data.action_space import DELTA_EE, ActionSpace
+
+    A = cfg.model.action_dim
+    return DELTA_EE if A == DELTA_EE.dim else ActionSpace("absolute", A)
+
+
+# ----------------------------------------------------------------------------------------------------------------
 # Pieces
 # ----------------------------------------------------------------------------------------------------------------
-def _flops(lowered, compiled: bool) -> float:
-    def count(c):
-        c = c[0] if isinstance(c, (list, tuple)) and c else c
-        return None if not c or "flops" not in c else float(c["flops"])
-    # the lowered module's count needs no compile, but some backends give none (CUDA under jax 0.11: None, seen on
-    # an H200 on 2026-11-26); the compiled module's count stands in there
-    flops = None if compiled else count(lowered.cost_analysis())
-    if flops is None:
-        flops = count(lowered.compile().cost_analysis())
-    if flops is None:
-        raise RuntimeError("XLA's cost analysis gave no FLOP count on this backend (lowered or compiled)")
-    return flops
-
-
 def _counting_cfg(cfg):
     """The config whose single-device program XLA can count: layers unrolled, one micro-batch (a loop body is
     counted once; gradient accumulation does not change the FLOPs of a step), dense attention (context-parallel
@@ -98,21 +160,25 @@ def _counting_cfg(cfg):
 
 
 def train_step_flops(cfg, compiled: bool = False) -> float:
-    """Global FLOPs of one train step: bench/train_step.py's count (``compiled=True``) or the lowered module's."""
+    """Global FLOPs of one train step: bench/train_step.py's count (``compiled=True``) or the lowered module's.
+    With a Wan VAE tokenizer, the DiT's step on the VAE's tokens (the VAE's encode: ``vae_costs``)."""
     import jax
 
     from sc3_jax import sharding, train
 
     c = _counting_cfg(cfg)
     mesh = sharding.make_mesh(c.mesh, jax.devices()[:1])
-    step, _ = train.compile_train_step(c, mesh)
-    abstract = jax.eval_shape(lambda: train.init_state(c))
-    return _flops(step.lower(abstract, train.batch_shapes(c)), compiled)
+    with shape_only_vae(c):  # a Wan VAE's encode is not in this count (vae_costs)
+        step, _ = train.compile_train_step(c, mesh)
+        abstract = jax.eval_shape(lambda: train.init_state(c))
+        return xla_cost.flops(step.lower(abstract, train.batch_shapes(c)), compiled)
 
 
-def chunk_flops(cfg) -> dict[str, float]:
+def chunk_flops(cfg, action_space=None, data_fps: float = 20.0) -> dict[str, float]:
     """FLOPs of one rollout chunk of one episode: {"total", "first_step" (everything with S = 1: caches, one FD and
-    one ID Euler step, decode), "per_step" (one FD + one ID network evaluation), "steps"}."""
+    one ID Euler step, decode), "per_step" (one FD + one ID network evaluation), "steps"}. The DiT's only with a Wan
+    VAE tokenizer (``shape_only_vae``; ``vae_costs`` has the VAE's). ``action_space``: the model's
+    (``default_action_space`` when None); the imagined state and the pose condition have its dimension."""
     import jax
     import jax.numpy as jnp
 
@@ -121,29 +187,37 @@ def chunk_flops(cfg) -> dict[str, float]:
 
     c = _counting_cfg(cfg)
     m = c.model
-    spec = rollout.make_spec(c, num_chunks=1)
-    st = rollout.ChunkFns(m, c.flow, dataclasses.replace(spec, steps=1))
-    sds = jax.ShapeDtypeStruct
-    params = jax.eval_shape(lambda: dit.init_params(m, st.tok.token_dim, jax.random.key(0), st.grid))
-    V, K, T, H, W = spec.views, spec.context, spec.predict, *spec.image_size
-    ctx = sds((V, K, H, W, 3), jnp.float32)
-    carry = rollout.Carry(ctx, sds((7,), jnp.float32), sds((), bool), sds((), jnp.int32))
-    Kt, Tt = st.window  # token frames (fewer than frames with a time-compressing tokenizer)
-    key = jax.eval_shape(lambda: jax.random.key_data(jax.random.key(0)))
-    first = _flops(jax.jit(st.model_step).trace(params, sds((2, 7), jnp.float32), carry,
-                                                sds((spec.policy_chunk, 7), jnp.float32), key,
-                                                sds((), jnp.float32)).lower(), False)
-    P, Dt = jax.eval_shape(st.tok.encode, ctx).shape[-2:]
+    space = default_action_space(cfg) if action_space is None else action_space
+    with shape_only_vae(c):
+        spec = rollout.make_spec(c, data_fps, num_chunks=1, action_space=space)
+        st = rollout.ChunkFns(m, c.flow, dataclasses.replace(spec, steps=1))
+        sds = jax.ShapeDtypeStruct
+        params = jax.eval_shape(lambda: dit.init_params(m, st.tok.token_dim, jax.random.key(0), st.grid))
+        V, K, T, H, W, A = spec.views, spec.context, spec.predict, *spec.image_size, spec.action_dim
+        ctx = sds((V, K, H, W, 3), jnp.float32)
+        carry = rollout.Carry(ctx, sds((A,), jnp.float32), sds((), bool), sds((), jnp.int32))
+        Kt, Tt = st.window  # token frames (fewer than frames with a time-compressing tokenizer)
+        key = jax.eval_shape(lambda: jax.random.key_data(jax.random.key(0)))
+        norm = sds((4, A), jnp.float32)  # NormStats.as_array: action mean, std, state mean, std
+        step = jax.jit(st.model_step).trace(params, norm, carry, sds((spec.policy_chunk, A), jnp.float32), key,
+                                            sds((), jnp.float32))
+        first = xla_cost.flops(step.lower(), False)
+        P, Dt = jax.eval_shape(st.tok.encode, ctx).shape[-2:]
+    # what flow.sample gives every network evaluation (dit.Inputs): the pose condition and context level if the
+    # model reads them
+    pose = sds((1, T + 1, A), jnp.float32) if m.pose_conditioning else None
+    level = sds((1,), jnp.float32) if m.context_noise else None
     per_step = 0.0
     for mode, prefix in ((modes.FD, "context"), (modes.ID, "video")):
         vn, an = jax.eval_shape(lambda mode=mode: modes.fixed(mode, 1, V, Kt, Tt, num_actions=T))
-        inp = dit.Inputs(sds((1, V, Kt + Tt, P, Dt), jnp.float32), sds((1, T, 7), jnp.float32),
-                         sds((1, V, Kt + Tt), jnp.float32), vn, sds((1, T), jnp.float32), an, sds((1,), jnp.int32))
+        inp = dit.Inputs(sds((1, V, Kt + Tt, P, Dt), jnp.float32), sds((1, T, A), jnp.float32),
+                         sds((1, V, Kt + Tt), jnp.float32), vn, sds((1, T), jnp.float32), an, sds((1,), jnp.int32),
+                         pose=pose, context_level=level)
         kv = None
         if m.context_attention == "causal":  # the rollout caches this prefix's keys/values for all S steps
             kv = jax.eval_shape(lambda p, i, prefix=prefix: dit.encode_context(p, m, i, st.grid, prefix=prefix,
                                                                                context_frames=Kt), params, inp)
-        per_step += _flops(jax.jit(functools.partial(_predict, m=m, grid=st.grid, context_frames=Kt))
+        per_step += xla_cost.flops(jax.jit(functools.partial(_predict, m=m, grid=st.grid, context_frames=Kt))
                            .trace(params, inp, kv).lower(), False)
     S = cfg.sample.steps
     return {"total": first + (S - 1) * per_step, "first_step": first, "per_step": per_step, "steps": S}
@@ -167,10 +241,12 @@ def state_bytes(cfg, mesh_cfg) -> dict[str, float]:
     names = sharding.mesh_axes(mesh_cfg)
     sizes = dict(zip(names, sharding.mesh_shape(mesh_cfg, math.prod(_sizes(mesh_cfg).values()))))
     mesh = AbstractMesh(tuple(sizes.values()), names, axis_types=(AxisType.Auto,) * len(names))
-    abstract = jax.eval_shape(lambda: train.init_state(cfg))
+    with shape_only_vae(cfg):
+        abstract = jax.eval_shape(lambda: train.init_state(cfg))
+        axes_list = train.state_axes(cfg, abstract)
     flat, _ = jax.tree_util.tree_flatten_with_path(abstract)
     out = {"params": 0.0, "optimizer": 0.0, "other": 0.0}
-    for (path, x), axes in zip(flat, train.state_axes(cfg, abstract)):
+    for (path, x), axes in zip(flat, axes_list):
         spec = sharding.logical_spec(axes, x.shape, mesh)
         shard = list(x.shape)
         for i, entry in enumerate(tuple(spec) + (None,) * (x.ndim - len(spec))):
@@ -211,7 +287,8 @@ def activation_estimate(cfg, mesh_cfg) -> float:
 
     m, s = cfg.model, _sizes(mesh_cfg)
     a = jnp.dtype(m.dtype).itemsize
-    N = tokenizer.tokens_per_sample(cfg)
+    with shape_only_vae(cfg):
+        N = tokenizer.tokens_per_sample(cfg)
     Bl = -(-(cfg.data.batch_size // cfg.train.grad_accum) // (s["data"] * s["fsdp"]))  # one micro-batch
     C = s["context"] if m.attention_impl in ("context_parallel", "ring") else 1
     Nl = -(-N // C)
@@ -283,15 +360,42 @@ def compiled_memory(cfg, mesh_cfg):
     if n > jax.device_count():
         return None
     mesh = sharding.make_mesh(mesh_cfg, jax.devices()[:n])
-    step, _ = train.compile_train_step(cfg, mesh)
-    abstract = jax.eval_shape(lambda: train.init_state(cfg))
-    return step.lower(abstract, train.batch_shapes(cfg)).compile().memory_analysis()
+    with shape_only_vae(cfg):  # the DiT's step (a Wan VAE's encode is not in it)
+        step, _ = train.compile_train_step(cfg, mesh)
+        abstract = jax.eval_shape(lambda: train.init_state(cfg))
+        return step.lower(abstract, train.batch_shapes(cfg)).compile().memory_analysis()
 
 
 # ----------------------------------------------------------------------------------------------------------------
 # The plan
 # ----------------------------------------------------------------------------------------------------------------
-def plan(cfg, mesh_cfg, device: str, mfu: float = 0.4, compile: bool = False, chunk: bool = True) -> dict:
+def shape_of(cfg, action_space=None) -> dict:
+    """What the plan is for: views, image size, window in frames and token frames, tokens per frame, actions."""
+    from sc3_jax.model.tokenizer import make_tokenizer, window_tokens
+
+    d, m = cfg.data, cfg.model
+    space = default_action_space(cfg) if action_space is None else action_space
+    with shape_only_vae(cfg):
+        tok = make_tokenizer(m)
+        rows, cols = tok.grid(d.image_size)
+        Kt, Tt = window_tokens(tok, d.context_frames, d.future_frames)
+        token_dim = tok.token_dim
+    return {"views": list(d.views), "image_size": list(d.image_size), "context_frames": d.context_frames,
+            "future_frames": d.future_frames, "context_token_frames": Kt, "future_token_frames": Tt,
+            "grid": [rows, cols], "token_dim": token_dim, "tokenizer": m.tokenizer, "patch_size": m.patch_size,
+            "time_compression": tok.time_compression,
+            "spatial_ratio": vae_config(m).spatial_ratio if m.tokenizer in WAN else None,
+            "action_dim": m.action_dim, "action_kind": space.kind,
+            # the imagined state lives in the action's space (data/action_space.py): the pose condition and the
+            # state a policy observes in a rollout have the action's dimension
+            "state_dim": space.dim}
+
+
+def plan(cfg, mesh_cfg, device: str, mfu: float = 0.4, compile: bool = False, chunk: bool = True,
+         action_space=None, data_fps: float = 20.0) -> dict:
+    """The plan of ``cfg`` on ``mesh_cfg`` x ``device`` (see the module docstring). ``action_space``: the model's
+    (a store's declaration; None: ``default_action_space``); ``data_fps``: its data's frame rate (the rollout's
+    frame stride)."""
     import jax
 
     from sc3_jax.model import dit
@@ -306,18 +410,27 @@ def plan(cfg, mesh_cfg, device: str, mfu: float = 0.4, compile: bool = False, ch
     if cfg.data.batch_size % (sizes["data"] * sizes["fsdp"]):
         raise UserError(f"--data.batch-size: global batch {cfg.data.batch_size} does not divide over data x fsdp = "
                         f"{sizes['data'] * sizes['fsdp']} of --mesh; change either")
+    if action_space is not None and action_space.dim != cfg.model.action_dim:
+        raise UserError(f"model.action_dim={cfg.model.action_dim}, but the action space is {action_space.dim}-D "
+                        f"{action_space.kind}")
+    check_shape(cfg, chunk, action_space, data_fps)
     from sc3_jax import checkpoint
     from sc3_jax.model import tokenizer
 
     cfg = dataclasses.replace(cfg, mesh=mesh_cfg)
-    params = checkpoint.param_shapes(cfg)
+    with shape_only_vae(cfg):
+        params = checkpoint.param_shapes(cfg)
+        tokens = tokenizer.tokens_per_sample(cfg)
+    vae = vae_costs(cfg)
     out = {"config": cfg.name, "mesh": sizes, "devices": n, "device": device, "peak_flops": peak, "hbm_bytes": hbm,
            "mfu": mfu, "params": dit.count_params(params), "param_dtype": cfg.model.param_dtype,
-           "tokens_per_sample": tokenizer.tokens_per_sample(cfg), "batch": cfg.data.batch_size,
-           "steps": cfg.train.steps,
-           "attention_impl": cfg.model.attention_impl, "notes": []}
+           "shape": shape_of(cfg, action_space), "tokens_per_sample": tokens, "batch": cfg.data.batch_size,
+           "steps": cfg.train.steps, "attention_impl": cfg.model.attention_impl,
+           "notes": [n for n in (vae_note(cfg.model),) if n]}
     out.update({f"{k}_bytes": v for k, v in state_bytes(cfg, mesh_cfg).items()})
     out["grads_bytes"] = out["params_bytes"]  # gradients: one more param-sized, param-sharded tree during the step
+    # sc3 train encodes a Wan VAE's frames inside the step: its encoder's weights are constants there, on every device
+    out["tokenizer_bytes"] = vae["encoder_bytes"] if vae else 0.0
     mem = compiled_memory(cfg, mesh_cfg) if compile else None
     if mem is not None:
         out["activations_bytes"], out["activations_source"] = float(mem.temp_size_in_bytes), "compiled"
@@ -326,7 +439,7 @@ def plan(cfg, mesh_cfg, device: str, mfu: float = 0.4, compile: bool = False, ch
         out["activations_bytes"], out["activations_source"] = activation_estimate(cfg, mesh_cfg), "estimate"
         if compile:
             out["notes"].append(f"mesh of {n} devices > {jax.device_count()} local devices: activations estimated")
-    out["total_bytes"] = sum(out[f"{k}_bytes"] for k in ("params", "optimizer", "other", "grads", "activations"))
+    out["total_bytes"] = sum(out[f"{k}_bytes"] for k in MEMORY_PARTS)
     if sizes["context"] > 1 and cfg.model.attention_impl == "dense":
         out["notes"].append("mesh has context > 1 but model.attention_impl is 'dense': the sequence is not split "
                             f"(use {config_flag('model.attention_impl', 'ring')})")
@@ -346,12 +459,24 @@ def plan(cfg, mesh_cfg, device: str, mfu: float = 0.4, compile: bool = False, ch
             fit["step_seconds"] = fit["step_flops"] / (n * peak * mfu)
             fit["train_seconds"] = fit["step_seconds"] * cfg.train.steps
         out["fit"] = fit
+    out["vae"] = None
+    if vae:
+        views = len(cfg.data.views)
+        out["vae"] = {**vae, "step_encode_flops": cfg.data.batch_size * views * vae["video_window_encode_flops"],
+                      "chunk_encode_flops": views * vae["video_context_encode_flops"],
+                      "chunk_decode_flops": views * vae["video_decode_flops"]}
+        out["vae"]["step_encode_seconds"] = out["vae"]["step_encode_flops"] / (n * peak * mfu)
     if chunk:
-        c = chunk_flops(cfg)
-        out["chunk_flops"], out["chunk_steps"] = c["total"], c["steps"]
+        c = chunk_flops(cfg, action_space, data_fps)
+        out["chunk_model_flops"], out["chunk_steps"] = c["total"], c["steps"]
+        out["chunk_flops"] = c["total"] + (out["vae"]["chunk_encode_flops"] + out["vae"]["chunk_decode_flops"]
+                                           if vae else 0.0)
         out["chunk_predict"] = cfg.data.future_frames
-        out["chunk_seconds"] = c["total"] / (peak * mfu)
+        out["chunk_seconds"] = out["chunk_flops"] / (peak * mfu)
     return out
+
+
+MEMORY_PARTS = ("params", "optimizer", "other", "grads", "tokenizer", "activations")
 
 
 def _gb(x: float) -> str:
@@ -366,12 +491,15 @@ def format_plan(p: dict) -> str:
         (f"plan: config {p['config']}, mesh {mesh} ({p['devices']} devices), device {p['device']} "
          f"({p['peak_flops'] / 1e12:.0f} TFLOP/s {peak_note}, {p['hbm_bytes'] / 1e9:.0f} GB HBM), MFU {p['mfu']:.2f}"),
         f"parameters: {p['params']:,} ({p['params'] / 1e9:.3f} B, {p['param_dtype']})",
+        format_shape(p["shape"]),
         (f"tokens: {p['tokens_per_sample']:,} per sample x global batch {p['batch']} = "
          f"{p['tokens_per_sample'] * p['batch']:,} per step; attention {p['attention_impl']}"),
         "per-device memory (train step):",
         f"  params       {_gb(p['params_bytes'])}",
         f"  optimizer    {_gb(p['optimizer_bytes'])}",
         f"  gradients    {_gb(p['grads_bytes'])}  (param-sized, param-sharded)",
+    ] + ([f"  tokenizer    {_gb(p['tokenizer_bytes'])}  ({p['vae']['name']} VAE encoder weights, "
+          f"{p['vae']['dtype']}, on every device: sc3 train encodes frames inside the step)"] if p["vae"] else []) + [
         f"  activations  {_gb(p['activations_bytes'])}  ("
         + (f"compiled memory analysis: temp buffers per device; estimate {p['activations_estimate'] / 1e9:.3g} GB"
            if p["activations_source"] == "compiled"
@@ -386,6 +514,14 @@ def format_plan(p: dict) -> str:
          f"{p['train_seconds'] / 3600:.1f} h = {p['train_seconds'] / 86400:.2f} days on {p['devices']} x "
          f"{p['device']}"),
     ]
+    if p["vae"]:
+        v, sh = p["vae"], p["shape"]
+        lines.append(f"  + {v['name']} VAE encode inside the step: {v['step_encode_flops']:.4g} FLOPs "
+                     f"({v['step_encode_flops'] / p['step_flops']:.3g}x the DiT step's; {p['batch']} x "
+                     f"{len(sh['views'])} videos of {sh['context_frames'] + sh['future_frames']}"
+                     f" frames), >= {v['step_encode_seconds']:.3g} s/step more ({v['dtype']} convolutions at "
+                     f"precision {v['precision']!r}: the bf16 peak is a lower bound); not in the step's FLOPs above "
+                     "nor its activation estimate")
     if p["fit"]:
         f = p["fit"]
         lines += [f"plan that fits: attention {f['attention_impl']}, remat {f['remat']}, {f['microbatches']} "
@@ -395,12 +531,33 @@ def format_plan(p: dict) -> str:
                   f"  train step: {f['step_flops']:.4g} FLOPs; at MFU {p['mfu']:.2f}: {f['step_seconds']:.3g} s/step; "
                   f"{p['steps']:,} steps = {f['train_seconds'] / 86400:.2f} days on {p['devices']} x {p['device']}"]
     if "chunk_flops" in p:
+        split = "" if not p["vae"] else (
+            f" = DiT {p['chunk_model_flops']:.3g} + VAE encode {p['vae']['chunk_encode_flops']:.3g} (the context) + "
+            f"decode {p['vae']['chunk_decode_flops']:.3g} (every token frame)")
         lines.append(f"rollout chunk (1 episode, {p['chunk_predict']} frames, FD + ID sampling, {p['chunk_steps']} "
-                     f"Euler steps each): {p['chunk_flops']:.4g} FLOPs (lowered XLA cost analysis)")
+                     f"Euler steps each): {p['chunk_flops']:.4g} FLOPs{split} (lowered XLA cost analysis)")
         lines.append(f"  at MFU {p['mfu']:.2f} on one {p['device']}: {p['chunk_seconds']:.3g} s/chunk")
     lines += [f"note: {n}" for n in p["notes"]]
     lines.append(verdict(p))
     return "\n".join(lines)
+
+
+def format_shape(sh: dict) -> str:
+    """The shape line: views, image size, window in frames and tokens, actions."""
+    H, W = sh["image_size"]
+    rows, cols = sh["grid"]
+    if sh["time_compression"] > 1:
+        window = (f"window {sh['context_frames']} + {sh['future_frames']} frames = {sh['context_token_frames']} + "
+                  f"{sh['future_token_frames']} token frames")
+        how = (f"{sh['tokenizer']} VAE: {sh['spatial_ratio']}x space, {sh['time_compression']}x time; latent patch "
+               f"{sh['patch_size']}")
+    else:
+        window = f"window {sh['context_frames']} + {sh['future_frames']} frames"
+        how = f"{sh['tokenizer']} tokenizer, patch {sh['patch_size']}"
+    state = " (end-effector pose)" if sh["action_kind"] == "delta_ee" else ""
+    return (f"shape: {len(sh['views'])} views ({' '.join(sh['views'])}) at {H}x{W}; {window} of {rows} x {cols} = "
+            f"{rows * cols:,} tokens ({how}; token dim {sh['token_dim']}); {sh['future_frames']} actions of "
+            f"{sh['action_dim']}-D {sh['action_kind']}, imagined state {sh['state_dim']}-D{state}")
 
 
 def _fit_flags(fit: dict) -> str:
@@ -417,7 +574,7 @@ def verdict(p: dict) -> str:
     if p["fits"]:
         return (f"verdict: fits on {where}: {p['total_bytes'] / 1e9:.2f} GB per device of a {budget / 1e9:.0f} GB "
                 f"budget (90% of HBM); memory is per device, FLOPs global, times assume MFU {p['mfu']:.2f}")
-    parts = {k: p[f"{k}_bytes"] for k in ("params", "optimizer", "grads", "activations", "other")}
+    parts = {k: p.get(f"{k}_bytes", 0.0) for k in MEMORY_PARTS}  # tokenizer: 0 where absent (no Wan VAE)
     big = max(parts, key=parts.get)
     why = (f"does not fit on {where}: {p['total_bytes'] / 1e9:.2f} GB per device > {budget / 1e9:.0f} GB (90% of "
            f"HBM), {big} {parts[big] / 1e9:.2f} GB of it")

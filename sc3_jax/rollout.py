@@ -22,7 +22,8 @@ Decisions (see docs/rollout.md for more):
   ``evaluate.results.terminated_at`` -- identical, up to the termination chunk, to a run with that tau.
 * U is the mean over the l kept steps of the L2 norm over the A action dimensions, in ``cfg.rollout.tau_units``:
   "raw" (the paper's units, in which its tau = 0.02 is set; the default) or "normalised" (per-dimension unit
-  variance). Both are emitted (``u_raw``, ``u``); the one in tau_units decides termination.
+  variance). Both are emitted (``u_raw``, ``u``); the one in tau_units decides termination. tau's default
+  (``rollout.tau`` None, :func:`resolve_tau`) follows the action space: 0.02 for delta_ee, none (inf) for others.
 * Frames advance at ``control_hz``: the model runs with frame stride ``round(data_fps / control_hz)`` (20 Hz data,
   10 Hz control -> 2) and one policy action per predicted frame.
 * Actions and state: in the action space the world model was trained in (``NormStats.action_space``, from its
@@ -133,6 +134,19 @@ def make_spec(cfg: Config, data_fps: float = 20.0, num_chunks: int | None = None
                        r.policy_chunk, int(num_chunks), int(round(stride)), cfg.sample.steps, ratio,
                        float(cfg.sample.context_noise), r.tau_units, cfg.sample.inverse_steps, space,
                        float(data_fps))
+
+
+BENCHMARK_TAU = 0.02  # the paper's threshold, set in the raw units of delta_ee actions (metres, radians)
+
+
+def resolve_tau(tau: float | None, action_space: ActionSpace) -> float:
+    """``rollout.tau`` as a rollout of a world model acting in ``action_space`` uses it: as given, or where None
+    (the default) ``BENCHMARK_TAU`` for the benchmark's delta_ee actions and inf (no early termination) for any other
+    action space, whose units (joint radians, ...) that value means nothing in until a tau is calibrated on held-out
+    conditions in the dataset's own units (``sc3 sweep --initial-conditions STORE --taus ...``)."""
+    if tau is not None:
+        return float(tau)
+    return BENCHMARK_TAU if action_space.kind == "delta_ee" else math.inf
 
 
 class InitialConditions(NamedTuple):
@@ -265,6 +279,7 @@ class Rollout:
                  cache: bool = True, state_reader=None):
         self.cfg = cfg
         self.spec = make_spec(cfg, data_fps, num_chunks, norm_stats.action_space)
+        self.tau = resolve_tau(cfg.rollout.tau, self.spec.action_space)  # what run / run_host use by default
         if state_reader is not None and self.spec.action_space.kind != "delta_ee":
             raise UserError(f"a state reader sets the gripper entry of an end-effector pose; this world model's "
                             f"actions are {self.spec.action_space.kind}")
@@ -320,7 +335,7 @@ class Rollout:
         """Closed loop, the whole episode in one jitted ``lax.scan``; ``keys`` from :func:`episode_keys`."""
         self._check_chunk(policy.chunk, policy.name)
         self.check_policy(policy)
-        tau = self.cfg.rollout.tau if tau is None else tau
+        tau = self.tau if tau is None else tau
         B, frames, state, task, keys = self._inputs(ics, keys)
         params, policy_params = self.place_params(params), jax.device_put(policy.params, self._repl)
         emits = self._scan_policy(policy.apply, params, self.norm, policy_params, self.reader_params, frames, state,
@@ -352,7 +367,7 @@ class Rollout:
             policy = as_host(policy)
         self._check_chunk(policy.chunk, type(policy).__name__)
         takes_rng = "rng" in inspect.signature(policy.infer).parameters
-        tau = self.cfg.rollout.tau if tau is None else tau
+        tau = self.tau if tau is None else tau
         B, frames, state, task, keys = self._inputs(ics, keys)
         params = self.place_params(params)
         carry = self._init(frames, state)
@@ -392,6 +407,10 @@ class Rollout:
         name = getattr(policy, "name", None) or type(policy).__name__
         check_dims(policy, s.action_dim, s.action_dim, name,
                    f"the world model ({s.action_space.kind} actions, model.action_dim)")
+        need = getattr(policy, "min_views", None)  # an openpi mapping's cameras (ALOHA: 4)
+        if need is not None and s.views < need:
+            raise UserError(f"policy {name!r} reads {need} views (its mapping's min_views), the world model has "
+                            f"{s.views} (data.views)")
         if isinstance(policy, JaxPolicy):
             obs = {"images": jax.ShapeDtypeStruct((s.views, *s.image_size, 3), jnp.uint8),
                    "state": jax.ShapeDtypeStruct((s.action_dim,), jnp.float32),

@@ -353,3 +353,38 @@ def test_velocity_rollout_integrates_at_the_policy_rate():
                                atol=1e-6)
     want = space.integrate(s0[0], raw[:6], dt=0.05)[2::2]  # the state at each kept frame (every 2nd raw action)
     np.testing.assert_allclose(out["states"][0], want, atol=1e-5)
+
+
+# -- built-in policies and tau follow the world model's action space (issue 33) -----------------------------------
+def test_tau_default_follows_the_action_space():
+    assert rollout.resolve_tau(None, DELTA_EE) == 0.02  # the benchmark's, bit for bit
+    assert rollout.resolve_tau(None, ActionSpace("absolute", A)) == math.inf  # 0.02 rad means nothing here
+    assert rollout.resolve_tau(None, ActionSpace("velocity", 4, targets=(3,))) == math.inf
+    assert rollout.resolve_tau(0.3, ActionSpace("absolute", A)) == 0.3  # a calibrated tau, as given
+    assert rollout.resolve_tau(math.inf, DELTA_EE) == math.inf
+    assert load_config("tiny").rollout.tau is None
+
+
+def test_builtin_policy_rolls_out_a_14d_model_without_stopping_at_its_first_chunk(bimanual):
+    """`zero` named for the 14-D model acts in [chunk, 14]; with the default tau the rollout runs its chunks, where
+    the benchmark's 0.02 (raw radians here) would stop it at the first one."""
+    from sc3_jax import checkpoint
+    from sc3_jax.policies.resolve import resolve
+
+    tmp, _, _, _, store, _, _ = bimanual
+    cfg, stats, params = checkpoint.load(tmp / "run")
+    assert cfg.rollout.tau is None  # the default, through config.json
+    ro = rollout.Rollout(cfg, stats, data_fps=store.fps, num_chunks=2)
+    assert ro.tau == math.inf
+    policy = resolve("zero", cfg.rollout.policy_chunk, action_space=stats.action_space,
+                     num_views=len(cfg.data.views)).policy
+    assert policy.action_dim == A
+    ics = rollout.stack_initial_conditions([rollout.from_episode(store.load(e), cfg.data.views, ro.spec)[0]
+                                            for e in store.episode_ids()])
+    keys = rollout.episode_keys(0, 2)
+    out = ro.run(params, policy, ics, keys)
+    assert out["actions"].shape == (2, 6, A) and out["tau"] == math.inf
+    assert (out["terminated_at"] == -1).all() and out["frame_valid"].all()
+    np.testing.assert_array_equal(out["actions"][:, :3], np.repeat(ics.state[:, None], 3, 1))  # stands still
+    assert (out["u_raw"][:, 0] > 0.02).all()  # what the old default would have stopped at
+    assert (ro.run(params, policy, ics, keys, tau=0.02)["terminated_at"] == 0).all()

@@ -1,7 +1,9 @@
-"""Evaluation without a simulator (issue 33 item 3): `sc3 sweep --initial-conditions` ranks policies inside a world
-model from held-out episodes of the tiny bimanual 14-D robot of test_any_robot.py, scored by a `module:attr` scorer,
-resumably, and compares the ranking with real outcomes (r / MMRV with intervals, next to the policy-blind floor).
-Policies, scorers and their faulty twins are defined here and named as `test_ic_sweep:ATTR`."""
+"""Evaluation without a simulator (issue 33 item 3 and its acceptance): `sc3 sweep --initial-conditions` ranks
+policies inside a world model from held-out episodes of the tiny bimanual 14-D robot of test_any_robot.py -- two
+`module:attr` host policies and one served over a real websocket by an openpi-style ALOHA server (`--family aloha`:
+4 CHW cameras, 14-D state) -- scored by a `module:attr` scorer, resumably, and compares the ranking with real
+outcomes (r / MMRV with intervals, next to the policy-blind floor); `sc3 rollout` runs a `module:attr` policy on the
+same model. Policies, scorers and their faulty twins are defined here and named as `test_ic_sweep:ATTR`."""
 import csv
 import json
 import shutil
@@ -14,7 +16,8 @@ from sc3_jax.data.action_space import ActionSpace
 from sc3_jax.data.episodes import Episode, EpisodeStore
 from sc3_jax.errors import UserError
 from sc3_jax.evaluate import labels
-from test_any_robot import A, H, W, bimanual  # noqa: F401  (the fixture: imported store + trained tiny model)
+from sc3_jax.policies.openpi_mappings import ALOHA_CAMERAS, for_world_model, resize_with_pad
+from test_any_robot import CAMS, A, H, W, bimanual  # noqa: F401  (the fixture: imported store + trained tiny model)
 
 CHUNK = 8  # the fixture model's rollout.policy_chunk
 
@@ -44,6 +47,20 @@ def reach():
 
 def seven():
     return Offset(0.0, dim=7)  # the benchmark's 7-D actions: not this robot's
+
+
+# -- a policy served over openpi's protocol, as an openpi ALOHA server sees the world ------------------------------
+class AlohaServed:
+    """openpi's ALOHA observation in (aloha_policy.AlohaInputs: images {cam_high, cam_low, cam_left_wrist,
+    cam_right_wrist} CHW uint8, state [14], prompt), {"actions": [H, 14]} out; `half`'s offset, H = 10 rows (fewer
+    than the client's chunk: it holds the last). Every request is kept, to check what crossed the wire."""
+
+    def __init__(self, d: float):
+        self.d, self.requests = d, []
+
+    def infer(self, obs):
+        self.requests.append(obs)
+        return {"actions": np.repeat(np.asarray(obs["state"], np.float32)[None] + np.float32(self.d), 10, 0)}
 
 
 # -- scorers ---------------------------------------------------------------------------------------------------------
@@ -86,9 +103,10 @@ def _real_store(root):
 
 
 def _sweep(ic, run, out, *extra, policies=("hold", "half", "reach"), scorer="test_ic_sweep:score"):
+    """`sc3 sweep --initial-conditions`; a policy NAME is test_ic_sweep:NAME, a NAME=SPEC is given as is."""
     return main(["sweep", "--initial-conditions", str(ic), "--world-model", str(run), "--policies",
-                 *[f"{p}=test_ic_sweep:{p}" for p in policies], "--scorer", scorer, "--episodes", "2",
-                 "--calibration-episodes", "2", "--batch", "2", "--episode-seconds", "0.6", "--taus", "inf", "0.5",
+                 *[p if "=" in p else f"{p}=test_ic_sweep:{p}" for p in policies], "--scorer", scorer,
+                 "--episodes", "2", "--calibration-episodes", "2", "--batch", "2", "--episode-seconds", "0.6", "--taus", "inf", "0.5",
                  "--out", str(out), "--no-progress", *extra])
 
 
@@ -99,13 +117,28 @@ def _error(capsys) -> str:
 
 
 @pytest.fixture(scope="module")
-def swept(bimanual, tmp_path_factory):  # noqa: F811
+def aloha():
+    """The openpi-style ALOHA server, on a free port for the module; `half=ws://...` in the sweep."""
+    from sc3_jax.policies.openpi_server import PolicyServer
+
+    server = PolicyServer(AlohaServed(0.1), host="127.0.0.1", port=0).start()  # no mapping: openpi's dict as is
+    yield server
+    server.shutdown()
+
+
+def _served(server) -> tuple[str, ...]:
+    """hold and reach by module:attr, half over the websocket through the ALOHA mapping."""
+    return ("hold", f"half={server.url}", "reach")
+
+
+@pytest.fixture(scope="module")
+def swept(bimanual, aloha, tmp_path_factory):  # noqa: F811
     tmp = bimanual[0]
     ic = _conditions(bimanual[4], tmp_path_factory.mktemp("ic") / "heldout")
     real = _real_store(tmp_path_factory.mktemp("real") / "store")
     out = tmp_path_factory.mktemp("sweep") / "out"
     SEEN.clear()
-    assert _sweep(ic, tmp / "run", out, "--real", str(real)) == 0
+    assert _sweep(ic, tmp / "run", out, "--real", str(real), "--family", "aloha", policies=_served(aloha)) == 0
     return ic, tmp / "run", real, out, list(SEEN)
 
 
@@ -129,14 +162,48 @@ def test_records_and_what_the_scorer_sees(swept):
     assert json.loads((out / "sweep.json").read_text())["kind"] == "initial_conditions"
 
 
-def test_rerun_adds_nothing(swept, capsys):
+def test_the_served_policy_gets_openpi_aloha_observations(swept, aloha):
+    """What crossed the wire: per condition and chunk one request of openpi's ALOHA layout -- the 4 cameras by
+    name, each the model's view of that name letterboxed to 224x224 CHW uint8, the 14-D state, the episode's own
+    prompt -- and its actions came back into the world model unchanged."""
+    ic, _, _, out, _ = swept
+    got = aloha.policy.requests
+    assert len(got) == 4 * 2  # 4 conditions x 2 chunks
+    for req in got:
+        assert set(req) == {"images", "state", "prompt"} and req["prompt"] == "fold the towel"
+        assert tuple(req["images"]) == ALOHA_CAMERAS and req["state"].dtype == np.float32
+        assert req["state"].shape == (A,)
+        for img in req["images"].values():
+            assert img.dtype == np.uint8 and img.shape == (3, 224, 224)
+    with np.load(out / "rollouts" / "half" / "0_online.npz") as z:  # the first request: condition 0, chunk 0
+        first, actions = z["frames"][:, 0], z["actions"]
+    for v, cam in enumerate(CAMS):  # the view of that name, not just some view
+        sent = got[0]["images"][cam].transpose(1, 2, 0).astype(int)
+        err = [np.abs(sent - resize_with_pad(first[w], 224, 224).astype(int)).mean() for w in range(len(CAMS))]
+        assert int(np.argmin(err)) == v and err[v] < 2, (cam, err)
+    np.testing.assert_allclose(actions[0], got[0]["state"] + np.float32(0.1), atol=1e-6)  # state + 0.1, back
+
+
+def test_the_report_ranks_the_served_policy_with_the_others(swept, aloha):
+    out = swept[3]
+    t = json.loads((out / "report" / "report.json").read_text())
+    # by success: half (moves, never far enough) ties hold; ties share a rank, listed by name
+    assert [(p["policy"], p["rank"]) for p in t["policies"]] == [("reach", 1), ("half", 2), ("hold", 2)]
+    assert json.loads((out / "sweep.json").read_text())["policies"][1] == f"half={aloha.url}"
+    f = t["real"]["faithfulness"]["online"]  # half's real labels match its name, wherever it runs
+    assert t["real"]["policies"]["half"]["rates"]["moved"]["value"] == 0.75
+    for k in ("pearson", "mmrv"):
+        assert f[k]["lo"] <= f[k]["value"] <= f[k]["hi"]
+
+
+def test_rerun_adds_nothing(swept, aloha, capsys):
     ic, run, real, out, _ = swept
-    before = (out / "results.jsonl").read_text()
+    before, asked = (out / "results.jsonl").read_text(), len(aloha.policy.requests)
     SEEN.clear()
-    assert _sweep(ic, run, out, "--real", str(real)) == 0
-    assert (out / "results.jsonl").read_text() == before and not SEEN
+    assert _sweep(ic, run, out, "--real", str(real), "--family", "aloha", policies=_served(aloha)) == 0
+    assert (out / "results.jsonl").read_text() == before and not SEEN and len(aloha.policy.requests) == asked
     said = capsys.readouterr().out
-    assert "ranking by success" in said and "report:" in said and "r " in said
+    assert "ranking by success" in said and "report:" in said and "r " in said and "half (aloha)" in said
     assert _sweep(ic, run, out, "--real", str(real), policies=("hold", "reach")) == 2  # another sweep: refused
     assert "different sweep" in _error(capsys)
 
@@ -197,6 +264,67 @@ def test_a_scorer_answering_otherwise_is_one_line(swept, capsys):
     assert _sweep(ic, run, out.parent / "wrong", policies=("hold",), scorer="test_ic_sweep:not_a_dict") == 2
     err = _error(capsys)
     assert "test_ic_sweep:not_a_dict" in err and "float" in err and "{criterion: bool}" in err, err
+
+
+def test_family_mistakes_are_one_line(swept, aloha, capsys):
+    ic, run, _, out, _ = swept
+    for policies, family, words in (
+            (_served(aloha), ["pi0"], ("--family pi0", "native, droid, libero, aloha")),
+            (_served(aloha), ["hold=aloha"], ("--family hold=aloha", "'hold' is not a ws:// policy")),
+            (("hold", "reach"), ["aloha"], ("--family aloha", "--policies has none")),
+            (_served(aloha), ["aloha", "half=droid", "half=aloha"], ("--family half=aloha", "already has"))):
+        assert _sweep(ic, run, out.parent / "fam", "--family", *family, policies=policies) == 2
+        err = _error(capsys)
+        assert all(w in err for w in words), err
+    assert not (out.parent / "fam").exists()
+    with pytest.raises(UserError, match=r"--family aloha: openpi's aloha layout sends 4 cameras .* has 3 views"):
+        for_world_model("aloha", ("a", "b", "c"), ["x"], "--family aloha")
+    # the cameras go by the model's view names whatever their order; others by the preset's order
+    imgs = np.stack([np.full((4, 4, 3), v, np.uint8) for v in range(4)])
+    for views, want in ((("cam_low", "cam_right_wrist", "cam_high", "cam_left_wrist"), [2, 0, 3, 1]),
+                        (("a", "b", "c", "d"), [0, 1, 2, 3])):
+        sent = for_world_model("aloha", views, ["fold"], "--family aloha").to_family(
+            {"images": imgs, "state": np.zeros(A), "task": 0})
+        assert [int(sent["images"][c].max()) for c in ALOHA_CAMERAS] == want and sent["prompt"] == "fold"
+    quiet = for_world_model("aloha", CAMS, [""], "--family aloha").to_family(
+        {"images": imgs, "state": np.zeros(A), "task": 0})
+    assert "prompt" not in quiet  # an episode without a prompt: the server's default prompt applies
+
+
+def test_sc3_rollout_of_a_module_attr_policy(swept, tmp_path, capsys):
+    """`sc3 rollout` (the command) on the bimanual model from the held-out store: a 14-D policy, 4 views, 2
+    chunks of 3 frames; the policy drove it (each chunk's target = the observed state + 0.3). tau is left at its
+    default, which for joint targets is no early stop (0.02 rad would stop every rollout at its first chunk)."""
+    ic, run, _, _, _ = swept
+    assert main(["rollout", "--checkpoint", str(run), "--policy", "test_ic_sweep:reach", "--initial-conditions",
+                 str(ic), "--out", str(tmp_path / "ro"), "--episodes", "2", "--batch-size", "2",
+                 "--rollout.episode-seconds", "0.6", "--no-progress"]) == 0
+    with np.load(tmp_path / "ro" / "rollout.npz") as z:
+        assert z["frames"].shape == (2, 4, 6, H, W, 3) and z["actions"].shape == z["states"].shape == (2, 6, A)
+        assert list(z["episode_ids"]) == EpisodeStore(ic).episode_ids()[:2]
+        np.testing.assert_allclose(z["actions"][:, 3], z["actions"][:, 0] + 0.3, atol=1e-5)
+    summary = json.loads((tmp_path / "ro" / "summary.json").read_text())
+    assert summary["num_chunks"] == 2 and summary["keep_frames"] == 3 and summary["stopped"] == 0
+    assert not summary["success"]["available"]  # the benchmark's perception scorer: not this robot's cameras
+    assert sorted(p.name for p in (tmp_path / "ro").glob("*.mp4")) == sorted(
+        f"{e}_{v}.mp4" for e in summary["episodes"] for v in CAMS)
+    assert capsys.readouterr().out.strip().splitlines()[-1].startswith(f"wrote {tmp_path / 'ro'}/: rollout.npz")
+
+
+def test_sc3_rollout_of_a_served_aloha_policy(swept, aloha, tmp_path):
+    """`sc3 rollout --family aloha` sends what the sweep sends: each episode's own prompt, the cameras by name."""
+    ic, run, _, _, _ = swept
+    before = len(aloha.policy.requests)
+    assert main(["rollout", "--checkpoint", str(run), "--policy", aloha.url, "--family", "aloha",
+                 "--initial-conditions", str(ic), "--out", str(tmp_path / "ro"), "--episodes", "1",
+                 "--rollout.episode-seconds", "0.3", "--no-progress"]) == 0
+    got = aloha.policy.requests[before:]
+    assert len(got) == 1 and got[0]["prompt"] == "fold the towel" and tuple(got[0]["images"]) == ALOHA_CAMERAS
+    with np.load(tmp_path / "ro" / "rollout.npz") as z:
+        first = z["frames"][0][:, 0]
+        np.testing.assert_allclose(z["actions"][0, 0], got[0]["state"] + np.float32(0.1), atol=1e-6)
+    sent = got[0]["images"]["cam_low"].transpose(1, 2, 0).astype(int)
+    assert np.abs(sent - resize_with_pad(first[CAMS.index("cam_low")], 224, 224).astype(int)).mean() < 2
 
 
 def test_policy_action_dim_mismatch_is_one_line(swept, capsys):

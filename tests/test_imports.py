@@ -146,7 +146,7 @@ def test_type_checking_imports_and_acyclic_graphs_pass(tmp_path, closing):
 # docs/architecture.md "Modules in data-flow order", lowest first: a module may import its own layer and those above
 # it in this list. Entries are module prefixes under sc3_jax; the longest one that matches places a module.
 LAYERS: list[tuple[str, tuple[str, ...]]] = [
-    ("utilities", ("errors", "atomic")),
+    ("utilities", ("errors", "atomic", "xla_cost")),
     ("video", ("video",)),
     ("metrics", ("evaluate.metrics",)),
     ("episodes", ("data",)),
@@ -168,7 +168,7 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
                  "evaluate.annotation", "evaluate.degrade", "evaluate.rescore", "evaluate.labels")),
     ("diagnostics", ("evaluate.world_model", "evaluate.world_model_defaults", "evaluate.diagnose",
                      "evaluate.diagnose_video", "evaluate.diagnose_actions", "evaluate.diagnose_outcomes",
-                     "evaluate.diagnose_report", "evaluate.diagnose_table", "rollout_io", "plan")),
+                     "evaluate.diagnose_report", "evaluate.diagnose_table", "rollout_io", "plan", "plan_vae")),
     ("sweep", ("evaluate.sweep", "evaluate.real_workers", "evaluate.ic_sweep")),
     ("report", ("evaluate.report", "evaluate.calibrate", "evaluate.intervals", "evaluate.bootstrap",
                 "evaluate.merged", "evaluate.curve", "evaluate.ic_ranking")),

@@ -282,3 +282,67 @@ def test_import_needs_a_7d_pose(datasets, tmp_path):
     assert ep.frames["left"].shape == (8, 16, 24, 3) and ep.meta["ee_pose_source"] == "none"
     np.testing.assert_array_equal(ep.state, _episodes()[2].state[::2])
     assert store.state_dim == 5 and store.action_space.kind == "delta_ee"
+    assert "labels" not in ep.meta and out["success_labels"] == 0  # no next.success column: no labels made up
+
+
+def _labelled(lengths=LENGTHS, success_at=((11,), (), (3, 4))) -> list[RawEpisode]:
+    """Episodes with LeRobot's one-value-per-frame features: next.success (bool [T, 1], true at ``success_at``) and
+    a float gripper reading [T, 1]."""
+    rng = np.random.default_rng(1)
+    eps = []
+    for e, n in enumerate(lengths):
+        success = np.zeros((n, 1), bool)
+        success[list(success_at[e]), 0] = True
+        eps.append(RawEpisode({CAMS[0]: _smooth(n, e, size=16)}, rng.normal(size=(n, 7)).astype(np.float32),
+                              TASKS[e], rng.normal(size=(n, 7)).astype(np.float32),
+                              {"observation.gripper": rng.normal(size=(n, 1)).astype(np.float32),
+                               "next.success": success}))
+    return eps
+
+
+@pytest.mark.parametrize("version", ["v3.0", "v2.1"])
+def test_a_one_value_feature_is_written_as_lerobot_does_and_read_back(tmp_path, version):
+    """A [T, 1] feature: "shape": [1] in info.json and a plain column in the parquet (LeRobot's datasets ``Value``;
+    a list column under shape [1] is what LeRobot misreads), read back by our reader as the same values."""
+    raw = _labelled()
+    write_lerobot(tmp_path / "lr", raw, FPS, version=version, image_dtype="image")
+    feats = json.loads((tmp_path / "lr" / "meta" / "info.json").read_text())["features"]
+    assert (feats["observation.gripper"]["shape"], feats["observation.gripper"]["dtype"]) == ([1], "float32")
+    assert (feats["next.success"]["shape"], feats["next.success"]["dtype"]) == ([1], "bool")
+    schema = pq.read_schema(next((tmp_path / "lr" / "data").rglob("*.parquet")))
+    assert schema.field("observation.gripper").type == pa.float32() and schema.field("next.success").type == pa.bool_()
+    assert schema.field("action").type == pa.list_(pa.float32(), 7)  # vectors stay fixed-size lists
+    hf = json.loads(schema.metadata[b"huggingface"])["info"]["features"]
+    assert hf["observation.gripper"] == {"dtype": "float32", "_type": "Value"}
+    src = LeRobotEpisodes(tmp_path / "lr", state_key="observation.gripper")
+    for i, ep in enumerate(raw):
+        got = src.episode(i)
+        np.testing.assert_array_equal(got.state.reshape(-1, 1), ep.vectors["observation.gripper"])
+        np.testing.assert_array_equal(got.actions, ep.action)
+        assert got.success == bool(ep.vectors["next.success"].any())
+    out = import_lerobot(tmp_path / "lr", tmp_path / "store", state_key="observation.gripper", pose_key=None,
+                         allow_missing_pose=True)
+    from sc3_jax.data.episodes import EpisodeStore
+
+    store = EpisodeStore(out["out"])
+    assert store.state_dim == 1
+    np.testing.assert_array_equal(store.load("lerobot000002").state, raw[2].vectors["observation.gripper"])
+
+
+def test_import_keeps_next_success_as_the_real_outcome(tmp_path):
+    """next.success becomes each episode's meta labels (any frame's, even one the import's fps skips), which
+    `sc3 sweep --real NAME=STORE` (evaluate/labels.py) reads with the LeRobot source gone."""
+    from sc3_jax.data.episodes import EpisodeStore
+    from sc3_jax.evaluate import labels
+
+    write_lerobot(tmp_path / "lr", _labelled(), FPS, image_dtype="image")  # ep 0: success only on frame 11
+    want = {0: True, 1: False, 2: True}
+    assert labels.lerobot_success(tmp_path / "lr") == want  # what --real reads from the LeRobot dataset itself
+    out = import_lerobot(tmp_path / "lr", tmp_path / "store", fps=10)  # keeps frames 0, 2, ..., 10 of episode 0
+    assert out["success_labels"] == 3
+    store = EpisodeStore(tmp_path / "store")
+    metas = [store.load(e).meta for e in store.episode_ids()]
+    assert [m["labels"] for m in metas] == [{"success": want[i]} for i in range(3)]
+    shutil.rmtree(tmp_path / "lr")  # the store alone carries them now
+    real = labels.read([f"pi={tmp_path / 'store'}"])
+    assert [(r.policy, r.outcomes) for r in real] == [("pi", {"success": want[i]}) for i in range(3)]

@@ -14,8 +14,9 @@ import msgpack
 import numpy as np
 import pytest
 
+from sc3_jax.errors import UserError
 from sc3_jax.policies import msgpack_numpy as mn
-from sc3_jax.policies.base import HostPolicy, JaxPolicy, as_host
+from sc3_jax.policies.base import HostPolicy, JaxPolicy, as_host, check_dims
 from sc3_jax.policies.openpi_client import (PolicyConnectionError, PolicyServerError, PolicyTimeoutError,
                                             WebsocketClientPolicy)
 from sc3_jax.policies.openpi_mappings import (ALOHA, ALOHA_CAMERAS, DEFAULT_PROMPTS, DROID, LIBERO, ActionMap,
@@ -233,19 +234,21 @@ def test_action_mapping():
     # DROID is now the identity over openpi's 8 dims (7 joint velocities + gripper) for an 8-D model; it used to
     # squeeze them into our 7-D delta-EE layout by dropping dim 6.
     fam = np.random.default_rng(0).normal(size=(10, 8)).astype(np.float32)
-    ours = DROID.actions_to_ours(fam, chunk=12)
+    # DROID refuses a reply shorter than the chunk (holding a joint velocity keeps the arm moving); "hold" on request
+    with pytest.raises(UserError, match="returned 10 actions but a chunk of 12 is needed"):
+        DROID.actions_to_ours(fam, 12)
+    hold = DROID.replace(pad_actions="hold")
+    ours = hold.actions_to_ours(fam, chunk=12)
     assert ours.shape == (12, 8) and ours.dtype == np.float32
     np.testing.assert_array_equal(ours[:10], fam)
     np.testing.assert_array_equal(ours[10:], np.repeat(fam[-1:], 2, 0))  # "hold"
     np.testing.assert_array_equal(DROID.actions_to_ours(fam, chunk=4), ours[:4])
     assert (DROID.replace(pad_actions="zeros").actions_to_ours(fam, 12)[10:] == 0).all()
-    with pytest.raises(ValueError, match="chunk of 12"):
-        DROID.replace(pad_actions="error").actions_to_ours(fam, 12)
     back = DROID.actions_to_family(ours)
     assert back.shape == (12, 8)
     np.testing.assert_array_equal(DROID.actions_to_ours(back, 12), ours)
     # a mapping that reads a subset still scatters back with zeros in the family dims we do not produce
-    sub = DROID.replace(action_map=ActionMap(family_dim=8, indices=(0, 1, 2, 3, 4, 5, 7)))
+    sub = hold.replace(action_map=ActionMap(family_dim=8, indices=(0, 1, 2, 3, 4, 5, 7)))
     ours7 = sub.actions_to_ours(fam, 10)
     np.testing.assert_array_equal(ours7, fam[:, [0, 1, 2, 3, 4, 5, 7]])
     back7 = sub.actions_to_family(ours7)
@@ -303,25 +306,152 @@ def test_droid_shapes_and_names():
     assert back["state"].shape == (8,) and back["state"][7] == 0.25
 
 
-def test_dimension_mismatch_is_one_line_value_error(server_factory):
-    """A 7-D model with the 14-D ALOHA preset must not silently drive one arm: every entry point says so."""
+# ---------------------------------------------------------------------------------------------------------------------
+# fake openpi servers: each answers in its family's layout (openpi@15a9616 *_policy.py, training/config.py) and records
+# the raw request, so the tests see exactly what crossed the wire
+# ---------------------------------------------------------------------------------------------------------------------
+def _rowcol(h, d):
+    """actions[t, j] = 100 t + j: any slicing, reordering or padding of rows or dims shows."""
+    return (100 * np.arange(h)[:, None] + np.arange(d)[None, :]).astype(np.float32)
+
+
+class FakeOpenpiDroid:
+    """pi0_droid: DroidInputs' reads (joint_position ++ gripper_position, exterior 1 + wrist, HWC), then
+    DroidOutputs' [..., :8] of the model's 32 dims, action_horizon 10. No ``chunk`` attribute: openpi's DROID
+    server sends no chunk in its metadata."""
+
+    def __init__(self, horizon=10):
+        self.horizon, self.seen = horizon, []
+
+    def infer(self, obs):
+        self.seen.append(obs)
+        gripper = np.asarray(obs["observation/gripper_position"])
+        state = np.concatenate([obs["observation/joint_position"], gripper[None] if gripper.ndim == 0 else gripper])
+        assert state.shape == (8,)
+        for k in ("observation/exterior_image_1_left", "observation/wrist_image_left"):
+            assert obs[k].shape[-1] == 3  # DroidInputs' _parse_image would transpose a CHW image
+        return {"actions": _rowcol(self.horizon, 32)[:, :8], "policy_timing": {"infer_ms": 1.0}}
+
+
+class FakeOpenpiAloha:
+    """pi0_aloha: AlohaInputs' reads (cameras within EXPECTED_CAMERAS, CHW -> HWC, state [14]), then AlohaOutputs'
+    [:, :14] of the model's 32 dims, action_horizon 50."""
+
+    def __init__(self):
+        self.seen = []
+
+    def infer(self, obs):
+        self.seen.append(obs)
+        assert not set(obs["images"]) - set(ALOHA_CAMERAS)
+        hwc = {k: np.transpose(v, (1, 2, 0)) for k, v in obs["images"].items()}  # einops "c h w -> h w c"
+        assert all(v.shape == (224, 224, 3) for v in hwc.values())
+        assert np.asarray(obs["state"]).shape == (14,)
+        return {"actions": _rowcol(50, 32)[:, :14], "policy_timing": {"infer_ms": 1.0}}
+
+
+def test_droid_against_fake_openpi_server(server_factory):
+    fake = FakeOpenpiDroid()
+    server = server_factory(fake)  # native: the fake gets the raw family dict and its reply goes back as is
+    obs = our_obs(h=180, w=320, task=0, state_dim=8)  # a ZED-like 16:9 frame; views: exterior 1, exterior 2, wrist
+    with WebsocketClientPolicy("127.0.0.1", server.port, mapping="droid", action_dim=8, state_dim=8,
+                               views=3) as client:
+        assert client.chunk == 8  # examples/droid/main.py's open_loop_horizon (the server's metadata has no chunk)
+        got = client.infer(obs)
+    sent = fake.seen[-1]
+    assert {k: (v.shape, v.dtype) if isinstance(v, np.ndarray) else v for k, v in sent.items()} == {
+        "observation/exterior_image_1_left": ((224, 224, 3), np.uint8),
+        "observation/wrist_image_left": ((224, 224, 3), np.uint8),
+        "observation/joint_position": ((7,), np.float32),
+        "observation/gripper_position": ((1,), np.float32),
+        "prompt": DEFAULT_PROMPTS[0]}
+    top = (224 - int(180 / (320 / 224))) // 2  # the client letterboxes: 320x180 -> 224x126, 49 black rows above
+    ext, wrist = sent["observation/exterior_image_1_left"], sent["observation/wrist_image_left"]
+    assert (ext[:top] == 0).all() and (ext[top + 1:top + 125] == obs["images"][0, 0, 0]).all()
+    assert (wrist[112, 112] == obs["images"][2, 0, 0]).all()  # the wrist is our last view, not exterior 2
+    np.testing.assert_array_equal(sent["observation/joint_position"], obs["state"][:7])
+    np.testing.assert_array_equal(sent["observation/gripper_position"], obs["state"][7:])
+    # the first 8 of the 10 rows, all 8 dims in order: 7 joint velocities + gripper position
+    assert got.shape == (8, 8) and got.dtype == np.float32
+    np.testing.assert_array_equal(got, _rowcol(8, 8))
+    # a reply shorter than the chunk asked for is refused, not padded with a held joint velocity
+    with WebsocketClientPolicy("127.0.0.1", server.port, mapping="droid", chunk=12) as client:
+        with pytest.raises(UserError, match="returned 10 actions but a chunk of 12 is needed"):
+            client.infer(obs)
+
+
+def test_aloha_against_fake_openpi_server(server_factory):
+    fake = FakeOpenpiAloha()
+    server = server_factory(fake, metadata={"reset_pose": [0, -1.5, 1.5, 0, 0, 0]})  # pi0_aloha's policy_metadata
+    obs = our_obs(h=480, w=640, task=1, state_dim=14, views=4)  # real_env.py's 480x640 cameras
+    obs["state"] = np.arange(14, dtype=np.float32) + 1  # [left 6 joints, left gripper, right 6 joints, right gripper]
+    with WebsocketClientPolicy("127.0.0.1", server.port, mapping="aloha", action_dim=14, state_dim=14,
+                               views=4) as client:
+        assert client.chunk == 25  # examples/aloha_real/main.py's action_horizon
+        assert client.metadata["reset_pose"] == [0, -1.5, 1.5, 0, 0, 0]
+        got = client.infer(obs)
+    sent = fake.seen[-1]
+    assert set(sent) == {"images", "state", "prompt"} and sent["prompt"] == DEFAULT_PROMPTS[1]
+    assert list(sent["images"]) == list(ALOHA_CAMERAS)
+    for i, cam in enumerate(ALOHA_CAMERAS):  # view i -> camera i, CHW uint8, letterboxed 640x480 -> 224x168
+        img = sent["images"][cam]
+        assert img.shape == (3, 224, 224) and img.dtype == np.uint8
+        assert (img[:, :28] == 0).all() and (img[:, 196:] == 0).all()
+        assert (img[:, 28:196] == obs["images"][i, 0, 0][:, None, None]).all()
+    assert sent["state"].dtype == np.float32
+    np.testing.assert_array_equal(sent["state"], obs["state"])  # both arms, raw: adapt_to_pi is the server's
+    # the first 25 of the 50 rows, all 14 dims in order: both arms
+    assert got.shape == (25, 14) and got.dtype == np.float32
+    np.testing.assert_array_equal(got, _rowcol(25, 14))
+    # without a prompt, like examples/aloha_real/env.py (the server's default_prompt applies)
+    with WebsocketClientPolicy("127.0.0.1", server.port, mapping=ALOHA.replace(prompts=None)) as client:
+        client.infer(obs)
+    assert set(fake.seen[-1]) == {"images", "state"}
+
+
+def test_dimension_mismatch_is_one_line_user_error(server_factory):
+    """A 7-D model, or 3 views, with the 14-D, 4-camera ALOHA preset must not silently drive one arm: every entry
+    point refuses with a one-line UserError naming both sides, the client before it connects."""
     msg = r"'aloha' carries 14-D actions but .* has 7-D actions"
-    with pytest.raises(ValueError, match=msg) as ei:
-        ALOHA.check_dims(action_dim=7)
-    assert "\n" not in str(ei.value)
-    with pytest.raises(ValueError, match=msg):
-        ALOHA.actions_to_family(np.zeros((CHUNK, 7), np.float32))
-    with pytest.raises(ValueError, match=r"'aloha' carries 14-D states but the observation has 7-D states"):
-        ALOHA.to_family(our_obs(state_dim=7, views=4))
-    with pytest.raises(ValueError, match=r"'droid' carries 8-D actions but policy 'tiny' has 7-D actions"):
-        PolicyServer(tiny_policy(7), host="127.0.0.1", port=0, mapping="droid")
-    with pytest.raises(ValueError, match=msg):  # refused before any connection is attempted (port 1 is closed)
-        WebsocketClientPolicy("127.0.0.1", 1, mapping="aloha", action_dim=7, max_retries=0)
-    with pytest.raises(IndexError, match="out of range for 3 views"):  # ALOHA needs all 4 cameras
-        ALOHA.to_family(our_obs(state_dim=14, views=3))
+
+    def refused(fn, match):
+        with pytest.raises(UserError, match=match) as ei:
+            fn()
+        assert "\n" not in str(ei.value)
+
+    refused(lambda: ALOHA.check_dims(action_dim=7), msg)
+    refused(lambda: ALOHA.actions_to_family(np.zeros((CHUNK, 7), np.float32)), msg)
+    refused(lambda: ALOHA.to_family(our_obs(state_dim=7, views=4)),
+            r"'aloha' carries 14-D states but the observation has 7-D states")
+    views_msg = (r"'aloha' sends 4 cameras \(cam_high, cam_low, cam_left_wrist, cam_right_wrist\) read from 4 views "
+                 r"but {} has 3 views")
+    refused(lambda: ALOHA.to_family(our_obs(state_dim=14, views=3)), views_msg.format("the observation"))
+    refused(lambda: ALOHA.check_dims(views=3, who="the world model"), views_msg.format("the world model"))
+    refused(lambda: ALOHA.replace(num_views=3), r"read from 4 views but num_views is 3")  # serve-policy --num-views 3
+    # DROID reads view 0 and the last view: one view would send the same camera twice
+    refused(lambda: DROID.to_family(our_obs(state_dim=8, views=1)), r"'droid' sends 2 cameras .* but the observation "
+            r"has 1 views")
+    assert (DROID.min_views, LIBERO.min_views, ALOHA.min_views) == (2, 2, 4)
+    refused(lambda: PolicyServer(tiny_policy(7), host="127.0.0.1", port=0, mapping="droid"),
+            r"'droid' carries 8-D actions but policy 'tiny' has 7-D actions")
+    # refused before any connection is attempted (port 1 is closed: a connection attempt would raise another error)
+    refused(lambda: WebsocketClientPolicy("127.0.0.1", 1, mapping="aloha", action_dim=7, max_retries=0), msg)
+    refused(lambda: WebsocketClientPolicy("127.0.0.1", 1, mapping="aloha", views=3, max_retries=0),
+            views_msg.format("the model"))
+    refused(lambda: WebsocketClientPolicy("127.0.0.1", 1, mapping="droid", state_dim=7, max_retries=0),
+            r"'droid' carries 8-D states but the model has 7-D states")
+    # the server side: a client sending one arm's state is refused, not zero-filled
+    fam = ALOHA.to_family(our_obs(state_dim=14, views=4))
+    refused(lambda: ALOHA.from_family({**fam, "state": fam["state"][:7]}),
+            r"sent 'state' with 7 entries but openpi mapping 'aloha' reads 14")
     # a HostPolicy that does not declare its dimension is caught at its first reply (the client sees the traceback)
     server = server_factory(FixedPolicy(), mapping=ALOHA.replace(our_image_size=(48, 64)))
     with WebsocketClientPolicy("127.0.0.1", server.port, mapping="aloha", max_retries=0) as client:
+        # what a world model's check (rollout.check_policy -> base.check_dims) reads off the client, before compiling
+        # chunk 4: the server's metadata wins over the preset's 25
+        assert (client.action_dim, client.state_dim, client.min_views, client.chunk) == (14, 14, 4, 4)
+        with pytest.raises(UserError, match=r"policy 'served' has 14-D actions \(action_dim\), the world model has "
+                                            r"7-D actions"):
+            check_dims(client, 7, 7, "served")
         with pytest.raises(PolicyServerError, match="carries 14-D actions but the policy's action chunk has 7-D"):
             client.infer(our_obs(state_dim=14, views=4))
 
@@ -366,7 +496,7 @@ def test_jax_policy_served_native_and_droid(server_factory):
     policy = tiny_policy(8)
     local = as_host(policy)
     obs = our_obs(task=1, state_dim=8)
-    mapping = DROID.replace(our_image_size=(48, 64))
+    mapping = DROID.replace(our_image_size=(48, 64), pad_actions="hold")
     server = server_factory(policy, mapping=mapping)
     with WebsocketClientPolicy("127.0.0.1", server.port, mapping=mapping, chunk=8) as client:
         assert client.metadata["family"] == "droid" and client.metadata["action_dim"] == 8

@@ -1,12 +1,15 @@
 """`sc3 plan`: FLOPs agree with bench/train_step.py's XLA cost analysis, per-device state bytes agree with the real
-shardings, and the paper-scale plan runs from abstract shapes without allocating the model."""
+shardings, and the paper-scale plan runs from abstract shapes without allocating the model; any number of views,
+action dimension and image size (from the config or a store's dataset.json), Wan VAE latents without the VAE ever
+being allocated, and a shape the model cannot take refused in one line naming the field."""
+import json
 import resource
 
 import jax
 import numpy as np
 import pytest
 
-from sc3_jax import plan, sharding, train
+from sc3_jax import plan, plan_vae, sharding, train, xla_cost
 from sc3_jax.cli import main
 from sc3_jax.commands import parse_with_config
 from sc3_jax.commands.plan import Args as PlanArgs
@@ -132,3 +135,132 @@ def test_activation_estimate_tracks_compiled_memory():
             got[image, impl, remat] = measured
     assert got[(32, 32), "dense", "none"] / got[(16, 32), "dense", "none"] > 3.0
     assert got[(32, 32), "blockwise", "none"] / got[(16, 32), "blockwise", "none"] < 2.5
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Any robot: views, action / state dimension, image size from the config or a store; Wan latents
+# ---------------------------------------------------------------------------------------------------------------
+FOUR = ["--data.views", "a", "b", "c", "d", "--model.num-views", "4", "--model.action-dim", "14"]
+# the tiny config on time-compressed Wan2.2 tokens: the Cosmos3 layout (4 actions per token frame), no shortcuts
+WAN = ["--model.tokenizer", "wan2.2", "--model.layout", "cosmos3", "--model.patch-size", "1",
+       "--model.no-action-to-frames", "--model.no-action-reads-frames", "--data.context-frames", "5",
+       "--data.future-frames", "8", "--rollout.keep-frames", "4", "--rollout.policy-chunk", "8"]
+
+
+def _cfg(argv):
+    return parse_with_config(PlanArgs, argv, "plan", lambda a: load_config(a.config))[1]
+
+
+def test_plan_any_robot_pixel_tokens():
+    """4 views of 24x40 (non-square), 14-D actions, pixel patches of 8: 3 x 5 tokens per frame, 2 + 4 frames per
+    view and 4 actions -> 4 x 6 x 15 + 4 = 364 tokens; the action and pose weights are 14-D; the rollout chunk
+    (14-D absolute actions and state) is counted."""
+    cfg = _cfg(FOUR + ["--data.image-size", "24", "40"])
+    p = plan.plan(cfg, MeshConfig(1, 1, 1, 1), "h100")
+    sh = p["shape"]
+    assert (sh["grid"], sh["token_dim"], sh["action_dim"], sh["state_dim"], sh["action_kind"]) == (
+        [3, 5], 8 * 8 * 3, 14, 14, "absolute")
+    assert p["tokens_per_sample"] == 4 * (2 + 4) * 3 * 5 + 4
+    assert p["chunk_flops"] > 0 and p["step_flops"] > 0 and p["vae"] is None and p["tokenizer_bytes"] == 0
+    from sc3_jax import checkpoint
+
+    shapes = checkpoint.param_shapes(cfg)
+    assert shapes["action_in"]["w"].shape[1] == 14 and shapes["view_embed"].shape[0] == 4
+    assert "4 views (a b c d) at 24x40" in plan.format_plan(p) and "14-D absolute" in plan.format_plan(p)
+
+
+def test_plan_any_robot_wan_latents(monkeypatch):
+    """The same robot at 32x64 on Wan2.2 latents (16x space, 4x time, 48 channels): 5 context + 8 future frames are
+    2 + 2 token frames of 2 x 4 tokens -> 4 x 4 x 8 + 8 actions = 136 tokens. The VAE (0.7B parameters) is never
+    built: its weights' init is made to fail. Its costs are counted apart, from abstract weights."""
+    from sc3_jax.model import wan_vae
+
+    def no_weights(*a, **k):
+        raise AssertionError("the planner allocated the VAE's weights")
+    monkeypatch.setattr(wan_vae, "init_params", no_weights)
+    cfg = _cfg(FOUR + WAN + ["--data.image-size", "32", "64"])
+    p = plan.plan(cfg, MeshConfig(1, 1, 1, 1), "h100")
+    sh = p["shape"]
+    assert (sh["context_token_frames"], sh["future_token_frames"], sh["grid"], sh["token_dim"]) == (2, 2, [2, 4], 48)
+    assert p["tokens_per_sample"] == 4 * (2 + 2) * 2 * 4 + 8
+    v = p["vae"]
+    assert v["step_encode_flops"] == pytest.approx(cfg.data.batch_size * 4 * v["video_window_encode_flops"])
+    assert v["chunk_encode_flops"] == pytest.approx(4 * v["video_context_encode_flops"])
+    assert v["chunk_decode_flops"] == pytest.approx(4 * v["video_decode_flops"])
+    assert v["video_window_encode_flops"] > v["video_context_encode_flops"] > 0 and v["video_decode_flops"] > 0
+    assert p["tokenizer_bytes"] == v["encoder_bytes"] and 0.5e9 < v["encoder_bytes"] < v["weights_bytes"]
+    assert p["chunk_flops"] == pytest.approx(p["chunk_model_flops"] + v["chunk_encode_flops"] + v["chunk_decode_flops"])
+    assert p["total_bytes"] == pytest.approx(sum(p[f"{k}_bytes"] for k in plan.MEMORY_PARTS))
+
+
+def test_vae_scan_counted_once(tmp_path):
+    """vae_costs' premise: a cost analysis counts the VAE's chunk scan once (9 frames cost what 5 do, up to the
+    elementwise ops outside the scan), so the count is first chunk + n x one more. The VAE is read from a checkpoint
+    directory's config.json (its weights are not needed)."""
+    import jax
+    import jax.numpy as jnp
+
+    from sc3_jax.model import wan_vae, wan_vae_convert
+
+    vae = wan_vae.wan21_config(base_dim=8, z_dim=4, latents_mean=None, latents_std=None)
+    (tmp_path / "config.json").write_text(json.dumps(wan_vae_convert.config_to_diffusers(vae)))
+    params = plan_vae.abstract_vae_params(vae)
+    enc = jax.jit(lambda p, v: wan_vae.encode_moments(p, vae, v))
+    c = [xla_cost.flops(enc.trace(params, jax.ShapeDtypeStruct((1, f, 16, 16, 3), jnp.float32)).lower(), False)
+         for f in (1, 5, 9)]
+    assert c[1] > 2 * c[0] and c[2] == pytest.approx(c[1], rel=1e-4)
+    cfg = _cfg(WAN + ["--model.tokenizer", "wan2.1", "--model.tokenizer-path", str(tmp_path),
+                      "--data.image-size", "16", "16"])
+    got = plan_vae.vae_costs(cfg)
+    # 13 frames: the first + 3 chunks of 4; 5 context frames: the first + 1
+    assert got["video_window_encode_flops"] == pytest.approx(c[0] + 3 * (c[1] - c[0]))
+    assert got["video_context_encode_flops"] == pytest.approx(c[1])
+
+
+def test_plan_shape_from_store(tmp_path, capsys):
+    """--data.path STORE: views, image size and action dimension from its dataset.json (as sc3 train), the store's
+    action space in the rollout chunk; a command-line field the store contradicts is a one-line error naming it."""
+    from sc3_jax.data.action_space import ActionSpace
+    from sc3_jax.data.episodes import EpisodeStore
+
+    EpisodeStore(tmp_path, views=["top", "low", "left", "right"], fps=50, image_size=(24, 40), create=True,
+                 action_space=ActionSpace("absolute", 14), state_dim=14, has_pose=False)
+    assert main(["plan", "--config", "tiny", "--data.path", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert "4 views (top low left right) at 24x40" in out and "4 actions of 14-D absolute" in out
+    assert f"tokens: {4 * 6 * 15 + 4:,} per sample" in out
+    assert main(["plan", "--config", "tiny", "--data.path", str(tmp_path), "--model.action-dim", "7"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "model.action_dim=7" in err and "14-D" in err
+    assert main(["plan", "--config", "tiny", "--data.path", str(tmp_path / "nothing")]) == 2
+    assert "--data.path" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("argv,field", [
+    (["--model.num-views", "4"], "model.num_views"),
+    (["--data.image-size", "20", "16"], "data.image_size"),  # not a multiple of patch 8
+    (["--rollout.keep-frames", "9"], "rollout.keep_frames"),
+    (["--data.views", "front", "--model.num-views", "1"], "modes.probs"),  # cross-view inpainting needs 2 views
+    (WAN + ["--data.context-frames", "4"], "data.context_frames"),
+    (WAN + ["--data.future-frames", "6"], "data.future_frames"),
+    (WAN + ["--data.image-size", "24", "32"], "data.image_size"),  # not a multiple of the VAE's 16
+    (WAN + ["--model.layout", "sc3"], "model.layout"),
+    (WAN + ["--model.action-to-frames"], "model.action_to_frames"),
+])
+def test_bad_shape_is_one_line_error(argv, field, capsys):
+    assert main(["plan", "--config", "tiny"] + argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and err.startswith("sc3 plan: error: ") and field in err, err
+
+
+def test_aloha_wan_config_shape():
+    """configs/aloha_wan.py: 4 views at 480x640 on Wan2.2 latents, 14-D actions: 15 x 20 tokens per token frame,
+    2 + 6 token frames per view, 24 actions -> 9,624 tokens; refused shapes would fail here first."""
+    cfg = load_config("aloha_wan")
+    plan.check_shape(cfg)
+    sh = plan.shape_of(cfg)
+    assert (len(sh["views"]), sh["image_size"], sh["grid"], sh["action_dim"], sh["state_dim"]) == (
+        4, [480, 640], [15, 20], 14, 14)
+    with plan_vae.shape_only_vae(cfg):
+        from sc3_jax.model import tokenizer
+        assert tokenizer.tokens_per_sample(cfg) == 4 * (2 + 6) * 15 * 20 + 24

@@ -4,7 +4,7 @@ import json
 
 import pytest
 
-from sc3_jax import plan
+from sc3_jax import xla_cost
 from sc3_jax.evaluate import report
 
 
@@ -42,8 +42,8 @@ class _Lowered:
 
 
 def test_flops_fall_back_to_the_compiled_count_where_the_lowered_module_gives_none():
-    assert plan._flops(_Lowered({"flops": 5.0}, {"flops": 7.0}), compiled=False) == 5.0
-    assert plan._flops(_Lowered({"flops": 5.0}, [{"flops": 7.0}]), compiled=True) == 7.0
-    assert plan._flops(_Lowered(None, [{"flops": 7.0}]), compiled=False) == 7.0  # CUDA under jax 0.11
+    assert xla_cost.flops(_Lowered({"flops": 5.0}, {"flops": 7.0}), compiled=False) == 5.0
+    assert xla_cost.flops(_Lowered({"flops": 5.0}, [{"flops": 7.0}]), compiled=True) == 7.0
+    assert xla_cost.flops(_Lowered(None, [{"flops": 7.0}]), compiled=False) == 7.0  # CUDA under jax 0.11
     with pytest.raises(RuntimeError, match="no FLOP count"):
-        plan._flops(_Lowered(None, None), compiled=False)
+        xla_cost.flops(_Lowered(None, None), compiled=False)

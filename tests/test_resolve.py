@@ -122,3 +122,80 @@ def test_every_command_resolves_every_spelling(server, monkeypatch):
         with pytest.raises(Stop):
             sim_cli.eval(spec, episodes=1, videos=False, progress=False)
     assert [h.chunk for h in seen] == [25, 25, CHUNK]
+
+
+def _old_benchmark_policies(chunk):
+    """The built-in policies as they were written for the benchmark only (7-D, 3 views), (apply, params) as they
+    were: the reference the defaults must still reproduce bit for bit."""
+    import math
+
+    import jax
+
+    def zero(params, obs, rng):
+        a = jnp.zeros((params.shape[0], 7), jnp.float32)
+        return a.at[:, 6].set(obs["state"][6])
+
+    def random(params, obs, rng):
+        return (jax.random.normal(rng, params.shape) * params).astype(jnp.float32)
+
+    def linear(params, obs, rng):
+        img = obs["images"].astype(jnp.float32) / 127.5 - 1.0
+        V, H, W, C = img.shape
+        pool = math.isqrt((params["w"].shape[0] - 8) // (3 * V))
+        pooled = img.reshape(V, pool, H // pool, pool, W // pool, C).mean(axis=(2, 4))
+        x = jnp.concatenate([pooled.reshape(-1), obs["state"].astype(jnp.float32),
+                             obs["task"].astype(jnp.float32)[None]])
+        n = params["b"].shape[0]
+        a = jnp.tanh(x @ params["w"] + params["b"]) + params["noise"] * jax.random.normal(rng, (n,))
+        return (params["scale"] * a).reshape(n // 7, 7).astype(jnp.float32)
+
+    n_in = 3 * 4 * 4 * 3 + 7 + 1
+    k_w, k_b = jax.random.split(jax.random.key(0))
+    lin = {"w": jax.random.normal(k_w, (n_in, chunk * 7)) / jnp.sqrt(n_in),
+           "b": 0.1 * jax.random.normal(k_b, (chunk * 7,)), "scale": jnp.float32(0.01), "noise": jnp.float32(0.5)}
+    return {"zero": (zero, jnp.zeros((chunk,), jnp.float32)),
+            "random": (random, jnp.broadcast_to(jnp.asarray(0.01, jnp.float32), (chunk, 7))),
+            "linear": (linear, lin)}
+
+
+def _any_obs(views: int, dim: int, seed: int = 0):
+    rng = np.random.default_rng(seed)
+    return {"images": rng.integers(0, 256, (views, 8, 8, 3), dtype=np.uint8),
+            "state": rng.normal(size=dim).astype(np.float32), "task": np.int32(1)}
+
+
+@pytest.mark.parametrize("name", ["zero", "random", "linear"])
+def test_builtin_defaults_are_the_benchmarks_bit_for_bit(name):
+    import jax
+
+    obs, key = _any_obs(3, 7), jax.random.key(3)
+    policy = R.resolve(name, chunk=6).policy
+    assert (policy.chunk, policy.action_dim) == (6, 7)
+    got = jax.jit(policy.apply)(policy.params, obs, key)
+    old_apply, old_params = _old_benchmark_policies(6)[name]
+    want = jax.jit(old_apply)(old_params, obs, key)
+    np.testing.assert_array_equal(np.asarray(got), np.asarray(want))
+
+
+@pytest.mark.parametrize("name", ["zero", "random", "linear"])
+def test_builtins_act_in_the_world_models_action_space(name):
+    """Named on a command line for a 14-D absolute world model with 4 views: [chunk, 14] actions, declared as such
+    (so the rollout's dimension check passes before anything compiles)."""
+    import jax
+
+    from sc3_jax.data.action_space import ActionSpace
+
+    space = ActionSpace("absolute", 14)
+    policy = R.resolve(name, chunk=6, action_space=space, num_views=4).policy
+    assert (policy.chunk, policy.action_dim) == (6, 14)
+    obs = _any_obs(4, 14)
+    a = np.asarray(jax.jit(policy.apply)(policy.params, obs, jax.random.key(0)))
+    assert a.shape == (6, 14) and a.dtype == np.float32 and np.isfinite(a).all()
+    if name == "zero":  # stand still: absolute targets hold the state; velocities hold only their target dims
+        np.testing.assert_array_equal(a, np.broadcast_to(obs["state"], (6, 14)))
+        vel = R.resolve("zero", chunk=2, action_space=ActionSpace("velocity", 3, targets=(2,))).policy
+        st = np.array([0.5, -1.0, 0.25], np.float32)
+        np.testing.assert_array_equal(vel.apply(vel.params, {"state": st}, None), [[0, 0, 0.25]] * 2)
+    else:  # a function of the rng (and, for linear, of the 14-D state it reads)
+        assert np.abs(a).max() > 0
+        assert not np.array_equal(a, np.asarray(policy.apply(policy.params, obs, jax.random.key(1))))

@@ -17,13 +17,15 @@ def main(argv: list[str]) -> int:
     from sc3_jax.config import available_configs, configs_dir, load_config
     from sc3_jax.model import dit
     from sc3_jax.model.tokenizer import tokens_per_sample
+    from sc3_jax.plan_vae import shape_only_vae
 
     print(f"named configs in {configs_dir()}:")
     for name in available_configs():
         cfg = load_config(name)
         try:  # a config whose tokenizer weights are missing here is listed, not fatal
-            n = dit.count_params(checkpoint.param_shapes(cfg))
-            tokens = tokens_per_sample(cfg)
+            with shape_only_vae(cfg):  # a Wan VAE (0.1-0.7B parameters) is never built just to be sized
+                n = dit.count_params(checkpoint.param_shapes(cfg))
+                tokens = tokens_per_sample(cfg)
         except (FileNotFoundError, ValueError) as e:
             print(f"  {name:24s} (not sized here: {e})")
             continue

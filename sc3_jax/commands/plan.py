@@ -1,8 +1,9 @@
-"""``sc3 plan --config NAME --mesh data=..,fsdp=.. --device DEVICE [--SECTION.FIELD VALUE ...]``: what a config costs
-on a mesh of accelerators, without allocating the model."""
+"""``sc3 plan --config NAME --mesh data=..,fsdp=.. --device DEVICE [--data.path STORE] [--SECTION.FIELD VALUE ...]``:
+what a config costs on a mesh of accelerators, without allocating the model."""
 from __future__ import annotations
 
 import dataclasses
+from pathlib import Path
 from typing import Literal
 
 from sc3_jax.commands import parse_with_config
@@ -17,7 +18,9 @@ class Args:
     """What a config costs on a mesh of accelerators: parameters, per-device memory of the train step, FLOPs per
     step and per rollout chunk, and the times they imply; whether it fits, and if not, the options that make it fit.
     Nothing is allocated (abstract shapes, lowered programs). Every field of the config is an option too:
-    --SECTION.FIELD VALUE, e.g. --data.batch-size 256 --model.attention-impl ring (the list: --help-config)."""
+    --SECTION.FIELD VALUE, e.g. --data.batch-size 256 --model.attention-impl ring (the list: --help-config). Views,
+    image size and action dimension are the config's, or with --data.path STORE its dataset.json's (as `sc3 train`
+    reads them; fields given on the command line are checked against it instead)."""
 
     config: str = "tiny"
     """a named config (`sc3 configs`) or a config file, optionally NAME:ARG (passed to its get_config)"""
@@ -66,6 +69,27 @@ def main(argv: list[str]) -> int:
         tyro.cli(Config, default=cfg, args=["--help"], prog=f"sc3 plan --config {a.config}")
     from sc3_jax import plan
 
-    p = plan.plan(cfg, plan.parse_mesh(a.mesh), a.device, a.mfu, a.compile, a.chunk)
+    cfg, store = _shape_from_store(cfg, argv)
+    # a store's action space is the rollout's, its frame rate the rollout's frame stride
+    kw = {} if store is None else {"action_space": store.action_space, "data_fps": float(store.fps)}
+    p = plan.plan(cfg, plan.parse_mesh(a.mesh), a.device, a.mfu, a.compile, a.chunk, **kw)
     print(plan.format_plan(p))  # ends with the verdict: fits or not, why, and the options that make it fit
     return 0
+
+
+def _shape_from_store(cfg, argv: list[str]):
+    """(config, store or None): with --data.path STORE given, views, image size and action dimension from
+    its dataset.json the way `sc3 train` takes them (data.shape.shape_from_dataset); else the config's own shape
+    (a config's default data.path is not read: a plan is for the config as written)."""
+    from sc3_jax.data.shape import explicit_fields, shape_from_dataset
+
+    explicit = explicit_fields(argv)
+    if "data.path" not in explicit:
+        return cfg, None
+    if not (Path(cfg.data.path) / "dataset.json").is_file():
+        raise UserError(f"--data.path {cfg.data.path}: no dataset.json there (not an sc3 episode store: `sc3 data "
+                        "import-lerobot` writes one); leave --data.path out to plan the config's own shape")
+    from sc3_jax.data.episodes import EpisodeStore
+
+    store = EpisodeStore(cfg.data.path)
+    return shape_from_dataset(cfg, store, explicit), store

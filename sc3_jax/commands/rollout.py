@@ -29,19 +29,21 @@ class Args:
     policies/resolve.py"""
     initial_conditions: str
     """an episode store (its first K frames at the rollout stride from --start, and the pose at the last of them) or
-    an .npz with frames uint8 [B, V, K, H, W, 3], state float32 [B, 7] and optionally task int32 [B]"""
+    an .npz with frames uint8 [B, V, K, H, W, 3], state float32 [B, A] (A: the model's action dimension) and
+    optionally task int32 [B]"""
     out: str
     """output directory: rollout.npz, summary.json, the videos (and offline.npz)"""
     step: int | None = None
     """checkpoint step of a training workdir (default: the latest)"""
     family: str = "native"
-    """openpi observation mapping for ws:// policies"""
+    """openpi observation mapping for ws:// policies: native, droid, libero or aloha (docs/openpi.md). With an episode
+    store, the server gets each episode's own instruction and its cameras by the model's view names"""
     episodes: int | None = None
     """use the first N initial conditions (default: all)"""
     start: int = 0
     """first frame of the initial context in each stored episode"""
     task: int = 0
-    """task id given to the policy (episode stores carry none)"""
+    """task id given to the policy (episode stores carry none; a mapped ws:// policy gets the episodes' prompts)"""
     batch_size: int | None = None
     """episodes per jitted call (default: all at once)"""
     data_fps: float | None = None
@@ -73,6 +75,7 @@ def main(argv: list[str]) -> int:
     import numpy as np
 
     from sc3_jax import atomic, checkpoint, rollout, rollout_io
+    from sc3_jax.policies.openpi_mappings import for_world_model, get_mapping
     from sc3_jax.policies.resolve import resolve
 
     stats = checkpoint.read_norm_stats(a.checkpoint)
@@ -81,8 +84,17 @@ def main(argv: list[str]) -> int:
     ro = rollout.Rollout(cfg, stats, data_fps=fps)
     ids, ics, store = rollout_io.load_initial_conditions(a.initial_conditions, cfg, ro.spec, a.episodes, a.start,
                                                          a.task)
-    policy = resolve(a.policy, cfg.rollout.policy_chunk, a.family).policy
-    n, s, tau = len(ids), ro.spec, cfg.rollout.tau
+    family = a.family
+    if store is not None and get_mapping(a.family) is not None:
+        # an openpi server reads each episode's own instruction (not the bussing table by --task), and its
+        # cameras by the model's view names where it has them (as `sc3 sweep --initial-conditions` sends them)
+        prompts = [atomic.read_json(store.root / e / "meta.json").get("prompt", "") for e in ids]
+        table = list(dict.fromkeys(prompts))
+        ics = ics._replace(task=np.asarray([table.index(p) for p in prompts], np.int32))
+        family = for_world_model(a.family, tuple(cfg.data.views), table, f"--family {a.family}")
+    policy = resolve(a.policy, cfg.rollout.policy_chunk, family, action_space=stats.action_space,
+                     num_views=len(cfg.data.views)).policy
+    n, s, tau = len(ids), ro.spec, ro.tau
     size = a.batch_size or n
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)

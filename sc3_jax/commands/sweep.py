@@ -35,6 +35,11 @@ class Args(SweepConfig):
     next.success (NAME= required) or a .csv (policy, criterion columns); see sc3_jax/evaluate/labels.py"""
     start: int = 0
     """with --initial-conditions: first frame of the initial context in each episode"""
+    family: tuple[str, ...] = ()
+    """with --initial-conditions: the openpi observation mapping the ws:// policies speak, FAMILY for all of them or
+    NAME=FAMILY for one: native (our observation dict as is; the default), droid, libero or aloha (openpi's layouts,
+    sc3_jax/policies/openpi_mappings.py; aloha: cam_high, cam_low, cam_left_wrist, cam_right_wrist CHW, 14-D state
+    and actions). A mapped server gets each held-out episode's own prompt"""
 
 
 # SweepConfig fields that mean something only with a simulator: refused with --initial-conditions when set
@@ -45,7 +50,7 @@ def main(argv: list[str]) -> int:
     a = parse(Args, argv, "sweep")
     if a.initial_conditions is not None:
         return _without_simulator(a)
-    for name, value in (("--scorer", a.scorer), ("--real", a.real)):
+    for name, value in (("--scorer", a.scorer), ("--real", a.real), ("--family", a.family)):
         if value:
             raise UserError(f"{name} applies to a sweep without simulator: add --initial-conditions STORE")
     cfg = SweepConfig(**{f.name: getattr(a, f.name) for f in dataclasses.fields(SweepConfig)})
@@ -76,13 +81,17 @@ def _without_simulator(a: Args) -> int:
         out=a.out, episodes=a.episodes, calibration_episodes=a.calibration_episodes, batch=a.batch,
         rollout_seed=a.rollout_seed, episode_seconds=a.episode_seconds, sample_steps=a.sample_steps,
         inverse_steps=a.inverse_steps, taus=a.taus, tau_units=a.tau_units, start=a.start, real=a.real,
-        progress=a.progress)
+        family=a.family, progress=a.progress)
     out = ic_sweep.run(cfg)
     md = ic_ranking.render(out, out / "report", cfg.real or None)
     t = json.loads((out / "report" / "report.json").read_text())
     print(f"sweep: {len(cfg.policies)} policies x {cfg.episodes} held-out initial conditions (+ "
           f"{cfg.calibration_episodes} for tau) of {cfg.initial_conditions}, closed loop inside {cfg.world_model}, "
           f"scored by {cfg.scorer}; records: {out}/results.jsonl")
+    served = ic_sweep.families(cfg)
+    if served:
+        print("openpi policy servers (ws://) and the observation mapping each speaks: "
+              + ", ".join(f"{n} ({fam})" for n, (fam, _) in served.items()))
     print("\n".join(ic_ranking.summary(t)))
     print(f"report: {md} (and report.json)")
     return 0

@@ -40,6 +40,8 @@ SUPPORTED_VERSIONS = ("v2.0", "v2.1", "v3.0")
 IMAGE_PREFIX = "observation.images."
 # info.json key of our action-space declaration (LeRobot has none): our export writes it, import reads it back
 INFO_ACTION_SPACE = "sc3_action_space"
+SUCCESS_KEY = "next.success"  # LeRobot's per-frame success feature (evaluate/labels.py: LEROBOT_SUCCESS)
+LABELS_FIELD = "labels"  # an imported episode's meta.json {criterion: bool}, what `sc3 sweep --real STORE` reads
 _OPTIONAL = object()  # sentinel: "use observation.state if the dataset has it"
 
 
@@ -61,10 +63,11 @@ class LeRobotEpisode:
 
     def __init__(self, source: LeRobotEpisodes, index: int, episode_index: int, timestamps: np.ndarray,
                  actions: np.ndarray, state: np.ndarray | None, prompt: str, tasks: list[str],
-                 pose: np.ndarray | None = None):
+                 pose: np.ndarray | None = None, success: bool | None = None):
         self._source, self.index, self.episode_index = source, index, episode_index
         self.timestamps, self.actions, self.state, self.pose = timestamps, actions, state, pose
         self.prompt, self.tasks = prompt, tasks
+        self.success = success  # any frame's next.success (None: the dataset has no such feature)
         self.fps = source.fps
 
     @property
@@ -223,7 +226,7 @@ class LeRobotEpisodes:
             return self._rows[i]
         ep = self._episode_row(i)
         cols = ["timestamp", self.action_key] + [k for k in (self.state_key, self.pose_key) if k]
-        cols += [c for c in ("frame_index", "task_index") if c in self.features]
+        cols += [c for c in ("frame_index", "task_index", SUCCESS_KEY) if c in self.features]
         cols = list(dict.fromkeys(cols))
         table = self._read_rows(ep, cols)
         out = {c: _to_numpy(table[c]) for c in cols}
@@ -251,8 +254,11 @@ class LeRobotEpisodes:
             prompt = tasks[0] if tasks else ""
         state = tab[self.state_key][s].astype(np.float32) if self.state_key else None
         pose = tab[self.pose_key][s].astype(np.float32) if self.pose_key else None
+        # over every recorded frame, not only those kept at self.fps: success is often marked on the last one alone
+        # (LeRobot's evaluation reduces it with any, as evaluate/labels.py does)
+        success = bool(np.asarray(tab[SUCCESS_KEY]).astype(bool).any()) if SUCCESS_KEY in tab else None
         return LeRobotEpisode(self, i, int(ep["episode_index"]), tab["timestamp"][s],
-                              tab[self.action_key][s].astype(np.float32), state, prompt, tasks, pose)
+                              tab[self.action_key][s].astype(np.float32), state, prompt, tasks, pose, success)
 
     # -- frames ------------------------------------------------------------------------------------------------
     def window(self, i: int, start: int, stop: int, views: list[str] | None = None) -> dict[str, np.ndarray]:
@@ -463,7 +469,9 @@ def import_lerobot(root: str | os.PathLike, out: str | os.PathLike, views=None, 
     start); for other action spaces it is optional (used where it names a 7-D feature other than the state).
     ``state_key``: the proprioceptive state feature of any size (default ``observation.state`` when present and not
     already the ee_pose; None: none), stored as ``state``. ``image_size`` resizes every view (our store has one size
-    for all views). Episodes are named ``lerobot{episode_index:06d}``; existing ones are skipped (resumable).
+    for all views). A ``next.success`` feature becomes each episode's meta ``"labels": {"success": any frame's}``
+    (the real outcomes ``sc3 sweep --real STORE`` reads). Episodes are named ``lerobot{episode_index:06d}``;
+    existing ones are skipped (resumable).
     """
     from .action_space import ActionSpace, names_of
     from .episodes import Episode, EpisodeStore
@@ -508,7 +516,7 @@ def import_lerobot(root: str | os.PathLike, out: str | os.PathLike, views=None, 
     fps_out = int(src.fps) if float(src.fps).is_integer() else src.fps  # keep "fps": 20 as our stores write it
     store = EpisodeStore(out, views=src.views, fps=fps_out, image_size=size, create=True, action_space=space,
                          state_dim=state_dim, state_names=state_names, has_pose=has_pose)
-    written = skipped = 0
+    written = skipped = labelled = 0
     for i in range(len(src)):
         ep = src.episode(i)
         eid = f"lerobot{ep.episode_index:06d}"
@@ -520,13 +528,17 @@ def import_lerobot(root: str | os.PathLike, out: str | os.PathLike, views=None, 
                 "tasks": ep.tasks, "source_fps": src.source_fps, "camera_keys": src.cameras,
                 "wrist_views": list(src.wrist_views), "timestamps": ep.timestamps.tolist(),
                 "ee_pose_source": pose_key if has_pose else "none", "state_source": state_key or "none"}
+        if ep.success is not None:  # the real outcome, so that `sc3 sweep --real STORE` needs no LeRobot source
+            meta[LABELS_FIELD] = {"success": ep.success}
+            labelled += 1
         store.write(Episode(eid, frames, ep.actions.reshape(ep.length, dim), ep.pose, ep.prompt, meta,
                             None if ep.state is None else ep.state.reshape(ep.length, state_dim)))
         written += 1
         if progress:
             print(f"  {eid}: {ep.length} frames", flush=True)
     return {"out": str(out), "written": written, "skipped": skipped, "views": src.views, "fps": fps_out,
-            "action_space": space.to_dict(), "state_dim": state_dim, "ee_pose": has_pose}
+            "action_space": space.to_dict(), "state_dim": state_dim, "ee_pose": has_pose,
+            "success_labels": labelled}  # of the episodes written: those whose meta holds next.success
 
 
 def _resize(frames: np.ndarray, size: tuple[int, int]) -> np.ndarray:

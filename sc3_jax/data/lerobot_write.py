@@ -6,7 +6,8 @@ torch/numpy). What we write follows LeRobot's conventions:
 
 * data parquet columns ``observation.state``, ``action`` (fixed-size float32 lists), cameras of ``"dtype":
   "image"`` as ``struct<bytes, path>`` PNGs, then ``timestamp`` (= frame_index / fps), ``frame_index``,
-  ``episode_index``, ``index`` (global row), ``task_index``;
+  ``episode_index``, ``index`` (global row), ``task_index``; a feature of one value per frame (``"shape": [1]``,
+  e.g. ``next.reward``, ``next.success``) is a plain column, not a list;
 * v3.0 packs ``episodes_per_file`` episodes into one data parquet and one mp4 per camera; an episode's segment of
   the mp4 is ``[from_timestamp, to_timestamp)`` in ``meta/episodes/chunk-000/file-000.parquet``;
 * v2.1 writes one parquet and one mp4 per camera per episode, plus ``meta/episodes.jsonl`` / ``tasks.jsonl`` /
@@ -53,7 +54,8 @@ _INDEX_COLUMNS = ("frame_index", "episode_index", "index", "task_index")
 @dataclasses.dataclass
 class RawEpisode:
     """One episode in LeRobot terms: camera feature key -> uint8 [T, H, W, 3], action [T, D], state [T, S], and
-    any other float vector features (feature key -> [T, n], e.g. ``observation.ee_pose``)."""
+    any other vector features (feature key -> [T, n], e.g. ``observation.ee_pose``; float32, or bool for a bool
+    array such as ``next.success`` [T, 1])."""
 
     frames: dict[str, np.ndarray]
     action: np.ndarray
@@ -124,8 +126,16 @@ class _VideoFile:
 
 
 # -- tables and stats -------------------------------------------------------------------------------------------
-def _vector(x: np.ndarray) -> pa.Array:
-    x = np.asarray(x, np.float32)
+def _dtype(x: np.ndarray) -> str:
+    return "bool" if np.asarray(x).dtype == bool else "float32"
+
+
+def _vector(x: np.ndarray, feature: dict) -> pa.Array:
+    """A [T, n] feature's column: one value per row where its shape is [1] (as LeRobot's ``datasets`` features store
+    it: a ``Value``, which LeRobot reads back as [1]), else a fixed-size list per row."""
+    x = np.asarray(x, np.dtype(feature["dtype"]))
+    if feature["shape"] == [1]:
+        return pa.array(x.reshape(-1))
     return pa.FixedSizeListArray.from_arrays(pa.array(x.reshape(-1)), x.shape[1])
 
 
@@ -227,8 +237,8 @@ class _Writer:
         for key, x in ep.vector_features():
             if x is not None:
                 d = np.asarray(x).shape[1]
-                feats[key] = {"dtype": "float32", "shape": [d], "names": self.names.get(key, [f"{key}_{i}"
-                                                                                             for i in range(d)])}
+                feats[key] = {"dtype": _dtype(x), "shape": [d], "names": self.names.get(key, [f"{key}_{i}"
+                                                                                           for i in range(d)])}
         for key, f in ep.frames.items():
             h, w = f.shape[1:3]
             feats[key] = {"dtype": self.image_dtype, "shape": [h, w, 3], "names": ["height", "width", "channels"]}
@@ -252,8 +262,8 @@ class _Writer:
                 fields.append(pa.field(key, pa.from_numpy_dtype(np.dtype(f["dtype"]))))
                 hf[key] = {"dtype": f["dtype"], "_type": "Value"}
             else:
-                fields.append(pa.field(key, pa.list_(pa.float32(), f["shape"][0])))
-                hf[key] = {"feature": {"dtype": "float32", "_type": "Value"}, "length": f["shape"][0],
+                fields.append(pa.field(key, pa.list_(pa.from_numpy_dtype(np.dtype(f["dtype"])), f["shape"][0])))
+                hf[key] = {"feature": {"dtype": f["dtype"], "_type": "Value"}, "length": f["shape"][0],
                            "_type": "Sequence"}
         # Hugging Face `datasets` reads its feature types (e.g. Image) from this schema metadata.
         return pa.schema(fields, metadata={"huggingface": json.dumps({"info": {"features": hf}})})
@@ -286,7 +296,7 @@ class _Writer:
                 arrays.append(pa.array([{"bytes": _png(img), "path": None} for img in ep.frames[key]], field.type))
             else:
                 x = dict(ep.vector_features())[key]
-                arrays.append(_vector(x))
+                arrays.append(_vector(x, self.features[key]))
                 stats[key] = _stats(x)
         for key in self.cameras:
             stats[key] = _image_stats(ep.frames[key])

@@ -1,7 +1,7 @@
 """Evaluation without a simulator (issue 33 item 3): rank policies inside a world model from held-out episodes.
 
     sc3 sweep --initial-conditions HELDOUT --world-model RUN --policies a=pkg.mod:attr b=ws://HOST:PORT \
-              --scorer pkg.mod:score [--real REAL] --out DIR
+              [--family aloha] --scorer pkg.mod:score [--real REAL] --out DIR
 
 Each held-out episode of HELDOUT is one initial condition (its first K frames at the rollout stride from --start, and
 the robot state at the last of them: ``rollout_io.load_initial_conditions``, which checks the store's shape against
@@ -12,6 +12,13 @@ and untruncated (tau = inf), ``batch`` conditions per world-model call (padded t
 compiles once); condition i's sampling noise depends only on (rollout_seed, i), so every policy meets the same
 draws. The ``--scorer`` (``scorers.load_outcome_scorer``: ``{criterion: bool}`` per rollout) reads the imagined
 frames and state of the whole rollout and of each shorter cut a candidate tau would produce.
+
+A ``ws://`` policy is an openpi-protocol server (``policies/openpi_client.py``); ``--family`` picks the openpi
+observation mapping it speaks (``policies/openpi_mappings.py``: native, droid, libero, aloha), for every ``ws://``
+policy (``FAMILY``) or one (``NAME=FAMILY``). A mapped server gets each condition's own prompt (its episode's
+meta.json "prompt", e.g. "fold the towel", not the mapping's bussing table; none when empty, so the server's default
+applies), and the mapping's cameras by the world model's view names when those include them (an ALOHA dataset's
+cam_high, ...), else in the preset's order.
 
 The store is the simulated sweep's (``results.py``): ``sweep.json`` (this config, with ``"kind":
 "initial_conditions"`` and the condition episode ids; a rerun with another config is refused), ``results.jsonl``
@@ -64,13 +71,15 @@ class ICSweepConfig:
     start: int = 0
     task: int = 0
     real: tuple[str, ...] = ()
+    family: tuple[str, ...] = ()  # openpi mappings of ws:// policies: FAMILY (all of them) or NAME=FAMILY
     progress: bool = True
 
     def to_json(self, conditions: list[str], names: list[str]) -> dict:
         """sweep.json: everything that decides the records (not ``real``: the report's; not ``progress``)."""
         d = {k: v for k, v in dataclasses.asdict(self).items() if k not in ("real",)}
         d.update(kind=KIND, taus=[str(float(t)) for t in self.taus], conditions=conditions, policy_names=names,
-                 modes=["online"], seed0=0, calibration_seed0=self.episodes)
+                 modes=["online"], seed0=0, calibration_seed0=self.episodes,
+                 family=list(self.family) or None)  # None: a store written before --family matches
         return json.loads(json.dumps(d))
 
 
@@ -94,17 +103,53 @@ def _check(cfg: ICSweepConfig) -> None:
         raise UserError(f"--tau-units {cfg.tau_units!r}: 'raw' or 'normalised'")
 
 
-def _resolve(specs: tuple[str, ...], chunk: int) -> list[tuple[str, str, object]]:
-    """(name, spec, policy) per --policies entry; names unique."""
-    from sc3_jax.policies.resolve import resolve
+def families(cfg: ICSweepConfig) -> dict[str, tuple[str, str]]:
+    """{policy name: (openpi family, the --family entry that chose it)} of every ``ws://`` policy of
+    ``cfg.policies`` (("native", "native") unless --family says): ``FAMILY`` applies to all of them, ``NAME=FAMILY``
+    to one (and wins)."""
+    from sc3_jax.policies.openpi_mappings import PRESETS
+    from sc3_jax.policies.resolve import parse
+
+    served = []
+    for spec in cfg.policies:
+        try:
+            name, body, _ = parse(spec)
+        except ValueError as e:
+            raise UserError(f"--policies {spec!r}: {e}") from None
+        if body.startswith(("ws://", "wss://")):
+            served.append(name or body)
+    known = ("native", *PRESETS)
+    chosen: dict[str | None, tuple[str, str]] = {}  # None: every ws:// policy
+    for entry in cfg.family:
+        name, eq, fam = entry.rpartition("=")
+        who = name if eq else None
+        if fam.lower() not in known:
+            raise UserError(f"--family {entry}: unknown openpi mapping {fam!r}; expected [NAME=]FAMILY with FAMILY one "
+                            f"of {', '.join(known)}")
+        if not served:
+            raise UserError(f"--family {entry}: applies to ws:// policies (openpi servers); --policies has none")
+        if who is not None and who not in served:
+            raise UserError(f"--family {entry}: {who!r} is not a ws:// policy of --policies (those: {served})")
+        if who in chosen:
+            raise UserError(f"--family {entry}: {who or 'every ws:// policy'} already has --family {chosen[who][1]}")
+        chosen[who] = (fam.lower(), entry)
+    return {n: chosen.get(n, chosen.get(None, ("native", "native"))) for n in served}
+
+
+def _resolve(specs: tuple[str, ...], chunk: int, mappings: dict, action_space, num_views: int
+             ) -> list[tuple[str, str, object]]:
+    """(name, spec, policy) per --policies entry; names unique. ``mappings``: name -> the ObsMapping of a mapped
+    ws:// policy; built-in policies (zero, random, linear) act in the world model's ``action_space``."""
+    from sc3_jax.policies.resolve import parse, resolve
 
     out = []
     for spec in specs:
         try:
-            r = resolve(spec, chunk)
+            name, body, _ = parse(spec)
+            r = resolve(spec, chunk, mappings.get(name or body), action_space=action_space, num_views=num_views)
         except UserError:
             raise
-        except (ValueError, TypeError, ImportError, AttributeError) as e:
+        except (ValueError, TypeError, ImportError, AttributeError, ConnectionError) as e:
             raise UserError(f"--policies {spec!r}: {e}") from None
         out.append((r.name, spec, r.policy))
     names = [n for n, _, _ in out]
@@ -141,8 +186,10 @@ def run(cfg: ICSweepConfig) -> Path:
     from sc3_jax import checkpoint, rollout, rollout_io
     from sc3_jax.evaluate.scorers import RolloutView, check_outcomes, load_outcome_scorer
     from sc3_jax.evaluate.world_model_defaults import evaluation_config
+    from sc3_jax.policies.openpi_mappings import for_world_model
 
     _check(cfg)
+    served = families(cfg)
     scorer = load_outcome_scorer(cfg.scorer)  # a bad spec is refused before the model loads
     if cfg.real:
         from sc3_jax.evaluate import labels
@@ -152,12 +199,6 @@ def run(cfg: ICSweepConfig) -> Path:
     ro = rollout.Rollout(wcfg, stats, mesh=_mesh(cfg.batch),
                          data_fps=rollout_io.data_fps(cfg.initial_conditions, None))
     s = ro.spec
-    policies = _resolve(cfg.policies, wcfg.rollout.policy_chunk)
-    for name, spec, policy in policies:  # dimensions first: one line naming both sides, before any compile
-        try:
-            ro.check_policy(policy)
-        except UserError as e:
-            raise UserError(f"--policies {spec}: {e} (world model {cfg.world_model})") from None
     want = cfg.episodes + cfg.calibration_episodes
     ids, ics, store = rollout_io.load_initial_conditions(cfg.initial_conditions, wcfg, s, want, cfg.start, cfg.task)
     if len(ids) < want:
@@ -165,6 +206,20 @@ def run(cfg: ICSweepConfig) -> Path:
                         f"--episodes {cfg.episodes} + --calibration-episodes {cfg.calibration_episodes} = {want}: "
                         "lower them or give more held-out episodes")
     prompts = [atomic.read_json(store.root / e / "meta.json").get("prompt", "") if store else "" for e in ids]
+    # a mapped (openpi) server reads a prompt, not our task id: condition i's task id indexes its own prompt
+    table = list(dict.fromkeys(prompts))
+    prompted = ics._replace(task=np.asarray([table.index(p) for p in prompts], np.int32))
+    mappings = {}  # policy name -> the openpi mapping its server speaks (native ones: none)
+    for n, (fam, entry) in served.items():
+        m = for_world_model(fam, tuple(wcfg.data.views), table, f"--family {entry}")
+        if m is not None:
+            mappings[n] = m
+    policies = _resolve(cfg.policies, wcfg.rollout.policy_chunk, mappings, stats.action_space, len(wcfg.data.views))
+    for name, spec, policy in policies:  # dimensions first: one line naming both sides, before any compile
+        try:
+            ro.check_policy(policy)
+        except UserError as e:
+            raise UserError(f"--policies {spec}: {e} (world model {cfg.world_model})") from None
     results = ResultsStore(cfg.out, cfg.to_json(ids, [n for n, _, _ in policies]))
     if cfg.real:
         atomic.write_json(results.root / REAL_FILE, {"real": list(cfg.real)})
@@ -181,7 +236,7 @@ def run(cfg: ICSweepConfig) -> Path:
         if all(r in done for r in rids):
             continue
         sel = np.asarray(idx + [idx[-1]] * (cfg.batch - len(idx)))  # one shape for every batch: one compile
-        sub = rollout.InitialConditions(*(np.asarray(x)[sel] for x in ics))
+        sub = rollout.InitialConditions(*(np.asarray(x)[sel] for x in (prompted if name in mappings else ics)))
         keys = np.asarray(rollout.episode_keys(cfg.rollout_seed, len(sel), start=idx[0]))  # condition i: (seed, i)
         try:
             out = rollout_io.closed_loop(ro, params, policy, sub, keys, math.inf, len(sel), False)
@@ -214,6 +269,9 @@ def run(cfg: ICSweepConfig) -> Path:
         ran += len(recs)
         bar.update(len(recs))
     bar.close()
+    for name, _, policy in policies:
+        if name in served:  # our side of the connection to an openpi server
+            policy.close()
     atomic.write_json(results.root / "timing.json", {
         "seconds_last_run": time.time() - t0, "rollouts_run": {"online": ran},
         "devices": [str(d) for d in jax.local_devices()]})

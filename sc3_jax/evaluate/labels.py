@@ -6,9 +6,10 @@ A SOURCE is ``PATH`` or ``NAME=PATH`` (then every episode of PATH is policy NAME
 
 * an episode store (``dataset.json``; ``data/episodes.py``): each episode's ``meta.json`` holds
   ``"policy": NAME`` (``POLICY_FIELD``) and ``"labels": {criterion: bool, ...}`` (``LABELS_FIELD``; entries that
-  are not booleans, such as ``sc3 sim demos``' per-object lists, are not criteria). A store imported from LeRobot
-  (``sc3 data import-lerobot``: its meta keeps ``lerobot_root`` and ``episode_index`` but not the ``next.success``
-  column) whose episodes carry no boolean labels reads ``next.success`` from that LeRobot dataset instead;
+  are not booleans, such as ``sc3 sim demos``' per-object lists, are not criteria). ``sc3 data import-lerobot``
+  keeps a dataset's ``next.success`` as ``"labels": {"success": ...}``; a store imported before it did (its meta
+  keeps ``lerobot_root`` and ``episode_index``) whose episodes carry no boolean labels reads ``next.success`` from
+  that LeRobot dataset instead;
 * a LeRobot dataset (``meta/info.json``), given as ``NAME=PATH``: an episode succeeded when any of its frames has
   ``next.success`` true (LeRobot's own evaluation reduces it with ``any``), the criterion ``success``;
 * a CSV file (``.csv``): a header row with a ``policy`` column (optional with ``NAME=``), an optional ``episode``

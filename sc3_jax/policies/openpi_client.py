@@ -24,6 +24,7 @@ import websockets
 import websockets.exceptions
 import websockets.sync.client
 
+from sc3_jax.errors import UserError
 from sc3_jax.policies import msgpack_numpy
 from sc3_jax.policies.openpi_mappings import ObsMapping, fit_rows, get_mapping
 
@@ -65,9 +66,13 @@ class WebsocketClientPolicy:
     ``infer(obs)`` maps our observation with ``mapping`` (a preset name or :class:`ObsMapping`; None = native: our
     dict as is), sends it, and maps the reply's ``"actions"`` back to float32 [chunk, D]. ``infer_raw(dict) -> dict``
     speaks the protocol without any mapping. ``last_response`` holds the last raw reply (timings etc.).
-    ``action_dim``: the action dimension of the model (world model / robot) these actions drive; given, a mapping
-    carrying another dimension is refused here (one-line ValueError) and native replies are checked against it.
-    Without it, ``action_dim`` is the mapping's (None when native).
+    ``action_dim`` / ``state_dim`` / ``views``: the action dimension, state dimension and number of views of the model
+    (world model / robot) these actions drive; given, a mapping carrying other dimensions or reading more views is
+    refused here, before connecting (one-line UserError naming both), and native replies are checked against
+    ``action_dim``. Without them, ``action_dim`` / ``state_dim`` are the mapping's (None when native) and
+    ``min_views`` the views it reads, so that a world model can refuse the policy before compiling anything.
+    ``chunk`` (actions returned per call): the argument, else the server metadata's ``"chunk"``, else the mapping's
+    (its openpi example client's: DROID 8, ALOHA 25), else 25.
 
     Connection failures (refused, reset, 5xx during the handshake, connection lost between requests) are retried
     ``max_retries`` times with exponential back-off ``backoff_s * 2**i`` (capped at ``max_backoff_s``), then raise
@@ -78,15 +83,19 @@ class WebsocketClientPolicy:
 
     def __init__(self, host: str = "127.0.0.1", port: int | None = 8000, mapping: ObsMapping | str | None = None,
                  api_key: str | None = None, *, chunk: int | None = None, action_dim: int | None = None,
-                 timeout_s: float = 60.0, max_retries: int = 5, backoff_s: float = 0.5, max_backoff_s: float = 10.0):
+                 state_dim: int | None = None, views: int | None = None, timeout_s: float = 60.0,
+                 max_retries: int = 5, backoff_s: float = 0.5, max_backoff_s: float = 10.0):
         self.uri = host if host.startswith(("ws://", "wss://")) else f"ws://{host}"
         if port is not None:
             self.uri += f":{port}"
         self.address = self.uri.split("://", 1)[1]
         self.mapping = get_mapping(mapping)
-        if self.mapping is not None:
-            self.mapping.check_dims(action_dim=action_dim)  # before connecting: a wrong preset is not a network issue
-        self.action_dim = action_dim if action_dim is not None or self.mapping is None else self.mapping.action_dim
+        m = self.mapping
+        if m is not None:  # before connecting: a wrong preset is not a network issue
+            m.check_dims(action_dim=action_dim, state_dim=state_dim, views=views)
+        self.action_dim = action_dim if action_dim is not None or m is None else m.action_dim
+        self.state_dim = state_dim if state_dim is not None or m is None else m.state_dim
+        self.min_views = None if m is None else m.min_views
         self.api_key, self.timeout_s = api_key, timeout_s
         self.max_retries, self.backoff_s, self.max_backoff_s = max_retries, backoff_s, max_backoff_s
         self._ws: websockets.sync.client.ClientConnection | None = None
@@ -95,7 +104,9 @@ class WebsocketClientPolicy:
         self.last_response: dict | None = None
         self._connect()
         meta_chunk = self._metadata.get("chunk") if isinstance(self._metadata, dict) else None
-        self.chunk = int(chunk if chunk is not None else meta_chunk if isinstance(meta_chunk, int) else DEFAULT_CHUNK)
+        meta_chunk = meta_chunk if isinstance(meta_chunk, int) else None  # openpi's servers send none
+        own_chunk = None if m is None else m.chunk  # the family's example client's execution horizon
+        self.chunk = int(next(c for c in (chunk, meta_chunk, own_chunk, DEFAULT_CHUNK) if c is not None))
 
     @property
     def metadata(self) -> dict:
@@ -188,8 +199,8 @@ class WebsocketClientPolicy:
         if self.mapping is None:
             actions = np.asarray(reply["actions"], np.float32)
             if self.action_dim is not None and (actions.ndim != 2 or actions.shape[1] != self.action_dim):
-                raise ValueError(f"policy server {self.address} returned actions of shape {actions.shape} but the "
-                                 f"model has {self.action_dim}-D actions")
+                raise UserError(f"policy server {self.address} returned actions of shape {list(actions.shape)} but "
+                                f"the model has {self.action_dim}-D actions")
             return np.ascontiguousarray(fit_rows(actions, self.chunk, "hold", f"policy server {self.address}"))
         return self.mapping.actions_to_ours(reply["actions"], self.chunk)
 

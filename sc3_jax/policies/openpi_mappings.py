@@ -11,7 +11,17 @@ instead of silently losing dims. DROID and ALOHA are identities over openpi's ow
 7 joint velocities + gripper position, state 7 joint positions + gripper; a 14-D ALOHA model: [left 6 joints,
 left gripper, right 6 joints, right gripper] joint positions, in the standard ALOHA runtime space, which openpi's
 ``AlohaInputs(adapt_to_pi=True)`` converts itself). LIBERO maps our 7-D EE pose + gripper / delta-EE actions, the
-layout of our own benchmark. Conventions checked against openpi's files listed in docs/openpi.md.
+layout of our own benchmark. Conventions checked against openpi's files listed in docs/openpi.md (commit 15a9616).
+
+What runs where (openpi's convention, which the presets keep): the *client* letterboxes each camera to 224x224 uint8
+(and, for ALOHA, transposes to CHW) and sends the robot's raw state; the *server* (openpi's ``serve_policy.py``)
+does everything else: ``AlohaInputs/Outputs(adapt_to_pi)`` joint flips and gripper conversions, delta <-> absolute
+actions, normalisation, its own resize to 224, the default prompt when none is sent, and cutting the model's 32
+action dims to the family's (8 DROID, 14 ALOHA, 7 LIBERO). So the presets send raw robot values and read back the
+family's actions unchanged.
+
+Dimension mismatches (a 7-D model with the 14-D ALOHA preset, 3 views for its 4 cameras, a 7-entry state) are a
+one-line :class:`~sc3_jax.errors.UserError` naming both sides (:meth:`ObsMapping.check_dims`).
 """
 from __future__ import annotations
 
@@ -20,8 +30,10 @@ from typing import Any, Mapping
 
 import numpy as np
 
+from sc3_jax.errors import UserError
+
 __all__ = ["ViewField", "StateField", "ActionMap", "ObsMapping", "DROID", "LIBERO", "ALOHA", "ALOHA_CAMERAS",
-           "PRESETS", "DEFAULT_PROMPTS", "get_mapping", "resize_with_pad"]
+           "PRESETS", "DEFAULT_PROMPTS", "get_mapping", "for_world_model", "resize_with_pad"]
 
 DEFAULT_PROMPTS: dict[int, str] = {
     0: "put the utensils in the bin and the trash in the trash can",  # bussing (in-distribution)
@@ -129,13 +141,14 @@ def fit_rows(actions: np.ndarray, chunk: int, pad: str, where: str) -> np.ndarra
     if h >= chunk:
         return actions[:chunk]
     if pad == "error" or h == 0:
-        raise ValueError(f"{where} returned {h} actions but a chunk of {chunk} is needed (pad_actions={pad!r})")
+        raise UserError(f"{where} returned {h} actions but a chunk of {chunk} is needed (pad_actions={pad!r}); ask "
+                        f"for chunk <= {h}, or set pad_actions='hold' to repeat the last action")
     if pad == "hold":
         fill = np.repeat(actions[-1:], chunk - h, axis=0)
     elif pad == "zeros":
         fill = np.zeros((chunk - h, *actions.shape[1:]), actions.dtype)
     else:
-        raise ValueError(f"unknown pad_actions {pad!r} (expected 'hold', 'zeros' or 'error')")
+        raise UserError(f"unknown pad_actions {pad!r} (expected 'hold', 'zeros' or 'error')")
     return np.concatenate([actions, fill], axis=0)
 
 
@@ -149,7 +162,8 @@ class ObsMapping:
     ``prompts[task]`` (a task-id -> prompt table) or ``prompts`` itself when it is a string (fixed prompt; None: no
     prompt key). ``extra`` entries are sent unchanged with every request.
     ``actions_to_ours`` takes ``actions[:, action_map.indices] * scale`` and fits the rows to the chunk (slice, or pad
-    according to ``pad_actions``).
+    according to ``pad_actions``). ``chunk``: the actions our client executes per request when neither the caller
+    nor the server's metadata says (a preset's is its openpi example client's; None: the client's default, 25).
 
     Server side (``from_family``, the inverse, used when serving one of our policies to an openpi-style client):
     images back to HWC uint8, placed at their view index into ``num_views`` views (views no key maps to are black),
@@ -160,8 +174,9 @@ class ObsMapping:
     [chunk, D] into zeros [chunk, family_dim].
 
     Dimensions: our action dimension is ``len(action_map.our_indices)``; our state dimension ``state_dim`` (None:
-    the highest mapped state index + 1, not enforced on the client). Both sides refuse other dimensions with a
-    ValueError (see :meth:`check_dims`) rather than dropping or inventing dims.
+    the highest mapped state index + 1, not enforced on the client); our views at least :attr:`min_views`. Both sides
+    refuse other dimensions with a one-line UserError (a ValueError; see :meth:`check_dims`) rather than dropping or
+    inventing dims.
     """
     name: str
     views: tuple[ViewField, ...]
@@ -174,12 +189,31 @@ class ObsMapping:
     prompts: Mapping[int, str] | str | None = dataclasses.field(default_factory=lambda: dict(DEFAULT_PROMPTS))
     extra: Mapping[str, Any] = dataclasses.field(default_factory=dict)
     pad_actions: str = "hold"
+    chunk: int | None = None
     view_names: tuple[str, ...] | None = None
     # inverse (server) side
     num_views: int = 3
     our_image_size: tuple[int, int] | None = None
     state_dim: int | None = None
     default_task: int | None = None
+
+    def __post_init__(self) -> None:
+        # checked here so that a wrong preset edit (serve-policy --num-views 3 --family aloha) fails at start
+        if self.resize not in ("pad", "stretch"):
+            raise UserError(f"openpi mapping {self.name!r}: resize={self.resize!r}, expected 'pad' or 'stretch'")
+        if self.pad_actions not in ("hold", "zeros", "error"):
+            raise UserError(f"openpi mapping {self.name!r}: pad_actions={self.pad_actions!r}, expected 'hold', "
+                            "'zeros' or 'error'")
+        if self.chunk is not None and self.chunk < 1:
+            raise UserError(f"openpi mapping {self.name!r}: chunk={self.chunk}, expected a positive number of actions")
+        for vf in self.views:
+            if isinstance(vf.view, str) and (not self.view_names or vf.view not in self.view_names):
+                raise UserError(f"openpi mapping {self.name!r}: view {vf.view!r} of key {vf.key!r} is not one of "
+                                f"view_names={self.view_names}")
+        if self.num_views < self.min_views:
+            raise UserError(f"openpi mapping {self.name!r} sends {len(self.views)} cameras ({self._cameras()}) read "
+                            f"from {self.min_views} views but num_views is {self.num_views}; set num_views >= "
+                            f"{self.min_views}")
 
     def replace(self, **changes: Any) -> "ObsMapping":
         return dataclasses.replace(self, **changes)
@@ -194,13 +228,29 @@ class ObsMapping:
     def our_state_dim(self) -> int:
         return self.state_dim if self.state_dim is not None else max(max(sf.indices) + 1 for sf in self.state)
 
-    def check_dims(self, action_dim: int | None = None, state_dim: int | None = None, who: str = "the model") -> None:
-        """One-line ValueError when ``who``'s action/state dimension is not the one this mapping carries (e.g. a 7-D
-        model with the 14-D bimanual ALOHA preset would otherwise silently drive one arm)."""
+    @property
+    def min_views(self) -> int:
+        """How many of our views an observation needs: views counted from the front (0, 1, ...) and from the back
+        (-1 = the wrist, ...) must not overlap, so DROID's view 0 + view -1 needs 2 and ALOHA's 4 cameras need 4."""
+        front = [self.view_names.index(v) if isinstance(v, str) else v for v in (vf.view for vf in self.views)]
+        return max([i + 1 for i in front if i >= 0] or [0]) + max([-i for i in front if i < 0] or [0])
+
+    def _cameras(self) -> str:
+        return ", ".join((vf.key if isinstance(vf.key, str) else vf.key[-1]) for vf in self.views)
+
+    def check_dims(self, action_dim: int | None = None, state_dim: int | None = None, views: int | None = None,
+                   who: str = "the model") -> None:
+        """One-line UserError naming both sides when ``who``'s action / state dimension is not the one this mapping
+        carries, or it has fewer views than the mapping's cameras read (e.g. a 7-D model, or 3 views, with the
+        14-D, 4-camera ALOHA preset would otherwise silently drive one arm / send a wrong camera)."""
         for kind, got, want in (("action", action_dim, self.action_dim), ("state", state_dim, self.state_dim)):
             if got is not None and want is not None and int(got) != want:
-                raise ValueError(f"openpi mapping {self.name!r} carries {want}-D {kind}s but {who} has {int(got)}-D "
-                                 f"{kind}s; use a {want}-D model or a mapping for {int(got)}-D {kind}s")
+                raise UserError(f"openpi mapping {self.name!r} carries {want}-D {kind}s but {who} has {int(got)}-D "
+                                f"{kind}s; use a {want}-D model or a mapping for {int(got)}-D {kind}s")
+        if views is not None and int(views) < self.min_views:
+            raise UserError(f"openpi mapping {self.name!r} sends {len(self.views)} cameras ({self._cameras()}) read "
+                            f"from {self.min_views} views but {who} has {int(views)} views; use a "
+                            f"{self.min_views}-view model or a mapping with fewer cameras")
 
     # -- views ---------------------------------------------------------------------------------------------------------
     def _view_index(self, view: int | str, n: int) -> int:
@@ -263,7 +313,10 @@ class ObsMapping:
     def to_family(self, obs: Mapping[str, Any]) -> dict:
         images = np.asarray(obs["images"])
         state = np.asarray(obs["state"], np.float32)
-        self.check_dims(state_dim=state.shape[-1], who="the observation")
+        if images.ndim != 4:
+            raise UserError(f"openpi mapping {self.name!r} takes images [V, H, W, 3], the observation has "
+                            f"{list(images.shape)}")
+        self.check_dims(state_dim=state.shape[-1], views=images.shape[0], who="the observation")
         out: dict = {}
         for vf in self.views:
             _put(out, vf.key, self._image_out(images[self._view_index(vf.view, images.shape[0])]))
@@ -288,7 +341,9 @@ class ObsMapping:
             raise ValueError(f"expected 'actions' of shape [H, D], got {actions.shape}")
         idx = self.action_map.our_indices
         if max(idx) >= actions.shape[1]:
-            raise ValueError(f"'actions' has D={actions.shape[1]} but mapping {self.name!r} reads dims {idx}")
+            raise UserError(f"the policy server returned actions [{actions.shape[0]}, {actions.shape[1]}] but openpi "
+                            f"mapping {self.name!r} reads {self.action_map.family_dim}-D actions (dims up to "
+                            f"{max(idx)}); serve a {self.action_map.family_dim}-D policy or use its family's mapping")
         ours = actions[:, list(idx)]
         if self.action_map.scale is not None:
             ours = ours * np.asarray(self.action_map.scale, np.float32)
@@ -313,8 +368,11 @@ class ObsMapping:
             if not _has(fobs, sf.key):
                 continue
             v = np.asarray(_get(fobs, sf.key), np.float32).reshape(-1)
+            if not len(sf.indices) <= v.shape[0] <= max(len(sf.indices), sf.pad_to or 0):
+                raise UserError(f"the client sent {sf.key!r} with {v.shape[0]} entries but openpi mapping "
+                                f"{self.name!r} reads {len(sf.indices)}; send the family's full state")
             for j, i in enumerate(sf.indices):
-                if j < v.shape[0] and not filled[i]:
+                if not filled[i]:
                     state[i] = v[j] / (sf.scale[j] if sf.scale is not None else 1.0)
                     filled[i] = True
         prompt = _get(fobs, self.prompt_key) if self.prompt_key is not None and _has(fobs, self.prompt_key) else None
@@ -334,17 +392,24 @@ class ObsMapping:
         return out
 
 
-# DROID (openpi src/openpi/policies/droid_policy.py, examples/droid/main.py; pi0/pi0-FAST/pi05 _droid): two HWC uint8
-# images letterboxed to 224x224 (the DROID client resizes with pad before sending), state joint_position [7] +
-# gripper_position [1], actions [H, 8] = 7 joint velocities + gripper position (DroidOutputs keeps the first 8 dims).
-# Our robot is a DROID Franka: an 8-D model, state [7 joint positions, gripper], views in DROID dataset order
-# (exterior 1, exterior 2, wrist; openpi's policies take exterior 1 and the wrist only).
+# DROID (openpi@15a9616 src/openpi/policies/droid_policy.py, examples/droid/main.py, training/config.py pi0_droid /
+# pi0_fast_droid / pi05_droid): HWC uint8 images letterboxed to 224x224 by the client (main.py's resize_with_pad), the
+# chosen exterior camera as "observation/exterior_image_1_left" and the wrist as "observation/wrist_image_left" (the
+# left image of each stereo pair; DroidInputs reads no other camera), state "observation/joint_position" [7] +
+# "observation/gripper_position" [1], "prompt". The reply is actions [H, 8] = 7 joint velocities + gripper position
+# (DroidOutputs keeps the first 8 of the model's dims; H = 10 for pi0 / pi0-FAST, 15 for pi05), of which main.py
+# executes 8 (open_loop_horizon) before asking again: our chunk. A shorter reply is an error, not padded: holding a
+# joint velocity keeps the arm moving. (main.py also binarises the gripper at 0.5 and clips to [-1, 1] before
+# env.step: the robot's job, not the mapping's.) Our robot is a DROID Franka: an 8-D model, state [7 joint positions,
+# gripper], views in DROID dataset order (exterior 1, exterior 2, wrist; view 0 and the last view are sent).
 DROID = ObsMapping(
     name="droid",
     views=(ViewField("observation/exterior_image_1_left", 0), ViewField("observation/wrist_image_left", -1)),
     state=(StateField("observation/joint_position", tuple(range(7))),
            StateField("observation/gripper_position", (7,))),
     action_map=ActionMap(family_dim=8),
+    pad_actions="error",
+    chunk=8,
     state_dim=8,
 )
 # LIBERO (pi0/pi05 _libero): 224x224 HWC images, state [8] = EE pos (3), axis-angle (3), gripper qpos (2, the two
@@ -357,11 +422,17 @@ LIBERO = ObsMapping(
     action_map=ActionMap(family_dim=7),
     state_dim=7,
 )
-# ALOHA (openpi src/openpi/policies/aloha_policy.py, examples/aloha_real/{env,real_env}.py; pi0/pi05 _aloha*): images
-# {cam_high, cam_low, cam_left_wrist, cam_right_wrist} as CHW uint8 letterboxed to 224x224 (the ALOHA client's
-# resize_with_pad + "h w c -> c h w"), state [14] and actions [H, 14] = [left 6 joints, left gripper, right 6 joints,
-# right gripper] (AlohaOutputs keeps the first 14 dims). Our robot is a bimanual ALOHA: a 14-D model, 4 views in
-# that camera order.
+# ALOHA (openpi@15a9616 src/openpi/policies/aloha_policy.py, examples/aloha_real/{main,env,real_env}.py,
+# training/config.py pi0_aloha / pi05_aloha / pi0_aloha_*): "images" {cam_high, cam_low, cam_left_wrist,
+# cam_right_wrist} as CHW uint8 letterboxed to 224x224 by the client (env.py: resize_with_pad, convert_to_uint8,
+# "h w c -> c h w"; AlohaInputs.EXPECTED_CAMERAS; pi0/pi05 read cam_high and the two wrists, cam_low is accepted),
+# "state" [14] = the robot's qpos [left 6 joints, left gripper, right 6 joints, right gripper] in the standard ALOHA
+# space (real_env.py; the joint flips and gripper conversions of adapt_to_pi run in the server), and "prompt" (env.py
+# sends none and leaves it to the config's default_prompt; pi0_aloha / pi05_aloha have none and need one: pass
+# prompts=None for a server whose config has one). The reply is actions [H, 14] in the same layout, absolute joint
+# targets (AlohaOutputs keeps the first 14 dims; the server turns its delta joints back to absolute; H = 50), of which
+# main.py executes 25 (action_horizon): our chunk. Our robot is a bimanual ALOHA: a 14-D model, 4 views in that camera
+# order.
 ALOHA_CAMERAS = ("cam_high", "cam_low", "cam_left_wrist", "cam_right_wrist")
 ALOHA = ObsMapping(
     name="aloha",
@@ -369,6 +440,7 @@ ALOHA = ObsMapping(
     state=(StateField("state", tuple(range(14))),),
     action_map=ActionMap(family_dim=14),
     channels_first=True,
+    chunk=25,
     view_names=ALOHA_CAMERAS,
     num_views=4,
     state_dim=14,
@@ -385,4 +457,24 @@ def get_mapping(family: str | ObsMapping | None) -> ObsMapping | None:
     try:
         return PRESETS[family.lower()]
     except KeyError:
-        raise ValueError(f"unknown policy family {family!r}; expected one of native, {', '.join(PRESETS)}") from None
+        raise UserError(f"unknown policy family {family!r}; expected one of native, {', '.join(PRESETS)}") from None
+
+
+def for_world_model(family: str | ObsMapping | None, views: tuple[str, ...], prompts: list[str], what: str):
+    """The openpi ``family``'s mapping (None: native) for a world model with ``views``, prompting with ``prompts``
+    (task id i -> prompts[i], e.g. each held-out episode's own instruction; an empty one sends no prompt, so the
+    server's default applies). Cameras named by the preset are taken by the model's view names when it has them all
+    (an ALOHA dataset's cam_high, ...), else by position; a view it cannot have is refused here (``what``: the
+    option that chose the family, for the message), not at the first chunk."""
+    m = get_mapping(family)
+    if m is None:
+        return None
+    names = [vf.view for vf in m.views if isinstance(vf.view, str)]
+    if names and set(names) <= set(views):
+        m = m.replace(view_names=tuple(views), num_views=len(views))
+    want = [m.view_names.index(v) if isinstance(v, str) else v for v in (vf.view for vf in m.views)]
+    if any(not -len(views) <= i < len(views) for i in want):
+        keys = [vf.key if isinstance(vf.key, str) else "/".join(vf.key) for vf in m.views]
+        raise UserError(f"{what}: openpi's {m.name} layout sends {len(keys)} cameras {keys}; the world model has "
+                        f"{len(views)} views {list(views)}")
+    return m.replace(prompts={i: p or None for i, p in enumerate(prompts)})

@@ -48,8 +48,9 @@ class PolicyServer:
             raise TypeError(f"{type(policy).__name__} is neither a JaxPolicy nor a HostPolicy (no .infer)")
         self.mapping = get_mapping(mapping)
         name = getattr(policy, "name", type(policy).__name__)
-        if self.mapping is not None:  # a JaxPolicy (or a HostPolicy that says) knows its action dim: refuse at start
-            self.mapping.check_dims(action_dim=getattr(policy, "action_dim", None), who=f"policy {name!r}")
+        if self.mapping is not None:  # a JaxPolicy (or a HostPolicy that says) knows its dims: refuse at start
+            self.mapping.check_dims(action_dim=getattr(policy, "action_dim", None),
+                                    state_dim=getattr(policy, "state_dim", None), who=f"policy {name!r}")
         self.api_key = api_key
         chunk = getattr(self.policy, "chunk", None)
         self.metadata = {"server": "sc3_jax", "policy": str(name), "family": self.mapping.name if self.mapping else

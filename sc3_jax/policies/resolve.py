@@ -1,7 +1,8 @@
 """One way to name a policy, for every command that takes one (``sc3 rollout``, ``sc3 sweep``, ``sc3 serve-policy``).
 
     bus_bc_full              a zoo policy (``sim/zoo.py``; acts on its zoo entry's task)
-    zero | random | linear   a built-in JAX policy (``policies/simple.py``)
+    zero | random | linear   a built-in JAX policy (``policies/simple.py``), built for the world model's action space
+                             and views where the command passes them (else the benchmark's: 7-D delta_ee, 3 views)
     package.module:attr      a JaxPolicy / HostPolicy, or a zero-argument factory of one
     ws://HOST:PORT           a policy server speaking openpi's protocol (``policies/openpi_client.py``)
     NAME=SPEC                any of the above, called NAME (the sweep's record and directory name)
@@ -15,7 +16,9 @@ import dataclasses
 import importlib
 from typing import Any
 
+from sc3_jax.data.action_space import ActionSpace
 from sc3_jax.policies.base import HostPolicy, JaxPolicy
+from sc3_jax.policies.openpi_mappings import ObsMapping
 
 TASKS = ("bussing", "reverse")
 SPELLINGS = "a zoo name, zero | random | linear, package.module:attr or ws://HOST:PORT, as [NAME=]SPEC[@TASK]"
@@ -45,14 +48,17 @@ def parse(spec: str) -> tuple[str | None, str, str | None]:
     return name, spec, task
 
 
-def resolve(spec: str, chunk: int | None = None, family: str | None = None) -> Resolved:
+def resolve(spec: str, chunk: int | None = None, family: str | ObsMapping | None = None,
+            action_space: ActionSpace | None = None, num_views: int | None = None) -> Resolved:
     """The policy ``spec`` names (see the module docstring). ``chunk``: a built-in policy's actions per call
-    (default its own); ``family``: the openpi observation mapping of a ``ws://`` server (None / "native": ours)."""
+    (default its own); ``family``: the openpi observation mapping of a ``ws://`` server (None / "native": ours);
+    ``action_space`` and ``num_views``: what a built-in policy acts in and sees, the world model's
+    (``NormStats.action_space``, ``len(cfg.data.views)``; None: the benchmark's 7-D delta_ee and 3 views)."""
     from sc3_jax.policies import simple
 
     name, body, task = parse(spec)
     if body in simple.BUILTIN:
-        policy = simple.BUILTIN[body]() if chunk is None else simple.BUILTIN[body](chunk=chunk)
+        policy = simple.builtin(body, chunk, action_space, num_views)
     elif body.startswith(("ws://", "wss://")):
         from sc3_jax.policies.openpi_client import WebsocketClientPolicy
         policy = WebsocketClientPolicy(body, port=None, mapping=None if family in (None, "native") else family)
