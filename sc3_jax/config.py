@@ -236,6 +236,15 @@ class FlowConfig:
     forward pass (no gradient) predicts the future of each window's first K + T frames in one Euler step from pure
     noise, and a picked sample's context becomes the last K of [real context, first l predicted frames], its targets
     the real frames after them (flow.self_forced_window). Per-frame tokenizers only. 0: off (windows as before)"""
+    distill_teacher: str | None = None
+    """distil the sampler (progressive distillation, Salimans & Ho 2022): a saved world model (a `sc3 train`
+    workdir or an exported model) whose distill_steps-step Euler sample the trained model (the student, started
+    from --train.init-from, usually the same model) learns to produce in ONE step, from the same noise and
+    conditions (flow.distill_loss); it replaces the flow loss. The teacher is frozen, read again on resume, and its
+    model config must match this one. None: off (the flow loss)"""
+    distill_steps: int = 2
+    """the teacher's Euler steps for the video targets (the student takes 1); actions (inverse dynamics, which
+    the sweep re-reads in 1 step) keep the teacher's 1-step read. Read only with distill_teacher"""
 
 
 @dataclasses.dataclass(frozen=True)

@@ -227,3 +227,51 @@ def sample(params, cfg: ModelConfig, video, actions, stride, video_noisy, action
 
     xv, xa = jax.lax.fori_loop(0, steps, step, (video, actions))
     return xv.at[:, :, :K].set(given[:, :, :K]), xa
+
+
+def distill_loss(params, teacher_params, cfg: ModelConfig, video, actions, stride, rng, probs, grid,
+                 fcfg: FlowConfig = FlowConfig(), teacher_cfg: ModelConfig | None = None,
+                 teacher_fcfg: FlowConfig | None = None, context_frames: int | None = None, pose=None,
+                 context_noise: float = 0.0):
+    """Progressive distillation of the sampler (Salimans & Ho 2022, on rectified flow): the student (``params``)
+    learns to produce in ONE Euler step what the teacher (``teacher_params``, frozen) produces in
+    ``fcfg.distill_steps``, from the same noise, context noise and conditions. Both go through ``sample`` itself --
+    one key, so one noise draw, and the path a rollout takes (context noise at the inference level
+    ``context_noise``, pose conditioning, anchor, context cache) -- and the loss is ``masked_loss`` between the two
+    samples over each sample's noisy tokens, modes drawn from ``probs`` as in ``loss``. Video targets are the
+    teacher's ``distill_steps``-step sample; action targets (inverse dynamics) its 1-step read, the step count the
+    sweep re-reads actions with (``SweepConfig.inverse_steps``), so U_chunk -- and the tau calibrated on it -- keep
+    the teacher's meaning. With residual prediction the student's one step is its clean estimate x0_hat, so the
+    loss is on the flow loss's scale. ``teacher_cfg`` / ``teacher_fcfg``: the teacher's model (its compute dtype)
+    and its time grid (default: the student's). Metrics: the loss, per mode, and ``loss_teacher_1step`` /
+    ``loss_forward_teacher_1step``: the same loss for the teacher's own 1-step sample, where the student starts (a
+    student below it samples closer to the teacher's ``distill_steps`` steps than the teacher does in one)."""
+    teacher_cfg = cfg if teacher_cfg is None else teacher_cfg
+    teacher_fcfg = fcfg if teacher_fcfg is None else teacher_fcfg
+    B, V, F = video.shape[:3]
+    T = actions.shape[1]
+    K = F - T if context_frames is None else context_frames
+    k_mode, k_sample = jax.random.split(rng)
+    mode, kept = modes_lib.draw(k_mode, B, V, probs)
+    video_noisy, action_noisy = modes_lib.masks(mode, kept, V, K, F - K, T)
+    const = jax.lax.stop_gradient
+
+    def run(p, c, fc, steps):
+        return sample(p, c, video, actions, stride, video_noisy, action_noisy, k_sample, steps, grid, cache="auto",
+                      fcfg=fc, context_frames=context_frames, pose=pose, context_noise=context_noise)
+
+    one_v, one_a = (const(x) for x in run(const(teacher_params), teacher_cfg, teacher_fcfg, 1))
+    target_v = one_v if fcfg.distill_steps == 1 else \
+        const(run(const(teacher_params), teacher_cfg, teacher_fcfg, fcfg.distill_steps)[0])
+    student_v, student_a = run(params, cfg, fcfg, 1)
+    masks = (video_noisy[:, :, K:], action_noisy, (fcfg.video_loss_weight, fcfg.action_loss_weight))
+    total, per_sample = masked_loss(student_v[:, :, K:], student_a, target_v[:, :, K:], one_a, *masks)
+    base, base_per_sample = masked_loss(one_v[:, :, K:], one_a, target_v[:, :, K:], one_a, *masks)
+    metrics = {"loss": total, "loss_teacher_1step": base}
+    for m, name in enumerate(modes_lib.NAMES):
+        sel = (mode == m).astype(jnp.float32)
+        metrics[f"loss_{name}"] = jnp.sum(per_sample * sel) / jnp.maximum(jnp.sum(sel), 1.0)
+        metrics[f"frac_{name}"] = jnp.mean(sel)
+    fd = (mode == modes_lib.FD).astype(jnp.float32)
+    metrics["loss_forward_teacher_1step"] = jnp.sum(base_per_sample * fd) / jnp.maximum(jnp.sum(fd), 1.0)
+    return total, metrics

@@ -16,6 +16,7 @@ import optax
 import orbax.checkpoint as ocp
 
 from sc3_jax import atomic, checkpoint, flow, sharding
+from sc3_jax.distill import WithTeacher, check_teacher_stats, load_teacher, teacher_config
 from sc3_jax.config import Config, config_from_dict
 from sc3_jax.errors import UserError
 from sc3_jax.model import dit
@@ -115,35 +116,42 @@ def make_train_step(cfg: Config):
     opt = make_optimizer(cfg)
     K_tok = context_token_frames(cfg)
     shift = self_forcing_shift(cfg)
+    teacher_cfg = teacher_config(cfg)
 
     A, B = cfg.train.grad_accum, cfg.data.batch_size
     if A < 1 or B % A:
         raise ValueError(f"train.grad_accum = {A} must be >= 1 and divide data.batch_size = {B}")
 
-    def grads_and_metrics(params, batch, rng):
+    def grads_and_metrics(params, batch, rng, teacher=None):
         video = tok.from_latents(batch["latents"]) if "latents" in batch else tok.encode(batch["frames"])
         loss_fn = lambda p: flow.loss(p, cfg.model, video, batch["actions"], batch["stride"], rng,  # noqa: E731
                                       cfg.modes.probs, grid, cfg.flow, context_frames=K_tok,
                                       pose=batch.get("pose"), self_forcing_shift=shift)
+        if teacher_cfg is not None:  # the teacher is an argument, not differentiated: it costs forward passes only
+            loss_fn = lambda p: flow.distill_loss(  # noqa: E731
+                p, teacher, cfg.model, video, batch["actions"], batch["stride"], rng, cfg.modes.probs, grid,
+                cfg.flow, teacher_cfg.model, teacher_cfg.flow, context_frames=K_tok, pose=batch.get("pose"),
+                context_noise=cfg.sample.context_noise)
         (_, metrics), grads = jax.value_and_grad(loss_fn, has_aux=True)(params)
         return grads, metrics
 
-    def accumulated(params, batch, rng):
+    def accumulated(params, batch, rng, teacher=None):
         """Mean of the micro-batches' gradients and metrics (the loss is a per-sample mean, so this is the big
         batch's gradient). Micro-batch i takes samples i, i + A, ...: every device keeps its share of each one."""
         micro = jax.tree.map(lambda x: x.reshape(B // A, A, *x.shape[1:]).swapaxes(0, 1), batch)
 
         def body(acc, i):
-            out = grads_and_metrics(params, jax.tree.map(lambda x: x[i], micro), jax.random.fold_in(rng, i))
+            out = grads_and_metrics(params, jax.tree.map(lambda x: x[i], micro), jax.random.fold_in(rng, i), teacher)
             return jax.tree.map(lambda a, o: a + o.astype(a.dtype) / A, acc, out), None
 
-        shapes = jax.eval_shape(grads_and_metrics, params, jax.tree.map(lambda x: x[0], micro), rng)
+        shapes = jax.eval_shape(grads_and_metrics, params, jax.tree.map(lambda x: x[0], micro), rng, teacher)
         zeros = jax.tree.map(lambda s: jnp.zeros(s.shape, jnp.float32 if s.dtype == jnp.bfloat16 else s.dtype), shapes)
         return jax.lax.scan(body, zeros, jnp.arange(A))[0]
 
-    def train_step(state, batch):
+    def train_step(state, batch, teacher=None):
+        """``teacher``: the distillation teacher's params (``flow.distill_teacher``; ``load_teacher``)."""
         rng = jax.random.fold_in(jax.random.wrap_key_data(state["rng"]), state["step"])
-        grads, metrics = (grads_and_metrics if A == 1 else accumulated)(state["params"], batch, rng)
+        grads, metrics = (grads_and_metrics if A == 1 else accumulated)(state["params"], batch, rng, teacher)
         updates, opt_state = opt.update(grads, state["opt_state"], state["params"])
         params = optax.apply_updates(state["params"], updates)
         metrics["grad_norm"] = optax.tree.norm(grads)
@@ -175,9 +183,15 @@ def batch_shapes(cfg: Config) -> dict[str, jax.ShapeDtypeStruct]:
 
 
 def compile_train_step(cfg: Config, mesh):
-    """jit with explicit shardings and the state donated. Returns (step_fn, state_shardings)."""
+    """jit with explicit shardings and the state donated. Returns (step_fn, state_shardings). With
+    ``flow.distill_teacher`` the teacher's params are read here, placed as the student's, and passed to every call
+    of step_fn(state, batch) (``WithTeacher``)."""
     _, st_shard = state_shardings(cfg, mesh)
     b_shard = {k: sharding.batch_sharding(mesh) for k in batch_shapes(cfg)}
+    if cfg.flow.distill_teacher:
+        step = jax.jit(make_train_step(cfg), in_shardings=(st_shard, b_shard, st_shard["params"]),
+                       out_shardings=(st_shard, sharding.replicated(mesh)), donate_argnums=(0,))
+        return WithTeacher(sharding.bind_mesh(step, mesh), load_teacher(cfg, st_shard["params"])), st_shard
     step = jax.jit(make_train_step(cfg), in_shardings=(st_shard, b_shard),
                    out_shardings=(st_shard, sharding.replicated(mesh)), donate_argnums=(0,))
     return sharding.bind_mesh(step, mesh), st_shard
@@ -332,7 +346,8 @@ def check_workdir(cfg: Config) -> None:
     old, new = (dict(flat(json.loads(json.dumps(dataclasses.asdict(c))))) for c in
                 (config_from_dict(atomic.read_json(path, "restore it from a copy")), cfg))
     diff = [f"{k} {old.get(k)!r} -> {new.get(k)!r}" for k in sorted(old.keys() | new.keys())
-            if old.get(k) != new.get(k) and not (k.startswith(RESUMABLE) and not _sets_windows(k, old, new))]
+            if old.get(k) != new.get(k) and not (k.startswith(RESUMABLE) and not _sets_windows(k, old, new)
+                                                 and not _distills_with(k, old, new))]
     if diff:
         raise UserError(f"{path.parent} holds a run with another config (changed: {'; '.join(diff)}): resume it "
                         "with its own settings, or use another --train.workdir")
@@ -344,16 +359,24 @@ def _sets_windows(key: str, old: dict, new: dict) -> bool:
     return key == "rollout.keep_frames" and bool(old.get("flow.self_forcing") or new.get("flow.self_forcing"))
 
 
+def _distills_with(key: str, old: dict, new: dict) -> bool:
+    """sample.context_noise is the level flow.distill_loss samples teacher and student with: then it is training
+    data, not a sampler setting, and a resumed run keeps it."""
+    return key == "sample.context_noise" and bool(old.get("flow.distill_teacher") or new.get("flow.distill_teacher"))
+
+
 def train(cfg: Config, mesh=None, stop_at: int | None = None) -> dict:
     """Train (or resume) until ``cfg.train.steps`` (or ``stop_at``). Returns the last logged metrics."""
     check_workdir(cfg)
+    teacher_config(cfg)  # a wrong teacher is refused before anything is written
     workdir = Path(cfg.train.workdir)
     workdir.mkdir(parents=True, exist_ok=True)
     if jax.process_index() == 0:
         atomic.remove_stale(workdir, recursive=True)  # temporaries of writers killed in an earlier attempt
         atomic.write_json(workdir / "config.json", dataclasses.asdict(cfg))
     mesh = sharding.make_mesh(cfg.mesh) if mesh is None else mesh
-    _, _, data_iter = prepare_data(cfg)
+    _, stats, data_iter = prepare_data(cfg)
+    check_teacher_stats(cfg, stats)
     step_fn, _ = compile_train_step(cfg, mesh)
     mngr = checkpoint_manager(cfg)
     if mngr.latest_step() is not None:

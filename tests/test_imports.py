@@ -158,7 +158,7 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
     ("model", ("model",)),
     ("training modes, flow", ("modes", "flow")),
     ("checkpoint", ("checkpoint",)),
-    ("train", ("train", "sharding", "tokenizer_train")),
+    ("train", ("train", "sharding", "tokenizer_train", "distill")),
     ("policies", ("policies",)),
     ("simulator", ("sim",)),
     ("policy names", ("policies.resolve",)),

@@ -12,6 +12,8 @@ from sc3_jax.data import synthetic
 from sc3_jax.errors import UserError
 from sc3_jax.model import dit
 
+from _training_checks import assert_resumed_like_straight, assert_same_training
+
 K, T, L = 2, 3, 2  # context frames, future frames, rollout.keep_frames (the shift)
 V, P_, D = 3, 4, 48  # views, tokens per frame (8x8 images, 4x4 patches), token width
 GRID = (2, 2)
@@ -109,15 +111,9 @@ def test_off_trains_exactly_as_without_the_feature(monkeypatch):
             rows.append(jax.device_get(metrics))
         return jax.device_get(state["params"]), rows
 
-    params, rows = run()
+    now = run()
     monkeypatch.setattr(flow, "loss", _loss_without_self_forcing)
-    ref_params, ref_rows = run()
-    for a, b in zip(jax.tree.leaves(params), jax.tree.leaves(ref_params)):
-        np.testing.assert_array_equal(a, b)
-    for row, ref in zip(rows, ref_rows):
-        assert row.keys() == ref.keys()
-        for k in row:
-            np.testing.assert_array_equal(row[k], ref[k], err_msg=k)
+    assert_same_training(now, run())
 
 
 @pytest.mark.parametrize("shift", [1, 3])
@@ -228,13 +224,7 @@ def test_resume_is_exact_and_keeps_the_shift(tmp_path):
     train.train(cfg("resumed"), mesh, stop_at=2)
     assert sorted(train.read_metrics(tmp_path / "resumed")) == [1, 2]
     train.train(cfg("resumed"), mesh)
-    a, b = train.read_metrics(tmp_path / "straight"), train.read_metrics(tmp_path / "resumed")
-    assert sorted(a) == sorted(b) == [1, 2, 3, 4]
-    for step in a:
-        assert "frac_self_forced" in a[step]
-        for k in a[step]:
-            if k != "steps_per_s":
-                assert b[step][k] == a[step][k], (step, k)
+    assert_resumed_like_straight(tmp_path / "straight", tmp_path / "resumed", "frac_self_forced")
     with pytest.raises(UserError, match="rollout.keep_frames"):
         train.check_workdir(replace(cfg("resumed"), rollout=dict(keep_frames=1)))
     train.check_workdir(replace(cfg("resumed"), rollout=dict(tau=0.05)))  # other rollout settings may change
