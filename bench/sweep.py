@@ -10,8 +10,9 @@
   importing JAX and compiling, paid once per sweep) is left out; the start is printed.
 * online: the same batch of ``--batch`` initial conditions of one zoo policy inside the shipped world model, the
   first ``--chunks`` chunks (every chunk costs the same: static shapes), with today's sampler (8 forward Euler
-  steps, 2 inverse re-read steps) and the new default's (``SweepConfig``'s ``sample_steps`` / ``inverse_steps``);
-  each timed on its second call (compiled), scaled to a 12 s rollout.
+  steps, 2 inverse re-read steps) in one process and the new default's (``SweepConfig``'s ``sample_steps`` /
+  ``inverse_steps``) in one single-threaded worker process per core (``evaluate.model_workers``), each running the
+  batch at the same time; each timed on its second call (compiled), scaled to a 12 s rollout.
 
 full_protocol_h: the full protocol (13 policies; 36 evaluation + 6 calibration + 36 ceiling real rollouts and 36 +
 6 online rollouts per policy) at these per-rollout costs. Last line:
@@ -53,14 +54,16 @@ def real_cost(workers: int, n_seeds: int, root: str, degrade: bool) -> tuple[flo
     return (arrivals[-1] - arrivals[w - 1]) / (len(arrivals) - w), arrivals[w - 1]
 
 
-def online_cost(fd: int, inv: int, chunks: int, batch: int) -> float:
-    """Seconds per 12 s online rollout (amortised over the batch) at (forward, inverse) Euler steps."""
+def online_cost(fd: int, inv: int, chunks: int, batch: int, barrier=None) -> float:
+    """Seconds per 12 s online rollout of one process (amortised over the batch) at (forward, inverse) Euler steps;
+    with ``barrier``, the timed call starts when every worker beside this one has compiled."""
     import jax
 
     from sc3_jax import checkpoint, rollout
     from sc3_jax.config import replace
     from sc3_jax.evaluate import perception
-    from sc3_jax.evaluate.sweep import SHIPPED_WORLD_MODEL, STATE_READER_FILE, initial_observation
+    from sc3_jax.evaluate.model_workers import initial_observation
+    from sc3_jax.evaluate.sweep import SHIPPED_WORLD_MODEL, STATE_READER_FILE
     from sc3_jax.sim.policy_eval import make_env
     from sc3_jax.sim.tasks import task_id
     from sc3_jax.sim.zoo import load_policy
@@ -77,9 +80,36 @@ def online_cost(fd: int, inv: int, chunks: int, batch: int) -> float:
     keys = np.asarray(rollout.episode_keys(0, batch))
     policy = load_policy("bus_bc_full")
     ro.run(params, policy, ics, keys, math.inf)  # compile
+    if barrier is not None:
+        barrier.wait(timeout=1800)
     t0 = time.perf_counter()
     jax.block_until_ready(ro.run(params, policy, ics, keys, math.inf)["u"])
     return (time.perf_counter() - t0) / chunks * full_chunks / batch
+
+
+_BARRIER = None  # a bench worker's (set by _init_worker)
+
+
+def _init_worker(barrier) -> None:
+    global _BARRIER
+    import sc3_jax.sim  # noqa: F401  (picks the GL backend before mujoco is imported)
+    _BARRIER = barrier
+
+
+def _online_in_worker(args) -> float:
+    return online_cost(*args, barrier=_BARRIER)
+
+
+def online_cost_workers(fd: int, inv: int, chunks: int, batch: int, workers: int) -> float:
+    """Seconds per online rollout of ``workers`` sweep worker processes (``evaluate.worker_pool``: one thread each)
+    running a batch each at the same time: the slowest one's time over every rollout they ran."""
+    import multiprocessing as mp
+
+    from sc3_jax.evaluate import worker_pool
+    barrier = mp.get_context("spawn").Barrier(workers)
+    with worker_pool.pool(workers, _init_worker, (barrier,)) as pool:
+        times = pool.map(_online_in_worker, [(fd, inv, chunks, batch)] * workers, chunksize=1)
+    return max(times) / workers
 
 
 def hours(real_s: float, online_s: float) -> float:
@@ -106,12 +136,14 @@ def main(argv=None) -> None:
     share = {"all": 1.0, "none": 0.0, "calibration": FULL["calibration"] / FULL["real"]}[new.degradations]
     real_new = share * real_degraded + (1 - share) * real_clean
     online_old = online_cost(8, 2, a.chunks, a.batch)
-    online_new = online_cost(new.sample_steps or 8, new.inverse_steps or 8, a.chunks, a.batch)
+    from sc3_jax.evaluate.model_workers import in_workers
+    steps = (new.sample_steps or 8, new.inverse_steps or 8, a.chunks, a.batch)
+    online_new = online_cost_workers(*steps, workers) if in_workers(workers, workers) else online_cost(*steps)
     h_old, h_new = hours(real_old, online_old), hours(real_new, online_new)
     print("| path | real s / rollout | online s / rollout | full protocol h |\n|---|---|---|---|")
     print(f"| today: 1 process, 8 + 2 Euler steps | {real_old:.2f} | {online_old:.1f} | {h_old:.2f} |")
     print(f"(real, {workers} workers: {real_clean:.2f} s clean, {real_degraded:.2f} s also read degraded)")
-    print(f"| new default: {workers} real workers, degraded copies read on {new.degradations}, "
+    print(f"| new default: {workers} worker processes (one thread each), degraded copies read on {new.degradations}, "
           f"{new.sample_steps} + {new.inverse_steps} Euler steps | "
           f"{real_new:.2f} | {online_new:.1f} | {h_new:.2f} |")
     print(f"(until the first real records: {start_old:.1f} s in process, {start_new:.1f} s with {workers} workers)")

@@ -8,6 +8,7 @@ import subprocess
 import sys
 
 import jax
+import numpy as np
 import pytest
 
 import sc3_jax.sim  # noqa: F401  (picks the GL backend before mujoco is imported)
@@ -57,15 +58,21 @@ def test_work_units_split_into_disjoint_shards_that_cover_the_sweep(tiny):
             sweep.parse_shard(bad)
 
 
-@pytest.mark.slow  # ~1 min: an unsharded sweep, then worker processes that each import JAX and compile
-def test_real_rollouts_in_two_worker_processes_equal_one_process(setup, tmp_path):
+@pytest.mark.slow  # ~2 min: an unsharded sweep, then worker processes that each import JAX and compile
+def test_rollouts_in_two_worker_processes_equal_one_process(setup, tmp_path):
+    """Real rollouts and world-model batches (offline, online) in 2 single-threaded worker processes: the records
+    and arrays of the sweep run in one process (multi-threaded), bit for bit."""
     _, cfg = setup
-    out = sweep.run_sweep(dataclasses.replace(cfg, out=str(tmp_path / "two"), modes=("real",), workers=2))
-    two = by_id(ResultsStore(out))
-    one = {k: r for k, r in by_id(ResultsStore(cfg.out)).items() if r["mode"] == "real"}
-    assert len(two) == len(POLICIES) * 5 and two == one
+    out = sweep.run_sweep(dataclasses.replace(cfg, out=str(tmp_path / "two"), workers=2))
+    two, one = ResultsStore(out), ResultsStore(cfg.out)
+    assert by_id(two) == by_id(one) and {r["mode"] for r in two.records()} == set(EVAL_MODES)
+    assert [r["id"] for r in two.records()] == [r["id"] for r in one.records()]  # appended in the same order
+    for rid in by_id(one):
+        with np.load(two.array_path(rid)) as a, np.load(one.array_path(rid)) as b:
+            assert a.files == b.files and all(np.array_equal(a[k], b[k]) for k in a.files), rid
     timing = json.loads((out / "timing.json").read_text())
-    assert timing["workers"] == 2 and timing["rollouts_run"]["real"] == len(two)
+    assert timing["workers"] == timing["model_workers"] == 2
+    assert sum(timing["rollouts_run"].values()) == len(by_id(two))
 
 
 @pytest.mark.slow  # ~2 min: two sweep processes beside the unsharded one

@@ -1,8 +1,7 @@
 """Real (simulated) rollouts of a sweep: one rollout scored (``run_real``), and many in worker processes.
 
 A real rollout is a single-threaded MuJoCo episode plus a small perception network: one process leaves the other
-cores idle. Each worker is a *spawned* process (forking a process that has started JAX's thread pools is unsafe)
-that builds its own simulator, scorer and policies once, runs whole rollouts, writes each rollout's arrays into the
+cores idle. Each worker is a spawned, single-threaded process (``worker_pool``) that builds its own simulator, scorer and policies once, runs whole rollouts, writes each rollout's arrays into the
 store itself (atomically, one file per rollout) and returns its record. The parent appends the records in job order
 (``imap``), so a store's lines and values do not depend on the number of workers: a rollout depends only on its
 (policy, seed) (``sim/policy_eval.run_policy_episode`` seeds the policy from the simulator seed) and every worker
@@ -11,12 +10,12 @@ computes it with the same code and the same compiled shapes.
 from __future__ import annotations
 
 import dataclasses
-import multiprocessing as mp
 import os
 from collections.abc import Iterator
 
 import numpy as np
 
+from sc3_jax.evaluate import worker_pool
 from sc3_jax.evaluate.results import ResultsStore, rollout_id
 
 
@@ -112,17 +111,5 @@ def run_real_jobs(jobs: list[RealJob], setup: RealSetup, workers: int, policies:
         for job in jobs:
             yield job, runner(job)
         return
-    ctx = mp.get_context("spawn")
-    # the workers run MuJoCo and a small network on the CPU: on an accelerator machine they must not claim its memory
-    # (spawned processes take the environment as it is when the pool starts them)
-    before = os.environ.get("JAX_PLATFORMS")
-    os.environ["JAX_PLATFORMS"] = "cpu"
-    try:
-        pool = ctx.Pool(min(workers, len(jobs)), initializer=_init, initargs=(setup,))
-    finally:
-        if before is None:
-            os.environ.pop("JAX_PLATFORMS")
-        else:
-            os.environ["JAX_PLATFORMS"] = before
-    with pool:
+    with worker_pool.pool(min(workers, len(jobs)), _init, (setup,)) as pool:
         yield from zip(jobs, pool.imap(_work, jobs, chunksize=1))

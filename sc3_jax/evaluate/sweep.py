@@ -124,7 +124,9 @@ class SweepConfig:
     it; under jax.distributed with several processes, the process's own share). `sc3 report OUT` reads the
     shards of OUT as one store; merged shards hold exactly the records of one unsharded sweep"""
     workers: int = 0
-    """processes running the real (simulated) rollouts (0: one per core); records do not depend on it"""
+    """processes running the rollouts (0: one per core): the real (simulated) ones, and the world model's batches
+    when it runs on the CPU (single-threaded processes use the cores better than one process on all of them; on
+    an accelerator the batches run in this process). Records do not depend on it"""
     progress: bool = True
     """progress bar over rollouts"""
 
@@ -133,16 +135,6 @@ class SweepConfig:
         d["taus"] = [str(t) for t in self.taus]  # JSON has no inf
         d.pop("workers")  # how the work was spread, not what it computed: a store resumes under any count
         return json.loads(json.dumps(d))  # tuples -> lists, as read back from sweep.json
-
-
-# ================================================================================================================
-# The three evaluation modes
-# ================================================================================================================
-def initial_observation(env, seed: int, task: str):
-    """Frames uint8 [V, H, W, 3] and end-effector pose [7] right after reset: where real and imagined start."""
-    env.reset(seed, task)
-    f = env.render()
-    return np.stack([f[v] for v in env.views]), env.ee_pose().astype(np.float32)
 
 
 # ================================================================================================================
@@ -157,9 +149,9 @@ def run_sweep(cfg: SweepConfig) -> Path:
     from sc3_jax import rollout as ro_mod
     from sc3_jax.evaluate import perception
     from sc3_jax.evaluate.rescore import weights_digest
+    from sc3_jax.evaluate.model_workers import ModelJob, ModelRunner, ModelSetup, in_workers, run_model_jobs
     from sc3_jax.evaluate.real_workers import RealJob, RealSetup, default_workers, run_real_jobs
     from sc3_jax.evaluate.scorers import PerceptionScorer
-    from sc3_jax.policies.base import JaxPolicy
     from sc3_jax.sim.policy_eval import make_env
 
     cfg = dataclasses.replace(cfg, degradations=degradations_choice(cfg.degradations))
@@ -184,21 +176,14 @@ def run_sweep(cfg: SweepConfig) -> Path:
     specs = list(cfg.policies or _zoo_names(cfg.tasks))
     policies = [_resolve(p) for p in specs]
     wm_modes = [m for m in cfg.modes if m != "real"]
-    ro = params = None
+    spec = None
     if wm_modes:
-        wcfg, stats, params = checkpoint.load(cfg.world_model)
         from sc3_jax.evaluate.world_model_defaults import evaluation_config
-        wcfg = evaluation_config(wcfg, cfg)  # the one set of evaluation settings (sc3 rollout / diagnose too)
-        reader = perception.load(cfg.state_reader) if cfg.state_reader else p_params
-        # a shard's batches run on its own process's devices: under jax.distributed every process runs a different
-        # share, so a mesh over every host's devices would wait for programs the other processes never start
-        from sc3_jax import sharding
-        from sc3_jax.config import MeshConfig
-        mesh = sharding.make_mesh(MeshConfig(-1, 1, 1), jax.local_devices())
-        ro = ro_mod.Rollout(wcfg, stats, mesh=mesh, state_reader=perception.state_reader(reader))
-    image_size, score_stride = (tuple(ro.spec.image_size), ro.spec.stride) if ro else ((64, 64), REAL_ONLY_STRIDE)
+        wcfg = evaluation_config(checkpoint.read_config(cfg.world_model), cfg)
+        spec = ro_mod.make_spec(wcfg, action_space=checkpoint.read_norm_stats(cfg.world_model).action_space)
+    image_size, score_stride = (tuple(spec.image_size), spec.stride) if spec else ((64, 64), REAL_ONLY_STRIDE)
     env = make_env(image_size)
-    seconds = cfg.episode_seconds or (wcfg.rollout.episode_seconds if ro else 20.0)
+    seconds = cfg.episode_seconds or (wcfg.rollout.episode_seconds if spec else 20.0)
     max_steps = int(round(seconds * env.control_hz))
     units = work_units(len(policies), blocks, cfg.modes, cfg.batch)[index::count]
     real_seeds = sorted({(u.policy, s) for u in units if u.real for s in u.seeds})
@@ -217,33 +202,35 @@ def run_sweep(cfg: SweepConfig) -> Path:
     jobs = [RealJob(specs[p], *policies[p][:2], s, s in degrade) for p, s in real_seeds
             if rollout_id(policies[p][0], s, "real") not in done]
     setup = RealSetup(str(store.root), image_size, weights, max_steps, score_stride)
+    workers = cfg.workers or default_workers()
     t0 = time.time()
-    for job, rec in run_real_jobs(jobs, setup, cfg.workers or default_workers(),
+    for job, rec in run_real_jobs(jobs, setup, workers,
                                   {specs[p]: policies[p][2] for p in range(len(specs))}, env, scorer):
         store.append([{"id": rollout_id(job.name, job.seed, "real"), "mode": "real", "seed": job.seed,
                        "policy": job.name, "task": job.task, "split": SPLITS[job.task], **rec}])
         bar.update(1)
     timing["real"], count_run["real"] = time.time() - t0, len(jobs)
-    for u in units:
-        name, task, policy = policies[u.policy]
-        base = {"policy": name, "task": task, "split": SPLITS[task]}
-        for mode, offset in u.modes:
-            ids = [rollout_id(name, s, mode) for s in u.seeds]
-            if all(i in done for i in ids):
-                continue
-            t1 = time.time()
-            recs = _world_model_batch(mode, ro, params, env, name, task, policy, list(u.seeds),
-                                      list(range(offset + u.start, offset + u.start + len(u.seeds))), cfg, store,
-                                      scorer, isinstance(policy, JaxPolicy))
-            store.append([{"id": i, "mode": mode, "seed": s, **base, **r} for i, s, r in zip(ids, u.seeds, recs)])
-            timing[mode] += time.time() - t1
-            count_run[mode] += len(ids)
-            bar.update(len(ids))
+    model_jobs = [ModelJob(specs[u.policy], *policies[u.policy][:2], mode, u.seeds, offset + u.start)
+                  for u in units for mode, offset in u.modes
+                  if not all(rollout_id(policies[u.policy][0], s, mode) in done for s in u.seeds)]
+    model_setup = ModelSetup(str(store.root), cfg, str(weights))
+    in_process = lambda: ModelRunner(model_setup, {specs[p]: policies[p][2] for p in range(len(specs))}, env,
+                                     scorer)  # noqa: E731
+    t1 = time.time()
+    for job, recs in run_model_jobs(model_jobs, model_setup, workers, in_process):
+        ids = [rollout_id(job.name, s, job.mode) for s in job.seeds]
+        store.append([{"id": i, "mode": job.mode, "seed": s, "policy": job.name, "task": job.task,
+                       "split": SPLITS[job.task], **r} for i, s, r in zip(ids, job.seeds, recs)])
+        timing[job.mode] += time.time() - t1  # the workers overlap: each mode's share of the wall time
+        count_run[job.mode] += len(ids)
+        bar.update(len(ids))
+        t1 = time.time()
     bar.close()
     env.close()
     atomic.write_json(store.root / "timing.json", {
         "seconds_last_run": time.time() - t0, "seconds_by_mode": timing, "rollouts_run": count_run,
-        "workers": cfg.workers or default_workers(), "devices": [str(d) for d in jax.local_devices()]})
+        "workers": workers, "model_workers": workers if in_workers(workers, len(model_jobs)) else 1,
+        "devices": [str(d) for d in jax.local_devices()]})
     return store.root
 
 
@@ -421,40 +408,3 @@ def _resolve(spec: str):
 def _zoo_names(tasks=None):
     from sc3_jax.sim.zoo import zoo_names
     return [n for n in zoo_names() if tasks is None or any(n in zoo_names(t) for t in tasks)]
-
-
-def _world_model_batch(mode, ro, params, env, name, task, policy, seeds, indices, cfg, store, scorer, is_jax):
-    """Offline or online rollouts of one batch of initial conditions -> one record per rollout."""
-    from sc3_jax import rollout as ro_mod
-    from sc3_jax.evaluate.metrics import psnr_by_view
-    from sc3_jax.sim.tasks import make_initial_condition, task_id
-    s = ro.spec
-    obs = [initial_observation(env, seed, task) for seed in seeds]
-    frames0 = np.stack([np.repeat(f[:, None], s.context, 1) for f, _ in obs])  # [B, V, K, H, W, 3]: at rest
-    ics = ro_mod.InitialConditions(frames0, np.stack([p for _, p in obs]), np.full(len(seeds), task_id(task)))
-    # episode i's noise depends only on (rollout_seed, i): every policy meets the same draws (common random numbers)
-    keys = np.asarray(ro_mod.episode_keys(cfg.rollout_seed, len(seeds), start=indices[0]))
-    if mode == "offline":
-        real = [store.load_arrays(rollout_id(name, seed, "real")) for seed in seeds]
-        actions = np.stack([ro_mod.chunk_actions(r["actions"], s) for r in real])
-        out = ro.run_offline(params, ics, actions, keys, math.inf)
-    elif is_jax:
-        out = ro.run(params, policy, ics, keys, math.inf)
-    else:
-        out = ro.run_host(params, policy, ics, keys, math.inf)
-    recs = []
-    for b, seed in enumerate(seeds):
-        ic = make_initial_condition(seed, task)
-        frames = np.concatenate([out["initial_frames"][b][:, -1:], out["frames"][b]], 1)  # [V, 1 + N*l, ...]
-        cuts = scorer.score_cuts(frames, ic.objects, ic.destinations(), s.keep, s.num_chunks, prefix=1)
-        rec = {"objects": cuts[-1], "u": out["u"][b].tolist(), "u_raw": out["u_raw"][b].tolist(),
-               "num_chunks": s.num_chunks, "frames_per_chunk": s.keep, "stride": s.stride}
-        if mode == "online":
-            rec["objects_by_cut"] = cuts
-        else:
-            targets, valid = ro_mod.recorded_targets(real[b]["frames"], s)
-            rec["psnr_view"] = psnr_by_view(out["frames"][b], targets, valid)[1].tolist()  # per view
-        store.save_arrays(rollout_id(name, seed, mode), frames=frames, actions=out["actions"][b],
-                          reread=out["reread"][b], u=out["u"][b], u_raw=out["u_raw"][b])
-        recs.append(rec)
-    return recs

@@ -1,0 +1,31 @@
+"""The sweep's worker processes (``real_workers``, ``model_workers``): spawned, on the CPU, one thread each.
+
+*Spawned*: forking a process that has started JAX's thread pools is unsafe. *On the CPU*: on an accelerator machine
+the workers must not claim its memory. *One thread each*: the processes are the parallelism; a worker's XLA
+spreading its ops over every core beside the other workers only adds contention (2 real workers on the 2-core
+machine: 0.92 s per rollout single-threaded, 1.10 s not; 2 world-model workers: 1.17x the online rollouts per hour
+of one process on both cores). XLA's single-threaded CPU kernels give the multi-threaded ones' bits, so records do
+not depend on it (tests/test_sweep_shards.py compares worker processes with one process).
+"""
+from __future__ import annotations
+
+import multiprocessing as mp
+import os
+
+SINGLE_THREAD = "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"  # added to XLA_FLAGS
+
+
+def pool(processes: int, initializer, initargs: tuple):
+    """A spawn-context ``multiprocessing.Pool`` whose workers run JAX on one CPU thread each."""
+    ctx = mp.get_context("spawn")
+    saved = {k: os.environ.get(k) for k in ("JAX_PLATFORMS", "XLA_FLAGS")}  # a spawned process copies os.environ
+    os.environ["JAX_PLATFORMS"] = "cpu"
+    os.environ["XLA_FLAGS"] = f"{saved['XLA_FLAGS'] or ''} {SINGLE_THREAD}".strip()
+    try:
+        return ctx.Pool(processes, initializer=initializer, initargs=initargs)
+    finally:
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k)
+            else:
+                os.environ[k] = v
