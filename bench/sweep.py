@@ -139,6 +139,7 @@ def main(argv=None) -> None:
     from sc3_jax.evaluate.model_workers import in_workers
     steps = (new.sample_steps or 8, new.inverse_steps or 8, a.chunks, a.batch)
     online_new = online_cost_workers(*steps, workers) if in_workers(workers, workers) else online_cost(*steps)
+    online_one = online_cost(*steps)  # the new sampler in one process on every core: what the workers add
     h_old, h_new = hours(real_old, online_old), hours(real_new, online_new)
     print("| path | real s / rollout | online s / rollout | full protocol h |\n|---|---|---|---|")
     print(f"| today: 1 process, 8 + 2 Euler steps | {real_old:.2f} | {online_old:.1f} | {h_old:.2f} |")
@@ -146,6 +147,8 @@ def main(argv=None) -> None:
     print(f"| new default: {workers} worker processes (one thread each), degraded copies read on {new.degradations}, "
           f"{new.sample_steps} + {new.inverse_steps} Euler steps | "
           f"{real_new:.2f} | {online_new:.1f} | {h_new:.2f} |")
+    print(f"(online at {steps[0]} + {steps[1]} steps: {online_one:.1f} s in one process, {online_new:.1f} s in "
+          f"{workers} worker processes: {online_one / online_new:.2f}x)")
     print(f"(until the first real records: {start_old:.1f} s in process, {start_new:.1f} s with {workers} workers)")
     print(f"sweep_cost: real_s={real_new:.2f} online_s={online_new:.1f} full_protocol_h={h_new:.2f} "
           f"speedup={h_old / h_new:.2f}")

@@ -72,7 +72,8 @@ def test_rollout_diagnose_and_sweep_sample_a_world_model_alike(wm, tmp_path, mon
     monkeypatch.setattr(rollout, "Rollout", catch)
     with pytest.raises(Built) as e:
         sweep.run_sweep(SweepConfig(out=str(tmp_path / "sweep"), world_model=str(wm), modes=("online",),
-                                    policies=(zoo_names("bussing")[0],), progress=False))
+                                    policies=(zoo_names("bussing")[0],), progress=False,
+                                    workers=1))  # in this process, where Rollout is caught
     swept = e.value.args[0]
     defaults = SweepConfig()
     assert (swept.sample.steps, swept.sample.inverse_steps, swept.rollout.episode_seconds,

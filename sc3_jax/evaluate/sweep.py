@@ -214,8 +214,10 @@ def run_sweep(cfg: SweepConfig) -> Path:
                   for u in units for mode, offset in u.modes
                   if not all(rollout_id(policies[u.policy][0], s, mode) in done for s in u.seeds)]
     model_setup = ModelSetup(str(store.root), cfg, str(weights))
-    in_process = lambda: ModelRunner(model_setup, {specs[p]: policies[p][2] for p in range(len(specs))}, env,
-                                     scorer)  # noqa: E731
+
+    def in_process():  # this process's runner, with its resolved policies, simulator and scorer
+        return ModelRunner(model_setup, {specs[p]: policies[p][2] for p in range(len(specs))}, env, scorer)
+
     t1 = time.time()
     for job, recs in run_model_jobs(model_jobs, model_setup, workers, in_process):
         ids = [rollout_id(job.name, s, job.mode) for s in job.seeds]
