@@ -1,11 +1,12 @@
 """Real (simulated) rollouts of a sweep: one rollout scored (``run_real``), and many in worker processes.
 
 A real rollout is a single-threaded MuJoCo episode plus a small perception network: one process leaves the other
-cores idle. Each worker is a spawned, single-threaded process (``worker_pool``) that builds its own simulator, scorer and policies once, runs whole rollouts, writes each rollout's arrays into the
-store itself (atomically, one file per rollout) and returns its record. The parent appends the records in job order
-(``imap``), so a store's lines and values do not depend on the number of workers: a rollout depends only on its
-(policy, seed) (``sim/policy_eval.run_policy_episode`` seeds the policy from the simulator seed) and every worker
-computes it with the same code and the same compiled shapes.
+cores idle. Each worker is a spawned, single-threaded process (``worker_pool``) that builds its own simulator,
+scorer and policies once, runs whole rollouts, writes each rollout's arrays into the store itself (atomically, one
+file per rollout) and returns its record. The parent appends the records in job order (``imap``), so a store's lines
+and values do not depend on the number of workers: a rollout depends only on its (policy, seed)
+(``sim/policy_eval.run_policy_episode`` seeds the policy from the simulator seed) and every worker computes it with
+the same code and the same compiled shapes.
 """
 from __future__ import annotations
 
