@@ -3,7 +3,7 @@ worker processes when the world model runs on the CPU.
 
 Why processes: one process spreads each DiT matmul over every core, but 2 threads run it only 1.69x as fast as 1
 on the 2-core machine. Single-threaded processes (``worker_pool``), each running whole batches, keep every core
-busy: 2 workers run 1.17x the online rollouts per hour of one process on both cores (``bench/sweep.py``). Each
+busy: 2 workers ran 1.07-1.17x the online rollouts per hour of one process on both cores (docs/sweep.md). Each
 worker loads the world model, scorer and policies once, runs whole batches (a sweep's ``Unit`` and mode), writes
 their arrays into the store itself and returns their records; the parent appends them in job order. A batch's
 values depend only on its initial conditions and episode keys, so records do not depend on the number of workers
@@ -19,6 +19,7 @@ import numpy as np
 
 from sc3_jax.evaluate import worker_pool
 from sc3_jax.evaluate.results import ResultsStore, rollout_id
+
 
 @dataclasses.dataclass(frozen=True)
 class ModelJob:
