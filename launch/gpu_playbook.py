@@ -8,6 +8,8 @@ call so that a lease cut short loses nothing already done.
                                                                    goes on (the trainer runs on between calls)
     python3 launch/gpu_playbook.py --phase sweep [--minutes 8.5]  stop training, export, 72-condition sweep; again:
                                                                    resumes the sweep
+    python3 launch/gpu_playbook.py --phase distill [--minutes 6]  distil the shipped model's 2-step sampler into a
+                                                                   1-step student on the mixture (docs/world_model.md)
     python3 launch/gpu_playbook.py --phase bench [--minutes 4]    bench/accelerator.py
     python3 launch/gpu_playbook.py --phase all --dry-run          every phase on the CPU at tiny scale (a test)
 
@@ -17,7 +19,9 @@ earlier phase used (``RUN/phases.json``). Exports: ``data.log`` and ``data_stats
 the mixture's outcome mix against the zoo's real one); ``model_STEP.tgz[.NN]`` (the latest checkpoint as an int8
 export with the shipped model's state reader, in 15-MiB parts: ``cat model_STEP.tgz* | tar xz``), ``train.json``,
 ``train.log``; ``sweep_store.tgz[.NN]`` (results.jsonl, sweep.json, timing.json, report/), ``sweep.json``,
-``sweep.log``; ``bench.log``, ``bench.json``. The call plan and the device minutes per phase: launch/README.md.
+``sweep.log``; ``student_STEP.tgz[.NN]`` (the distilled student, int8, with the shipped model's state reader and
+data statistics), ``distill.log``; ``bench.log``, ``bench.json``. The call plan and the device minutes per phase:
+launch/README.md.
 
 On the GPU image the packages it lacks travel as wheels in ``.whl/`` and MuJoCo's EGL loaders as ``.deb`` files in
 ``.gl/`` (device README); the playbook installs them once per machine (``/tmp/site``) before anything else.
@@ -44,7 +48,8 @@ ARCHIVE = ROOT / "docs" / "stores" / "sweep72_gpu"  # the shipped model's 72-con
 SHIPPED_WINDOWS = 128_000  # bussing_latent_gpu: 2,000 steps x 64 windows (docs/world_model.md)
 PART = 15 * 2**20  # a returned file may not exceed 16 MiB
 SITE = Path("/tmp/site")
-MINUTES = {"data": 3.0, "train": 8.5, "sweep": 8.5, "bench": 4.0}  # each inside a 10-minute call, setup included
+# each inside a 10-minute call, setup included
+MINUTES = {"data": 3.0, "train": 8.5, "sweep": 8.5, "distill": 6.0, "bench": 4.0}
 EXPORT_SECONDS = 100  # int8 export of the 23.8M model on the CPU, and its packing (the lost call of 2026-11-24)
 TRAVEL_LIMIT = 64 * 2**20  # the working tree a device call sends (tracked, untracked-not-ignored, carried paths)
 # what the GPU image lacks (device KINDS.md, 2026-11-17), as wheel names: carried in .whl/
@@ -58,19 +63,20 @@ PROTOCOL = ("episodes", "seed0", "calibration_episodes", "calibration_seed0", "c
 
 @dataclasses.dataclass(frozen=True)
 class Args:
-    """One phase of the GPU playbook (launch/README.md): data, train, sweep, bench; all: every phase in turn."""
+    """One phase of the GPU playbook (launch/README.md): data, train, sweep, distill, bench; all: each in turn."""
 
-    phase: Literal["preflight", "data", "train", "sweep", "bench", "all"]
+    phase: Literal["preflight", "data", "train", "sweep", "distill", "bench", "all"]
     """preflight: on the driving machine, before the lease (what a call sends, the wheels); data: the mixture;
-    train: fine-tune (again: go on); sweep: stop training, export, sweep (again: resume); bench:
-    bench/accelerator.py; all: data, train, sweep, bench in turn (the dry run)"""
+    train: fine-tune (again: go on); sweep: stop training, export, sweep (again: resume); distill: a 1-step student
+    of the shipped model (again: go on); bench: bench/accelerator.py; all: data, train, sweep, distill, bench in turn
+    (the dry run)"""
     run: str = "/tmp/sc3_playbook"
     """working directory on the machine (mixture/, train/, export_STEP/, sweep/, logs/, phases.json)"""
     out: str | None = None
     """where each phase's export goes (None: $OUT, else RUN/out)"""
     minutes: float | None = None
-    """wall-clock budget of the phase, its export included (None: data 3, train 8.5, sweep 8.5, bench 4; no limit in
-    a dry run)"""
+    """wall-clock budget of the phase, its export included (None: data 3, train 8.5, sweep 8.5, distill 6, bench 4;
+    no limit in a dry run)"""
     episodes: int = 6000
     """mixture episodes to aim for (the data phase stops at its deadline; rerun to add more)"""
     seed: int = 40
@@ -83,6 +89,10 @@ class Args:
     """training windows to reach (3x the shipped model's 128k); steps = windows / batch size"""
     lr: float = 3e-4
     """peak learning rate of the fine-tune (the config's 1e-3 is a from-scratch rate)"""
+    distill_steps: int = 1500
+    """distill: student steps to reach (the phase stops at its deadline and exports the latest checkpoint)"""
+    distill_lr: float = 1e-4
+    """distill: peak learning rate (the student starts at the teacher: a gentler rate than the fine-tune's)"""
     stop_trainer: bool = False
     """train: stop the trainer (it checkpoints on SIGTERM) before the export, so that the export is the last step
     trained and a sweep in the same call reuses it instead of exporting again (the last train call of a lease)"""
@@ -238,7 +248,8 @@ def preflight(root: Path = ROOT) -> int:
     gl = sorted(p.name for p in (root / ".gl").glob("*.deb"))
     print(f"a device call would send {size / 2**20:.1f} MiB (limit {TRAVEL_LIMIT / 2**20:.0f} MiB: tracked and "
           "untracked-not-ignored files, .whl/, .gl/)" + ("" if size <= TRAVEL_LIMIT else
-                                                         ": OVER, the call would be refused"))
+                                                         ": OVER, the call would be refused (launch/README.md: "
+                                                         "what the playbook does not read leaves the index)"))
     print("wheels for the GPU image: " + ("all there" if not missing else f"missing {', '.join(missing)} "
                                           "(launch/README.md, GPU playbook: pip download ... -d .whl)"))
     print(f"GL loaders in .gl/: {len(gl)} .deb files" + ("" if gl else " (MuJoCo's EGL needs them: device README)"))
@@ -278,19 +289,26 @@ def _latest_step(workdir: Path) -> int:
     return max(steps, default=0)
 
 
-def _train_target(ctx: Ctx) -> tuple[int, int]:
-    """(steps, batch size): the steps that reach ``--windows`` at the run's batch size."""
+def _train_target(ctx: Ctx, job: str = "train") -> tuple[int, int]:
+    """(steps, batch size): the fine-tune's steps reach ``--windows`` at the run's batch size; the student's are
+    ``--distill-steps``."""
     batch = 2 if ctx.a.dry_run else 64
-    cfg = ctx.run / "train" / "config.json"
+    cfg = ctx.run / job / "config.json"
     if cfg.exists():
         batch = json.loads(cfg.read_text())["data"]["batch_size"]
-    return (2 if ctx.a.dry_run else math.ceil(ctx.a.windows / batch)), batch
+    if ctx.a.dry_run:
+        return 2, batch
+    return (ctx.a.distill_steps if job == "distill" else math.ceil(ctx.a.windows / batch)), batch
 
 
-def _trainer_cmd(ctx: Ctx, steps: int) -> list[str]:
+def _trainer_cmd(ctx: Ctx, steps: int, job: str = "train") -> list[str]:
+    """``sc3 train`` from the shipped model on the mixture: the fine-tune (job "train") or, with the shipped model as
+    its frozen teacher, the 1-step student (job "distill")."""
     a = ctx.a
-    opts = {"data.path": ctx.run / "mixture", "train.workdir": ctx.run / "train", "train.init-from": SHIPPED,
+    opts = {"data.path": ctx.run / "mixture", "train.workdir": ctx.run / job, "train.init-from": SHIPPED,
             "train.steps": steps, "train.lr": a.lr, "train.ckpt-every": 100, "train.keep-checkpoints": 3}
+    if job == "distill":
+        opts.update({"flow.distill-teacher": SHIPPED, "train.lr": a.distill_lr, "train.warmup-steps": 100})
     if a.dry_run:  # float32 on the CPU, a checkpoint per step, nothing in the background
         opts.update({"data.batch-size": 2, "data.read-threads": 1, "model.dtype": "float32",
                      "train.warmup-steps": 1, "train.ckpt-every": 1, "train.log-every": 1})
@@ -301,16 +319,16 @@ def _trainer_cmd(ctx: Ctx, steps: int) -> list[str]:
             + flags + shlex.split(a.train_args))
 
 
-def phase_train(ctx: Ctx) -> dict:
+def phase_train(ctx: Ctx, job: str = "train") -> dict:
     """Start (or find running) the background trainer, let it train until the phase's export time, export the
     latest checkpoint. The trainer has its own session, so it trains on between calls while the machine is held."""
-    W = ctx.run / "train"
-    pidfile = ctx.run / "train.pid"
-    steps, _ = _train_target(ctx)
+    W = ctx.run / job
+    pidfile = ctx.run / f"{job}.pid"
+    steps, _ = _train_target(ctx, job)
     pid = int(pidfile.read_text()) if pidfile.exists() else None
     if not _alive(pid) and _latest_step(W) < steps:
-        with open(ctx.log("train_run"), "a") as log:
-            pid = subprocess.Popen(_trainer_cmd(ctx, steps), stdout=log, stderr=subprocess.STDOUT, cwd=ROOT,
+        with open(ctx.log(f"{job}_run"), "a") as log:
+            pid = subprocess.Popen(_trainer_cmd(ctx, steps, job), stdout=log, stderr=subprocess.STDOUT, cwd=ROOT,
                                    start_new_session=True, stdin=subprocess.DEVNULL).pid
         pidfile.write_text(str(pid))
         print(f"trainer started (pid {pid}): {W}, to step {steps}", flush=True)
@@ -326,23 +344,29 @@ def phase_train(ctx: Ctx) -> dict:
     if ctx.a.stop_trainer and _alive(pid):
         print(f"stopping the trainer (pid {pid}): it saves a checkpoint first", flush=True)
         _stop_group(pid, 60)
-    tail(ctx.log("train_run"), ctx.out / "train.log")
-    res = export(ctx)
-    return {**res, "exports": ["train.log"] + res["exports"], "trainer_running": _alive(pid)}
+    tail(ctx.log(f"{job}_run"), ctx.out / f"{job}.log")
+    res = export(ctx, job)
+    return {**res, "exports": [f"{job}.log"] + res["exports"], "trainer_running": _alive(pid)}
 
 
-def export(ctx: Ctx) -> dict:
-    """The latest checkpoint as an int8 export (``RUN/export_STEP``, with the shipped state reader) and, unless an
-    earlier call brought it back, ``OUT/model_STEP.tgz[.NN]``; the last metrics rows."""
-    W = ctx.run / "train"
+def phase_distill(ctx: Ctx) -> dict:
+    """The fine-tune's phase for the 1-step student (docs/world_model.md, distilling the sampler)."""
+    return phase_train(ctx, "distill")
+
+
+def export(ctx: Ctx, job: str = "train") -> dict:
+    """The latest checkpoint as an int8 export (``RUN/export_STEP``, or ``RUN/student_STEP`` for the student, with
+    the shipped state reader) and, unless an earlier call brought it back, ``OUT/model_STEP.tgz[.NN]`` (or
+    ``student_STEP.tgz[.NN]``); the last metrics rows."""
+    W = ctx.run / job
     step = _latest_step(W)
-    steps, batch = _train_target(ctx)
+    steps, batch = _train_target(ctx, job)
     res = {"step": step, "target_steps": steps, "windows": step * batch, "target_windows": steps * batch,
            "shipped_windows": SHIPPED_WINDOWS, "exports": []}
     if not step:
         res["error"] = "no checkpoint yet (see train.log)"
         return res
-    model = ctx.run / f"export_{step}"
+    model = ctx.run / f"{'student' if job == 'distill' else 'export'}_{step}"
     if not (model / "params.npz").exists():
         code = ("import sys; from sc3_jax import checkpoint; cfg, stats, params = checkpoint.load(sys.argv[1], "
                 "int(sys.argv[2])); checkpoint.save(sys.argv[3], cfg, stats, params, 'int8')")
@@ -352,13 +376,15 @@ def export(ctx: Ctx) -> dict:
             res["error"] = f"export of step {step} failed (rc {rc}; see logs/export.log)"
             return res
         shutil.copy(SHIPPED / "state_reader.npz", model / "state_reader.npz")  # the sweep's gripper-state reader
-        if (ctx.run / "data_stats.json").exists():
-            shutil.copy(ctx.run / "data_stats.json", model / "data_stats.json")
+        # what the model knows: the mixture it was fine-tuned on; a student knows its teacher's data
+        stats = SHIPPED / "data_stats.json" if job == "distill" else ctx.run / "data_stats.json"
+        if stats.exists():
+            shutil.copy(stats, model / "data_stats.json")
     res["model"] = str(model)
-    shipped = ctx.run / "shipped_steps.json"
+    shipped = ctx.run / f"{job}_shipped_steps.json"
     done = json.loads(shipped.read_text()) if shipped.exists() else []
     if step not in done:
-        res["exports"] += ship(ctx, f"model_{step}.tgz", [(model, model.name)])
+        res["exports"] += ship(ctx, f"{'student' if job == 'distill' else 'model'}_{step}.tgz", [(model, model.name)])
         shipped.write_text(json.dumps(done + [step]))
     res["last_metrics"] = _metrics(W)[-5:]
     return res
@@ -443,7 +469,8 @@ def phase_bench(ctx: Ctx) -> dict:
     return {"rc": rc, "result": last[-1] if last else None, "exports": ["bench.log"]}
 
 
-PHASES = {"data": phase_data, "train": phase_train, "sweep": phase_sweep, "bench": phase_bench}
+PHASES = {"data": phase_data, "train": phase_train, "sweep": phase_sweep, "distill": phase_distill,
+          "bench": phase_bench}
 
 
 def run_phase(a: Args, name: str, run: Path, out: Path) -> dict:
@@ -468,6 +495,15 @@ def report(name: str, res: dict) -> None:
     if name == "data":
         print(f"data: {res['episodes']} mixture episodes in {res['store']} (sc3 sim mixture rc {res['rc']}); "
               "data_stats.txt sets their per-object outcomes beside the zoo's real ones")
+    elif name == "distill":
+        if "error" in res:
+            print(f"distill: {res['error']}")
+        else:
+            print(f"student: step {res['step']} of {res['target_steps']}, int8 export {res['model']}"
+                  + (", trainer still running" if res.get("trainer_running") else "") + "; last rows (loss below "
+                  "loss_teacher_1step: the student's 1 step is nearer the teacher's 2 than the teacher's own 1): "
+                  + "; ".join(f"step {r.get('step')} loss {r.get('loss', float('nan')):.4f} teacher_1step "
+                              f"{r.get('loss_teacher_1step', float('nan')):.4f}" for r in res["last_metrics"][-2:]))
     elif name in ("train", "sweep"):
         m = res if name == "train" else res["model"]
         if "error" in m:

@@ -1,4 +1,5 @@
-"""launch/gpu_playbook.py: its dry run takes every phase (mixture, fine-tune of the shipped model, sweep, bench) through
+"""launch/gpu_playbook.py: its dry run takes every phase (mixture, fine-tune of the shipped model, sweep, 1-step
+student, bench) through
 on the CPU and leaves what a device call may bring back; its sweep runs the archived store's protocol; its
 exports fit a call's return and its deadlines stop whole process groups."""
 from __future__ import annotations
@@ -47,6 +48,20 @@ def test_training_reaches_three_times_the_shipped_windows_from_the_shipped_model
     assert len(flags) == len(set(flags)), "an option given twice"
 
 
+def test_the_student_is_distilled_from_the_shipped_model_in_its_own_workdir(tmp_path):
+    ctx = pb.Ctx(pb.Args("distill", run=str(tmp_path), distill_steps=700, distill_lr=5e-5), tmp_path, tmp_path, 0.0)
+    steps, batch = pb._train_target(ctx, "distill")
+    assert (steps, batch) == (700, 64)
+    cmd = pb._trainer_cmd(ctx, steps, "distill")
+    opt = {k: cmd[cmd.index(k) + 1] for k in ("--flow.distill-teacher", "--train.init-from", "--train.workdir",
+                                                "--train.lr", "--train.steps")}
+    assert opt == {"--flow.distill-teacher": str(pb.SHIPPED), "--train.init-from": str(pb.SHIPPED),
+                   "--train.workdir": str(tmp_path / "distill"), "--train.lr": "5e-05", "--train.steps": "700"}
+    flags = [c for c in cmd if c.startswith("--")]
+    assert len(flags) == len(set(flags)), "an option given twice"
+    assert "--flow.distill-teacher" not in pb._trainer_cmd(ctx, steps)  # the fine-tune has no teacher
+
+
 def test_exports_fit_a_calls_return_and_deadlines_stop_process_groups(tmp_path):
     ctx = pb.Ctx(pb.Args("data"), tmp_path, tmp_path / "out", 0.0)
     ctx.out.mkdir()
@@ -93,13 +108,13 @@ def test_the_dry_run_takes_every_phase_through_on_the_cpu(tmp_path):
            str(run), "--out", str(out)]
     p = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=1500)
     assert p.returncode == 0, p.stdout[-3000:] + p.stderr[-3000:]
-    for phase in ("data", "train", "sweep", "bench"):
+    for phase in pb.PHASES:
         assert f"== phase {phase}" in p.stdout
-    assert re.search(r"device minutes per phase so far: data [\d.]+, train [\d.]+, sweep [\d.]+, bench [\d.]+; ",
-                     p.stdout)
+    assert re.search(r"device minutes per phase so far: data [\d.]+, train [\d.]+, sweep [\d.]+, distill [\d.]+, "
+                     r"bench [\d.]+; ", p.stdout)
     files = sorted(f.name for f in out.iterdir())
     assert all(NAME.match(f) and (out / f).stat().st_size <= 16 * 2**20 for f in files)
-    for phase in ("data", "train", "sweep", "bench"):  # each phase's exports fit one call's 8 files
+    for phase in pb.PHASES:  # each phase's exports fit one call's 8 files
         res = json.loads((out / f"{phase}.json").read_text())
         assert len(res["exports"]) + 1 <= 8 and all((out / f).exists() for f in res["exports"])
     # data: the mixture and its outcome mix beside the zoo's real one
@@ -127,10 +142,20 @@ def test_the_dry_run_takes_every_phase_through_on_the_cpu(tmp_path):
         assert "The world model's training data (3 episodes" in md and "never shows: reverse" in md
     assert {r["split"] for r in recs if r["mode"] == "online"} == {"in_distribution", "out_of_distribution"}
     assert sum(r["mode"] == "real" for r in recs) == 9 and sum(r["mode"] == "online" for r in recs) == 6
+    # distill: the student, two steps from the shipped model, with what its teacher was trained on
+    distill = json.loads((out / "distill.json").read_text())
+    assert distill["step"] == 2 and not distill["trainer_running"]
+    assert "loss_teacher_1step" in distill["last_metrics"][-1]
+    parts = sorted(f for f in files if f.startswith("student_2.tgz"))
+    (tmp_path / "s.tgz").write_bytes(b"".join((out / f).read_bytes() for f in parts))
+    with tarfile.open(tmp_path / "s.tgz") as tar:
+        tar.extractall(tmp_path / "student")
+    s = tmp_path / "student" / "student_2"
+    assert (s / "state_reader.npz").exists() and (s / "params.npz").exists()
+    assert (s / "data_stats.json").read_bytes() == (pb.SHIPPED / "data_stats.json").read_bytes()
     # bench: its last line
     assert json.loads((out / "bench.json").read_text())["result"].startswith("accelerator cpu: train_mfu=")
-    assert [x["phase"] for x in json.loads((run / "phases.json").read_text())] == ["data", "train", "sweep",
-                                                                                    "bench"]
+    assert [x["phase"] for x in json.loads((run / "phases.json").read_text())] == list(pb.PHASES)
     # resumable: the data phase again writes nothing new
     p = subprocess.run(cmd[:3] + ["data"] + cmd[4:], cwd=ROOT, env=env, capture_output=True, text=True,
                        timeout=600)

@@ -38,3 +38,21 @@ def test_the_state_reader_is_the_given_one_else_the_world_models_own_else_the_sc
     # resolved for a real-only sweep too, so such a store resumes with world-model modes added
     assert sweep.default_state_reader(dataclasses.replace(cfg, modes=("real",))) == str(wm / sweep.STATE_READER_FILE)
 
+
+
+def test_the_distilled_student_is_its_teachers_architecture_in_its_units_with_trained_weights():
+    """exports/bussing_latent_gpu_student (docs/sweep.md#sampler-steps): the shipped model distilled to 1 step."""
+    student = sweep.SHIPPED_WORLD_MODEL.parents[3] / "exports" / "bussing_latent_gpu_student"
+    cfg, _, params = checkpoint.load(student)
+    tcfg, _, tparams = checkpoint.load(sweep.SHIPPED_WORLD_MODEL)
+    # the same model, read with its own copy of the teacher's tokenizer
+    assert dataclasses.replace(cfg.model, tokenizer_path=tcfg.model.tokenizer_path) == tcfg.model
+    assert (student / "norm_stats.json").read_text() == (sweep.SHIPPED_WORLD_MODEL / "norm_stats.json").read_text()
+    tok = "tokenizer/ae_params.npz"
+    assert (student / tok).read_bytes() == (sweep.SHIPPED_WORLD_MODEL / tok).read_bytes()
+    assert cfg.flow.distill_teacher == "sc3_jax/evaluate/shipped/bussing_latent_gpu" and cfg.flow.distill_steps == 2
+    leaves, tleaves = jax.tree_util.tree_leaves(params), jax.tree_util.tree_leaves(tparams)
+    assert all(np.all(np.isfinite(np.asarray(v, np.float32))) for v in leaves)
+    assert any(not np.array_equal(np.asarray(a), np.asarray(b)) for a, b in zip(leaves, tleaves))
+    assert (student / sweep.STATE_READER_FILE).read_bytes() == (sweep.SHIPPED_WORLD_MODEL /
+                                                                sweep.STATE_READER_FILE).read_bytes()

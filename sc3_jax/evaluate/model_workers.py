@@ -3,7 +3,8 @@ worker processes when the world model runs on the CPU.
 
 Why processes: one process spreads each DiT matmul over every core, but 2 threads run it only 1.69x as fast as 1
 on the 2-core machine. Single-threaded processes (``worker_pool``), each running whole batches, keep every core
-busy: 2 workers ran 1.07-1.17x the online rollouts per hour of one process on both cores (docs/sweep.md). Each
+busy: 2 workers ran 0.86-1.18x the online rollouts per hour of one process on both cores (four bench runs, the
+machine's noise included; docs/sweep.md). Each
 worker loads the world model, scorer and policies once, runs whole batches (a sweep's ``Unit`` and mode), writes
 their arrays into the store itself and returns their records; the parent appends them in job order. A batch's
 values depend only on its initial conditions and episode keys, so records do not depend on the number of workers
