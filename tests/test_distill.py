@@ -4,6 +4,7 @@ exactly what it was. The teacher in these tests is a random model with perturbed
 untrained residual model's samples are its anchor whatever the step count, so there would be nothing to distil."""
 import dataclasses
 import json
+import warnings
 
 import jax
 import jax.numpy as jnp
@@ -283,3 +284,17 @@ def test_resume_is_exact_and_reads_the_teacher_again(teacher, monkeypatch):
     with pytest.raises(UserError, match="flow.distill_teacher"):
         train.check_workdir(replace(cfg_for("resumed"), flow=dict(distill_teacher=str(tmp / "elsewhere"))))
     train.check_workdir(replace(cfg_for("resumed"), sample=dict(steps=3)))  # other sampler settings may change
+
+
+def test_a_student_evaluated_at_other_than_1_step_is_warned_about():
+    from sc3_jax.evaluate.sweep import SweepConfig
+    from sc3_jax.evaluate.world_model_defaults import evaluation_config
+
+    student = replace(load_config("tiny"), flow=dict(distill_teacher="teacher/"))
+    with pytest.warns(UserWarning, match="--sample-steps 1"):
+        evaluation_config(student, SweepConfig())  # the default 2 steps
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert evaluation_config(student, SweepConfig(sample_steps=1)).sample.steps == 1
+        evaluation_config(load_config("tiny"), SweepConfig())  # not a student: no warning
+

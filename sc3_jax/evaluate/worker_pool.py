@@ -1,11 +1,11 @@
 """The sweep's worker processes (``real_workers``, ``model_workers``): spawned, on the CPU, one thread each.
 
-*Spawned*: forking a process that has started JAX's thread pools is unsafe. *On the CPU*: on an accelerator machine
-the workers must not claim its memory. *One thread each*: the processes are the parallelism; a worker's XLA
-spreading its ops over every core beside the other workers only adds contention (2 real workers on the 2-core
-machine: 0.92 s per rollout single-threaded, 1.10 s not; 2 world-model workers: 0.86-1.18x the online rollouts per
-hour of one process on both cores, in four bench runs). XLA's single-threaded CPU kernels give the multi-threaded ones' bits, so records
-do not depend on it (tests/test_sweep_shards.py compares worker processes with one process).
+*Spawned*: forking a process that has started JAX's thread pools is unsafe. *On the CPU*: on an accelerator machine the
+workers must not claim its memory. *One thread each*: the processes are the parallelism; a worker's XLA spreading its
+ops over every core beside the other workers only adds contention (2 real workers on the 2-core machine: 0.92 s per
+rollout single-threaded, 1.10 s not; 2 world-model workers: 0.86-1.18x the online rollouts per hour of one process on
+both cores, in four bench runs). XLA's single-threaded CPU kernels give the multi-threaded ones' bits, so records do not
+depend on it (tests/test_sweep_shards.py compares worker processes with one process).
 """
 from __future__ import annotations
 

@@ -6,6 +6,7 @@ live in one place, ``SweepConfig``'s field defaults (where their measurements ar
 them, and imports no sweep code, so that the sweep can call it too."""
 from __future__ import annotations
 
+import warnings
 from typing import Protocol
 
 
@@ -28,4 +29,8 @@ def evaluation_config(cfg, settings: EvaluationSettings):
                                                  ("inverse_steps", settings.inverse_steps)) if v})
     if settings.episode_seconds:
         cfg = replace(cfg, rollout=dict(episode_seconds=settings.episode_seconds))
+    if cfg.flow.distill_teacher and cfg.sample.steps != 1:  # a student's few steps are not its teacher's
+        warnings.warn(f"this world model is a 1-step student of {cfg.flow.distill_teacher} (flow.distill_teacher), "
+                      f"sampled here in {cfg.sample.steps} forward steps: --sample-steps 1 samples it as it was "
+                      "trained", stacklevel=2)
     return replace(cfg, rollout=dict(tau_units=settings.tau_units))
