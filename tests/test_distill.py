@@ -286,15 +286,15 @@ def test_resume_is_exact_and_reads_the_teacher_again(teacher, monkeypatch):
     train.check_workdir(replace(cfg_for("resumed"), sample=dict(steps=3)))  # other sampler settings may change
 
 
-def test_a_student_evaluated_at_other_than_1_step_is_warned_about():
+def test_a_student_sampled_at_other_than_1_step_is_warned_about():
     from sc3_jax.evaluate.sweep import SweepConfig
-    from sc3_jax.evaluate.world_model_defaults import evaluation_config
+    from sc3_jax.evaluate.world_model_defaults import evaluation_config, warn_if_student_off_its_step
 
     student = replace(load_config("tiny"), flow=dict(distill_teacher="teacher/"))
-    with pytest.warns(UserWarning, match="--sample-steps 1"):
-        evaluation_config(student, SweepConfig())  # the default 2 steps
+    with pytest.warns(UserWarning, match="trained for 1"):
+        warn_if_student_off_its_step(evaluation_config(student, SweepConfig()))  # the default 2 steps
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        assert evaluation_config(student, SweepConfig(sample_steps=1)).sample.steps == 1
-        evaluation_config(load_config("tiny"), SweepConfig())  # not a student: no warning
-
+        warn_if_student_off_its_step(evaluation_config(student, SweepConfig(sample_steps=1)))
+        warn_if_student_off_its_step(replace(evaluation_config(student, SweepConfig()), sample=dict(steps=1)))
+        warn_if_student_off_its_step(evaluation_config(load_config("tiny"), SweepConfig()))  # not a student

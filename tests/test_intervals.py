@@ -227,3 +227,20 @@ def test_degradations_are_seeded_and_change_frames():
     flat = np.full((1, 1, 16, 16, 3), 100, np.uint8)
     np.testing.assert_array_equal(degrade.blur(flat), flat)  # blur keeps a flat image
     assert not np.array_equal(degrade.patch_noise(frames, 1), degrade.patch_noise(frames, 2))
+
+
+def test_a_store_without_real_rollouts_gets_no_report_and_its_sweep_keeps_them(tmp_path, monkeypatch, capsys):
+    from sc3_jax.commands import sweep as sweep_cmd
+    from sc3_jax.errors import UserError
+
+    root = _store(tmp_path / "s", good_cut_calib=2, eval_variant=0)
+    online_only = [r for r in ResultsStore(root).records() if r["mode"] == "online"]
+    (root / "results.jsonl").write_text("".join(json.dumps(r) + "\n" for r in online_only))
+    with pytest.raises(UserError, match="no real rollouts on the evaluation seeds.*--modes real"):
+        report.compute(root, draws=10)
+    # `sc3 sweep --modes online`: the rollouts stay, the command ends well and says why there is no report
+    monkeypatch.setattr(sweep, "run_sweep", lambda cfg: root)
+    assert sweep_cmd.main(["--out", str(root), "--modes", "online"]) == 0
+    out = capsys.readouterr().out
+    assert f"rollouts: {root}; no report:" in out and not (root / "report" / "report.md").exists()
+    assert len(ResultsStore(root).records()) == len(online_only)

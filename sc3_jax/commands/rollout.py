@@ -72,6 +72,8 @@ def evaluated_config(a: Args):
 
 def main(argv: list[str]) -> int:
     a, cfg = parse_with_config(Args, argv, "rollout", evaluated_config)
+    from sc3_jax.evaluate.world_model_defaults import warn_if_student_off_its_step
+    warn_if_student_off_its_step(cfg)  # after the --sample.steps override
     import numpy as np
 
     from sc3_jax import atomic, checkpoint, rollout, rollout_io

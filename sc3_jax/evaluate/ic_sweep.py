@@ -185,7 +185,7 @@ def run(cfg: ICSweepConfig) -> Path:
 
     from sc3_jax import checkpoint, rollout, rollout_io
     from sc3_jax.evaluate.scorers import RolloutView, check_outcomes, load_outcome_scorer
-    from sc3_jax.evaluate.world_model_defaults import evaluation_config
+    from sc3_jax.evaluate.world_model_defaults import evaluation_config, warn_if_student_off_its_step
     from sc3_jax.policies.openpi_mappings import for_world_model
 
     _check(cfg)
@@ -196,6 +196,7 @@ def run(cfg: ICSweepConfig) -> Path:
         labels.read(cfg.real)  # unreadable real outcomes are refused before any rollout, not after hours of them
     wcfg, stats, params = checkpoint.load(cfg.world_model)
     wcfg = evaluation_config(wcfg, cfg)  # the sweep's sampler settings (sc3 rollout / diagnose share them)
+    warn_if_student_off_its_step(wcfg)
     ro = rollout.Rollout(wcfg, stats, mesh=_mesh(cfg.batch),
                          data_fps=rollout_io.data_fps(cfg.initial_conditions, None))
     s = ro.spec

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import warnings
 from collections.abc import Iterator
 
 import numpy as np
@@ -56,9 +55,7 @@ class ModelRunner:
         from sc3_jax.sim.policy_eval import make_env
         cfg = setup.sweep
         wcfg, stats, self.params = checkpoint.load(cfg.world_model)
-        with warnings.catch_warnings():  # what it warns of, the sweep's own process has said once
-            warnings.simplefilter("ignore")
-            wcfg = evaluation_config(wcfg, cfg)  # the one set of evaluation settings (sc3 rollout / diagnose too)
+        wcfg = evaluation_config(wcfg, cfg)  # the one set of evaluation settings (sc3 rollout / diagnose too)
         p_params = perception.load(setup.perception)
         reader = perception.load(cfg.state_reader) if cfg.state_reader else p_params
         # a shard's batches run on its own process's devices: under jax.distributed every process runs a different

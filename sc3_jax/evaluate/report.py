@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from sc3_jax import atomic
+from sc3_jax.errors import UserError
 from sc3_jax.evaluate import calibrate, intervals, metrics
 from sc3_jax.evaluate.calibrate import object_rows as _object_rows
 from sc3_jax.evaluate.merged import open_store
@@ -84,8 +85,9 @@ def compute(results: str | Path, taus=None, draws: int = 2000, seed: int = 0) ->
           for s in sets for m in EVAL_MODES}
     real = by["evaluation", "real"]
     if not real:
-        raise ValueError(f"{results}: no real rollouts on the evaluation seeds yet: faithfulness needs the "
-                         "simulator's ground truth")
+        raise UserError(f"{results}: no real rollouts on the evaluation seeds yet: faithfulness needs the "
+                        "simulator's ground truth (sc3 sweep --modes real --out on this store, or --real-from a "
+                        "store of the same protocol)")
     policies = policy_order(real.values())
     out: dict = {"config": cfg, "counts": {m: len(by["evaluation", m]) for m in EVAL_MODES},
                  "policies": policies,

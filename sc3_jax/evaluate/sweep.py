@@ -178,8 +178,9 @@ def run_sweep(cfg: SweepConfig) -> Path:
     wm_modes = [m for m in cfg.modes if m != "real"]
     spec = None
     if wm_modes:
-        from sc3_jax.evaluate.world_model_defaults import evaluation_config
+        from sc3_jax.evaluate.world_model_defaults import evaluation_config, warn_if_student_off_its_step
         wcfg = evaluation_config(checkpoint.read_config(cfg.world_model), cfg)
+        warn_if_student_off_its_step(wcfg)
         spec = ro_mod.make_spec(wcfg, action_space=checkpoint.read_norm_stats(cfg.world_model).action_space)
     image_size, score_stride = (tuple(spec.image_size), spec.stride) if spec else ((64, 64), REAL_ONLY_STRIDE)
     env = make_env(image_size)

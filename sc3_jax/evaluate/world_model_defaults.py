@@ -29,8 +29,13 @@ def evaluation_config(cfg, settings: EvaluationSettings):
                                                  ("inverse_steps", settings.inverse_steps)) if v})
     if settings.episode_seconds:
         cfg = replace(cfg, rollout=dict(episode_seconds=settings.episode_seconds))
-    if cfg.flow.distill_teacher and cfg.sample.steps != 1:  # a student's few steps are not its teacher's
-        warnings.warn(f"this world model is a 1-step student of {cfg.flow.distill_teacher} (flow.distill_teacher), "
-                      f"sampled here in {cfg.sample.steps} forward steps: --sample-steps 1 samples it as it was "
-                      "trained", stacklevel=2)
     return replace(cfg, rollout=dict(tau_units=settings.tau_units))
+
+
+def warn_if_student_off_its_step(cfg) -> None:
+    """A distilled student (``flow.distill_teacher``) was trained to sample in 1 forward step; at the sweep's default
+    2 it is neither itself nor its teacher. Called with the config a command will sample, after its overrides."""
+    if cfg.flow.distill_teacher and cfg.sample.steps != 1:
+        warnings.warn(f"this world model is a 1-step student of {cfg.flow.distill_teacher} (flow.distill_teacher), "
+                      f"sampled here in {cfg.sample.steps} forward steps; it was trained for 1 (sc3 sweep "
+                      "--sample-steps 1, sc3 rollout / diagnose --sample.steps 1)", stacklevel=2)
