@@ -86,8 +86,8 @@ def compute(results: str | Path, taus=None, draws: int = 2000, seed: int = 0) ->
     real = by["evaluation", "real"]
     if not real:
         raise UserError(f"{results}: no real rollouts on the evaluation seeds yet: faithfulness needs the "
-                        "simulator's ground truth (sc3 sweep --modes real --out on this store, or --real-from a "
-                        "store of the same protocol)")
+                        "simulator's ground truth (run sc3 sweep --modes real into this store, or start it with "
+                        "--real-from a store of the same protocol)")
     policies = policy_order(real.values())
     out: dict = {"config": cfg, "counts": {m: len(by["evaluation", m]) for m in EVAL_MODES},
                  "policies": policies,
