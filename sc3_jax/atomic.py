@@ -43,6 +43,15 @@ def _tmp_path(path: Path, suffix: str | None = None) -> Path:
     return path.with_name(f".{stem}.{_HOST}-{os.getpid()}.{uuid.uuid4().hex[:8]}.tmp{suffix}")
 
 
+def temp_dir(path: str | os.PathLike) -> Path:
+    """A new empty directory beside ``path``, named as a temporary of this process (so :func:`remove_stale` knows
+    it), for writing ``path``'s contents before one rename. Not ``tempfile.mkdtemp``: its 0700 mode would become the
+    target's; this one is made under the user's umask like any other directory."""
+    tmp = _tmp_path(Path(path), suffix="")
+    tmp.mkdir()
+    return tmp
+
+
 def _unwritable(path: Path, e: BaseException, fix: str = "choose another place (or free space there)"):
     """``e`` as a one-line ``UserError`` naming ``path`` if it says the place cannot be written, else None."""
     if isinstance(e, OSError) and e.errno in _UNWRITABLE:
@@ -319,3 +328,7 @@ def open_npz(path: str | os.PathLike, fix: str = "restore it or write it again")
             yield z
         except (zipfile.BadZipFile, zlib.error, EOFError):
             raise damaged() from None
+        except ValueError as e:  # an object array is a pickle: never loaded (it could run code), said in one line
+            if "allow_pickle" not in str(e):
+                raise
+            raise UserError(f"{path}: holds an object array (a pickle, never loaded here); {fix}") from None

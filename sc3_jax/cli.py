@@ -31,6 +31,12 @@ commands:
 `sc3 <command> --help` for the arguments of each."""
 
 
+# what Ctrl-C leaves, per command: the one line it ends with (every writer here is atomic, so nothing is half-written)
+RESUME = {"train": "the same command resumes from its last checkpoint",
+          "sweep": "the same command resumes it (finished rollouts are kept)",
+          "data": "the same command resumes it (imported episodes are kept)",
+          "sim": "the same command resumes it where it writes a store (finished parts are kept)"}
+
 CANNOT_WRITE = {errno.EACCES, errno.EPERM, errno.EROFS, errno.ENOSPC, errno.EDQUOT}
 
 
@@ -64,6 +70,10 @@ def main(argv: list[str] | None = None) -> int:
 
     try:
         return cmd(argv[1:])
+    except KeyboardInterrupt:  # Ctrl-C: one line, not a traceback from wherever the command was
+        print(f"\nsc3 {argv[0]}: interrupted; nothing half-written is left; "
+              f"{RESUME.get(argv[0], 'run it again to redo it')}", file=sys.stderr)
+        return 130
     except (FileNotFoundError, FileExistsError, UserError) as e:  # expected faults: the one-line message says it all
         print(f"sc3 {argv[0]}: error: {e}", file=sys.stderr)
         return 2

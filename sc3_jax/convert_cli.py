@@ -13,8 +13,9 @@ from __future__ import annotations
 
 import dataclasses
 import shutil
-import tempfile
 from pathlib import Path
+
+from sc3_jax import atomic
 
 DTYPES = ("float32", "bfloat16", "float16")
 
@@ -65,7 +66,8 @@ def _write_atomically(out: str, write) -> Path:
     out_p = Path(out)
     if out_p.exists() and any(out_p.iterdir()):
         raise FileExistsError(f"{out}: exists and is not empty (choose a new --to)")
-    tmp = Path(tempfile.mkdtemp(prefix=".convert-", dir=out_p.parent if out_p.parent.exists() else None))
+    out_p.parent.mkdir(parents=True, exist_ok=True)
+    tmp = atomic.temp_dir(out_p)
     try:
         write(tmp)
         if out_p.exists():

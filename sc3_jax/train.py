@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
+import shutil
 import signal
 import time
 from pathlib import Path
@@ -15,7 +17,7 @@ import numpy as np
 import optax
 import orbax.checkpoint as ocp
 
-from sc3_jax import atomic, checkpoint, flow, sharding
+from sc3_jax import atomic, checkpoint, flow, locks, sharding
 from sc3_jax.distill import WithTeacher, check_teacher_stats, load_teacher, teacher_config
 from sc3_jax.config import Config, config_from_dict
 from sc3_jax.errors import UserError
@@ -366,14 +368,45 @@ def _distills_with(key: str, old: dict, new: dict) -> bool:
 
 
 def train(cfg: Config, mesh=None, stop_at: int | None = None) -> dict:
-    """Train (or resume) until ``cfg.train.steps`` (or ``stop_at``). Returns the last logged metrics."""
+    """Train (or resume) until ``cfg.train.steps`` (or ``stop_at``). Returns the last logged metrics.
+
+    One run per workdir: process 0 holds the workdir's lock for the run (``locks``), so a second trainer on it stops
+    with a one-line error naming the first. A fresh run that fails before its first step (a config that does not
+    compile, a batch that does not fit) removes what it wrote (config.json, norm stats, latents), so the corrected
+    command is not refused as "another config" and reads no stats of other data."""
     check_workdir(cfg)
     teacher_config(cfg)  # a wrong teacher is refused before anything is written
     workdir = Path(cfg.train.workdir)
+    lead = jax.process_index() == 0
+    fresh = not (workdir / "config.json").exists()
+    existed = workdir.exists()
+    before = set(os.listdir(workdir)) if existed else set()
     workdir.mkdir(parents=True, exist_ok=True)
-    if jax.process_index() == 0:
-        atomic.remove_stale(workdir, recursive=True)  # temporaries of writers killed in an earlier attempt
-        atomic.write_json(workdir / "config.json", dataclasses.asdict(cfg))
+    lock = locks.Lock(workdir, "training run") if lead else None
+    started = False
+    try:
+        if lead:
+            atomic.remove_stale(workdir, recursive=True)  # temporaries of writers killed in an earlier attempt
+            atomic.write_json(workdir / "config.json", dataclasses.asdict(cfg))
+        for last in _steps(cfg, workdir, mesh, stop_at):
+            started = True
+        return last
+    except Exception:
+        if lead and fresh and not started:  # a failed start: leave the workdir as it was
+            for name in set(os.listdir(workdir)) - before - {locks.LOCK_NAME}:
+                path = workdir / name
+                shutil.rmtree(path, ignore_errors=True) if path.is_dir() else path.unlink(missing_ok=True)
+            if not existed and os.listdir(workdir) == [locks.LOCK_NAME]:
+                (workdir / locks.LOCK_NAME).unlink()
+                workdir.rmdir()
+        raise
+    finally:
+        if lock is not None:
+            lock.release()
+
+
+def _steps(cfg: Config, workdir: Path, mesh, stop_at: int | None):
+    """The run itself: yields the last logged metrics after each step (and once more at the end)."""
     mesh = sharding.make_mesh(cfg.mesh) if mesh is None else mesh
     _, stats, data_iter = prepare_data(cfg)
     check_teacher_stats(cfg, stats)
@@ -410,6 +443,7 @@ def train(cfg: Config, mesh=None, stop_at: int | None = None) -> dict:
         if bar is not None:
             bar.update(1)
         save(mngr, step + 1, state, {"iterator": data_iter.get_state()}, force=done or preempted)
+        yield last
         if preempted:
             break
     mngr.wait_until_finished()
@@ -418,7 +452,7 @@ def train(cfg: Config, mesh=None, stop_at: int | None = None) -> dict:
     stop.restore()
     if bar is not None:
         bar.close()
-    return last
+    yield last
 
 
 def _model_batch(batch: dict, cfg: Config) -> dict:

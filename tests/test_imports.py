@@ -146,7 +146,7 @@ def test_type_checking_imports_and_acyclic_graphs_pass(tmp_path, closing):
 # docs/architecture.md "Modules in data-flow order", lowest first: a module may import its own layer and those above
 # it in this list. Entries are module prefixes under sc3_jax; the longest one that matches places a module.
 LAYERS: list[tuple[str, tuple[str, ...]]] = [
-    ("utilities", ("errors", "atomic", "xla_cost")),
+    ("utilities", ("errors", "atomic", "xla_cost", "safe_names", "locks")),
     ("video", ("video",)),
     ("metrics", ("evaluate.metrics",)),
     ("episodes", ("data",)),
@@ -171,7 +171,7 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
                      "evaluate.diagnose_report", "evaluate.diagnose_table", "rollout_io", "plan", "plan_vae")),
     ("sweep", ("evaluate.sweep", "evaluate.real_workers", "evaluate.model_workers", "evaluate.worker_pool",
                "evaluate.ic_sweep")),
-    ("report", ("evaluate.report", "evaluate.calibrate", "evaluate.intervals", "evaluate.bootstrap",
+    ("report", ("evaluate.report", "evaluate.report_html", "evaluate.calibrate", "evaluate.intervals", "evaluate.bootstrap",
                 "evaluate.merged", "evaluate.curve", "evaluate.ic_ranking")),
     ("commands", ("cli", "commands", "convert_cli", "demo", "sim.cli")),
 ]

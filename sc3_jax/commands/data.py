@@ -108,6 +108,9 @@ def _import(a: ImportLerobot) -> int:
     print(f"imported {s['written']} episodes ({s['skipped']} already there) from {a.root}; {s['out']} now holds "
           f"{len(store)} episodes, {_frames(store)} frames of views {', '.join(store.views)} at {s['fps']} fps, "
           f"{store.image_size[0]}x{store.image_size[1]}, actions {store.action_space.kind} {store.action_dim}-D")
+    if s["too_short"]:
+        print(f"skipped {len(s['too_short'])} episodes of fewer than 2 frames (LeRobot episode_index "
+              f"{', '.join(map(str, s['too_short'][:10]))}{' ...' if len(s['too_short']) > 10 else ''})")
     print(f"train on it: sc3 train --config NAME --data.path {s['out']}")
     return 0
 

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import dataclasses
+import json
 from typing import Annotated
 
 import tyro
@@ -38,7 +39,9 @@ def main(argv: list[str]) -> int:
 
     if len(a.results) == 1 and ic_ranking.is_ic_store(a.results[0]):  # `sc3 sweep --initial-conditions`'s store
         md = ic_ranking.render(a.results[0], a.out or f"{a.results[0]}/report", real=a.real, draws=a.draws)
-        print(f"report: {md}")
+        for w in json.loads((md.parent / "report.json").read_text())["warnings"]:  # as the sweep says them
+            print(f"warning: {w}")
+        print(f"report: {md} (and report.html, report.json)")
         return 0
     if a.real:
         raise UserError("--real is for a sweep from --initial-conditions; a simulated sweep's real rollouts are in "

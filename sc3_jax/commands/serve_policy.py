@@ -25,8 +25,8 @@ class Args:
     policy: str
     """a zoo name, zero | random | linear, or package.module:attr of a JaxPolicy / HostPolicy or of a factory
     returning one (every spelling of policies/resolve.py)"""
-    host: str = "0.0.0.0"
-    """interface to listen on (0.0.0.0: every one)"""
+    host: str = "127.0.0.1"
+    """interface to listen on (127.0.0.1: this machine only; 0.0.0.0: every one, then set a key)"""
     port: int = 8000
     """port to listen on; 0 = any free port (printed)"""
     family: Literal["native", "droid", "libero", "aloha"] = "native"
@@ -40,8 +40,11 @@ class Args:
     prompts)"""
     default_task: int | None = None
     """task id for prompts not in the table"""
-    api_key: str | None = None
-    """require the header 'Authorization: Api-Key <key>' from clients"""
+    api_key_file: str | None = None
+    """require the header 'Authorization: Api-Key <key>' from clients, the key read from this file (or from the
+    environment variable SC3_POLICY_API_KEY; never from the command line, which `ps` shows)"""
+    max_message_mb: float = 8.0
+    """largest observation message accepted, in MB (a larger one closes its connection before it is read)"""
     log_level: str = "INFO"
     """logging level of the server (DEBUG, INFO, WARNING, ...)"""
 
@@ -54,6 +57,23 @@ def _prompts(entries: tuple[str, ...]) -> dict[int, str]:
             raise UserError(f"--task-prompt expects ID=PROMPT with an integer ID, got {entry!r}")
         table[int(tid)] = prompt
     return table
+
+
+def api_key(a: Args) -> str | None:
+    """The key clients must send: from --api-key-file, else the environment, else none."""
+    import os
+
+    from sc3_jax.policies.openpi_server import API_KEY_ENV
+
+    if a.api_key_file:
+        try:
+            key = open(a.api_key_file).read().strip()
+        except OSError as e:
+            raise UserError(f"--api-key-file {a.api_key_file}: {e.strerror}") from None
+        if not key:
+            raise UserError(f"--api-key-file {a.api_key_file}: the file is empty")
+        return key
+    return os.environ.get(API_KEY_ENV) or None
 
 
 def build_server(a: Args, resolve: Callable[[str], Any] | None = None):
@@ -81,7 +101,9 @@ def build_server(a: Args, resolve: Callable[[str], Any] | None = None):
     except (ValueError, ImportError) as e:  # a spelling, or a module:attr that does not import
         raise UserError(f"--policy {a.policy}: {' '.join(str(e).split())}") from e
     try:
-        return PolicyServer(policy, a.host, a.port, None, mapping, a.api_key)
+        if a.max_message_mb <= 0:
+            raise UserError(f"--max-message-mb {a.max_message_mb}: give a positive size")
+        return PolicyServer(policy, a.host, a.port, None, mapping, api_key(a), int(a.max_message_mb * 2**20))
     except OSError as e:  # the address is taken, or not this machine's
         raise UserError(f"--host {a.host} --port {a.port}: {e.strerror or e}; choose another --port (0: any free "
                         "one)") from e

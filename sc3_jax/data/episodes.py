@@ -33,7 +33,6 @@ import dataclasses
 import json
 import os
 import shutil
-import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -42,6 +41,7 @@ import numpy as np
 from sc3_jax import atomic
 from sc3_jax.data.action_space import ActionSpace
 from sc3_jax.errors import UserError
+from sc3_jax.safe_names import check_name, join_inside
 
 FORMAT = "sc3-episodes"
 VERSION = 1
@@ -124,6 +124,8 @@ class EpisodeStore:
                  state_names: list[str] | None = None, has_pose: bool = True):
         self.root = Path(root)
         header = self.root / "dataset.json"
+        for v in views or ():  # each becomes frames/<view>.npy: checked before anything is written
+            check_name(v, "view")
         if action_space is None:
             action_space = ActionSpace(dim=ACTION_DIM if action_dim is None else action_dim)
         elif action_dim is not None and action_dim != action_space.dim:
@@ -156,7 +158,7 @@ class EpisodeStore:
         else:
             raise FileNotFoundError(f"{self.root}: no dataset.json (not an sc3 episode dataset)")
         self.info = info
-        self.views: list[str] = list(info["views"])
+        self.views: list[str] = [check_name(v, f"{header}: view") for v in info["views"]]  # frames/<view>.npy
         self.fps: float = info["fps"]
         self.action_dim: int = info["action_dim"]
         self.image_size: tuple[int, int] = tuple(info["image_size"])
@@ -180,7 +182,7 @@ class EpisodeStore:
         return (self.root / episode_id / "meta.json").exists()
 
     def load(self, episode_id: str, mmap: bool = True, validate: bool = True, min_length: int = 1) -> Episode:
-        d = self.root / episode_id
+        d = join_inside(self.root, episode_id)
         if not (d / "meta.json").exists():
             raise EpisodeError(episode_id, "meta.json", f"missing in {d}")
         mode = "r" if mmap else None
@@ -215,10 +217,10 @@ class EpisodeStore:
     def write(self, ep: Episode, overwrite: bool = False) -> Path:
         """Validate then write atomically. Raises (writing nothing) on a bad episode."""
         self.validate(ep)
-        final = self.root / ep.episode_id
+        final = join_inside(self.root, check_name(ep.episode_id, "episode id"))
         if final.exists() and not overwrite:
             raise FileExistsError(f"episode {ep.episode_id!r} already exists in {self.root}")
-        tmp = Path(tempfile.mkdtemp(prefix=f".tmp-{ep.episode_id}-", dir=self.root))
+        tmp = atomic.temp_dir(final)
         try:
             (tmp / "frames").mkdir()
             for view in self.views:

@@ -30,6 +30,9 @@ from pathlib import Path
 
 import numpy as np
 
+from sc3_jax import locks
+from sc3_jax.safe_names import ALLOWED, is_safe
+
 try:
     import pyarrow as pa
     import pyarrow.parquet as pq
@@ -41,6 +44,7 @@ IMAGE_PREFIX = "observation.images."
 # info.json key of our action-space declaration (LeRobot has none): our export writes it, import reads it back
 INFO_ACTION_SPACE = "sc3_action_space"
 SUCCESS_KEY = "next.success"  # LeRobot's per-frame success feature (evaluate/labels.py: LEROBOT_SUCCESS)
+MIN_EPISODE_FRAMES = 2  # an imported episode shorter than this is skipped (said): nothing can be learnt from it
 LABELS_FIELD = "labels"  # an imported episode's meta.json {criterion: bool}, what `sc3 sweep --real STORE` reads
 _OPTIONAL = object()  # sentinel: "use observation.state if the dataset has it"
 
@@ -413,6 +417,9 @@ def _camera_map(features: dict, views, where: Path) -> dict[str, str]:
         pairs = views.items() if isinstance(views, dict) else ((view_name(v), v) for v in views)
         mapping = {view: key if key in features else IMAGE_PREFIX + key for view, key in pairs}
     for view, key in mapping.items():
+        if not is_safe(view):  # the view becomes a file name of the store we write: nothing outside it
+            raise LeRobotError(where, f"camera {key!r} gives the view name {view!r}, which cannot be a file name "
+                                      f"(only {ALLOWED}): rename it: --views NAME={key}")
         if key not in cameras:
             raise LeRobotError(where, f"camera {key!r} (view {view!r}) not found; cameras: {cameras}")
     if not mapping:
@@ -516,29 +523,52 @@ def import_lerobot(root: str | os.PathLike, out: str | os.PathLike, views=None, 
     fps_out = int(src.fps) if float(src.fps).is_integer() else src.fps  # keep "fps": 20 as our stores write it
     store = EpisodeStore(out, views=src.views, fps=fps_out, image_size=size, create=True, action_space=space,
                          state_dim=state_dim, state_names=state_names, has_pose=has_pose)
+    source = str(Path(root).resolve())
     written = skipped = labelled = 0
-    for i in range(len(src)):
-        ep = src.episode(i)
-        eid = f"lerobot{ep.episode_index:06d}"
-        if eid in store:
-            skipped += 1
-            continue
-        frames = {v: _resize(f, size) for v, f in ep.frames.items()}
-        meta = {"source": "lerobot", "lerobot_root": str(Path(root).resolve()), "episode_index": ep.episode_index,
-                "tasks": ep.tasks, "source_fps": src.source_fps, "camera_keys": src.cameras,
-                "wrist_views": list(src.wrist_views), "timestamps": ep.timestamps.tolist(),
-                "ee_pose_source": pose_key if has_pose else "none", "state_source": state_key or "none"}
-        if ep.success is not None:  # the real outcome, so that `sc3 sweep --real STORE` needs no LeRobot source
-            meta[LABELS_FIELD] = {"success": ep.success}
-            labelled += 1
-        store.write(Episode(eid, frames, ep.actions.reshape(ep.length, dim), ep.pose, ep.prompt, meta,
-                            None if ep.state is None else ep.state.reshape(ep.length, state_dim)))
-        written += 1
-        if progress:
-            print(f"  {eid}: {ep.length} frames", flush=True)
-    return {"out": str(out), "written": written, "skipped": skipped, "views": src.views, "fps": fps_out,
-            "action_space": space.to_dict(), "state_dim": state_dim, "ee_pose": has_pose,
+    short: list[int] = []
+    with locks.hold(store.root, "import"):  # two imports into one store would race on its episodes
+        _check_same_source(store, source)
+        for i in range(len(src)):
+            ep = src.episode(i)
+            eid = f"lerobot{ep.episode_index:06d}"
+            if eid in store:
+                skipped += 1
+                continue
+            if ep.length < MIN_EPISODE_FRAMES:  # no training window and no initial condition can come of it
+                short.append(ep.episode_index)
+                if progress:
+                    print(f"  skipped episode {ep.episode_index}: {ep.length} frame(s), fewer than "
+                          f"{MIN_EPISODE_FRAMES}", flush=True)
+                continue
+            frames = {v: _resize(f, size) for v, f in ep.frames.items()}
+            meta = {"source": "lerobot", "lerobot_root": source, "episode_index": ep.episode_index,
+                    "tasks": ep.tasks, "source_fps": src.source_fps, "camera_keys": src.cameras,
+                    "wrist_views": list(src.wrist_views), "timestamps": ep.timestamps.tolist(),
+                    "ee_pose_source": pose_key if has_pose else "none", "state_source": state_key or "none"}
+            if ep.success is not None:  # the real outcome, so that `sc3 sweep --real STORE` needs no LeRobot source
+                meta[LABELS_FIELD] = {"success": ep.success}
+                labelled += 1
+            store.write(Episode(eid, frames, ep.actions.reshape(ep.length, dim), ep.pose, ep.prompt, meta,
+                                None if ep.state is None else ep.state.reshape(ep.length, state_dim)))
+            written += 1
+            if progress:
+                print(f"  {eid}: {ep.length} frames", flush=True)
+    return {"out": str(out), "written": written, "skipped": skipped, "too_short": short, "views": src.views,
+            "fps": fps_out, "action_space": space.to_dict(), "state_dim": state_dim, "ee_pose": has_pose,
             "success_labels": labelled}  # of the episodes written: those whose meta holds next.success
+
+
+def _check_same_source(store, source: str) -> None:
+    """Importing dataset B into a store made from dataset A would skip B's episodes as "already there" (their ids
+    are episode indices) and keep A's: refused, naming both."""
+    from sc3_jax import atomic
+
+    for eid in store.episode_ids():
+        meta = atomic.read_json(store.root / eid / "meta.json", "restore it (the episode's metadata)")
+        if meta.get("source") == "lerobot" and meta.get("lerobot_root") not in (None, source):
+            raise LeRobotError(store.root, f"holds episodes imported from {meta['lerobot_root']}, not from {source}: "
+                                           "import into another --out")
+        return  # one episode tells: every import into a store is from its one dataset
 
 
 def _resize(frames: np.ndarray, size: tuple[int, int]) -> np.ndarray:

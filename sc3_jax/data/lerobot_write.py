@@ -25,7 +25,6 @@ import dataclasses
 import json
 import os
 import shutil
-import tempfile
 from collections.abc import Iterable, Iterator
 from fractions import Fraction
 from pathlib import Path
@@ -193,7 +192,7 @@ def write_lerobot(out: str | os.PathLike, episodes: Iterable[RawEpisode], fps: i
     if out.exists() and any(out.iterdir()) and not overwrite:
         raise FileExistsError(f"{out} exists and is not empty (pass overwrite=True)")
     out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
+    tmp = atomic.temp_dir(out)
     try:
         summary = _Writer(tmp, fps, version, codec, image_dtype, crf, episodes_per_file, names or {},
                           robot_type, info or {}).run(iter(episodes))

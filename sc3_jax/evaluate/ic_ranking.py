@@ -34,7 +34,7 @@ import numpy as np
 
 from sc3_jax import atomic
 from sc3_jax.errors import UserError
-from sc3_jax.evaluate import bootstrap, calibrate, intervals
+from sc3_jax.evaluate import bootstrap, calibrate, intervals, report_html
 from sc3_jax.evaluate.ic_sweep import KIND, REAL_FILE
 from sc3_jax.evaluate.results import ResultsStore
 
@@ -349,11 +349,18 @@ def summary(t: dict) -> list[str]:
 
 
 def render(results: str | Path, out: str | Path | None = None, real=None, draws: int = 2000) -> Path:
-    """Write report.md and report.json to ``out`` (default RESULTS/report), staged so a failure leaves the previous
-    report as it was; returns report.md."""
+    """Write report.md, report.html and report.json to ``out`` (default RESULTS/report), staged so a failure leaves
+    the previous report as it was; returns report.md."""
     t = compute(results, real, draws)
     out = Path(out) if out is not None else Path(results) / "report"
     with atomic.staged(out, last=("report.md",)) as stage:
         (stage / "report.json").write_text(json.dumps(t, indent=1))
         (stage / "report.md").write_text(markdown(t))
+        cfg = t["config"]
+        (stage / "report.html").write_text(report_html.page(
+            "Simulator-free sweep report",
+            [f"world model {cfg['world_model']}, initial conditions {cfg['initial_conditions']} "
+             f"({t['conditions']['evaluation']} evaluation + {t['conditions']['calibration']} calibration episodes); "
+             f"rollouts {t['rollouts']}", *summary(t)[:-len(t["warnings"]) or None]],
+            t["warnings"], tables(t)))
     return out / "report.md"

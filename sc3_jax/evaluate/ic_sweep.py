@@ -45,7 +45,7 @@ import numpy as np
 
 from sc3_jax import atomic
 from sc3_jax.errors import UserError
-from sc3_jax.evaluate.results import ResultsStore, rollout_id, terminated_at
+from sc3_jax.evaluate.results import ResultsStore, check_policy_names, rollout_id, terminated_at
 
 KIND = "initial_conditions"
 REAL_FILE = "real.json"  # the --real sources the report reads by default
@@ -216,64 +216,71 @@ def run(cfg: ICSweepConfig) -> Path:
         if m is not None:
             mappings[n] = m
     policies = _resolve(cfg.policies, wcfg.rollout.policy_chunk, mappings, stats.action_space, len(wcfg.data.views))
+    check_policy_names([n for n, _, _ in policies])
     for name, spec, policy in policies:  # dimensions first: one line naming both sides, before any compile
         try:
             ro.check_policy(policy)
         except UserError as e:
             raise UserError(f"--policies {spec}: {e} (world model {cfg.world_model})") from None
-    results = ResultsStore(cfg.out, cfg.to_json(ids, [n for n, _, _ in policies]))
-    if cfg.real:
-        atomic.write_json(results.root / REAL_FILE, {"real": list(cfg.real)})
-    done = results.done()
-    criteria = next((tuple(sorted(r["outcomes"])) for r in results.records()), None)
-    taus = [float(t) for t in cfg.taus] + [math.inf]
-    units = [(name, spec, policy, block, idx[g:g + cfg.batch]) for name, spec, policy in policies
-             for block, idx in blocks(cfg).items() for g in range(0, len(idx), cfg.batch)]
-    total = len(policies) * want
-    bar = tqdm(total=total, initial=len(done), desc="sweep", unit="rollout", disable=not cfg.progress)
-    t0, ran = time.time(), 0
-    for name, spec, policy, block, idx in units:
-        rids = [rollout_id(name, i, "online") for i in idx]
-        if all(r in done for r in rids):
-            continue
-        sel = np.asarray(idx + [idx[-1]] * (cfg.batch - len(idx)))  # one shape for every batch: one compile
-        sub = rollout.InitialConditions(*(np.asarray(x)[sel] for x in (prompted if name in mappings else ics)))
-        keys = np.asarray(rollout.episode_keys(cfg.rollout_seed, len(sel), start=idx[0]))  # condition i: (seed, i)
-        try:
-            out = rollout_io.closed_loop(ro, params, policy, sub, keys, math.inf, len(sel), False)
-        except UserError as e:  # a host policy's chunks are checked as they arrive
-            raise UserError(f"--policies {spec}: {e} (world model {cfg.world_model})") from None
-        recs = []
-        for b, (i, rid) in enumerate(zip(idx, rids)):
-            frames = np.concatenate([out["initial_frames"][b][:, -1:], out["frames"][b]], 1)  # [V, 1 + N*l, ...]
-            states = np.concatenate([np.asarray(sub.state[b], np.float32)[None], out["states"][b]], 0)
-            u, u_raw = out["u"][b], out["u_raw"][b]
-            cuts = sorted({cut(u if cfg.tau_units == "normalised" else u_raw, t) for t in taus})
-            by_cut = {}
-            for c in cuts:
-                n = 1 + c * s.keep
-                view = RolloutView(ids[i], frames[:, :n], state=states[:n], instruction=prompts[i])
-                try:
-                    got = scorer(view)
-                except Exception as e:  # the user's code: its traceback, and which rollout it was reading
-                    e.add_note(f"while --scorer {cfg.scorer} scored {rid} ({c} of {s.num_chunks} chunks)")
-                    raise
-                by_cut[str(c)] = check_outcomes(cfg.scorer, got, rid, criteria)
-                criteria = criteria or tuple(sorted(by_cut[str(c)]))
-            results.save_arrays(rid, frames=frames, actions=out["actions"][b], states=out["states"][b], u=u,
-                                u_raw=u_raw)
-            recs.append({"id": rid, "mode": "online", "policy": name, "seed": i, "episode": ids[i], "block": block,
-                         "outcomes": by_cut[str(s.num_chunks)], "outcomes_by_cut": by_cut, "u": u.tolist(),
-                         "u_raw": u_raw.tolist(), "num_chunks": s.num_chunks, "frames_per_chunk": s.keep,
-                         "stride": s.stride})
-        results.append(recs)
-        ran += len(recs)
-        bar.update(len(recs))
-    bar.close()
-    for name, _, policy in policies:
-        if name in served:  # our side of the connection to an openpi server
-            policy.close()
-    atomic.write_json(results.root / "timing.json", {
-        "seconds_last_run": time.time() - t0, "rollouts_run": {"online": ran},
-        "devices": [str(d) for d in jax.local_devices()]})
-    return results.root
+    results = ResultsStore(cfg.out, cfg.to_json(ids, [n for n, _, _ in policies]), lock=True)
+    try:
+        if cfg.real:
+            atomic.write_json(results.root / REAL_FILE, {"real": list(cfg.real)})
+        done = results.done()
+        criteria = next((tuple(sorted(r["outcomes"])) for r in results.records()), None)
+        taus = [float(t) for t in cfg.taus] + [math.inf]
+        units = [(name, spec, policy, block, idx[g:g + cfg.batch]) for name, spec, policy in policies
+                 for block, idx in blocks(cfg).items() for g in range(0, len(idx), cfg.batch)]
+        total = len(policies) * want
+        bar = tqdm(total=total, initial=len(done), desc="sweep", unit="rollout", disable=not cfg.progress)
+        t0, ran = time.time(), 0
+        for name, spec, policy, block, idx in units:
+            rids = [rollout_id(name, i, "online") for i in idx]
+            if all(r in done for r in rids):
+                continue
+            sel = np.asarray(idx + [idx[-1]] * (cfg.batch - len(idx)))  # one shape for every batch: one compile
+            sub = rollout.InitialConditions(*(np.asarray(x)[sel] for x in (prompted if name in mappings else ics)))
+            keys = np.asarray(rollout.episode_keys(cfg.rollout_seed, len(sel), start=idx[0]))  # condition i: (seed, i)
+            try:
+                out = rollout_io.closed_loop(ro, params, policy, sub, keys, math.inf, len(sel), False)
+            except UserError as e:  # a host policy's chunks are checked as they arrive
+                raise UserError(f"--policies {spec}: {e} (world model {cfg.world_model})") from None
+            except Exception as e:  # the policy's code (or its server): its traceback, and which policy it was
+                e.add_note(f"while policy {name!r} ({spec}) acted in rollouts {rids[0]} .. {rids[-1]}")
+                raise
+            recs = []
+            for b, (i, rid) in enumerate(zip(idx, rids)):
+                frames = np.concatenate([out["initial_frames"][b][:, -1:], out["frames"][b]], 1)  # [V, 1 + N*l, ...]
+                states = np.concatenate([np.asarray(sub.state[b], np.float32)[None], out["states"][b]], 0)
+                u, u_raw = out["u"][b], out["u_raw"][b]
+                cuts = sorted({cut(u if cfg.tau_units == "normalised" else u_raw, t) for t in taus})
+                by_cut = {}
+                for c in cuts:
+                    n = 1 + c * s.keep
+                    view = RolloutView(ids[i], frames[:, :n], state=states[:n], instruction=prompts[i])
+                    try:
+                        got = scorer(view)
+                    except Exception as e:  # the user's code: its traceback, and which rollout it was reading
+                        e.add_note(f"while --scorer {cfg.scorer} scored {rid} ({c} of {s.num_chunks} chunks)")
+                        raise
+                    by_cut[str(c)] = check_outcomes(cfg.scorer, got, rid, criteria)
+                    criteria = criteria or tuple(sorted(by_cut[str(c)]))
+                results.save_arrays(rid, frames=frames, actions=out["actions"][b], states=out["states"][b], u=u,
+                                    u_raw=u_raw)
+                recs.append({"id": rid, "mode": "online", "policy": name, "seed": i, "episode": ids[i], "block": block,
+                             "outcomes": by_cut[str(s.num_chunks)], "outcomes_by_cut": by_cut, "u": u.tolist(),
+                             "u_raw": u_raw.tolist(), "num_chunks": s.num_chunks, "frames_per_chunk": s.keep,
+                             "stride": s.stride})
+            results.append(recs)
+            ran += len(recs)
+            bar.update(len(recs))
+        bar.close()
+        for name, _, policy in policies:
+            if name in served:  # our side of the connection to an openpi server
+                policy.close()
+        atomic.write_json(results.root / "timing.json", {
+            "seconds_last_run": time.time() - t0, "rollouts_run": {"online": ran},
+            "devices": [str(d) for d in jax.local_devices()]})
+        return results.root
+    finally:
+        results.close()  # the lock: another sweep may take the store

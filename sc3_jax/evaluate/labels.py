@@ -62,6 +62,12 @@ def read(sources: tuple[str, ...] | list[str]) -> list[RealEpisode]:
         if not got:
             raise UserError(f"--real {spec}: no episodes")
         out += got
+    seen: dict[tuple[str, str], int] = {}
+    for i, e in enumerate(out):  # one episode counted twice would weigh its policy's rate: refused, naming both
+        j = seen.setdefault((e.policy, e.episode), i)
+        if j != i:
+            raise UserError(f"--real: policy {e.policy!r} episode {e.episode.rsplit(':', 1)[-1]!r} is given twice "
+                            f"({out[j].episode} and {e.episode}): drop the duplicate")
     return out
 
 
@@ -136,18 +142,20 @@ def lerobot_success(root: Path) -> dict[int, bool]:
 
 
 def _from_csv(path: Path, name: str | None) -> list[RealEpisode]:
-    with open(path, newline="") as fh:
-        rows = list(csv.DictReader(fh))
+    with open(path, newline="", encoding="utf-8-sig") as fh:  # -sig: a byte-order mark is not part of a name
+        reader = csv.reader(fh)
+        header = [h.strip() for h in next(reader, [])]  # "policy, success" as written by hand
+        rows = [(line, dict(zip(header, r))) for line, r in enumerate(reader, start=2) if any(c.strip() for c in r)]
     if not rows:
         return []
-    cols = list(rows[0])
+    cols = header
     if name is None and POLICY_FIELD not in cols:
         raise UserError(f"{path}: no {POLICY_FIELD!r} column (have {cols}): add one, or give --real NAME={path}")
     criteria = [c for c in cols if c not in (POLICY_FIELD, "episode")]
     if not criteria:
         raise UserError(f"{path}: no criterion column besides {POLICY_FIELD!r} / 'episode' (e.g. a 'success' column)")
     out = []
-    for line, row in enumerate(rows, start=2):
+    for line, row in rows:
         outcomes = {}
         for c in criteria:
             v = (row.get(c) or "").strip().lower()
@@ -157,5 +165,5 @@ def _from_csv(path: Path, name: str | None) -> list[RealEpisode]:
         policy = name or (row.get(POLICY_FIELD) or "").strip()
         if not policy:
             raise UserError(f"{path}:{line}: empty {POLICY_FIELD!r}")
-        out.append(RealEpisode(policy, f"{path}:{row.get('episode') or line}", outcomes))
+        out.append(RealEpisode(policy, f"{path}:{(row.get('episode') or '').strip() or line}", outcomes))
     return out

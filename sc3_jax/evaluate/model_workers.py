@@ -98,10 +98,13 @@ def run_batch(job: ModelJob, ro, params, env, policy, rollout_seed: int, store: 
         real = [store.load_arrays(rollout_id(name, seed, "real")) for seed in seeds]
         actions = np.stack([ro_mod.chunk_actions(r["actions"], s) for r in real])
         out = ro.run_offline(params, ics, actions, keys, math.inf)
-    elif isinstance(policy, JaxPolicy):
-        out = ro.run(params, policy, ics, keys, math.inf)
     else:
-        out = ro.run_host(params, policy, ics, keys, math.inf)
+        try:
+            out = (ro.run if isinstance(policy, JaxPolicy) else ro.run_host)(params, policy, ics, keys, math.inf)
+        except Exception as e:  # the policy's code (or its server): its traceback, and which policy and rollouts
+            e.add_note(f"while policy {name!r} ({job.spec}) acted in {job.mode} rollouts "
+                       f"{rollout_id(name, seeds[0], job.mode)} .. {rollout_id(name, seeds[-1], job.mode)}")
+            raise
     recs = []
     for b, seed in enumerate(seeds):
         ic = make_initial_condition(seed, job.task)

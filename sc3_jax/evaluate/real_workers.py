@@ -62,8 +62,12 @@ class _Runner:
             self.policies[job.spec] = resolve(job.spec).policy
         s = self.setup
         rid = rollout_id(job.name, job.seed, "real")
-        rec, arrays = run_real(self.env, job.name, job.task, self.policies[job.spec], job.seed, self.scorer,
-                               s.max_steps, s.score_stride, job.degradations)
+        try:
+            rec, arrays = run_real(self.env, job.name, job.task, self.policies[job.spec], job.seed, self.scorer,
+                                   s.max_steps, s.score_stride, job.degradations)
+        except Exception as e:  # the policy's code: its traceback, and which policy and rollout
+            e.add_note(f"while policy {job.name!r} ({job.spec}) acted in real rollout {rid}")
+            raise
         self.store.save_arrays(rid, **arrays)
         return rec
 

@@ -11,7 +11,6 @@ every mode being compared, so a partial sweep still reports consistent numbers (
 """
 from __future__ import annotations
 
-import html
 import json
 import math
 from pathlib import Path
@@ -20,10 +19,11 @@ import numpy as np
 
 from sc3_jax import atomic
 from sc3_jax.errors import UserError
-from sc3_jax.evaluate import calibrate, intervals, metrics
+from sc3_jax.evaluate import calibrate, intervals, metrics, report_html
 from sc3_jax.evaluate.calibrate import object_rows as _object_rows
 from sc3_jax.evaluate.merged import open_store
 from sc3_jax.evaluate.results import EVAL_MODES, SPLIT_ORDER, ResultsStore, rollout_id, seed_blocks
+from sc3_jax.safe_names import file_name
 
 
 def _policy_blind(real_rates: dict) -> dict:
@@ -403,17 +403,9 @@ def markdown(t: dict) -> str:
 
 
 def _html(t: dict, images: list[str], videos: list[str]) -> str:
-    body = [f"<h1>Sweep report</h1><p>rollouts: {html.escape(str(t['counts']))}</p>"]
-    for warn in ([incomplete(t)] if incomplete(t) else []) + t.get("warnings", []):
-        body.append(f"<p><b>{html.escape(warn)}</b></p>")
-    for title, header, rows in tables(t):
-        body.append(f"<h2>{html.escape(title)}</h2><table border=1 cellpadding=4><tr>" +
-                    "".join(f"<th>{html.escape(h)}</th>" for h in header) + "</tr>" +
-                    "".join("<tr>" + "".join(f"<td>{html.escape(c)}</td>" for c in r) + "</tr>" for r in rows) +
-                    "</table>")
-    body += [f'<h2>{html.escape(Path(i).stem)}</h2><img src="{i}" width=640>' for i in images]
-    body += [f'<p><a href="{v}">{html.escape(v)}</a></p>' for v in videos]
-    return "<html><body style='font-family:sans-serif'>" + "".join(body) + "</body></html>"
+    return report_html.page("Sweep report", [f"rollouts: {t['counts']}"],
+                            ([incomplete(t)] if incomplete(t) else []) + t.get("warnings", []), list(tables(t)),
+                            images, videos)
 
 
 def scatter(t: dict, path: Path) -> None:
@@ -501,7 +493,7 @@ def render(results: str | Path, out: str | Path, videos: int = 3, taus=None, dra
             if len(vids) >= videos:
                 break
             seed = t["config"]["seed0"]
-            name = f"{policy}_{seed}.mp4"
+            name = file_name(f"{policy}_{seed}", ".mp4")  # a policy name from the store: no path of its own
             if side_by_side(store, policy, seed, stage / name):
                 vids.append(name)
         md = markdown(t)

@@ -23,8 +23,9 @@ from pathlib import Path
 
 import numpy as np
 
-from sc3_jax import atomic
+from sc3_jax import atomic, locks
 from sc3_jax.errors import UserError
+from sc3_jax.safe_names import check_name, join_inside
 from sc3_jax.evaluate.metrics import OVERALL
 
 EVAL_MODES = ("real", "offline", "online")
@@ -34,7 +35,16 @@ SPLIT_ORDER = (*dict.fromkeys(SPLITS.values()), OVERALL)
 
 
 def rollout_id(policy: str, seed: int, mode: str) -> str:
-    return f"{policy}/{seed}_{mode}"
+    """A rollout's record id and the path of its arrays under ``rollouts/``: the policy's name is a directory
+    (checked where a sweep starts and where a record is written: :func:`check_policy_names`)."""
+    return f"{policy}/{int(seed)}_{mode}"
+
+
+def check_policy_names(names) -> None:
+    """Each policy's name becomes a directory of the store: a one-line error, before any rollout, for one that
+    cannot (``ws://HOST:PORT`` unnamed, say)."""
+    for n in names:
+        check_name(n, "policy name (give the policy a name: --policies NAME=SPEC)")
 
 
 def seed_blocks(cfg) -> dict[str, list[int]]:
@@ -75,9 +85,14 @@ def terminated_at(u: np.ndarray, tau: float) -> np.ndarray:
 class ResultsStore:
     """Append-only JSONL of rollout records + one npz of arrays per rollout."""
 
-    def __init__(self, root: str | Path, config: dict | None = None):
+    def __init__(self, root: str | Path, config: dict | None = None, lock: bool = False):
+        """``config``: open to write (checked against ``sweep.json``). ``lock``: hold the store's lock until
+        :meth:`close`, so that a second sweep on it stops with one line (what the sweeps do); taken after the
+        checks, before anything is written."""
         self.root = Path(root)
         self.path = self.root / "results.jsonl"
+        self._lock: locks.Lock | None = None
+        self._locking = lock
         if config is not None:
             if self.archived:
                 raise UserError(f"{self.root} is an archived store (results.jsonl.gz, read-only): to add to it, copy "
@@ -119,8 +134,16 @@ class ResultsStore:
                             "restore sweep.json, or use another --out")
         self.records()  # a damaged record refuses the resume here, before anything is written
         self.root.mkdir(parents=True, exist_ok=True)
+        if self._locking:  # before the repair: a running sweep's line being written is not a cut line
+            self._lock = locks.Lock(self.root, "sweep")
         self._repair()
         atomic.write_json(cfg_path, config)
+
+    def close(self) -> None:
+        """Give the store's lock back (a store opened without ``lock`` holds none)."""
+        if self._lock is not None:
+            self._lock.release()
+            self._lock = None
 
     def config(self) -> dict:
         """The sweep's config as stored (``sweep.json``)."""
@@ -147,15 +170,24 @@ class ResultsStore:
         return {r["id"] for r in self.records()}
 
     def append(self, records: list[dict]):
+        lines = []
+        check_policy_names({r["policy"] for r in records if "policy" in r})
+        for r in records:
+            try:  # a NaN or inf in a record would read back as a silent rate: refused, nothing written
+                lines.append(json.dumps(r, sort_keys=True, allow_nan=False) + "\n")
+            except ValueError:
+                raise UserError(f"rollout {r.get('id')}: its record holds a non-finite number "
+                                f"({_non_finite_fields(r)}); nothing of it was written") from None
         with open(self.path, "a") as fh:
-            fh.write("".join(json.dumps(r, sort_keys=True) + "\n" for r in records))
+            fh.write("".join(lines))
             fh.flush()
             os.fsync(fh.fileno())
 
     def array_path(self, rid: str) -> Path:
-        return self.root / "rollouts" / f"{rid}.npz"
+        return join_inside(self.root / "rollouts", f"{rid}.npz")  # ids are read from a store someone handed over
 
     def save_arrays(self, rid: str, **arrays):
+        check_actions(rid, arrays.get("actions"), arrays.get("u_raw"))
         atomic.save_npz(self.array_path(rid), **arrays)
 
     def load_arrays(self, rid: str) -> dict:
@@ -163,3 +195,27 @@ class ResultsStore:
         with atomic.open_npz(p, f"restore it, or delete it and {rid}'s line in {self.path} and resume the sweep"
                                 " to run it again") as z:
             return {k: z[k] for k in z.files}
+
+
+def check_actions(rid: str, actions, u_raw=None) -> None:
+    """A policy's actions must be finite, and so must the uncertainty they give (1e30 overflows U_chunk to inf, which
+    a tau reads as "terminate": a silent success). One line naming the rollout (its id starts with the policy)."""
+    for what, x in (("actions", actions), ("U_chunk of its actions", u_raw)):
+        if x is not None and not np.all(np.isfinite(x)):
+            a = np.abs(np.asarray(actions if actions is not None else 0.0, np.float64))
+            raise UserError(f"rollout {rid}: the policy's {what} are not finite (largest finite |action| "
+                            f"{a[np.isfinite(a)].max(initial=0):.3g}): fix the policy; nothing of this rollout was "
+                            "written")
+
+
+def _non_finite_fields(record: dict) -> str:
+    """Which fields of a record hold NaN or inf (for the message)."""
+    def bad(v) -> bool:
+        if isinstance(v, float):
+            return not np.isfinite(v)
+        if isinstance(v, Mapping):
+            return any(bad(x) for x in v.values())
+        if isinstance(v, (list, tuple)):
+            return any(bad(x) for x in v)
+        return False
+    return ", ".join(k for k, v in record.items() if bad(v)) or "?"

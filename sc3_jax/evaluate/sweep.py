@@ -37,8 +37,8 @@ import numpy as np
 
 from sc3_jax import atomic
 from sc3_jax.errors import UserError
-from sc3_jax.evaluate.results import (EVAL_MODES, REAL_ONLY_STRIDE, SPLITS, ResultsStore, rollout_id,
-                                     score_strides, seed_blocks)
+from sc3_jax.evaluate.results import (EVAL_MODES, REAL_ONLY_STRIDE, SPLITS, ResultsStore, check_policy_names,
+                                      rollout_id, score_strides, seed_blocks)
 
 # the best shipped world model (docs/results.md's headline): README command 1 evaluates the zoo inside it
 SHIPPED_WORLD_MODEL = Path(__file__).resolve().parent / "shipped" / "bussing_latent_gpu"
@@ -175,6 +175,7 @@ def run_sweep(cfg: SweepConfig) -> Path:
     scorer = PerceptionScorer(p_params)
     specs = list(cfg.policies or _zoo_names(cfg.tasks))
     policies = [_resolve(p) for p in specs]
+    check_policy_names([n for n, _, _ in policies])
     wm_modes = [m for m in cfg.modes if m != "real"]
     spec = None
     if wm_modes:
@@ -193,48 +194,51 @@ def run_sweep(cfg: SweepConfig) -> Path:
     copies = real_to_copy(cfg.real_from, config, {n: t for n, t, _ in policies},
                           [(policies[p][0], s) for p, s in real_seeds], image_size, score_stride,
                           ResultsStore(out).done()) if cfg.real_from else []
-    store = ResultsStore(out, config)
-    link_real(store, cfg.real_from, copies)
-    done = store.done()
-    total = sum(len(u.seeds) * (u.real + len(u.modes)) for u in units)
-    bar = tqdm(total=total, initial=len(done), desc="sweep", unit="rollout", disable=not cfg.progress)
-    timing = {"real": 0.0, "offline": 0.0, "online": 0.0}
-    count_run = {"real": 0, "offline": 0, "online": 0}
-    jobs = [RealJob(specs[p], *policies[p][:2], s, s in degrade) for p, s in real_seeds
-            if rollout_id(policies[p][0], s, "real") not in done]
-    setup = RealSetup(str(store.root), image_size, weights, max_steps, score_stride)
-    workers = cfg.workers or default_workers()
-    t0 = time.time()
-    for job, rec in run_real_jobs(jobs, setup, workers,
-                                  {specs[p]: policies[p][2] for p in range(len(specs))}, env, scorer):
-        store.append([{"id": rollout_id(job.name, job.seed, "real"), "mode": "real", "seed": job.seed,
-                       "policy": job.name, "task": job.task, "split": SPLITS[job.task], **rec}])
-        bar.update(1)
-    timing["real"], count_run["real"] = time.time() - t0, len(jobs)
-    model_jobs = [ModelJob(specs[u.policy], *policies[u.policy][:2], mode, u.seeds, offset + u.start)
-                  for u in units for mode, offset in u.modes
-                  if not all(rollout_id(policies[u.policy][0], s, mode) in done for s in u.seeds)]
-    model_setup = ModelSetup(str(store.root), cfg, str(weights))
+    store = ResultsStore(out, config, lock=True)
+    try:
+        link_real(store, cfg.real_from, copies)
+        done = store.done()
+        total = sum(len(u.seeds) * (u.real + len(u.modes)) for u in units)
+        bar = tqdm(total=total, initial=len(done), desc="sweep", unit="rollout", disable=not cfg.progress)
+        timing = {"real": 0.0, "offline": 0.0, "online": 0.0}
+        count_run = {"real": 0, "offline": 0, "online": 0}
+        jobs = [RealJob(specs[p], *policies[p][:2], s, s in degrade) for p, s in real_seeds
+                if rollout_id(policies[p][0], s, "real") not in done]
+        setup = RealSetup(str(store.root), image_size, weights, max_steps, score_stride)
+        workers = cfg.workers or default_workers()
+        t0 = time.time()
+        for job, rec in run_real_jobs(jobs, setup, workers,
+                                      {specs[p]: policies[p][2] for p in range(len(specs))}, env, scorer):
+            store.append([{"id": rollout_id(job.name, job.seed, "real"), "mode": "real", "seed": job.seed,
+                           "policy": job.name, "task": job.task, "split": SPLITS[job.task], **rec}])
+            bar.update(1)
+        timing["real"], count_run["real"] = time.time() - t0, len(jobs)
+        model_jobs = [ModelJob(specs[u.policy], *policies[u.policy][:2], mode, u.seeds, offset + u.start)
+                      for u in units for mode, offset in u.modes
+                      if not all(rollout_id(policies[u.policy][0], s, mode) in done for s in u.seeds)]
+        model_setup = ModelSetup(str(store.root), cfg, str(weights))
 
-    def in_process():  # this process's runner, with its resolved policies, simulator and scorer
-        return ModelRunner(model_setup, {specs[p]: policies[p][2] for p in range(len(specs))}, env, scorer)
+        def in_process():  # this process's runner, with its resolved policies, simulator and scorer
+            return ModelRunner(model_setup, {specs[p]: policies[p][2] for p in range(len(specs))}, env, scorer)
 
-    t1 = time.time()
-    for job, recs in run_model_jobs(model_jobs, model_setup, workers, in_process):
-        ids = [rollout_id(job.name, s, job.mode) for s in job.seeds]
-        store.append([{"id": i, "mode": job.mode, "seed": s, "policy": job.name, "task": job.task,
-                       "split": SPLITS[job.task], **r} for i, s, r in zip(ids, job.seeds, recs)])
-        timing[job.mode] += time.time() - t1  # the workers overlap: each mode's share of the wall time
-        count_run[job.mode] += len(ids)
-        bar.update(len(ids))
         t1 = time.time()
-    bar.close()
-    env.close()
-    atomic.write_json(store.root / "timing.json", {
-        "seconds_last_run": time.time() - t0, "seconds_by_mode": timing, "rollouts_run": count_run,
-        "workers": workers, "model_workers": workers if in_workers(workers, len(model_jobs)) else 1,
-        "devices": [str(d) for d in jax.local_devices()]})
-    return store.root
+        for job, recs in run_model_jobs(model_jobs, model_setup, workers, in_process):
+            ids = [rollout_id(job.name, s, job.mode) for s in job.seeds]
+            store.append([{"id": i, "mode": job.mode, "seed": s, "policy": job.name, "task": job.task,
+                           "split": SPLITS[job.task], **r} for i, s, r in zip(ids, job.seeds, recs)])
+            timing[job.mode] += time.time() - t1  # the workers overlap: each mode's share of the wall time
+            count_run[job.mode] += len(ids)
+            bar.update(len(ids))
+            t1 = time.time()
+        bar.close()
+        env.close()
+        atomic.write_json(store.root / "timing.json", {
+            "seconds_last_run": time.time() - t0, "seconds_by_mode": timing, "rollouts_run": count_run,
+            "workers": workers, "model_workers": workers if in_workers(workers, len(model_jobs)) else 1,
+            "devices": [str(d) for d in jax.local_devices()]})
+        return store.root
+    finally:
+        store.close()  # the lock: another sweep may take the store
 
 
 @dataclasses.dataclass(frozen=True)

@@ -7,7 +7,8 @@ Wire protocol (openpi ``serve_policy.py`` / ``openpi_client``), see docs/openpi.
   * on connect the server sends one binary frame: msgpack(metadata dict) (may be ``{}``);
   * each request is a binary msgpack(observation dict); the reply a binary msgpack(result dict) holding
     ``"actions"`` float [H, D] (plus ``"server_timing"`` / ``"policy_timing"``);
-  * a *text* frame is a server-side traceback, after which the server closes the connection.
+  * a *text* frame is a server-side error (openpi's: a traceback; ours: one line), after which the server closes
+    the connection.
 Arrays travel in openpi's msgpack-numpy encoding (:mod:`sc3_jax.policies.msgpack_numpy`); observations and actions
 are translated by an :class:`~sc3_jax.policies.openpi_mappings.ObsMapping`.
 """
@@ -37,7 +38,7 @@ DEFAULT_CHUNK = 25  # paper: policy chunk 25
 
 
 class PolicyServerError(RuntimeError):
-    """The policy server reported an error (a text frame with its traceback)."""
+    """The policy server reported an error (a text frame: openpi's a traceback, ours one line)."""
 
 
 class PolicyConnectionError(ConnectionError):
@@ -78,7 +79,7 @@ class WebsocketClientPolicy:
     ``max_retries`` times with exponential back-off ``backoff_s * 2**i`` (capped at ``max_backoff_s``), then raise
     :class:`PolicyConnectionError` naming ``host:port``. ``timeout_s`` bounds the opening handshake and each reply
     (:class:`PolicyTimeoutError`; the connection is dropped and re-opened by the next call). A text frame from the
-    server raises :class:`PolicyServerError` with the server's traceback.
+    server raises :class:`PolicyServerError` with the server's message.
     """
 
     def __init__(self, host: str = "127.0.0.1", port: int | None = 8000, mapping: ObsMapping | str | None = None,

@@ -4,7 +4,9 @@ serve one of our policies so that openpi clients, or ours, can query it. ``sc3 s
 """
 from __future__ import annotations
 
+import hmac
 import logging
+import re
 import threading
 import time
 import traceback
@@ -21,9 +23,36 @@ from sc3_jax.policies import msgpack_numpy
 from sc3_jax.policies.base import HostPolicy, JaxPolicy, as_host
 from sc3_jax.policies.openpi_mappings import ObsMapping, get_mapping
 
-__all__ = ["PolicyServer", "serve", "serve_until_interrupted"]
+__all__ = ["PolicyServer", "serve", "serve_until_interrupted", "MAX_MESSAGE_BYTES", "API_KEY_ENV"]
 
 logger = logging.getLogger(__name__)
+
+MAX_MESSAGE_BYTES = 8 * 2**20  # an observation of four 480x640 cameras is 3.7 MB
+API_KEY_ENV = "SC3_POLICY_API_KEY"  # where `sc3 serve-policy` reads its key (a command-line value shows in `ps`)
+
+
+class ShapeError(ValueError):
+    """An observation whose keys or array shapes differ from the first one this server took."""
+
+
+def signature(obs: Mapping, prefix: str = "") -> dict[str, tuple]:
+    """Key -> (shape, dtype) of every array of a (nested) observation; other values (a prompt, sent or not) are free.
+    Two observations with one signature run one compiled program."""
+    out: dict[str, tuple] = {}
+    for k, v in obs.items():
+        key = f"{prefix}{k}"
+        if isinstance(v, Mapping):
+            out.update(signature(v, key + "/"))
+        elif isinstance(v, np.ndarray):
+            out[key] = (tuple(v.shape), v.dtype.str)
+    return out
+
+
+def one_line(e: BaseException) -> str:
+    """What a client is told of an error: its type and first line, no server path (the traceback stays in the log)."""
+    first = (str(e).strip().splitlines() or [""])[0]
+    first = re.sub(r"(?:/[^\s'\":,()\[\]]+){2,}", "<path>", first)[:300]
+    return f"{type(e).__name__}: {first}" if first else type(e).__name__
 
 
 class PolicyServer:
@@ -38,11 +67,16 @@ class PolicyServer:
     must carry ``Authorization: Api-Key <key>`` (else 401). Inference is serialised with a lock (one policy, many
     connections). ``port=0`` binds a free port (see ``.port``). Use ``start()`` for a background thread and
     ``shutdown()`` to stop, or ``serve_forever()`` to block.
+
+    Safe to expose: it binds 127.0.0.1 unless told otherwise; a message over ``max_message_bytes`` closes its
+    connection (1009) before it is read; the first observation fixes the keys and array shapes (one compiled
+    program), and another is refused; an error reaches the client as one line without paths, the traceback only the
+    server's log.
     """
 
-    def __init__(self, policy: JaxPolicy | HostPolicy, host: str = "0.0.0.0", port: int = 8000,
+    def __init__(self, policy: JaxPolicy | HostPolicy, host: str = "127.0.0.1", port: int = 8000,
                  metadata: Mapping[str, Any] | None = None, mapping: ObsMapping | str | None = None,
-                 api_key: str | None = None):
+                 api_key: str | None = None, max_message_bytes: int = MAX_MESSAGE_BYTES):
         self.policy = as_host(policy) if isinstance(policy, JaxPolicy) else policy
         if not callable(getattr(self.policy, "infer", None)):
             raise TypeError(f"{type(policy).__name__} is neither a JaxPolicy nor a HostPolicy (no .infer)")
@@ -62,7 +96,10 @@ class PolicyServer:
         self._thread: threading.Thread | None = None
         self._serving = False
         self._stopped = False
-        self._server = websockets.sync.server.serve(self._handler, host, port, compression=None, max_size=None,
+        self.signature: dict[str, tuple] | None = None  # of the first observation taken
+        # max_queue: at most a few messages buffered per connection, so memory stays near max_size per client
+        self._server = websockets.sync.server.serve(self._handler, host, port, compression=None,
+                                                    max_size=int(max_message_bytes), max_queue=2,
                                                     process_request=self._process_request)
         self.host, self.port = self._server.socket.getsockname()[:2]
 
@@ -74,13 +111,22 @@ class PolicyServer:
     def _process_request(self, connection: Any, request: Any) -> Any:
         if request.path == "/healthz":
             return connection.respond(HTTPStatus.OK, "OK\n")
-        if self.api_key and request.headers.get("Authorization") != f"Api-Key {self.api_key}":
+        if self.api_key and not hmac.compare_digest(request.headers.get("Authorization") or "",
+                                                    f"Api-Key {self.api_key}"):
             return connection.respond(HTTPStatus.UNAUTHORIZED, "missing or wrong Authorization: Api-Key header\n")
         return None
 
     def _infer(self, obs: Any) -> dict:
         if not isinstance(obs, dict):
             raise TypeError(f"expected an observation dict, got {type(obs).__name__}")
+        sig = signature(obs)
+        with self._lock:
+            if self.signature is None:
+                self.signature = sig
+            elif sig != self.signature:  # a new shape would compile (and keep) another program
+                diff = sorted(k for k in sig.keys() | self.signature.keys() if sig.get(k) != self.signature.get(k))
+                raise ShapeError(f"observation {diff[0]} is {sig.get(diff[0], 'missing')}, this server takes "
+                                 f"{self.signature.get(diff[0], 'no such key')} (fixed by its first observation)")
         ours = self.mapping.from_family(obs) if self.mapping is not None else obs
         with self._lock:
             out = self.policy.infer(ours)
@@ -116,12 +162,11 @@ class PolicyServer:
                 ws.send(msgpack_numpy.packb(result))
             except websockets.exceptions.ConnectionClosed:
                 return
-            except Exception:  # noqa: BLE001 - reported to the client, like openpi
-                tb = traceback.format_exc()
-                logger.error("policy inference failed:\n%s", tb)
+            except Exception as e:  # noqa: BLE001 - reported to the client in one line, like openpi's text frame
+                logger.error("policy inference failed:\n%s", traceback.format_exc())
                 try:
-                    ws.send(tb)
-                    ws.close(CloseCode.INTERNAL_ERROR, "Internal server error. Traceback included in previous frame.")
+                    ws.send(one_line(e))
+                    ws.close(CloseCode.INTERNAL_ERROR, "Internal server error: see the previous frame")
                 except websockets.exceptions.ConnectionClosed:
                     pass
                 return
@@ -159,7 +204,7 @@ class PolicyServer:
         self.shutdown()
 
 
-def serve(policy: JaxPolicy | HostPolicy, host: str = "0.0.0.0", port: int = 8000,
+def serve(policy: JaxPolicy | HostPolicy, host: str = "127.0.0.1", port: int = 8000,
           metadata: Mapping[str, Any] | None = None, mapping: ObsMapping | str | None = None, *,
           api_key: str | None = None, block: bool = True) -> PolicyServer:
     """Serve ``policy`` over openpi's protocol. ``block=True`` serves until KeyboardInterrupt (then shuts down);

@@ -1,0 +1,385 @@
+"""Safe to point at someone else's data, server or store: every crafted input ends in one line, and nothing outside
+the output directory (or inside a store it refuses) changes. Path traversal from a LeRobot dataset or an episode
+store, script in a report from a store's policy names, a policy server sent oversized and reshaped messages (its
+resident memory bounded), two writers on one store or workdir, a failed start, non-finite actions, duplicate real
+rows, a foreign dataset, Ctrl-C. Policies and scorers here are named as `test_untrusted_inputs:ATTR`."""
+import csv
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from sc3_jax import atomic, locks
+from sc3_jax.cli import main
+from sc3_jax.data.action_space import ActionSpace
+from sc3_jax.data.episodes import Episode, EpisodeStore
+from sc3_jax.errors import UserError
+from sc3_jax.evaluate import labels, report_html
+from sc3_jax.evaluate.results import ResultsStore
+from sc3_jax.safe_names import file_name, join_inside
+from test_any_robot import A, bimanual  # noqa: F401  (the fixture: imported 14-D store + trained tiny model)
+from test_atomic import snapshot
+from test_ic_sweep import CHUNK, _conditions, score  # noqa: F401  (score: the sweep's scorer, by name)
+
+TESTS = Path(__file__).parent
+XSS = 'x"><img src=x onerror=alert(1)>'
+
+
+def one_line(capsys, command: str) -> str:
+    err = capsys.readouterr().err.strip()
+    assert err.startswith(f"sc3 {command}: error: ") and "\n" not in err, err
+    return err
+
+
+class Actions:
+    """A policy answering every observation with the same chunk (NaN, huge, ...)."""
+    chunk, action_dim = CHUNK, A
+
+    def __init__(self, value: float):
+        self.value = value
+
+    def infer(self, obs):
+        return np.full((CHUNK, A), self.value, np.float32)
+
+
+def nan_policy():
+    return Actions(np.nan)
+
+
+def huge_policy():
+    return Actions(1e30)
+
+
+class Slow:
+    """hold, one second per call; touches SLOW_MARK on its first call (the test's cue to press Ctrl-C)."""
+    chunk, action_dim = CHUNK, A
+
+    def infer(self, obs):
+        Path(os.environ["SLOW_MARK"]).touch()
+        time.sleep(1.0)
+        return np.repeat(np.asarray(obs["state"], np.float32)[None], CHUNK, 0)
+
+
+def slow():
+    return Slow()
+
+
+def _sweep_args(ic, run, out, *policies: str) -> list[str]:
+    return ["sweep", "--initial-conditions", str(ic), "--world-model", str(run), "--policies", *policies,
+            "--scorer", "test_untrusted_inputs:score", "--episodes", "2", "--calibration-episodes", "0", "--batch", "2",
+            "--episode-seconds", "0.6", "--out", str(out), "--no-progress"]
+
+
+def _records(out: Path) -> list[dict]:
+    return ResultsStore(out).records() if (out / "results.jsonl").exists() else []
+
+
+@pytest.fixture(scope="module")
+def ic(bimanual, tmp_path_factory):  # noqa: F811
+    return _conditions(bimanual[4], tmp_path_factory.mktemp("ic") / "heldout"), bimanual[0] / "run"
+
+
+# -- names that become paths -------------------------------------------------------------------------------------
+def _tiny_lerobot(root: Path, key: str = "observation.images.cam", lengths=(3, 3)) -> Path:
+    pytest.importorskip("av", reason="LeRobot support needs the [lerobot] extra (PyAV)")
+    from sc3_jax.data.lerobot_write import RawEpisode, write_lerobot
+
+    eps = [RawEpisode({key: np.full((n, 8, 8, 3), 40 * i, np.uint8)}, np.zeros((n, 2), np.float32), "t",
+                      np.zeros((n, 2), np.float32)) for i, n in enumerate(lengths)]
+    write_lerobot(root, eps, 10)
+    return root
+
+
+def test_a_lerobot_camera_key_that_climbs_out_writes_nothing_anywhere(tmp_path, capsys):
+    src = _tiny_lerobot(tmp_path / "src")
+    info = json.loads((src / "meta" / "info.json").read_text())
+    info["features"]["observation.images.../../../x"] = info["features"].pop("observation.images.cam")
+    (src / "meta" / "info.json").write_text(json.dumps(info))
+    before = snapshot(tmp_path)
+    assert main(["data", "import-lerobot", str(src), "--out", str(tmp_path / "out" / "store"), "--action-space",
+                 "absolute"]) == 2
+    err = one_line(capsys, "data")
+    assert "'../../../x'" in err and "--views NAME=" in err
+    assert snapshot(tmp_path) == before  # no store, no .npy beside it or above it
+
+
+def test_an_episode_store_whose_names_climb_out_is_refused(tmp_path):
+    store = EpisodeStore(tmp_path / "s", views=["cam"], fps=10, image_size=(4, 4), create=True,
+                         action_space=ActionSpace("absolute", 1), has_pose=False)
+    ep = Episode("../../evil", {"cam": np.zeros((2, 4, 4, 3), np.uint8)}, np.zeros((2, 1), np.float32), None, "")
+    before = snapshot(tmp_path)
+    with pytest.raises(UserError, match=r"episode id '\.\./\.\./evil'"):
+        store.write(ep)
+    with pytest.raises(UserError, match="outside"):
+        store.load("../../evil")
+    header = json.loads((tmp_path / "s" / "dataset.json").read_text())
+    (tmp_path / "s" / "dataset.json").write_text(json.dumps({**header, "views": ["/tmp/x"]}))
+    with pytest.raises(UserError, match=r"view '/tmp/x'"):
+        EpisodeStore(tmp_path / "s")
+    with pytest.raises(UserError, match="outside"):
+        join_inside(tmp_path, "/etc/passwd")
+    assert snapshot(tmp_path) == {**before, "s/dataset.json": snapshot(tmp_path)["s/dataset.json"]}
+
+
+def test_imported_episode_folders_follow_the_umask(tmp_path):
+    old = os.umask(0o022)
+    try:
+        store = EpisodeStore(tmp_path / "s", views=["cam"], fps=10, image_size=(4, 4), create=True,
+                             action_space=ActionSpace("absolute", 1), has_pose=False)
+        d = store.write(Episode("e0", {"cam": np.zeros((2, 4, 4, 3), np.uint8)}, np.zeros((2, 1), np.float32), None,
+                                ""))
+    finally:
+        os.umask(old)
+    assert d.stat().st_mode & 0o777 == 0o755  # not tempfile.mkdtemp's 0700
+
+
+def test_a_foreign_dataset_and_one_frame_episodes_are_said(tmp_path, capsys):
+    a = _tiny_lerobot(tmp_path / "a", lengths=(3, 1, 3))
+    b = _tiny_lerobot(tmp_path / "b")
+    out = tmp_path / "store"
+    assert main(["data", "import-lerobot", str(a), "--out", str(out), "--action-space", "absolute"]) == 0
+    said = capsys.readouterr().out
+    assert "skipped 1 episodes of fewer than 2 frames (LeRobot episode_index 1)" in said
+    assert EpisodeStore(out).episode_ids() == ["lerobot000000", "lerobot000002"]
+    before = snapshot(out)
+    assert main(["data", "import-lerobot", str(b), "--out", str(out), "--action-space", "absolute"]) == 2
+    assert f"holds episodes imported from {a.resolve()}, not from {b.resolve()}" in one_line(capsys, "data")
+    assert snapshot(out) == before
+
+
+# -- the report -----------------------------------------------------------------------------------------------------
+def test_report_html_escapes_every_value_and_links_only_its_own_files():
+    page = report_html.page(XSS, [XSS], [XSS], [(XSS, [XSS], [[XSS]])], images=[f"{XSS}.png"],
+                            videos=["../../x.mp4", "javascript:alert(1)"])
+    assert "<img src=x" not in page and "onerror=alert(1)>" not in page
+    assert 'href="..%2F' not in page and 'href="_.._x.mp4"' in page and 'href="javascript%3Aalert%281%29"' in page
+    assert file_name("../../x_1", ".mp4") != "../../x_1.mp4" and "/" not in file_name("../../x_1", ".mp4")
+    assert file_name("bc_50_3", ".mp4") == "bc_50_3.mp4"
+
+
+def test_a_store_with_a_crafted_policy_name_gives_an_escaped_report(ic, tmp_path, capsys):
+    heldout, run = ic
+    out = tmp_path / "sweep"
+    assert main(_sweep_args(heldout, run, out, "hold=test_ic_sweep:hold")) == 0
+    # as if someone handed us the store: its policy renamed to a script
+    for name in ("results.jsonl", "sweep.json"):
+        p = out / name
+        p.write_text(p.read_text().replace('"hold', json.dumps(XSS)[:-1]))
+    capsys.readouterr()
+    outside = {k: v for k, v in snapshot(tmp_path).items() if not k.startswith("sweep/report/")}
+    assert main(["report", str(out)]) == 0
+    page = (out / "report" / "report.html").read_text()
+    assert "<img src=x" not in page and "&lt;img src=x onerror=alert(1)&gt;" in page
+    assert {k: v for k, v in snapshot(tmp_path).items() if not k.startswith("sweep/report/")} == outside
+
+
+# -- the policy server ---------------------------------------------------------------------------------------------
+class Jitting:
+    """Compiles a program per image shape it is given (what a JAX policy does), then answers zeros."""
+    chunk, action_dim = 4, 2
+
+    def __init__(self):
+        import jax
+        self.f = jax.jit(lambda x: (x.astype("float32") ** 2).sum(axis=(0, 1)))
+
+    def infer(self, obs):
+        s = np.asarray(self.f(obs["images"]))
+        return np.zeros((4, 2), np.float32) + s[:1].mean() * 0
+
+
+def jitting():
+    return Jitting()
+
+
+def _rss_mb(pid: int) -> float:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024
+    raise AssertionError("no VmRSS")
+
+
+def _send(url: str, obs: dict, key: str | None = None):
+    """One request on a new connection: ("actions", reply) or ("error", one line) or ("closed", code)."""
+    import websockets.exceptions
+    import websockets.sync.client
+
+    from sc3_jax.policies import msgpack_numpy
+
+    headers = {"Authorization": f"Api-Key {key}"} if key else None
+    with websockets.sync.client.connect(url, additional_headers=headers, max_size=None, compression=None,
+                                        open_timeout=30) as ws:
+        ws.recv()  # metadata
+        try:
+            ws.send(msgpack_numpy.packb(obs))
+            reply = ws.recv(timeout=60)
+        except websockets.exceptions.ConnectionClosed as e:
+            return "closed", e.rcvd.code if e.rcvd else None
+    return ("error", reply) if isinstance(reply, str) else ("actions", msgpack_numpy.unpackb(reply))
+
+
+def test_the_policy_server_refuses_big_and_reshaped_messages_and_keeps_its_memory(tmp_path):
+    key_file = tmp_path / "key"
+    key_file.write_text("s3cret\n")
+    env = {**os.environ, "PYTHONPATH": f"{TESTS}{os.pathsep}{os.environ.get('PYTHONPATH', '')}",
+           "JAX_PLATFORMS": "cpu", "XLA_FLAGS": ""}
+    proc = subprocess.Popen([sys.executable, "-m", "sc3_jax.cli", "serve-policy", "--policy",
+                             "test_untrusted_inputs:jitting", "--port", "0", "--api-key-file", str(key_file),
+                             "--max-message-mb", "4", "--log-level", "error"], env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    try:
+        line = proc.stdout.readline()
+        assert line.startswith("serving ") and "ws://127.0.0.1:" in line, (line, proc.stderr.read()[-2000:])
+        url = line.split(" on ", 1)[1].split(" ", 1)[0]
+        obs = lambda h: {"images": np.zeros((h, 16, 3), np.uint8), "state": np.zeros(2, np.float32)}  # noqa: E731
+        assert _send(url, obs(16), "s3cret")[0] == "actions"  # the first observation fixes the shape
+        assert _send(url, obs(16), "s3cret")[0] == "actions"
+        base = _rss_mb(proc.pid)
+        for h in range(17, 57):  # 40 new shapes: each would compile (and keep) a program
+            kind, msg = _send(url, obs(h), "s3cret")
+            assert kind == "error" and "\n" not in msg and msg.startswith("ShapeError: observation images is"), msg
+            assert "/" not in msg.replace("(fixed", "")  # no server path
+        for _ in range(3):  # 3 x 48 MB, each refused before it is read
+            assert _send(url, {"images": np.zeros((48 * 2**20,), np.uint8)}, "s3cret") == ("closed", 1009)
+        grown = _rss_mb(proc.pid) - base
+        assert grown < 40, f"the server grew by {grown:.0f} MB"
+        assert _send(url, obs(16), "s3cret")[0] == "actions"  # still serving
+        import websockets.exceptions
+        with pytest.raises(websockets.exceptions.InvalidStatus, match="401"):
+            _send(url, obs(16))  # the key is required
+        assert "s3cret" not in " ".join(Path(f"/proc/{proc.pid}/cmdline").read_text().split("\0"))
+    finally:
+        proc.send_signal(signal.SIGINT)
+        proc.wait(timeout=30)
+
+
+def test_the_policy_server_listens_on_this_machine_only_by_default():
+    from sc3_jax.commands.serve_policy import Args
+    from sc3_jax.policies.openpi_server import PolicyServer
+
+    assert Args(policy="zero").host == "127.0.0.1"
+    server = PolicyServer(Jitting(), port=0)
+    try:
+        assert server.host == "127.0.0.1"
+        with socket.socket() as s:  # not reachable on another of this machine's addresses
+            other = socket.gethostbyname(socket.gethostname())
+            if other.startswith("127."):
+                pytest.skip("this machine has no address besides loopback")
+            assert s.connect_ex((other, server.port)) != 0
+    finally:
+        server.shutdown()
+
+
+# -- one writer per store and per workdir ---------------------------------------------------------------------------
+HOLDER = ("import sys, time; from sc3_jax import locks; lock = locks.Lock(sys.argv[1], 'sweep'); "
+          "print('held', flush=True); time.sleep(600)")
+
+
+def test_a_second_sweep_on_one_store_is_refused_naming_the_first_and_a_dead_ones_lock_is_taken(ic, tmp_path,
+                                                                                               capsys):
+    heldout, run = ic
+    out = tmp_path / "sweep"
+    assert main(_sweep_args(heldout, run, out, "hold=test_ic_sweep:hold")) == 0
+    capsys.readouterr()
+    holder = subprocess.Popen([sys.executable, "-c", HOLDER, str(out)], stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        before = snapshot(out)
+        assert main(_sweep_args(heldout, run, out, "hold=test_ic_sweep:hold")) == 2
+        assert f"is in use by another sweep (pid {holder.pid} on " in one_line(capsys, "sweep")
+        assert snapshot(out) == before
+    finally:
+        holder.kill()  # SIGKILL: its lock goes with it
+        holder.wait()
+    assert main(_sweep_args(heldout, run, out, "hold=test_ic_sweep:hold")) == 0  # a dead writer's lock is taken
+
+
+def test_a_second_trainer_on_one_workdir_is_refused(bimanual, tmp_path, capsys):  # noqa: F811
+    cfg = bimanual[5]
+    workdir = tmp_path / "run"
+    with locks.hold(workdir, "training run"):
+        before = snapshot(workdir)
+        assert main(["train", "--config", "tiny", "--data.path", cfg.data.path, "--train.workdir", str(workdir),
+                     "--train.steps", "1"]) == 2
+        assert f"in use by another training run (pid {os.getpid()} on" in one_line(capsys, "train")
+        assert snapshot(workdir) == before
+
+
+def test_a_failed_start_leaves_no_run_and_the_corrected_command_trains(bimanual, tmp_path, monkeypatch):  # noqa: F811
+    from sc3_jax import config, train
+
+    cfg = config.replace(bimanual[5], train=dict(workdir=str(tmp_path / "run"), steps=1, ckpt_every=1))
+
+    def no_compile(*a, **k):
+        raise ValueError("does not fit")  # as a batch that cannot fit, or a config that does not compile
+    with monkeypatch.context() as m:
+        m.setattr(train, "compile_train_step", no_compile)
+        with pytest.raises(ValueError, match="does not fit"):
+            train.train(cfg)
+    assert not (tmp_path / "run").exists()  # no config.json, no norm stats of the data it read
+    corrected = config.replace(cfg, model=dict(mlp_dim=96))  # "another config" to the failed start, were it kept
+    train.train(corrected)
+    assert (tmp_path / "run" / "config.json").exists() and (tmp_path / "run" / "checkpoints").exists()
+
+
+# -- non-finite actions, duplicate rows, Ctrl-C --------------------------------------------------------------------
+@pytest.mark.parametrize("policy", ["nan_policy", "huge_policy"])
+def test_non_finite_actions_are_one_line_naming_the_policy_and_rollout(ic, tmp_path, capsys, policy):
+    heldout, run = ic
+    out = tmp_path / "sweep"
+    assert main(_sweep_args(heldout, run, out, f"bad=test_untrusted_inputs:{policy}")) == 2
+    err = one_line(capsys, "sweep")
+    assert "rollout bad/0_online:" in err and "not finite" in err
+    assert _records(out) == [] and not (out / "rollouts").exists()
+    with pytest.raises(UserError, match="non-finite number"):
+        ResultsStore(tmp_path / "other", {"modes": ["online"]}).append([{"id": "p/0_online", "policy": "p",
+                                                                         "u": [float("nan")]}])
+    assert (tmp_path / "other" / "results.jsonl").exists() is False
+
+
+def test_duplicate_real_rows_are_refused_and_a_bom_or_spaced_header_reads(tmp_path):
+    path = tmp_path / "real.csv"
+    path.write_text("\ufeffpolicy, episode , success\nhold,e1,1\nhold, e2 ,0\n", encoding="utf-8")
+    got = labels.read([str(path)])
+    assert [(e.policy, e.outcomes) for e in got] == [("hold", {"success": True}), ("hold", {"success": False})]
+    with open(path, "a", newline="") as fh:
+        csv.writer(fh).writerow(["hold", "e1", "1"])
+    with pytest.raises(UserError, match=r"policy 'hold' episode 'e1' is given twice \(.*real.csv:e1 and "):
+        labels.read([str(path)])
+    (tmp_path / "one.csv").write_text("policy,success\nhold,1\n")
+    with pytest.raises(UserError, match="given twice"):  # the same source twice
+        labels.read([str(tmp_path / "one.csv")] * 2)
+
+
+def test_an_object_array_params_file_is_one_line(tmp_path):
+    np.savez(tmp_path / "params.npz", w=np.array([{"a": 1}], dtype=object), allow_pickle=True)
+    with pytest.raises(UserError, match=r"params.npz: holds an object array \(a pickle, never loaded here\)"):
+        with atomic.open_npz(tmp_path / "params.npz") as z:
+            z["w"]
+
+
+def test_ctrl_c_in_a_sweep_ends_in_one_line_saying_how_to_resume(ic, tmp_path):
+    heldout, run = ic
+    out, mark = tmp_path / "sweep", tmp_path / "mark"
+    env = {**os.environ, "PYTHONPATH": f"{TESTS}{os.pathsep}{os.environ.get('PYTHONPATH', '')}",
+           "SLOW_MARK": str(mark)}
+    proc = subprocess.Popen([sys.executable, "-m", "sc3_jax.cli", *_sweep_args(heldout, run, out,
+                                                                                 "slow=test_untrusted_inputs:slow")],
+                            env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    t0 = time.time()
+    while not mark.exists() and proc.poll() is None and time.time() - t0 < 300:
+        time.sleep(0.2)
+    assert mark.exists(), proc.communicate()[1][-3000:]
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, err[-3000:]
+    last = [line for line in err.strip().splitlines() if line.strip()]
+    assert last[-1] == ("sc3 sweep: interrupted; nothing half-written is left; the same command resumes it "
+                        "(finished rollouts are kept)") and "Traceback" not in err, err[-3000:]
+    assert all(r["policy"] == "slow" for r in _records(out))  # whole records only (none, or a finished batch)
