@@ -249,6 +249,19 @@ def test_sc3_report_reads_the_store_and_takes_other_real_outcomes(swept, tmp_pat
     assert not (tmp_path / "c").exists()
 
 
+def test_the_simulator_free_report_is_the_same_page_answering_first_with_no_machine_path(swept, tmp_path):
+    import browser
+    ic, run, real, out, _ = swept
+    page = out / "report" / "report.html"
+    dom = browser.dump_dom(page, tmp_path / "profile")
+    browser.answers_first(dom)
+    assert "better than a policy-blind guess" in dom.split('id="ranking"')[0] or "not distinguishable" in dom
+    for name in ("report.md", "report.html"):
+        text = (out / "report" / name).read_text()
+        for path in (str(ic), str(run), str(real), str(out), str(tmp_path)):
+            assert path not in text, (name, path)
+
+
 def test_a_bad_scorer_spec_is_one_line(swept, capsys):
     ic, run, _, out, _ = swept
     for spec, words in (("test_ic_sweep:nope", "no attribute 'nope'"), ("no_such_module_x:f", "cannot import"),

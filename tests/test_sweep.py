@@ -124,9 +124,37 @@ def test_report_shows_the_world_models_diagnose_gates(setup):
     try:
         t = report.compute(cfg.out, draws=20)
         assert [g["gate"] for g in t["diagnose"]["gates"]] == ["g1", "g2"] and t["diagnose"]["episodes"] == 2
-        assert gate_rows(t) == [[["g1", "3.50", "3", "PASS"], ["g2", "nan", "0.75", "FAIL"]]]
+        assert gate_rows(t) == [[["g1", "3.50", "3", "PASS"], ["g2", "n/a", "0.75", "FAIL"]]]
     finally:
         path.unlink()
+
+
+def test_the_report_answers_first_in_a_real_browser_and_every_image_loads(setup, tmp_path):
+    import browser
+    _, cfg = setup
+    report.render(cfg.out, tmp_path / "rep", videos=1, draws=50)
+    dom = browser.dump_dom(tmp_path / "rep" / "report.html", tmp_path / "profile")
+    browser.answers_first(dom)
+    shown = {i.split('src="')[1].split('"')[0] for i in browser.images(dom)}
+    assert {"correlation.png", "u_chunk.png"} <= shown and sum(s.startswith("filmstrip_") for s in shown) == 2
+    assert '<details><summary>Faithfulness, end to end</summary>' in dom and "Videos" in dom
+    # the check can fail: a page whose image is missing is caught
+    (tmp_path / "rep" / "correlation.png").unlink()
+    with pytest.raises(AssertionError, match="did not load"):
+        browser.answers_first(browser.dump_dom(tmp_path / "rep" / "report.html", tmp_path / "profile"))
+
+
+def test_no_path_of_this_machine_in_the_report(setup, tmp_path):
+    import re
+
+    import sc3_jax
+    root, cfg = setup
+    report.render(cfg.out, tmp_path / "rep", videos=0, draws=20)
+    for name in ("report.md", "report.html"):
+        text = (tmp_path / "rep" / name).read_text()
+        for path in (str(root), str(tmp_path), str(Path.home()), str(Path(sc3_jax.__file__).parent), os.getcwd()):
+            assert path not in text, (name, path)
+        assert not re.search(r"(?<![\w.])/(tmp|root|home|work|usr)/", text), name
 
 
 def test_sweep_refuses_a_different_config_in_the_same_store(setup):

@@ -156,8 +156,9 @@ def test_a_foreign_dataset_and_one_frame_episodes_are_said(tmp_path, capsys):
 
 # -- the report -----------------------------------------------------------------------------------------------------
 def test_report_html_escapes_every_value_and_links_only_its_own_files():
-    page = report_html.page(XSS, [XSS], [XSS], [(XSS, [XSS], [[XSS]])], images=[f"{XSS}.png"],
-                            videos=["../../x.mp4", "javascript:alert(1)"])
+    page = report_html.page(XSS, [XSS], [(XSS, [XSS], [[XSS]])], figures=[(f"{XSS}.png", XSS)],
+                            videos=["../../x.mp4", "javascript:alert(1)"], method=XSS, details=[(XSS, [XSS], [[XSS]])],
+                            warnings=[XSS], facts=[XSS])
     assert "<img src=x" not in page and "onerror=alert(1)>" not in page
     assert 'href="..%2F' not in page and 'href="_.._x.mp4"' in page and 'href="javascript%3Aalert%281%29"' in page
     assert file_name("../../x_1", ".mp4") != "../../x_1.mp4" and "/" not in file_name("../../x_1", ".mp4")

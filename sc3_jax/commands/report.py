@@ -19,8 +19,8 @@ class Args:
     """the sweep's --out directory (a sharded sweep's: all its shards), or several shares of one sweep, read as one"""
     out: str | None = None
     """report directory (default: the first RESULTS/report)"""
-    videos: int = 3
-    """side-by-side example videos"""
+    videos: int | None = None
+    """at most this many side-by-side videos (default: one per policy)"""
     taus: tuple[float, ...] | None = None
     """termination thresholds (default: the sweep's candidates); evaluated from the stored U_chunk, no new
     rollouts. U_chunk is in the sweep's units (rollout.tau_units)"""

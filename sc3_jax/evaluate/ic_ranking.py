@@ -82,7 +82,7 @@ def compute(results: str | Path, real: tuple[str, ...] | list[str] | None = None
                  "bootstrap": {"draws": draws, "seed": seed, "level": 0.95,
                                "resampled": "evaluation conditions, paired across policies; real episodes, per "
                                             "policy"},
-                 "policies": _ranking(names, criteria, primary, point, dr, counts), "warnings": []}
+                 "policies": intervals.ranking(names, criteria, primary, point, dr, counts), "warnings": []}
     if counts.sum() < len(names) * n:
         out["warnings"].append(f"incomplete sweep: {int(counts.sum())} of {len(names) * n} evaluation rollouts so "
                                "far (rerun the sweep to resume); rates are over the rollouts there are")
@@ -106,28 +106,6 @@ def _grid(by: dict, names: list[str], seeds: list[int], criteria: list[str], pic
                 counts[p, i] = 1
                 passes[p, i] = [o[c] for c in criteria]
     return passes, counts
-
-
-def _score(rates: np.ndarray, criteria: list[str], primary: str | None) -> np.ndarray:
-    """[..., P, C] -> the ranking score [..., P]."""
-    return rates[..., criteria.index(primary)] if primary else np.nanmean(rates, -1)
-
-
-def _ranking(names, criteria, primary, point, dr, counts) -> list[dict]:
-    score, sdraws = _score(point[0], criteria, primary), _score(dr, criteria, primary)  # [P], [B, P]
-    with np.errstate(invalid="ignore"):
-        ranks = 1 + (sdraws[:, None, :] > sdraws[:, :, None]).sum(-1)  # [B, P]: 1 + policies scoring higher
-    key = np.nan_to_num(score, nan=-1.0)  # a policy without rollouts yet ranks last
-    order = sorted(range(len(names)), key=lambda p: (-key[p], names[p]))
-    out = []
-    for p in order:
-        lo, hi = np.percentile(ranks[:, p], [2.5, 97.5])
-        out.append({"policy": names[p], "rank": int(1 + (key > key[p]).sum()),  # ties share a rank
-                    "rollouts": int(counts[p].sum()), "score": bootstrap.summary(float(score[p]), sdraws[:, p]),
-                    "rank_interval": [int(lo), int(math.ceil(hi))], "p_best": float(np.mean(ranks[:, p] == 1)),
-                    "rates": {c: bootstrap.summary(float(point[0, p, k]), dr[:, p, k])
-                              for k, c in enumerate(criteria)}})
-    return out
 
 
 def _real_rates(eps, names: list[str], criteria: list[str], draws: int, seed: int):
@@ -251,7 +229,7 @@ def _tau_table(by, matched, cal_seeds, shared, taus, units, rp) -> list[dict]:
 # Rendering
 # ================================================================================================================
 def _f(x, nd=3) -> str:
-    return "-" if x is None else ("nan" if isinstance(x, float) and math.isnan(x) else f"{x:.{nd}f}")
+    return "-" if x is None else ("n/a" if isinstance(x, float) and math.isnan(x) else f"{x:.{nd}f}")
 
 
 def ci(cell: dict | None, nd: int = 3) -> str:
@@ -266,7 +244,7 @@ def tables(t: dict) -> list[tuple[str, list[str], list[list[str]]]]:
     """(title, header, rows) of every table of the report."""
     crit, b = t["criteria"], t["bootstrap"]
     how = f"value [95% bootstrap interval, {b['draws']} draws]"
-    out = [(f"Ranking inside the world model: {t['conditions']['evaluation']} held-out initial conditions per "
+    out = [(f"Ranking inside the world model. {t['conditions']['evaluation']} held-out initial conditions per "
             f"policy, whole rollouts (tau = inf), scored by {t['config']['scorer']}; ranked by {t['ranked_by']}; "
             f"{how}; rank interval and P(best) over the same draws",
             ["rank", "policy", "score", "rank interval", "P(best)"] + crit + ["rollouts"],
@@ -275,7 +253,8 @@ def tables(t: dict) -> list[tuple[str, list[str], list[list[str]]]]:
              for p in t["policies"]])]
     r = t.get("real")
     if r:
-        out.append((f"Real outcomes ({', '.join(r['sources'])}), {how}", ["policy", "episodes"] + r["criteria"],
+        out.append((f"Real outcomes. From {', '.join(_source_names(r['sources']))}, {how}.",
+                    ["policy", "episodes"] + r["criteria"],
                     [[p, str(v["episodes"])] + [ci(v["rates"][c]) for c in r["criteria"]]
                      for p, v in r["policies"].items()]))
     if r and r["faithfulness"]:
@@ -283,17 +262,17 @@ def tables(t: dict) -> list[tuple[str, list[str], list[list[str]]]]:
         rows = [[ROWS[k], str(f[k]["points"]), ci(f[k]["pearson"]), ci(f[k]["mmrv"]),
                  ci((f[k].get("vs_floor") or {}).get("pearson")), ci((f[k].get("vs_floor") or {}).get("mmrv"))]
                 for k in ROWS if k in f]
-        out.append((f"Faithfulness: imagined vs real per-policy rates (points: policy x criterion, {r['criteria']}); "
+        out.append((f"Faithfulness. Imagined vs real per-policy rates (points: policy x criterion, {r['criteria']}); "
                     f"{how}; r higher and MMRV lower is better; '- floor': paired difference to the policy-blind "
                     "guess (r > 0, MMRV < 0 favour the world model)",
                     ["evaluator", "points", "r", "MMRV", "r - floor", "MMRV - floor"], rows))
         per = f["online"].get("per_criterion")
         if per:
-            out.append(("Per criterion, online (tau = inf): points are the policies", ["criterion", "r", "MMRV"],
+            out.append(("Per criterion, online (tau = inf). Points are the policies.", ["criterion", "r", "MMRV"],
                         [[c, ci(v["pearson"]), ci(v["mmrv"])] for c, v in per.items()]))
     if r and r.get("tau"):
         tt = r["tau"]
-        out.append((f"tau calibration on the {t['conditions']['calibration']} held-out calibration conditions per "
+        out.append((f"tau calibration. On the {t['conditions']['calibration']} held-out calibration conditions per "
                     f"policy against the real rates (U_chunk in {tt['units']} action units); chosen: highest r, ties "
                     "lower MMRV, then larger tau. The real set is the one the faithfulness rows are scored on: the "
                     "tau* row is optimistic by this choice", ["tau", "termination rate", "r", "MMRV", "rollouts"],
@@ -305,9 +284,9 @@ def tables(t: dict) -> list[tuple[str, list[str], list[list[str]]]]:
 
 def markdown(t: dict) -> str:
     cfg = t["config"]
-    parts = [f"# Simulator-free sweep report\n\nWorld model `{cfg['world_model']}`, initial conditions "
-             f"`{cfg['initial_conditions']}` ({t['conditions']['evaluation']} evaluation + "
-             f"{t['conditions']['calibration']} calibration episodes), results `{t['read_from']}`; rollouts "
+    parts = [f"# Simulator-free sweep report\n\n**{_verdict(t)[0]}**\n\nWorld model `{Path(cfg['world_model']).name}`, "
+             f"initial conditions `{Path(cfg['initial_conditions']).name}` ({t['conditions']['evaluation']} evaluation "
+             f"+ {t['conditions']['calibration']} calibration episodes), results `{Path(t['read_from']).name}`; rollouts "
              f"{t['rollouts']}. Recompute every number with `sc3_jax.evaluate.ic_ranking.compute(RESULTS)`.\n"]
     parts += [f"\n**{w}**\n" for w in t["warnings"]]
     for title, header, rows in tables(t):
@@ -348,6 +327,30 @@ def summary(t: dict) -> list[str]:
     return lines + t["warnings"]
 
 
+METHOD = ("Each policy acts inside the world model from held-out episodes' first frames and states (closed loop, "
+          "the same noise for every policy); the lab's scorer reads each imagined rollout. Policies are ranked by "
+          "their imagined success with 95% bootstrap intervals over the conditions; rank interval and P(best) come "
+          "from the same draws. Against real outcomes: Pearson r and MMRV over the (policy, criterion) rates, next to "
+          "a policy-blind guess (every policy gets the mean real rate: the floor) and a split-half ceiling of the "
+          "real episodes. n/a: undefined at these rates (r needs two or more distinct rates on each side).")
+
+
+def _source_names(sources) -> list[str]:
+    """Real-outcome sources by name, not by this machine's path: ``NAME=PATH`` -> ``NAME=basename``."""
+    out = []
+    for src in sources:
+        name, eq, path = src.partition("=") if "=" in src.split("/")[0] else ("", "", src)
+        out.append(f"{name}{eq}{Path(path).name}")
+    return out
+
+
+def _verdict(t: dict) -> list[str]:
+    """The page's first lines: the verdict against the real outcomes (or that there are none), then the ranking."""
+    lines = summary(t)[:len(summary(t)) - len(t["warnings"]) or None]
+    verdict_last = not t.get("real") or bool(t["real"]["faithfulness"])  # summary's last line is then the verdict
+    return lines[-1:] + lines[:-1] if verdict_last else lines
+
+
 def render(results: str | Path, out: str | Path | None = None, real=None, draws: int = 2000) -> Path:
     """Write report.md, report.html and report.json to ``out`` (default RESULTS/report), staged so a failure leaves
     the previous report as it was; returns report.md."""
@@ -356,11 +359,8 @@ def render(results: str | Path, out: str | Path | None = None, real=None, draws:
     with atomic.staged(out, last=("report.md",)) as stage:
         (stage / "report.json").write_text(json.dumps(t, indent=1))
         (stage / "report.md").write_text(markdown(t))
-        cfg = t["config"]
         (stage / "report.html").write_text(report_html.page(
-            "Simulator-free sweep report",
-            [f"world model {cfg['world_model']}, initial conditions {cfg['initial_conditions']} "
-             f"({t['conditions']['evaluation']} evaluation + {t['conditions']['calibration']} calibration episodes); "
-             f"rollouts {t['rollouts']}", *summary(t)[:-len(t["warnings"]) or None]],
-            t["warnings"], tables(t)))
+            "Simulator-free sweep report", _verdict(t), tables(t)[:1], method=METHOD, details=tables(t)[1:],
+            warnings=t["warnings"], facts=[f"World model {Path(t['config']['world_model']).name}, initial conditions "
+                                           f"{Path(t['config']['initial_conditions']).name}; rollouts {t['rollouts']}"]))
     return out / "report.md"

@@ -22,6 +22,7 @@ real set is resampled independently (its seeds are other initial conditions).
 """
 from __future__ import annotations
 
+import math
 import warnings
 
 import numpy as np
@@ -181,3 +182,28 @@ def evaluator_rows(reference, evaluators: dict, split_of: list[str], draws: int,
         rows["ceiling"] = compare(a[:1], b[:1], a, b, split_of, point_from_draws=True)
         rows["ceiling"]["method"] = f"split-half: {n // 2} vs {n // 2} evaluation conditions (conservative)"
     return rows
+
+
+def score(rates: np.ndarray, criteria: list[str], primary: str | None) -> np.ndarray:
+    """[..., P, C] -> the ranking score [..., P]: the ``primary`` criterion's rate, else the mean over criteria."""
+    return rates[..., list(criteria).index(primary)] if primary else np.nanmean(rates, -1)
+
+
+def ranking(names, criteria, primary, point, draws, counts) -> list[dict]:
+    """Policies best first by ``score``: each with its score and rates (95% intervals), its rank (ties share one),
+    the interval of its rank over the bootstrap draws, and P(best) (the share of draws in which it ranks first).
+    ``point`` [1, P, C] and ``draws`` [B, P, C] rates (``bootstrap.rates``), ``counts`` [P, n] rollouts."""
+    point_score, sdraws = score(point[0], criteria, primary), score(draws, criteria, primary)  # [P], [B, P]
+    with np.errstate(invalid="ignore"):
+        ranks = 1 + (sdraws[:, None, :] > sdraws[:, :, None]).sum(-1)  # [B, P]: 1 + policies scoring higher
+    key = np.nan_to_num(point_score, nan=-1.0)  # a policy without rollouts yet ranks last
+    order = sorted(range(len(names)), key=lambda p: (-key[p], names[p]))
+    out = []
+    for p in order:
+        lo, hi = np.percentile(ranks[:, p], [2.5, 97.5])
+        out.append({"policy": names[p], "rank": int(1 + (key > key[p]).sum()),
+                    "rollouts": int(counts[p].sum()), "score": bootstrap.summary(float(point_score[p]), sdraws[:, p]),
+                    "rank_interval": [int(lo), int(math.ceil(hi))], "p_best": float(np.mean(ranks[:, p] == 1)),
+                    "rates": {c: bootstrap.summary(float(point[0, p, k]), draws[:, p, k])
+                              for k, c in enumerate(criteria)}})
+    return out

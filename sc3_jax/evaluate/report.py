@@ -19,7 +19,7 @@ import numpy as np
 
 from sc3_jax import atomic
 from sc3_jax.errors import UserError
-from sc3_jax.evaluate import calibrate, intervals, metrics, report_html
+from sc3_jax.evaluate import bootstrap, calibrate, intervals, metrics, report_html
 from sc3_jax.evaluate.calibrate import object_rows as _object_rows
 from sc3_jax.evaluate.merged import open_store
 from sc3_jax.evaluate.results import EVAL_MODES, SPLIT_ORDER, ResultsStore, rollout_id, seed_blocks
@@ -126,6 +126,7 @@ def compute(results: str | Path, taus=None, draws: int = 2000, seed: int = 0) ->
     out["baselines"] = {"policy_blind": _faith_rates(_policy_blind(real_rates), real_rates)}
     # every evaluator row with paired bootstrap intervals, against physics and against perception-scored real
     out["faithfulness"] = _with_intervals(by, sets, policies, out["tau"]["chosen"], units, draws, seed)
+    out["ranking"] = _ranking(by, policies, sets["evaluation"], draws, seed)
     if by["evaluation", "online"]:
         online = by["evaluation", "online"]
         out["termination"] = calibrate.tau_sweep(real, online, cfg["taus"], units)  # post hoc: on evaluation seeds
@@ -143,6 +144,58 @@ def compute(results: str | Path, taus=None, draws: int = 2000, seed: int = 0) ->
     out["read_from"] = str(store.root)  # the directory read (sweep.json's "out" is where the sweep wrote it)
     out["warnings"] = degenerate(policies)
     return out
+
+
+RANKED_BY = metrics.CRITERIA[-1]  # placing: the cumulative success of an object, what "success" means here
+
+
+def _ranking(by, policies, seeds, draws, seed) -> dict:
+    """Per split, its policies best first inside the world model (online at tau = inf, else offline), by the rate of
+    ``RANKED_BY``, with rank intervals and P(best) over the same paired draws as the faithfulness rows, and each
+    policy's real rates beside."""
+    mode = next((m for m in ("online", "offline") if by["evaluation", m]), None)
+    if mode is None:
+        return {}
+    w, one = bootstrap.multiplicities(len(seeds), draws, seed), np.ones((1, len(seeds)))
+    crit = list(metrics.CRITERIA)
+    out = {}
+    for split in dict.fromkeys(s for _, s in policies):
+        names = [p for p, s in policies if s == split]
+        ep, ec = intervals.grid(by["evaluation", mode], names, seeds)
+        rows = intervals.ranking(names, crit, RANKED_BY, bootstrap.rates(ep, ec, one), bootstrap.rates(ep, ec, w), ec)
+        rp, rc = intervals.grid(by["evaluation", "real"], names, seeds)
+        real_point, real_draws = bootstrap.rates(rp, rc, one), bootstrap.rates(rp, rc, w)
+        for row in rows:
+            p = names.index(row["policy"])
+            row["real"] = {c: bootstrap.summary(float(real_point[0, p, k]), real_draws[:, p, k])
+                           for k, c in enumerate(crit)}
+        out[split] = {"mode": mode, "ranked_by": RANKED_BY, "policies": rows}
+    return out
+
+
+def headline(t: dict) -> str:
+    """The answer in one sentence: does the world model rank the policies like the real robot, better than a guess?"""
+    f = t["faithfulness"]["physics"]
+    mode = next((m for m in ("online", "offline") if m in f), None)
+    if mode is None:
+        return "No rollouts inside the world model yet: nothing to compare with the real robot."
+    split = _splits(t)[-1]  # overall where there are two splits, else the one
+    r, m = f[mode]["splits"][split]["pearson"], f[mode]["splits"][split]["mmrv"]
+    floor = f["policy_blind"]["splits"][split]["pearson"]
+    vs = f[mode].get("vs_floor", {}).get(split, {})
+    better = (vs.get("pearson") or {}).get("lo", math.nan) > 0
+    where = "" if split == metrics.OVERALL or len(_splits(t)) > 1 else f" ({split.replace('_', ' ')})"
+    what = "closed loop" if mode == "online" else "replaying the real actions"
+    if not math.isfinite(r["value"]):
+        return (f"Cannot tell{where}: r is undefined at these rates (it needs two or more distinct success rates on "
+                "each side); add policies or conditions.")
+    nums = f"r {ci(r)}, MMRV {ci(m)}"
+    guess = f"(its r {ci(floor)}; paired difference {ci(vs.get('pearson'))})"
+    if better:
+        return (f"Inside the world model ({what}) the policies rank like the real robot{where}: {nums}, better than a "
+                f"policy-blind guess {guess}.")
+    return (f"Inside the world model ({what}) the ranking agrees with the real robot{where} at {nums}: not "
+            f"distinguishable from a policy-blind guess at this many conditions {guess}.")
 
 
 def verdict(t: dict) -> list[str]:
@@ -226,10 +279,11 @@ def _training_data_table(d: dict) -> tuple[str, list[str], list[list[str]]]:
     unseen = (f"; swept tasks its data never shows: {', '.join(d['unseen_tasks'])} (out of distribution by "
               "construction: neither their instruction nor their every-object mapping is in the data)"
               if d["unseen_tasks"] else "")
-    return (f"The world model's training data ({d['episodes']} episodes, {d['objects']} objects, tasks "
+    return (f"The world model's training data. {d['episodes']} episodes, {d['objects']} objects, tasks "
             f"{', '.join(d['tasks'])}; episodes by objects carried into the other container: {other}; every object "
-            f"swapped: {d['all_objects_swapped']}{unseen}; {d['path']}): per-object outcome shares (placed + "
-            "wrong_container + dropped + missed = 1)", ["source", "episodes", "objects", *cats], rows)
+            f"swapped: {d['all_objects_swapped']}{unseen} (the world model's data_stats.json); per-object outcome "
+            "shares (placed + wrong_container + dropped + missed = 1).", ["source", "episodes", "objects", *cats],
+            rows)
 
 
 def _with_intervals(by, sets, policies, chosen_tau, units, draws, seed) -> dict:
@@ -254,12 +308,21 @@ def _with_intervals(by, sets, policies, chosen_tau, units, draws, seed) -> dict:
 # ================================================================================================================
 # Rendering
 # ================================================================================================================
+UNDEFINED = "n/a"  # a statistic undefined at these rates (said in the report's method paragraph)
+
+
 def _fmt(x, nd=3):
     if x is None:
         return "-"
     if isinstance(x, float):
-        return "nan" if math.isnan(x) else f"{x:.{nd}f}"
+        return UNDEFINED if math.isnan(x) else f"{x:.{nd}f}"
     return str(x)
+
+
+def _splits(t: dict) -> list[str]:
+    """The splits a report shows, in order: with one split, "overall" would repeat its numbers, so it is left out."""
+    have = [s for s in SPLIT_ORDER if s in t["faithfulness"]["physics"]["policy_blind"]["splits"]]
+    return have if len(have) > 2 else [s for s in have if s != metrics.OVERALL] or have
 
 
 ROW_NAMES = {"offline": "offline", "online": "online (tau = inf)", "online_tau": "online (calibrated tau*)",
@@ -273,6 +336,8 @@ def ci(cell: dict | None) -> str:
     """value [lo, hi] of a bootstrap summary."""
     if cell is None:
         return "-"
+    if not math.isfinite(cell["value"]):
+        return UNDEFINED
     return f"{_fmt(cell['value'])} [{_fmt(cell['lo'])}, {_fmt(cell['hi'])}]"
 
 
@@ -293,14 +358,14 @@ def tables(t: dict) -> list[tuple[str, list[str], list[list[str]]]]:
     b = t["bootstrap"]
     rows = [[name, str(p["n"]), f"{p['seeds'][0]}-{p['seeds'][1]}" if p["seeds"] else "-",
              ", ".join(f"{m} {k}" for m, k in p["rollouts"].items() if k)] for name, p in t["protocol"].items()]
-    out.append(("Protocol: initial conditions per policy and simulator seeds (disjoint blocks)",
+    out.append(("Protocol: initial conditions per policy and simulator seeds (disjoint blocks).",
                 ["set", "n per policy", "seeds", "rollouts"], rows))
     how = (f"value [95% paired bootstrap interval over initial conditions, {b['draws']} draws, seed {b['seed']}]; "
            "r higher is better, MMRV lower")
-    splits = [s for s in SPLIT_ORDER if s in t["faithfulness"]["physics"]["policy_blind"]["splits"]]
+    splits = _splits(t)
     for ref, what in REFERENCES.items():
         f = t["faithfulness"][ref]
-        out.append((f"Faithfulness, {what}. {how}; ceiling: {f['ceiling']['method']}",
+        out.append((f"Faithfulness, {what}. {how}; ceiling: {f['ceiling']['method']}.",
                     ["evaluator"] + [f"{s} {k}" for s in splits for k in ("r", "MMRV")],
                     _interval_rows(f, lambda row, s: row["splits"].get(s), splits)))
     f = t["faithfulness"]["physics"]
@@ -314,31 +379,32 @@ def tables(t: dict) -> list[tuple[str, list[str], list[list[str]]]]:
         rows = []
         for c in metrics.CRITERIA:
             rows += [[c] + r for r in _interval_rows(f, lambda row, s: row["per_criterion"].get(s, {}).get(c), splits)]
-        out.append((f"Per criterion (points: the policies of a split), {what}. {how}",
+        out.append((f"Per criterion, {what}. Points: the policies of a split. {how}.",
                     ["criterion", "evaluator"] + [f"{s} {k}" for s in splits for k in ("r", "MMRV")], rows))
     tau = t["tau"]
     if tau["calibration"]:
         rows = [[e["tau"] + (" (chosen)" if e["tau"] == tau["chosen"] else "")] +
-                [x for s in SPLIT_ORDER for x in (_fmt(e["termination_rate"].get(s)),
+                [x for s in splits for x in (_fmt(e["termination_rate"].get(s)),
                                                    _fmt(e["faithfulness"].get(s, {}).get("pearson")),
                                                    _fmt(e["faithfulness"].get(s, {}).get("mmrv")))]
                 for e in tau["calibration"]]
         n = t["protocol"]["calibration"]["n"]
-        out.append((f"tau calibration on the held-out calibration seeds ({n} per policy, {tau['calibration'][0]['cases']} "
-                    f"rollouts; U_chunk in {tau['units']} action units); rule: {tau['rule']}",
-                    ["tau"] + [f"{s} {k}" for s in SPLIT_ORDER for k in ("term. rate", "r", "MMRV")], rows))
+        out.append((f"tau calibration. On the held-out calibration seeds ({n} per policy, "
+                    f"{tau['calibration'][0]['cases']} rollouts; U_chunk in {tau['units']} action units); rule: "
+                    f"{tau['rule']}.", ["tau"] + [f"{s} {k}" for s in splits for k in ("term. rate", "r", "MMRV")],
+                    rows))
     if "termination" in t:
         rows = []
         for e in t["termination"]:
             row = [e["tau"] + (" (calibrated)" if e["tau"] == tau["chosen"] else "")]
-            for split in SPLIT_ORDER:
+            for split in splits:
                 f = e["faithfulness"].get(split)
                 row += [_fmt(e["termination_rate"].get(split)), _fmt(f["pearson"]) if f else "-",
                         _fmt(f["mmrv"]) if f else "-"]
             rows.append(row)
-        out.append((f"Early termination on the evaluation seeds, every tau (POST HOC: choosing tau from this table "
-                    f"tunes on the evaluation; online, U_chunk in {tau['units']} action units, vs physics)",
-                    ["tau"] + [f"{s} {k}" for s in SPLIT_ORDER for k in ("term. rate", "r", "MMRV")], rows))
+        out.append((f"Early termination, every tau (post hoc). On the evaluation seeds, POST HOC: choosing tau from "
+                    f"this table tunes on the evaluation; online, U_chunk in {tau['units']} action units, vs physics.",
+                    ["tau"] + [f"{s} {k}" for s in splits for k in ("term. rate", "r", "MMRV")], rows))
     rows = [[c] + [(f"{_fmt(t['reproduction'][m][c]['rate'], 2)} ({t['reproduction'][m][c]['reproduced']}/"
                     f"{t['reproduction'][m][c]['cases']})") if c in t["reproduction"].get(m, {}) else "-"
                    for m in modes] for c in metrics.CATEGORIES]
@@ -352,18 +418,19 @@ def tables(t: dict) -> list[tuple[str, list[str], list[list[str]]]]:
         out.append(_training_data_table(t["training_data"]))
     d = t.get("diagnose") or {}
     if d.get("gates") is not None:
-        out.append((f"World-model checkpoint gates (`sc3 diagnose` on {d['episodes']} held-out episodes of "
-                    f"{d['data']}; {d['path']})", ["gate", "value", "threshold", "pass"],
-                    [[g["gate"], _fmt(g["value"], 2), f"{g['threshold']:g}", {True: "PASS", False: "FAIL"}.get(g["pass"], "not run")]
-                     for g in d["gates"]]))
+        out.append((f"World-model checkpoint gates. `sc3 diagnose` on {d['episodes']} held-out episodes of "
+                    f"{Path(str(d['data'])).name} (the world model's diagnose.json).",
+                    ["gate", "value", "threshold", "pass"],
+                    [[g["gate"], _fmt(g["value"], 2) if g["pass"] is not None else "-", f"{g['threshold']:g}",
+                      {True: "PASS", False: "FAIL"}.get(g["pass"], "not run")] for g in d["gates"]]))
     elif d:
         out.append(("World-model checkpoint gates", ["gate", "value", "threshold", "pass"],
-                    [[f"not diagnosed: run `sc3 diagnose WORLD_MODEL --data HELDOUT --out {d['path']}`", "-", "-",
-                      "-"]]))
+                    [["not diagnosed: run `sc3 diagnose WORLD_MODEL --data HELDOUT --out WORLD_MODEL/diagnose.json`",
+                      "-", "-", "-"]]))
     a = t["scorer_agreement"]
-    out.append(("Perception scorer vs physics (agreement per criterion): on clean frames of every real rollout of the "
+    out.append(("Perception scorer vs physics. Agreement per criterion on clean frames of every real rollout of the "
                 "sweep (evaluation, calibration and ceiling seeds), and on frames degraded the way generated frames "
-                "are, of the real rollouts the sweep read degraded (its `degradations`; 'objects' counts them)",
+                "are, of the real rollouts the sweep read degraded (its `degradations`; 'objects' counts them).",
                 ["frames"] + list(metrics.CRITERIA) + ["outcome", "objects"],
                 [[k] + [_fmt(v[c]) for c in metrics.CRITERIA] + [_fmt(v["outcome"]), str(v["n_objects"])]
                  for k, v in a.items()]))
@@ -374,7 +441,7 @@ def tables(t: dict) -> list[tuple[str, list[str], list[list[str]]]]:
             r = t["rates"].get(m, {}).get(split, {})
             row.append(" / ".join(_fmt(r.get(f"{policy}/{c}"), 2) for c in metrics.CRITERIA))
         rows.append(row)
-    out.append(("Success rates per policy (language / lifting / placing, cumulative)",
+    out.append(("Success rates per policy. Language / lifting / placing, cumulative.",
                 ["policy", "split", "real", "real (perception)", "offline", "online"], rows))
     return out
 
@@ -388,121 +455,215 @@ def incomplete(t: dict) -> str:
             "over a split with a policy that has no rollout yet read nan." if short else "")
 
 
+def ranking_tables(t: dict) -> list[tuple[str, list[str], list[list[str]]]]:
+    """The answer's tables: per split, the policies best first inside the world model, the real rates beside."""
+    out = []
+    n = t["protocol"]["evaluation"]["n"]
+    for split, r in t.get("ranking", {}).items():
+        where = f", {split.replace('_', ' ')}" if len(t["ranking"]) > 1 else ""
+        rows = [[str(x["rank"]), x["policy"], ci(x["score"]), f"{x['rank_interval'][0]}-{x['rank_interval'][1]}",
+                 f"{x['p_best']:.0%}", ci(x["real"][r["ranked_by"]])] for x in r["policies"]]
+        out.append((f"Ranking inside the world model{where}. Success ({r['ranked_by']}, the cumulative criterion) of "
+                    f"{r['mode']} rollouts on {n} conditions per policy, best first; 95% paired bootstrap intervals, "
+                    "rank interval and P(best) over the same draws; real: the simulator on the same conditions.",
+                    ["rank", "policy", "imagined success", "rank interval", "P(best)", "real success"], rows))
+    return out
+
+
+def method(t: dict) -> str:
+    """The method in one paragraph (the page's "How it is measured")."""
+    b, tau = t["bootstrap"], t["tau"]
+    return ("Each policy acts from the same initial conditions in the simulator (real) and inside the world model "
+            "(online: closed loop; offline: replaying the real actions); a perception scorer reads the imagined "
+            "frames, physics the real ones. Faithfulness is Pearson r and MMRV over the (policy, criterion) success "
+            "rates of a split, against a policy-blind guess (every policy gets the split's mean real rate per "
+            "criterion: the floor) and a second set of real rollouts (the noise ceiling). Intervals are 95% "
+            f"percentile intervals of a paired bootstrap over the evaluation conditions ({b['draws']} draws); "
+            f"tau (U_chunk in {tau['units']} action units) is chosen on held-out calibration conditions: "
+            f"{tau['chosen'] or 'none (no calibration conditions)'}. {UNDEFINED}: undefined at these rates (r needs "
+            "two or more distinct rates on each side). Every number is in report.json "
+            "(`sc3_jax.evaluate.report.compute`).")
+
+
 def markdown(t: dict) -> str:
-    tau = t["tau"]["chosen"]
     warn = incomplete(t)
     warn = "\n".join(f"\n**{w}**\n" for w in ([warn] if warn else []) + t.get("warnings", []))
-    parts = [f"# Sweep report\n\nResults: `{t.get('read_from', t['config']['out'])}`; rollouts: {t['counts']}; compared cases: "
-             f"{t['cases']}. tau* = {tau if tau is not None else '- (no calibration seeds: online rows untruncated)'}"
-             f" ({t['tau']['units']} action units). Recompute every number with "
-             "`sc3_jax.evaluate.report.compute(RESULTS)`.\n" + warn]
-    for title, header, rows in tables(t):
+    parts = [f"# Sweep report\n\n**{headline(t)}**\n" + warn]
+    for title, header, rows in ranking_tables(t) + tables(t):
         parts.append(f"## {title}\n\n| " + " | ".join(header) + " |\n|" + "---|" * len(header) + "\n" +
                      "".join("| " + " | ".join(r) + " |\n" for r in rows))
+    parts.append(f"## How it is measured\n\n{method(t)} Results: `{Path(t['read_from']).name}`; rollouts: "
+                 + ", ".join(f"{m} {k}" for m, k in t["counts"].items()) + "; compared cases: "
+                 + ", ".join(f"{m} {k}" for m, k in t["cases"].items()) + ".\n")
     return "\n".join(parts)
 
 
-def _html(t: dict, images: list[str], videos: list[str]) -> str:
-    return report_html.page("Sweep report", [f"rollouts: {t['counts']}"],
-                            ([incomplete(t)] if incomplete(t) else []) + t.get("warnings", []), list(tables(t)),
-                            images, videos)
+def _html(t: dict, figures: list[tuple[str, str]], videos: list[str]) -> str:
+    return report_html.page(
+        "Sweep report", [headline(t)], ranking_tables(t), figures, videos, method(t), tables(t),
+        ([incomplete(t)] if incomplete(t) else []) + t.get("warnings", []),
+        [f"Results: {Path(t['read_from']).name}; rollouts: " + ", ".join(f"{m} {k}" for m, k in t["counts"].items())])
 
 
 def scatter(t: dict, path: Path) -> None:
+    """Imagined against real success per (policy, criterion), each point named with its 95% interval bars, the
+    diagonal, and the policy-blind guess (grey x) the evaluator has to beat."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    modes = [m for m in ("offline", "online") if m in t["rates"]]
-    fig, axes = plt.subplots(1, max(len(modes), 1), figsize=(5 * max(len(modes), 1), 4.6), squeeze=False)
-    for ax, mode in zip(axes[0], modes):
-        for split, marker in (("in_distribution", "o"), ("out_of_distribution", "^")):
-            re, ev = t["rates"]["real"].get(split, {}), t["rates"][mode].get(split, {})
-            keys = [k for k in ev if k in re]
-            for crit, color in zip(metrics.CRITERIA, ("tab:blue", "tab:orange", "tab:green")):
-                ks = [k for k in keys if k.endswith("/" + crit)]
-                if not ks:  # a split the sweep did not run: no empty legend entry
-                    continue
-                ax.scatter([re[k] for k in ks], [ev[k] for k in ks], marker=marker, color=color,
-                           label=f"{split[:3]} {crit}")
+    splits = list(t["ranking"])
+    fig, axes = plt.subplots(1, len(splits), figsize=(5.6 * len(splits), 5.2), squeeze=False)
+    colors = dict(zip(metrics.CRITERIA, ("tab:blue", "tab:orange", "tab:green")))
+    for ax, split in zip(axes[0], splits):
+        r = t["ranking"][split]
+        for k, c in enumerate(metrics.CRITERIA):
+            pts = [(x["real"][c], x["rates"][c], x["policy"]) for x in r["policies"]]
+            xs, ys = [p[0]["value"] for p in pts], [p[1]["value"] for p in pts]
+            err = lambda cells, v: np.abs(np.array([[q["lo"] for q in cells], [q["hi"] for q in cells]]) - v)  # noqa
+            ax.errorbar(xs, ys, xerr=err([p[0] for p in pts], xs), yerr=err([p[1] for p in pts], ys), fmt="o",
+                        ms=4, color=colors[c], ecolor=colors[c], elinewidth=0.7, alpha=0.85, label=c)
+            guess = float(np.nanmean(xs)) if xs else np.nan
+            ax.plot(xs, [guess] * len(xs), "x", color="grey", ms=5, label="policy-blind guess" if k == 0 else None)
+            for x, y, (_, _, name) in zip(xs, ys, pts):
+                ax.annotate(name, (x, y), fontsize=6, xytext=(3, 2), textcoords="offset points")
         ax.plot([0, 1], [0, 1], "k:", lw=1)
-        # one line per split, named: the pooled "overall" r mixes splits whose rates differ in level
-        title = "\n".join(f"{mode} {split.replace('_', ' ')}: r={_fmt(f.get('pearson'))} MMRV={_fmt(f.get('mmrv'))}"
-                          for split, f in t["main"][mode].items() if split in SPLIT_ORDER)
-        ax.set(xlabel="real (simulator) success rate", ylabel=f"{mode} (world model) success rate",
-               title=title, xlim=(-0.03, 1.03), ylim=(-0.03, 1.03))
-        ax.title.set_fontsize(8)
-        ax.legend(fontsize=7)
+        f = t["faithfulness"]["physics"].get(r["mode"], {}).get("splits", {}).get(split if len(splits) > 1 else
+                                                                                 _splits(t)[-1], {})
+        ax.set(xlabel="real success rate (simulator)", ylabel=f"imagined success rate ({r['mode']})",
+               xlim=(-0.03, 1.03), ylim=(-0.03, 1.03),
+               title=f"{split.replace('_', ' ')}: r {ci(f.get('pearson'))}")
+        ax.title.set_fontsize(9)
+        ax.legend(fontsize=7, loc="upper left")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=100)
     plt.close(fig)
 
 
-def u_plot(store: ResultsStore, t: dict, path: Path, examples: int = 4) -> None:
+def u_plot(store: ResultsStore, t: dict, path: Path) -> None:
+    """U_chunk over the chunks of a rollout, every policy: its median over the evaluation conditions, the band
+    between the quartiles, the candidate taus."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     units = t["tau"]["units"]
-    recs = [r for r in store.records() if r["mode"] == "online"][:examples]
-    fig, ax = plt.subplots(figsize=(6.4, 3.8))
-    for r in recs:
-        ax.plot(r["u"] if units == "normalised" else r["u_raw"], marker=".", label=f"{r['policy']} {r['seed']}")
+    seeds = set(seed_blocks(t["config"])["evaluation"])
+    by: dict[str, list] = {}
+    for r in store.records():
+        if r["mode"] == "online" and r["seed"] in seeds:
+            by.setdefault(r["policy"], []).append(r["u"] if units == "normalised" else r["u_raw"])
+    fig, ax = plt.subplots(figsize=(7.5, 4.0))
+    for policy, us in sorted(by.items()):
+        n = min(len(u) for u in us)
+        u = np.array([x[:n] for x in us])
+        q1, med, q3 = np.quantile(u, [0.25, 0.5, 0.75], axis=0)
+        line, = ax.plot(np.arange(n), med, marker=".", label=policy)
+        ax.fill_between(np.arange(n), q1, q3, color=line.get_color(), alpha=0.12)
     for tau in (calibrate.parse_tau(x) for x in t["config"]["taus"]):
         if math.isfinite(tau):
             ax.axhline(tau, ls="--", lw=1, color="grey")
             ax.text(0, tau, f"tau={tau}", fontsize=7, va="bottom")
-    ax.set(xlabel="chunk", ylabel=f"U_chunk ({units})", yscale="log", title="U_chunk per chunk (online)")
-    ax.legend(fontsize=7)
+    ax.set(xlabel="chunk", ylabel=f"U_chunk ({units})", yscale="log")
+    ax.legend(fontsize=7, ncol=2)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=100)
     plt.close(fig)
 
 
-def side_by_side(store: ResultsStore, policy: str, seed: int, path: Path, fps: int = 10) -> bool:
-    """mp4 of real | offline | online (columns) x views (rows) at the model's frame rate; False if not all exist."""
-    from sc3_jax.video import write_mp4
+def _pair(store: ResultsStore, policy: str, seed: int):
+    """(real frames [V, T, ...], imagined frames [V, n, ...] at the model's rate, the real frame index of each
+    imagined one, offline frames or None) of one condition; None if its real or online arrays are not kept."""
     ids = {m: rollout_id(policy, seed, m) for m in EVAL_MODES}
-    if not all(store.array_path(i).exists() for i in ids.values()):
-        return False
-    arr = {m: store.load_arrays(i)["frames"] for m, i in ids.items()}
-    n = arr["online"].shape[1]  # imagined frames: the initial one, then every model step
+    if not all(store.array_path(ids[m]).exists() for m in ("real", "online")):
+        return None
+    real, online = (store.load_arrays(ids[m])["frames"] for m in ("real", "online"))
     stride = next(r for r in store.records() if r["id"] == ids["online"])["stride"]
-    real = arr["real"][:, np.minimum(np.arange(n) * stride, arr["real"].shape[1] - 1)]
-    grid = np.concatenate([real, arr["offline"][:, :n], arr["online"][:, :n]], axis=3)  # [V, n, H, 3W, 3]
-    write_mp4(path, np.concatenate(list(grid), axis=1), fps)  # views stacked vertically
+    at = np.minimum(np.arange(online.shape[1]) * stride, real.shape[1] - 1)
+    offline = store.load_arrays(ids["offline"])["frames"] if store.array_path(ids["offline"]).exists() else None
+    return real, online, at, offline
+
+
+def filmstrip(store: ResultsStore, policy: str, seed: int, path: Path, frames: int = 6) -> bool:
+    """A picture of one condition: per view a row of real frames over a row of imagined ones, at the same moments;
+    False if the store does not keep both rollouts' frames."""
+    got = _pair(store, policy, seed)
+    if got is None:
+        return False
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    real, online, at, _ = got
+    pick = np.unique(np.linspace(0, online.shape[1] - 1, frames).round().astype(int))
+    rows, labels = [], []
+    for v in range(online.shape[0]):
+        rows += [np.concatenate(list(real[v, at[pick]]), 1), np.concatenate(list(online[v, pick]), 1)]
+        labels += [f"real, view {v}", f"imagined, view {v}"]
+    grid = np.concatenate(rows, 0)
+    h = real.shape[2]
+    fig, ax = plt.subplots(figsize=(min(12, 1.6 * len(pick)), 0.45 + 1.6 * len(rows) * h / real.shape[3]))
+    ax.imshow(grid)
+    ax.set_yticks([h * (i + 0.5) for i in range(len(rows))], labels, fontsize=7)
+    ax.set_xticks([real.shape[3] * (i + 0.5) for i in range(len(pick))], [f"step {int(x)}" for x in at[pick]],
+                  fontsize=7)
+    ax.set_title(f"{policy}, condition {seed}: real over imagined", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
     return True
 
 
-def render(results: str | Path, out: str | Path, videos: int = 3, taus=None, draws: int = 2000) -> Path:
-    """Write report.md, report.html, report.json, plots and example videos to ``out``; returns report.md. Every
-    file is written to a staging directory and moved into ``out`` only once all of them exist (report.md last), so
-    a failure (a damaged frames file, an unwritable ``out``) or a kill leaves the previous report as it was."""
+def side_by_side(store: ResultsStore, policy: str, seed: int, path: Path, fps: int = 10) -> bool:
+    """mp4 of real | online (| offline where kept) as columns, views as rows, at the model's frame rate; False if the
+    store does not keep the real and online frames."""
+    from sc3_jax.video import write_mp4
+    got = _pair(store, policy, seed)
+    if got is None:
+        return False
+    real, online, at, offline = got
+    n = online.shape[1]
+    cols = [real[:, at], online] + ([offline[:, :n]] if offline is not None else [])
+    write_mp4(path, np.concatenate(list(np.concatenate(cols, axis=3)), axis=1), fps)  # views stacked vertically
+    return True
+
+
+def render(results: str | Path, out: str | Path, videos: int | None = None, taus=None, draws: int = 2000) -> Path:
+    """Write report.md, report.html, report.json, plots, a filmstrip and a video per policy (``videos``: at most that
+    many videos) to ``out``; returns report.md. Every file is written to a staging directory and moved into ``out`` only once all of them
+    exist (report.md last), so a failure (a damaged frames file, an unwritable ``out``) or a kill leaves the previous
+    report as it was."""
     out = Path(out)
     store = open_store(results)
     t = compute(results, taus, draws)
     with atomic.staged(out, last=("report.md",)) as stage:
         (stage / "report.json").write_text(json.dumps(t, indent=1))
-        images = []
-        if t["main"]:
+        figures = []
+        if t.get("ranking"):
             scatter(t, stage / "correlation.png")
-            images.append("correlation.png")
+            figures.append(("correlation.png", "Imagined against real success per policy and criterion (95% "
+                                               "intervals); the dotted diagonal is perfect agreement, grey x the "
+                                               "policy-blind guess."))
+        seed = t["config"]["seed0"]
+        for policy, _ in t["policies"]:  # a filmstrip per policy: cheap to keep, shows what the model imagines
+            name = file_name(f"filmstrip_{policy}_{seed}", ".png")  # a policy name from the store: no path of its own
+            if filmstrip(store, policy, seed, stage / name):
+                figures.append((name, f"{policy}, condition {seed}: real (upper) and imagined (lower) frames per view"))
         if "termination" in t:
             u_plot(store, t, stage / "u_chunk.png")
-            images.append("u_chunk.png")
+            figures.append(("u_chunk.png", "U_chunk per chunk, every policy (median and quartiles over the evaluation "
+                                           "conditions); dashed: the candidate taus."))
         vids = []
         for policy, _ in t["policies"]:
-            if len(vids) >= videos:
+            if videos is not None and len(vids) >= videos:
                 break
-            seed = t["config"]["seed0"]
-            name = file_name(f"{policy}_{seed}", ".mp4")  # a policy name from the store: no path of its own
+            name = file_name(f"{policy}_{seed}", ".mp4")
             if side_by_side(store, policy, seed, stage / name):
                 vids.append(name)
         md = markdown(t)
-        md += "".join(f"\n![{i}]({i})\n" for i in images)
+        md += "".join(f"\n![{caption}]({name})\n" for name, caption in figures)
         if vids:
-            md += "\n## Real | offline | online (rows: views)\n\n" + "".join(f"* [{v}]({v})\n" for v in vids)
+            md += "\n## Real | online (| offline) (rows: views)\n\n" + "".join(f"* [{v}]({v})\n" for v in vids)
         elif videos:
-            md += ("\n(No videos: no policy has real, offline and online frames of its first evaluation seed in "
-                   f"{store.root / 'rollouts'}; an archived store keeps only sweep.json and results.jsonl.)\n")
+            md += ("\n(No videos: no policy has real and online frames of its first evaluation condition in this "
+                   "store's rollouts/; an archived store keeps only sweep.json and results.jsonl.)\n")
         (stage / "report.md").write_text(md)
-        (stage / "report.html").write_text(_html(t, images, vids))
+        (stage / "report.html").write_text(_html(t, figures, vids))
     return out / "report.md"

@@ -1,17 +1,25 @@
-"""The HTML page of a report (both sweeps: the simulator's and the simulator-free one).
+"""The HTML page of a report, for both sweeps (the simulator's and the simulator-free one): the answer first (one
+verdict sentence, the ranking), then the pictures, then the method in one paragraph, then every detail table folded.
 
 A results store is something people hand each other: every value it puts into the page (policy names, warnings,
-table cells, file names) is escaped here, attributes included, and a link or image names a file of the report's own
-directory only (``safe_names.file_name``), so a store cannot put script or a foreign address into the page.
+table cells, file names) is escaped here, attributes included, and an image or link names a file of the report's
+own directory only, so a store cannot put script or a foreign address into the page. The stylesheet is inline: the
+page needs no network and prints as it reads.
 """
 from __future__ import annotations
 
 import html
+import re
 from urllib.parse import quote
 
-STYLE = ("body{font-family:sans-serif;max-width:1100px;margin:1em auto;padding:0 1em}"
-         "table{border-collapse:collapse;margin:.5em 0}td,th{border:1px solid #bbb;padding:2px 6px}"
-         "th{background:#eee}")
+STYLE = ("body{font-family:sans-serif;max-width:1100px;margin:1em auto;padding:0 1em;color:#222}"
+         "table{border-collapse:collapse;margin:.5em 0}td,th{border:1px solid #bbb;padding:2px 6px;text-align:left}"
+         "th{background:#eee}.verdict{font-size:1.15em;border-left:4px solid #36c;padding:.3em .8em}"
+         ".warn{color:#a40}details{margin:.4em 0}summary{cursor:pointer;font-weight:bold}"
+         "figure{margin:.8em 0}figcaption{font-size:.9em;color:#555}img{max-width:100%}"
+         "@media print{details{display:block}}")
+
+Table = tuple[str, list[str], list[list[str]]]  # (title, header, rows); the title's first phrase is its heading
 
 
 def _e(x) -> str:
@@ -23,16 +31,44 @@ def _src(name: str) -> str:
     return quote(name.replace("/", "_").lstrip("."), safe="")
 
 
-def page(title: str, paragraphs: list[str], warnings: list[str], tables: list[tuple[str, list[str], list[list[str]]]],
-         images: list[str] = (), videos: list[str] = ()) -> str:
-    """The page: ``title``, plain-text ``paragraphs``, bold ``warnings``, ``(title, header, rows)`` tables, images and
-    video links (file names in the report's directory)."""
-    body = [f"<h1>{_e(title)}</h1>"] + [f"<p>{_e(p)}</p>" for p in paragraphs]
-    body += [f"<p><b>{_e(w)}</b></p>" for w in warnings]
-    for heading, header, rows in tables:
-        body.append(f"<h2>{_e(heading)}</h2><table><tr>" + "".join(f"<th>{_e(h)}</th>" for h in header) + "</tr>" +
-                    "".join("<tr>" + "".join(f"<td>{_e(c)}</td>" for c in r) + "</tr>" for r in rows) + "</table>")
-    body += [f'<h2>{_e(i.rsplit(".", 1)[0])}</h2><img src="{_src(i)}" alt="{_e(i)}" width=640>' for i in images]
-    body += [f'<p><a href="{_src(v)}">{_e(v)}</a></p>' for v in videos]
+def heading(title: str) -> tuple[str, str]:
+    """(short heading, the rest) of a table title: split after its first '.', '?' or ':' (none: all heading)."""
+    m = re.match(r"(.+?[.?:])\s+(.+)", title, re.S)
+    return (m[1].rstrip(".:"), m[2]) if m else (title.rstrip("."), "")
+
+
+def table(header: list[str], rows: list[list[str]], id_: str = "") -> str:
+    return (f"<table{f' id={_e(id_)}' if id_ else ''}><tr>" + "".join(f"<th>{_e(h)}</th>" for h in header) + "</tr>"
+            + "".join("<tr>" + "".join(f"<td>{_e(c)}</td>" for c in r) + "</tr>" for r in rows) + "</table>")
+
+
+def page(title: str, verdict: list[str], ranking: list[Table], figures: list[tuple[str, str]] = (),
+         videos: list[str] = (), method: str = "", details: list[Table] = (), warnings: list[str] = (),
+         facts: list[str] = ()) -> str:
+    """The page: ``verdict`` sentences, the ``ranking`` tables, ``figures`` (file name, caption) and ``videos`` (file
+    names in the report's directory), the ``method`` paragraph, ``details`` tables folded, ``facts`` (what was read)
+    at the end. Every image marks its load (``data-loaded``) or failure (``data-broken``), so a browser test sees each one."""
+    body = [f"<h1>{_e(title)}</h1>"]
+    body += [f"<p class=verdict id=verdict>{_e(v)}</p>" for v in verdict[:1]] + [f"<p>{_e(v)}</p>" for v in verdict[1:]]
+    body += [f"<p class=warn><b>{_e(w)}</b></p>" for w in warnings]
+    for i, (t, header, rows) in enumerate(ranking):
+        head, note = heading(t)
+        body.append(f"<h2>{_e(head)}</h2>" + (f"<p>{_e(note)}</p>" if note else "") +
+                    table(header, rows, "ranking" if i == 0 else ""))
+    for name, caption in figures:
+        body.append(f'<figure><img src="{_src(name)}" alt="{_e(caption)}" '
+                    "onload=\"this.setAttribute('data-loaded','1')\" onerror=\"this.setAttribute('data-broken','1')\">"
+                    f"<figcaption>{_e(caption)}</figcaption></figure>")
+    if videos:
+        body.append("<h2>Videos</h2>" + "".join(f'<p><a href="{_src(v)}">{_e(v)}</a></p>' for v in videos))
+    if method:
+        body.append(f"<h2>How it is measured</h2><p>{_e(method)}</p>")
+    if details:
+        body.append("<h2>Details</h2>")
+    for t, header, rows in details:
+        head, note = heading(t)
+        body.append(f"<details><summary>{_e(head)}</summary>" + (f"<p>{_e(note)}</p>" if note else "") +
+                    table(header, rows) + "</details>")
+    body += [f"<p><small>{_e(f)}</small></p>" for f in facts]
     return (f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>{_e(title)}</title><style>{STYLE}</style>"
             "</head><body>" + "".join(body) + "</body></html>")
