@@ -139,7 +139,7 @@ def test_the_dry_run_takes_every_phase_through_on_the_cpu(tmp_path):
         assert "report/report.md" in tar.getnames()
         # the report says what the model was trained on, and that reverse bussing is never in that data
         md = tar.extractfile("report/report.md").read().decode()
-        assert "The world model's training data (3 episodes" in md and "never shows: reverse" in md
+        assert "The world model's training data. 3 episodes" in md and "never shows: reverse" in md
     assert {r["split"] for r in recs if r["mode"] == "online"} == {"in_distribution", "out_of_distribution"}
     assert sum(r["mode"] == "real" for r in recs) == 9 and sum(r["mode"] == "online" for r in recs) == 6
     # distill: the student, two steps from the shipped model, with what its teacher was trained on
