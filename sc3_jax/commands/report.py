@@ -20,7 +20,7 @@ class Args:
     out: str | None = None
     """report directory (default: the first RESULTS/report)"""
     videos: int | None = None
-    """at most this many side-by-side videos (default: one per policy)"""
+    """at most this many side-by-side videos (None: one per policy)"""
     taus: tuple[float, ...] | None = None
     """termination thresholds (default: the sweep's candidates); evaluated from the stored U_chunk, no new
     rollouts. U_chunk is in the sweep's units (rollout.tau_units)"""

@@ -92,6 +92,9 @@ def build_server(a: Args, resolve: Callable[[str], Any] | None = None):
         if a.task_prompt:
             changes["prompts"] = _prompts(a.task_prompt)
         mapping = mapping.replace(**changes)
+    if a.max_message_mb <= 0:
+        raise UserError(f"--max-message-mb {a.max_message_mb}: give a positive size")
+    key = api_key(a)
     if resolve is None:  # after the options are checked: loading a policy can take seconds
         from sc3_jax.policies.resolve import resolve as resolve_spec
 
@@ -101,9 +104,7 @@ def build_server(a: Args, resolve: Callable[[str], Any] | None = None):
     except (ValueError, ImportError) as e:  # a spelling, or a module:attr that does not import
         raise UserError(f"--policy {a.policy}: {' '.join(str(e).split())}") from e
     try:
-        if a.max_message_mb <= 0:
-            raise UserError(f"--max-message-mb {a.max_message_mb}: give a positive size")
-        return PolicyServer(policy, a.host, a.port, None, mapping, api_key(a), int(a.max_message_mb * 2**20))
+        return PolicyServer(policy, a.host, a.port, None, mapping, key, int(a.max_message_mb * 2**20))
     except OSError as e:  # the address is taken, or not this machine's
         raise UserError(f"--host {a.host} --port {a.port}: {e.strerror or e}; choose another --port (0: any free "
                         "one)") from e

@@ -337,16 +337,15 @@ METHOD = ("Each policy acts inside the world model from held-out episodes' first
 
 def _source_names(sources) -> list[str]:
     """Real-outcome sources by name, not by this machine's path: ``NAME=PATH`` -> ``NAME=basename``."""
-    out = []
-    for src in sources:
-        name, eq, path = src.partition("=") if "=" in src.split("/")[0] else ("", "", src)
-        out.append(f"{name}{eq}{Path(path).name}")
-    return out
+    from sc3_jax.evaluate.labels import split_spec
+
+    return [f"{name}={Path(path).name}" if name else Path(path).name for name, path in map(split_spec, sources)]
 
 
 def _verdict(t: dict) -> list[str]:
     """The page's first lines: the verdict against the real outcomes (or that there are none), then the ranking."""
-    lines = summary(t)[:len(summary(t)) - len(t["warnings"]) or None]
+    said = summary(t)
+    lines = said[:len(said) - len(t["warnings"])]
     verdict_last = not t.get("real") or bool(t["real"]["faithfulness"])  # summary's last line is then the verdict
     return lines[-1:] + lines[:-1] if verdict_last else lines
 
@@ -359,8 +358,9 @@ def render(results: str | Path, out: str | Path | None = None, real=None, draws:
     with atomic.staged(out, last=("report.md",)) as stage:
         (stage / "report.json").write_text(json.dumps(t, indent=1))
         (stage / "report.md").write_text(markdown(t))
+        ranking, *details = tables(t)
         (stage / "report.html").write_text(report_html.page(
-            "Simulator-free sweep report", _verdict(t), tables(t)[:1], method=METHOD, details=tables(t)[1:],
+            "Simulator-free sweep report", _verdict(t), [ranking], method=METHOD, details=details,
             warnings=t["warnings"], facts=[f"World model {Path(t['config']['world_model']).name}, initial conditions "
                                            f"{Path(t['config']['initial_conditions']).name}; rollouts {t['rollouts']}"]))
     return out / "report.md"

@@ -46,7 +46,7 @@ def read(sources: tuple[str, ...] | list[str]) -> list[RealEpisode]:
     """Every real episode of ``sources`` (see the module docstring), in order."""
     out = []
     for spec in sources:
-        name, path = _split(spec)
+        name, path = split_spec(spec)
         p = Path(path)
         if (p / "dataset.json").is_file():
             got = _from_store(p, name)
@@ -71,7 +71,8 @@ def read(sources: tuple[str, ...] | list[str]) -> list[RealEpisode]:
     return out
 
 
-def _split(spec: str) -> tuple[str | None, str]:
+def split_spec(spec: str) -> tuple[str | None, str]:
+    """``[NAME=]PATH`` -> (NAME or None, PATH)."""
     head, eq, rest = spec.partition("=")
     if eq and head and "/" not in head and rest:
         return head, rest
