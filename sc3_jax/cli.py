@@ -1,35 +1,12 @@
 """The ``sc3`` command: one subcommand per stage (data -> train -> checkpoint -> rollout -> sweep -> report)."""
 from __future__ import annotations
 
+import ast
 import errno
 import importlib
+import importlib.util
 import sys
-
-USAGE = """usage: sc3 <command> [args]
-
-commands:
-  demo           generate the synthetic multi-view data, train the tiny model, report how far it got
-  train          sc3 train --config NAME_OR_PATH[:ARG] [--section.field VALUE ...]
-  train-tokenizer  sc3 train-tokenizer --data STORE --workdir DIR: the learned latent tokenizer (conv autoencoder)
-  train-perception sc3 train-perception --store STORE ... | --validate RESULTS ... --init WEIGHTS: the perception scorer
-  diagnose       sc3 diagnose WORLD_MODEL --data HELDOUT_STORE: checkpoint gates (PSNR vs baselines, drift, actions)
-  diagnose-table sc3 diagnose-table DIR ... [--baseline NAME]: several models' diagnostics side by side (ablations)
-  rollout        closed-loop / offline rollouts of a policy inside a trained world model
-  sweep          policies x initial conditions x {real, offline, online} on the simulated benchmark, or
-                 (--initial-conditions) held-out episodes of any robot with your own scorer -> report
-  report         sc3 report RESULTS ... [--out DIR]: tables, plots and videos from a sweep's results store
-  curve          sc3 curve SPEC.json --out DIR: faithfulness against training compute over several sweeps
-  rescore        sc3 rescore RESULTS [--perception WEIGHTS]: re-score a store's stored frames with other scorer weights
-  data           LeRobot datasets: sc3 data import-lerobot ROOT --out DIR | export-lerobot STORE --out DIR
-  sim            the simulated table-bussing benchmark: sc3 sim demos|demos-stats|eval|zoo-train|zoo-eval|zoo-list|
-                 zoo-manifest|measure
-  serve-policy   serve one of our policies over the openpi websocket protocol
-  configs        list the named configs with their parameter counts
-  convert        Cosmos3 weights: sc3 convert --from diffusers DIR --to OUT | --from sc3 RUN --to DIR
-  plan           sc3 plan --config NAME --mesh data=..,fsdp=..,tensor=.. --device h100|h200|gb200|v5p: memory/FLOPs
-
-`sc3 <command> --help` for the arguments of each."""
-
+import textwrap
 
 # what Ctrl-C leaves, per command: the one line it ends with (every writer here is atomic, so nothing is half-written)
 RESUME = {"train": "the same command resumes from its last checkpoint",
@@ -51,20 +28,49 @@ def _command(module: str):
 
 # command -> its module in sc3_jax/commands/
 MODULES = {"demo": "demo", "train": "train", "train-tokenizer": "train_tokenizer",
-           "train-perception": "train_perception", "diagnose": "diagnose", "diagnose-table": "diagnose_table", "rollout": "rollout", "sweep": "sweep", "report": "report",
+           "train-perception": "train_perception", "diagnose": "diagnose", "diagnose-table": "diagnose_table",
+           "rollout": "rollout", "sweep": "sweep", "report": "report",
            "curve": "curve", "rescore": "rescore", "data": "data", "sim": "sim", "serve-policy": "serve_policy",
            "configs": "configs", "convert": "convert", "plan": "plan"}
 COMMANDS = {name: _command(m) for name, m in MODULES.items()}
 
 
+def describe(module: str) -> tuple[str, list[str]]:
+    """(SUMMARY, the SUBCOMMANDS' names) of `sc3_jax/commands/MODULE.py`, read from its source: `sc3 --help` imports
+    no command (and so none of their libraries)."""
+    tree = ast.parse(open(importlib.util.find_spec(f"sc3_jax.commands.{module}").origin).read())
+    summary, subs = "", []
+    for node in tree.body:
+        target = node.target if isinstance(node, ast.AnnAssign) else (node.targets[0] if isinstance(node, ast.Assign)
+                                                                      else None)
+        if isinstance(target, ast.Name) and target.id == "SUMMARY":
+            summary = ast.literal_eval(node.value)
+        elif isinstance(target, ast.Name) and target.id == "SUBCOMMANDS" and isinstance(node.value, ast.Dict):
+            subs = [ast.literal_eval(k) for k in node.value.keys]
+    return summary, subs
+
+
+def usage() -> str:
+    """The top-level help, made from the command modules (each one's SUMMARY and subcommands)."""
+    width = max(map(len, MODULES)) + 2
+    lines = ["usage: sc3 <command> [args]", "", "commands:"]
+    for name, module in MODULES.items():
+        summary, subs = describe(module)
+        text = summary + (f" ({' | '.join(subs)})" if subs else "")
+        lines += textwrap.wrap(f"{name:<{width}}{text}", 116, initial_indent="  ", subsequent_indent=" " * (width + 2),
+                               break_on_hyphens=False)
+    return "\n".join(lines + ["", "`sc3 <command> --help` for the arguments of each; a config's fields as "
+                                  "--SECTION.FIELD VALUE", "wherever a command takes a config or a world model."])
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     if not argv or argv[0] in ("-h", "--help"):
-        print(USAGE)
+        print(usage())
         return 0
     cmd = COMMANDS.get(argv[0])
     if cmd is None:
-        print(f"sc3: unknown command {argv[0]!r}\n\n{USAGE}", file=sys.stderr)
+        print(f"sc3: unknown command {argv[0]!r}\n\n{usage()}", file=sys.stderr)
         return 2
     from sc3_jax.errors import UserError
 

@@ -1,4 +1,4 @@
-"""Frozen dataclass configs. Named experiment configs live in ``configs/<name>.py`` (each defines ``get_config()``);
+"""Frozen dataclass configs. Named experiment configs live in ``sc3_jax/configs/<name>.py`` (each defines ``get_config()``);
 any field can be overridden from the command line (``sc3 train --config tiny --train.steps 100``)."""
 from __future__ import annotations
 
@@ -352,7 +352,7 @@ class RolloutConfig:
 @dataclasses.dataclass(frozen=True)
 class Config:
     """A world-model experiment: every setting of training, sampling and rollouts. Named configs live in
-    configs/NAME.py; any field can be overridden as --SECTION.FIELD VALUE."""
+    sc3_jax/configs/NAME.py; any field can be overridden as --SECTION.FIELD VALUE."""
 
     name: str = "tiny"
     """the config's name: a label (config.json, `sc3 demo`, `sc3 plan`, diagnostics); changes nothing else"""
@@ -375,7 +375,8 @@ class Config:
 
 
 def configs_dir() -> Path:
-    return Path(__file__).resolve().parents[1] / "configs"
+    """The named configs: inside the package, so that a wheel or ``pip install .`` carries them."""
+    return Path(__file__).resolve().parent / "configs"
 
 
 def available_configs() -> list[str]:
@@ -383,7 +384,7 @@ def available_configs() -> list[str]:
 
 
 def load_config(name_or_path: str) -> Config:
-    """``name_or_path`` is a file path or the name of a file in ``configs/``, optionally followed by ``:ARG``
+    """``name_or_path`` is a file path or the name of a file in ``sc3_jax/configs/``, optionally followed by ``:ARG``
     (passed to its ``get_config(arg)``, e.g. ``ablation_no_id:tiny``)."""
     name_or_path, _, arg = name_or_path.partition(":")
     path = Path(name_or_path)

@@ -12,7 +12,7 @@ sc3 sim demos --out $D --episodes 80 --seed 11 --grasp-noise 0.04
 sc3 sim demos --out $D --episodes 60 --seed 12 --action-noise 0.012
 sc3 sim demos --out $D --episodes 50 --seed 13 --release-noise 0.08
 sc3 sim demos --out $D --episodes 50 --seed 14 --wrong-destination-prob 0.4
-# the world model (configs/bussing_sim.py); resumes from its latest checkpoint
+# the world model (sc3_jax/configs/bussing_sim.py); resumes from its latest checkpoint
 sc3 train --config bussing_sim --data.path $D --train.workdir $R/train --train.no-progress
 # the perception scorer: the same demos + 300 expert episodes of both tasks + 140 zoo-policy episodes on training
 # seeds (a measuring instrument may see reverse bussing and the policies' behaviours; never the evaluation seeds)

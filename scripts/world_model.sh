@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Rebuild the latent world model of the simulated benchmark (configs/bussing_latent.py) from nothing. Resumable:
+# Rebuild the latent world model of the simulated benchmark (sc3_jax/configs/bussing_latent.py) from nothing. Resumable:
 # every step skips or resumes what exists. Wall times measured on the 2-core CPU machine in docs/world_model.md.
 #   bash scripts/world_model.sh [RUNS_DIR] [EXTRA sc3 train ARGS...]
 set -euo pipefail

@@ -212,3 +212,61 @@ def test_no_module_uses_argparse_or_keeps_a_main_block():
 def test_libraries_whose_commands_moved_keep_no_main():
     for lib in ("rescore", "diagnose_table"):  # their commands moved to sc3_jax/commands/
         assert not hasattr(importlib.import_module(f"sc3_jax.evaluate.{lib}"), "main")
+
+
+def _targets(command: str) -> list[list[str]]:
+    subcommands = getattr(_module(command), "SUBCOMMANDS", None)
+    return [[command]] if subcommands is None else [[command, sub] for sub in subcommands]
+
+
+def _entries(text: str) -> list[str]:
+    """The help's entries: each option (or positional) with the lines that continue it."""
+    entries: list[str] = []
+    for line in text.splitlines():
+        inner = line.strip(" │")
+        if re.match(r"(-\w|--\w|[A-Z][A-Z_]+\b)", inner) or not entries:
+            entries.append(inner)
+        else:
+            entries[-1] += " " + inner
+    return entries
+
+
+@pytest.mark.parametrize("command", PRESENT)
+def test_help_prints_each_default_once_and_no_path_or_measurement(command, capsys, monkeypatch):
+    """A default said twice ("(default: all) (default: None)") reads as two; a path of this machine's install, or
+    a measured interval, is not help (measurements live in docs/results.md)."""
+    monkeypatch.setenv("COLUMNS", "300")
+    home = str(Path.home())
+    problems = []
+    for argv in _targets(command):
+        with pytest.raises(SystemExit):
+            main([*argv, "--help"])
+        text = capsys.readouterr().out
+        for entry in _entries(text):
+            if len(re.findall(r"\(default\b", entry)) > 1:
+                problems.append(f"sc3 {' '.join(argv)}: two defaults in {' '.join(entry.split())[:120]!r}")
+        for bad in {str(ROOT), "site-packages", home} - {"/"}:
+            if bad in text:
+                problems.append(f"sc3 {' '.join(argv)} --help names {bad!r}")
+        if re.search(r"\[[-+]?\d\.\d+, [-+]?\d\.\d+\]", text):
+            problems.append(f"sc3 {' '.join(argv)} --help quotes a measured interval")
+    assert not problems, "\n".join(problems)
+
+
+def test_the_default_check_catches_a_default_said_twice():
+    entries = _entries("│ --steps {None}|INT  training steps (default: the config's) (default: None) │\n"
+                       "│ --out STR  where (default: runs/x)  │\n│            more words │")
+    assert [len(re.findall(r"\(default\b", e)) for e in entries] == [2, 1]
+
+
+def test_the_top_level_usage_lists_every_command_and_subcommand(capsys):
+    assert main(["--help"]) == 0
+    text = " ".join(capsys.readouterr().out.split())
+    for name, module in cli.MODULES.items():
+        summary, subs = cli.describe(module)
+        assert summary, f"sc3_jax/commands/{module}.py has no SUMMARY (the line `sc3 --help` shows)"
+        assert f"{name} {summary.split()[0]}" in text, name
+        imported = getattr(_module(name), "SUBCOMMANDS", {})
+        assert subs == list(imported), f"sc3 {name}: usage lists {subs}, the module has {list(imported)}"
+        for sub in subs:
+            assert re.search(rf"[(|] ?{re.escape(sub)} ?[|)]", text), f"sc3 --help lacks {name} {sub}"

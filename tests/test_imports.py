@@ -157,6 +157,7 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
                    "model.wan_vae_convert", "model.shapes")),
     ("model", ("model",)),
     ("training modes, flow", ("modes", "flow")),
+    ("named configs", ("configs",)),
     ("checkpoint", ("checkpoint",)),
     ("train", ("train", "sharding", "tokenizer_train", "distill")),
     ("policies", ("policies",)),

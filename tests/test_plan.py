@@ -254,7 +254,7 @@ def test_bad_shape_is_one_line_error(argv, field, capsys):
 
 
 def test_aloha_wan_config_shape():
-    """configs/aloha_wan.py: 4 views at 480x640 on Wan2.2 latents, 14-D actions: 15 x 20 tokens per token frame,
+    """sc3_jax/configs/aloha_wan.py: 4 views at 480x640 on Wan2.2 latents, 14-D actions: 15 x 20 tokens per token frame,
     2 + 6 token frames per view, 24 actions -> 9,624 tokens; refused shapes would fail here first."""
     cfg = load_config("aloha_wan")
     plan.check_shape(cfg)

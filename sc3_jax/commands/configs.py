@@ -5,6 +5,8 @@ import dataclasses
 
 from sc3_jax.commands import parse
 
+SUMMARY = "the named configs with their parameter counts"  # the line `sc3 --help` shows
+
 
 @dataclasses.dataclass(frozen=True)
 class Args:
@@ -14,12 +16,12 @@ class Args:
 def main(argv: list[str]) -> int:
     parse(Args, argv, "configs")  # no options; --help, and a stray argument is an error
     from sc3_jax import checkpoint
-    from sc3_jax.config import available_configs, configs_dir, load_config
+    from sc3_jax.config import available_configs, load_config
     from sc3_jax.model import dit
     from sc3_jax.model.tokenizer import tokens_per_sample
     from sc3_jax.plan_vae import shape_only_vae
 
-    print(f"named configs in {configs_dir()}:")
+    print("named configs (sc3_jax/configs; --config NAME, or --config PATH to a file of your own):")
     for name in available_configs():
         cfg = load_config(name)
         try:  # a config whose tokenizer weights are missing here is listed, not fatal

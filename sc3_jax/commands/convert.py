@@ -10,6 +10,8 @@ import tyro
 from sc3_jax.commands import parse
 from sc3_jax.errors import UserError
 
+SUMMARY = "Cosmos3 transformer weights between diffusers and sc3_jax"  # the line `sc3 --help` shows
+
 
 @dataclasses.dataclass(frozen=True)
 class Args:

@@ -7,6 +7,8 @@ import tyro
 
 from sc3_jax.commands import parse
 
+SUMMARY = "faithfulness against training compute over several sweeps"  # the line `sc3 --help` shows
+
 
 @dataclasses.dataclass(frozen=True)
 class Args:

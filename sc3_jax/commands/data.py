@@ -19,6 +19,8 @@ import tyro
 from sc3_jax.commands import run_group
 from sc3_jax.errors import UserError
 
+SUMMARY = "LeRobot datasets to and from our episode store"  # the line `sc3 --help` shows
+
 
 @dataclasses.dataclass(frozen=True)
 class ImportLerobot:
@@ -29,10 +31,10 @@ class ImportLerobot:
     out: str
     """episode store to write (created if missing)"""
     views: Annotated[tuple[str, ...] | None, tyro.conf.arg(metavar="VIEW[=KEY] ...")] = None
-    """cameras to import, in our view order: VIEW (the key observation.images.VIEW) or VIEW=FEATURE_KEY (default:
+    """cameras to import, in our view order: VIEW (the key observation.images.VIEW) or VIEW=FEATURE_KEY (None:
     every camera, named after its key)"""
     wrist: Annotated[tuple[str, ...] | None, tyro.conf.arg(metavar="VIEW ...")] = None
-    """which of our views are wrist cameras (default: those whose name contains "wrist")"""
+    """which of our views are wrist cameras (None: those whose name contains "wrist")"""
     fps: float | None = None
     """subsample to this rate (an integer ratio to the dataset's fps; default: the dataset's)"""
     image_size: Annotated[tuple[int, int] | None, tyro.conf.arg(metavar="H W")] = None
@@ -45,10 +47,10 @@ class ImportLerobot:
     """import delta_ee actions without a 7-D --pose-key: the store then has no ee_pose (no pseudo-actions)"""
     action_space: Literal["delta_ee", "absolute", "velocity"] | None = None
     """what the actions are (data/action_space.py): delta_ee (xyz, rotation vector, gripper: 7-D), absolute
-    (joint or end-effector targets) or velocity (default: the dataset's sc3_action_space entry if it has one, else
+    (joint or end-effector targets) or velocity (None: the dataset's sc3_action_space entry if it has one, else
     delta_ee for 7-D actions; other actions need this)"""
     action_names: tuple[str, ...] | None = None
-    """one name per action dimension (default: the action feature's own names)"""
+    """one name per action dimension (None: the action feature's own names)"""
     action_targets: tuple[int, ...] | None = None
     """with --action-space velocity: the indices of dimensions that are position targets (e.g. a gripper)"""
     state_key: str = "auto"
@@ -70,11 +72,11 @@ class ExportLerobot:
     codec: Literal["h264", "av1"] = "h264"
     """video codec of the mp4s"""
     crf: int | None = None
-    """video quality, lower is better (default: 18 for h264, 30 for av1)"""
+    """video quality, lower is better (None: 18 for h264, 30 for av1)"""
     images: Literal["video", "image"] = "video"
     """mp4 videos, or PNGs inside the parquet files"""
     views: Annotated[tuple[str, ...] | None, tyro.conf.arg(metavar="VIEW ...")] = None
-    """the store's views to export (default: all)"""
+    """the store's views to export (None: all)"""
     overwrite: bool = False
     """replace an existing --out"""
 

@@ -7,6 +7,8 @@ from pathlib import Path
 
 from sc3_jax.commands import parse_with_config
 
+SUMMARY = "generate synthetic multi-view data, train the tiny model, say how far it got"  # the line `sc3 --help` shows
+
 
 @dataclasses.dataclass(frozen=True)
 class Args:
@@ -20,7 +22,7 @@ class Args:
     config: str = "tiny"
     """a named config (`sc3 configs`) or a config file"""
     steps: int | None = None
-    """training steps (default: the config's train.steps)"""
+    """training steps (None: the config's train.steps)"""
     episodes: int = 200
     """synthetic training episodes (16 more are held out)"""
 

@@ -10,6 +10,8 @@ import tyro
 from sc3_jax.commands import parse_with_config
 from sc3_jax.evaluate.diagnose import DiagnoseConfig, Stage
 
+SUMMARY = "the checks that gate a world-model checkpoint, on held-out episodes"  # the line `sc3 --help` shows
+
 D = DiagnoseConfig()  # the library's defaults, one home
 
 
@@ -27,7 +29,7 @@ class Args:
     data: str
     """held-out episode store"""
     episodes: int | None = D.episodes
-    """N episodes evenly spaced over the store (default: all)"""
+    """N episodes evenly spaced over the store (None: all)"""
     cf_starts: int = D.cf_starts
     """counterfactual starts per episode"""
     out: str | None = None
@@ -36,7 +38,7 @@ class Args:
     seed: int = D.seed
     """sampler noise and the action shuffle"""
     max_seconds: float | None = D.max_seconds
-    """cap on the open-loop horizon in seconds (default: the longest episode)"""
+    """cap on the open-loop horizon in seconds (None: the longest episode)"""
     batch: int = D.batch
     """rollouts per jitted call (rounded up to the device count)"""
     moving_threshold: float = D.moving_threshold
@@ -44,7 +46,7 @@ class Args:
     horizons: tuple[float, ...] = D.horizons
     """drift curve points in seconds"""
     perception: str | None = D.perception
-    """perception weights for the outcome check (default: the shipped ones)"""
+    """perception weights for the outcome check (None: the shipped ones)"""
     progress: bool = D.progress
     """a progress bar on stderr (--no-progress: none, for batch logs)"""
     stages: tuple[Stage, ...] = D.stages

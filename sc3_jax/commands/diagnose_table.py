@@ -10,6 +10,8 @@ import tyro
 from sc3_jax.commands import one_or_more, parse
 from sc3_jax.errors import UserError
 
+SUMMARY = "several models' diagnostics side by side"  # the line `sc3 --help` shows
+
 
 @dataclasses.dataclass(frozen=True)
 class Args:

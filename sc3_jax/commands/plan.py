@@ -10,6 +10,8 @@ from sc3_jax.commands import parse_with_config
 from sc3_jax.errors import UserError
 from sc3_jax.plan import DEVICES, config_flag  # plan.py imports jax only inside its functions
 
+SUMMARY = "what a config costs on a mesh of accelerators (memory, FLOPs, step time)"  # the line `sc3 --help` shows
+
 Device = Literal[tuple(DEVICES)]
 
 

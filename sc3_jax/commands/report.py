@@ -10,6 +10,8 @@ import tyro
 from sc3_jax.commands import one_or_more, parse
 from sc3_jax.errors import UserError
 
+SUMMARY = "tables, plots and videos from a sweep's results store"  # the line `sc3 --help` shows
+
 
 @dataclasses.dataclass(frozen=True)
 class Args:
@@ -18,11 +20,11 @@ class Args:
     results: Annotated[tyro.conf.Positional[tuple[str, ...]], one_or_more("RESULTS")]
     """the sweep's --out directory (a sharded sweep's: all its shards), or several shares of one sweep, read as one"""
     out: str | None = None
-    """report directory (default: the first RESULTS/report)"""
+    """report directory (None: the first RESULTS/report)"""
     videos: int | None = None
     """at most this many side-by-side videos (None: one per policy)"""
     taus: tuple[float, ...] | None = None
-    """termination thresholds (default: the sweep's candidates); evaluated from the stored U_chunk, no new
+    """termination thresholds (None: the sweep's candidates); evaluated from the stored U_chunk, no new
     rollouts. U_chunk is in the sweep's units (rollout.tau_units)"""
     draws: int = 2000
     """paired bootstrap draws for the 95% intervals"""

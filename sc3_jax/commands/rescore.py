@@ -9,6 +9,8 @@ import tyro
 
 from sc3_jax.commands import parse
 
+SUMMARY = "re-score a store's stored frames with other scorer weights"  # the line `sc3 --help` shows
+
 
 @dataclasses.dataclass(frozen=True)
 class Args:
@@ -17,7 +19,7 @@ class Args:
     results: tyro.conf.Positional[str]
     """a sweep's --out directory"""
     perception: str | None = None
-    """perception weights (default: the shipped ones)"""
+    """perception weights (None: the shipped ones)"""
     state_reader: str | None = None
     """the weights that read the gripper state inside the store's imagined rollouts (needed when they were the
     scorer's and the scorer changes)"""

@@ -12,6 +12,8 @@ from pathlib import Path
 
 from sc3_jax.commands import parse_with_config
 
+SUMMARY = "closed-loop and offline rollouts of a policy inside a world model"  # the line `sc3 --help` shows
+
 
 @dataclasses.dataclass(frozen=True)
 class Args:
@@ -34,26 +36,26 @@ class Args:
     out: str
     """output directory: rollout.npz, summary.json, the videos (and offline.npz)"""
     step: int | None = None
-    """checkpoint step of a training workdir (default: the latest)"""
+    """checkpoint step of a training workdir (None: the latest)"""
     family: str = "native"
     """openpi observation mapping for ws:// policies: native, droid, libero or aloha (docs/openpi.md). With an episode
     store, the server gets each episode's own instruction and its cameras by the model's view names"""
     episodes: int | None = None
-    """use the first N initial conditions (default: all)"""
+    """use the first N initial conditions (None: all)"""
     start: int = 0
     """first frame of the initial context in each stored episode"""
     task: int = 0
     """task id given to the policy (episode stores carry none; a mapped ws:// policy gets the episodes' prompts)"""
     batch_size: int | None = None
-    """episodes per jitted call (default: all at once)"""
+    """episodes per jitted call (None: all at once)"""
     data_fps: float | None = None
-    """frame rate the model was trained at (default: the store's fps, else 20)"""
+    """frame rate the model was trained at (None: the store's fps, else 20)"""
     seed: int = 0
     """sampler and policy noise: episode i's draws depend only on (seed, i)"""
     offline: bool = False
     """also replay the recorded actions open loop and compare with the recorded frames (episode stores only)"""
     perception: str | None = None
-    """perception weights for the success estimate (default: the shipped ones)"""
+    """perception weights for the success estimate (None: the shipped ones)"""
     video: bool = True
     """one mp4 per episode and view (--no-video: none)"""
     progress: bool = True

@@ -13,6 +13,8 @@ import tyro
 from sc3_jax.commands import parse
 from sc3_jax.errors import UserError
 
+SUMMARY = "serve one of our policies over openpi's websocket protocol"  # the line `sc3 --help` shows
+
 # openpi_mappings.PRESETS with "native" first (a test keeps them equal; spelled out so --help loads no policy code)
 FAMILIES = ("native", "droid", "libero", "aloha")
 
@@ -34,7 +36,7 @@ class Args:
     image_size: Annotated[tuple[int, int] | None, tyro.conf.arg(metavar="H W")] = None
     """image size our policy expects (a family's images are un-letterboxed and resized to it)"""
     num_views: int | None = None
-    """number of views our policy expects (default: the family's, e.g. 4 for aloha)"""
+    """number of views our policy expects (None: the family's, e.g. 4 for aloha)"""
     task_prompt: Annotated[tyro.conf.UseAppendAction[tuple[str, ...]], tyro.conf.arg(metavar="ID=PROMPT")] = ()
     """a prompt -> task id entry of the family's table (repeatable; default: the bussing / reverse-bussing
     prompts)"""

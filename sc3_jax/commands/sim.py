@@ -21,6 +21,8 @@ import tyro
 from sc3_jax.commands import run_group
 from sc3_jax.errors import UserError
 
+SUMMARY = "the simulated table-bussing benchmark"  # the line `sc3 --help` shows
+
 SIZE = tyro.conf.arg(metavar="H W")
 
 
@@ -106,7 +108,7 @@ class Eval:
     episodes: int = 36
     """initial conditions (simulator seeds from 10,000,000, as in the sweep)"""
     out: str | None = None
-    """directory for summary.json, episodes.jsonl and videos/ (default: nothing written)"""
+    """directory for summary.json, episodes.jsonl and videos/ (None: nothing written)"""
     videos: bool = True
     """write every view of every episode as mp4 under OUT/videos (--no-videos: skip them)"""
     image_size: Annotated[tuple[int, int], SIZE] = (64, 64)
@@ -120,9 +122,9 @@ class ZooTrain:
     workdir: str = "/tmp/sc3_zoo"
     """where the training demo sets are written (resumable)"""
     out: str | None = None
-    """where the weights and zoo.json go (default: the shipped sc3_jax/sim/zoo/)"""
+    """where the weights and zoo.json go (None: the shipped sc3_jax/sim/zoo/)"""
     runs: tuple[str, ...] | None = None
-    """training runs to do, of clean, small, reverse (default: all)"""
+    """training runs to do, of clean, small, reverse (None: all)"""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -136,7 +138,7 @@ class ZooEval:
     videos: bool = True
     """write mp4s of every episode (--no-videos: skip them)"""
     policies: tuple[str, ...] | None = None
-    """zoo policies to evaluate (default: all)"""
+    """zoo policies to evaluate (None: all)"""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -149,7 +151,7 @@ class ZooManifest:
     """Rewrite zoo.json from the registry (no training; measured training times are kept)."""
 
     out: str | None = None
-    """directory whose zoo.json is rewritten (default: the shipped sc3_jax/sim/zoo/)"""
+    """directory whose zoo.json is rewritten (None: the shipped sc3_jax/sim/zoo/)"""
 
 
 @dataclasses.dataclass(frozen=True)

@@ -12,6 +12,8 @@ from sc3_jax.commands import parse
 from sc3_jax.errors import UserError
 from sc3_jax.evaluate.sweep import SweepConfig
 
+SUMMARY = "policies x initial conditions, real and inside the world model, then the report"  # the line `sc3 --help` shows
+
 
 @dataclasses.dataclass(frozen=True)
 class Args(SweepConfig):

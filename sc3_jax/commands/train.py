@@ -6,6 +6,8 @@ from pathlib import Path
 
 from sc3_jax.commands import parse_with_config
 
+SUMMARY = "train (or resume) a world model from a named config or a config file"  # the line `sc3 --help` shows
+
 
 @dataclasses.dataclass(frozen=True)
 class Args:

@@ -11,6 +11,8 @@ import tyro
 from sc3_jax.commands import parse
 from sc3_jax.errors import UserError
 
+SUMMARY = "train the perception scorer, or check its weights against physics"  # the line `sc3 --help` shows
+
 
 @dataclasses.dataclass(frozen=True)
 class Args:

@@ -7,6 +7,8 @@ import dataclasses
 from sc3_jax.commands import parse
 from sc3_jax.tokenizer_config import AEConfig, TokenizerTrainConfig
 
+SUMMARY = "train the learned latent tokenizer (a conv autoencoder)"  # the line `sc3 --help` shows
+
 
 @dataclasses.dataclass(frozen=True)
 class Args(TokenizerTrainConfig):

@@ -32,8 +32,10 @@ import os
 import shutil
 import time
 from pathlib import Path
+from typing import Annotated
 
 import numpy as np
+import tyro
 
 from sc3_jax import atomic
 from sc3_jax.errors import UserError
@@ -53,7 +55,9 @@ class SweepConfig:
 
     out: str = "runs/sweep"
     """the results store: results.jsonl, rollouts/, sweep.json, timing.json and report/ (rerun to resume)"""
-    world_model: str = str(SHIPPED_WORLD_MODEL)
+    # the help names it, not the path it has on this machine
+    world_model: Annotated[str, tyro.conf.arg(help_behavior_hint="(default: the shipped bussing_latent_gpu)")] = \
+        str(SHIPPED_WORLD_MODEL)
     """a training run dir (checkpoints/) or an exported dir (params.npz)"""
     perception: str | None = None
     """perception weights (None: the shipped ones)"""
@@ -110,8 +114,7 @@ class SweepConfig:
     6.5-7.5 s, a failing one retries until the limit; 12 s keeps every success and costs 60% of the 20 s default"""
     sample_steps: int | None = 2
     """forward-dynamics Euler steps (None: the world model's config). 2 instead of the shipped model's 8 costs a
-    third of the time per chunk at equal faithfulness: on 7 in-distribution policies x 12 conditions, paired
-    against 8 steps, r -0.016 [-0.078, +0.051], MMRV +0.011 [-0.065, +0.123] (docs/sweep.md#sampler-steps)"""
+    third of the time per chunk and ranked the zoo as 8 do (docs/sweep.md#sampler-steps)"""
     inverse_steps: int | None = 1
     """Euler steps of the inverse-dynamics re-read (None: the world model's config). It yields U_chunk only, never
     the frames or the outcomes; U read in 1 step correlates with U read in 8 at Pearson 0.981 (docs/sweep.md),

@@ -9,7 +9,7 @@ l' = 10 frames and a rollout keeps l = 8 (the paper's horizon decoupling), from 
 the 20 Hz data; rollouts run at stride 2 = 10 Hz) with pseudo-actions half of the time.
 
 ``--model.tokenizer-path`` names the trained tokenizer; the default is the one shipped with the exported model
-(``sc3_jax/evaluate/shipped/bussing_latent_gpu/tokenizer``; ``configs/bussing_latent_gpu.py`` is this recipe at
+(``sc3_jax/evaluate/shipped/bussing_latent_gpu/tokenizer``; ``sc3_jax/configs/bussing_latent_gpu.py`` is this recipe at
 accelerator scale), and scripts/world_model.sh passes the one it trains."""
 from pathlib import Path
 
