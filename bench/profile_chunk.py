@@ -41,13 +41,13 @@ def main(argv=None) -> None:
 
     from sc3_jax import checkpoint, rollout
     from sc3_jax.config import replace
-    from sc3_jax.evaluate import perception
-    from sc3_jax.evaluate.scorers import PerceptionScorer
-    from sc3_jax.evaluate.model_workers import initial_observation
-    from sc3_jax.evaluate.sweep import SHIPPED_WORLD_MODEL, STATE_READER_FILE
-    from sc3_jax.sim.policy_eval import make_env
-    from sc3_jax.sim.tasks import make_initial_condition, task_id
-    from sc3_jax.sim.zoo import load_policy
+    from sc3_jax.benchmarks.bussing import perception
+    from sc3_jax.benchmarks.bussing.scorers import PerceptionScorer
+    from sc3_jax.benchmarks.bussing.model_workers import initial_observation
+    from sc3_jax.benchmarks.bussing.sweep import SHIPPED_WORLD_MODEL, STATE_READER_FILE
+    from sc3_jax.benchmarks.bussing.policy_eval import make_env
+    from sc3_jax.benchmarks.bussing.tasks import make_initial_condition, task_id
+    from sc3_jax.benchmarks.bussing.zoo import load_policy
 
     cfg, stats, params = checkpoint.load(str(SHIPPED_WORLD_MODEL))
     cfg = replace(cfg, rollout=dict(episode_seconds=12.0))

@@ -34,12 +34,12 @@ FULL = {"policies": 13, "real": 36 + 6 + 36, "online": 36 + 6, "calibration": 6}
 def real_cost(workers: int, n_seeds: int, root: str, degrade: bool) -> tuple[float, float]:
     """(steady seconds per real rollout, seconds until the first records) for ``workers`` processes, with or without
     the perception scorer's reading of degraded copies."""
-    from sc3_jax.evaluate import perception
-    from sc3_jax.evaluate.real_workers import RealJob, RealSetup, run_real_jobs
-    from sc3_jax.evaluate.scorers import PerceptionScorer
-    from sc3_jax.evaluate.sweep import _resolve, _zoo_names
-    from sc3_jax.sim.policy_eval import make_env
-    from sc3_jax.sim.zoo import ZOO
+    from sc3_jax.benchmarks.bussing import perception
+    from sc3_jax.benchmarks.bussing.real_workers import RealJob, RealSetup, run_real_jobs
+    from sc3_jax.benchmarks.bussing.scorers import PerceptionScorer
+    from sc3_jax.benchmarks.bussing.sweep import _resolve, _zoo_names
+    from sc3_jax.benchmarks.bussing.policy_eval import make_env
+    from sc3_jax.benchmarks.bussing.zoo import ZOO
     specs = [next(n for n in _zoo_names() if ZOO[n].task == t) for t in ("bussing", "reverse")]
     resolved = {s: _resolve(s) for s in specs}
     jobs = [RealJob(s, resolved[s][0], resolved[s][1], 10_000_000 + i, degrade) for s in specs for i in range(n_seeds)]
@@ -61,12 +61,12 @@ def online_cost(fd: int, inv: int, chunks: int, batch: int, barrier=None) -> flo
 
     from sc3_jax import checkpoint, rollout
     from sc3_jax.config import replace
-    from sc3_jax.evaluate import perception
-    from sc3_jax.evaluate.model_workers import initial_observation
-    from sc3_jax.evaluate.sweep import SHIPPED_WORLD_MODEL, STATE_READER_FILE
-    from sc3_jax.sim.policy_eval import make_env
-    from sc3_jax.sim.tasks import task_id
-    from sc3_jax.sim.zoo import load_policy
+    from sc3_jax.benchmarks.bussing import perception
+    from sc3_jax.benchmarks.bussing.model_workers import initial_observation
+    from sc3_jax.benchmarks.bussing.sweep import SHIPPED_WORLD_MODEL, STATE_READER_FILE
+    from sc3_jax.benchmarks.bussing.policy_eval import make_env
+    from sc3_jax.benchmarks.bussing.tasks import task_id
+    from sc3_jax.benchmarks.bussing.zoo import load_policy
     cfg, stats, params = checkpoint.load(str(SHIPPED_WORLD_MODEL))
     cfg = replace(cfg, sample=dict(steps=fd, inverse_steps=inv), rollout=dict(episode_seconds=12.0))
     full_chunks = rollout.make_spec(cfg).num_chunks
@@ -92,7 +92,7 @@ _BARRIER = None  # a bench worker's (set by _init_worker)
 
 def _init_worker(barrier) -> None:
     global _BARRIER
-    import sc3_jax.sim  # noqa: F401  (picks the GL backend before mujoco is imported)
+    import sc3_jax.benchmarks.bussing  # noqa: F401  (picks the GL backend before mujoco is imported)
     _BARRIER = barrier
 
 
@@ -122,9 +122,9 @@ def main(argv=None) -> None:
     ap.add_argument("--chunks", type=int, default=3, help="online chunks timed (scaled to a 12 s rollout)")
     ap.add_argument("--batch", type=int, default=6)
     a = ap.parse_args(argv)
-    import sc3_jax.sim  # noqa: F401  (picks the GL backend before mujoco is imported)
-    from sc3_jax.evaluate.real_workers import default_workers
-    from sc3_jax.evaluate.sweep import SweepConfig
+    import sc3_jax.benchmarks.bussing  # noqa: F401  (picks the GL backend before mujoco is imported)
+    from sc3_jax.benchmarks.bussing.real_workers import default_workers
+    from sc3_jax.benchmarks.bussing.sweep import SweepConfig
     new = SweepConfig()
     workers = new.workers or default_workers()
     with tempfile.TemporaryDirectory() as d1, tempfile.TemporaryDirectory() as d2:
@@ -136,7 +136,7 @@ def main(argv=None) -> None:
     share = {"all": 1.0, "none": 0.0, "calibration": FULL["calibration"] / FULL["real"]}[new.degradations]
     real_new = share * real_degraded + (1 - share) * real_clean
     online_old = online_cost(8, 2, a.chunks, a.batch)
-    from sc3_jax.evaluate.model_workers import in_workers
+    from sc3_jax.benchmarks.bussing.model_workers import in_workers
     steps = (new.sample_steps or 8, new.inverse_steps or 8, a.chunks, a.batch)
     online_new = online_cost_workers(*steps, workers) if in_workers(workers, workers) else online_cost(*steps)
     online_one = online_cost(*steps)  # the new sampler in one process on every core: what the workers add

@@ -295,7 +295,7 @@ class Rollout:
             sharding.bind_mesh(f, self.mesh) for f in (self._init, self._observe, self._model_step_fn,
                                                        self._scan_policy, self._scan_actions))
         # state_reader: anything with a pure ``apply(params, images uint8 [V, H, W, 3]) -> gripper width`` and
-        # ``params`` (e.g. ``evaluate.scorers.PerceptionScorer.state_reader()``); see ``ChunkFns.observe``
+        # ``params`` (e.g. ``benchmarks.bussing.scorers.PerceptionScorer.state_reader()``); see ``ChunkFns.observe``
         self.reader_params = None if state_reader is None else jax.device_put(state_reader.params, self._repl)
 
     def _model_step(self, params, carry, actions, keys, tau):

@@ -144,16 +144,17 @@ def u_summary(result: dict, tau: float, tau_units: str) -> dict:
             "stopped_at_chunk_mean": float(stopped.mean()) if len(stopped) else None}
 
 
-def success_estimate(result: dict, ids, store, cfg, perception: str | None = None) -> dict:
-    """The perception scorer on each imagined rollout (its last context frame, then its frames up to termination,
+def success_estimate(result: dict, ids, store, cfg, scorer_for, perception: str | None = None) -> dict:
+    """The benchmark's scorer (``scorer_for(views, image_size, weights)``, as ``diagnose.diagnose`` takes it) on each
+    imagined rollout (its last context frame, then its frames up to termination,
     as the sweep reads online rollouts): per-criterion success over the objects named by the episodes' meta.
     ``{"available": False, "note": why}`` when the model's frames are not the scorer's or no object is named."""
-    from sc3_jax.evaluate.diagnose_outcomes import episode_objects, perception_scorer, success_rates
+    from sc3_jax.evaluate.diagnose_outcomes import episode_objects, success_rates
     from sc3_jax.evaluate.scorers import RolloutView
 
     if store is None:
         return {"available": False, "note": "an .npz of initial conditions names no objects to score"}
-    scorer, note = perception_scorer(cfg.data.views, cfg.data.image_size, perception)
+    scorer, note = scorer_for(cfg.data.views, cfg.data.image_size, perception)
     if scorer is None:
         return {"available": False, "note": note}
     imagined, recorded = [], []

@@ -24,4 +24,4 @@ sc3 train-perception --store $R/scorer_data $R/scorer_zoo $R/scorer_zoo2 --gener
     --policy-seed 70 --init $R/perception.npz --steps 3000 --lr 5e-4 --out $R/perception_ft.npz
 # small copies to commit (params as float16)
 python -c "from sc3_jax import checkpoint; checkpoint.export('$R/train', 'sc3_jax/evaluate/shipped/bussing_sim')"
-cp $R/perception_ft.npz sc3_jax/evaluate/perception.npz
+cp $R/perception_ft.npz sc3_jax/benchmarks/bussing/perception.npz

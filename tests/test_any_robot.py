@@ -388,3 +388,20 @@ def test_builtin_policy_rolls_out_a_14d_model_without_stopping_at_its_first_chun
     np.testing.assert_array_equal(out["actions"][:, :3], np.repeat(ics.state[:, None], 3, 1))  # stands still
     assert (out["u_raw"][:, 0] > 0.02).all()  # what the old default would have stopped at
     assert (ro.run(params, policy, ics, keys, tau=0.02)["terminated_at"] == 0).all()
+
+
+def test_one_camera_turns_cross_view_inpainting_off_unless_it_was_asked_for(tmp_path):
+    """A one-camera robot (an SO-101's): cross-view inpainting has no second view, so its share goes to forward and
+    inverse dynamics in proportion; asked for explicitly, it is a one-line refusal."""
+    store = _store(tmp_path / "one", DELTA_EE, views=("front",))
+    cfg = load_config("tiny")
+    fd, cvi, inv = cfg.modes.probs
+    probs = shape_from_dataset(cfg, store).modes.probs
+    assert probs[1] == 0 and probs[0] == pytest.approx(fd / (fd + inv)) and sum(probs) == pytest.approx(1)
+    with pytest.raises(UserError) as e:
+        shape_from_dataset(cfg, store, explicit_fields(["--modes.probs", "0.5", "0.2", "0.3"]))
+    assert "cross-view inpainting" in _one_line(e) and "'front'" in _one_line(e)
+    assert shape_from_dataset(replace(cfg, modes=dict(probs=(0.5, 0.0, 0.5))), store,
+                              {"modes.probs"}).modes.probs == (0.5, 0.0, 0.5)
+    four = _store(tmp_path / "four", DELTA_EE)
+    assert shape_from_dataset(cfg, four).modes.probs == cfg.modes.probs  # two views or more: kept as asked

@@ -36,7 +36,7 @@ ALLOWED = {
         "TensorBoard event files: a log for viewing, appended by tensorboardX, read by nothing here",
     ("tokenizer_train.py", "train", "open(a)"):
         "the append-only metrics.jsonl, flushed per line; atomic.drop_cut_line runs before it is reopened",
-    ("evaluate/sweep.py", "link_real", "shutil.copy2"):
+    ("benchmarks/bussing/sweep.py", "link_real", "shutil.copy2"):
         "arrays copied before their record is appended: a copy cut by a kill has no record, and is unlinked and "
         "copied again on resume",
     ("data/lerobot_write.py", "_VideoFile.__init__", "open(w)"):
@@ -176,7 +176,7 @@ KILL_AT_FSYNC = "import os; os.fsync = lambda fd: os._exit(9)\n"  # dies after w
 WRITERS = {  # (file name, code writing __V__ to __PATH__)
     "diagnose result": ("diagnose.json", "from sc3_jax.evaluate.diagnose_report import save_result\n"
                                          "save_result({'v': __V__, 'nan': float('nan')}, __PATH__)"),
-    "zoo weights": ("run.npz", "import numpy as np; from sc3_jax.sim import zoo\n"
+    "zoo weights": ("run.npz", "import numpy as np; from sc3_jax.benchmarks.bussing import zoo\n"
                                "zoo.save_params(__PATH__, {'head': {'w': np.full((2, 2), __V__)}})"),
 }
 
@@ -230,8 +230,9 @@ def _damaged_readers(tmp_path: Path):
     import jax
 
     from sc3_jax import rollout_io
-    from sc3_jax.evaluate import diagnose_report, diagnose_table, perception
-    from sc3_jax.sim import zoo, zoo_train
+    from sc3_jax.evaluate import diagnose_report, diagnose_table
+    from sc3_jax.benchmarks.bussing import perception
+    from sc3_jax.benchmarks.bussing import zoo, zoo_train
 
     weights = tmp_path / "w.npz"
     perception.save(weights, perception.init(jax.random.key(0), n_kp=2, widths=(2, 2, 2), hidden=2))

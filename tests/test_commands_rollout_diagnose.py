@@ -16,7 +16,7 @@ from sc3_jax.cli import main
 from sc3_jax.commands import diagnose as diagnose_cmd
 from sc3_jax.commands import parse, parse_with_config
 from sc3_jax.commands import rollout as rollout_cmd
-from sc3_jax.evaluate.sweep import SweepConfig
+from sc3_jax.benchmarks.bussing.sweep import SweepConfig
 
 COMMANDS = {"rollout": rollout_cmd, "diagnose": diagnose_cmd}
 
@@ -60,8 +60,8 @@ def test_rollout_diagnose_and_sweep_sample_a_world_model_alike(wm, tmp_path, mon
     """The config `sc3 sweep` builds its rollouts from (caught where it constructs them) is the one both commands
     evaluate under: the same sampler steps, inverse re-read steps, horizon and U units."""
     from sc3_jax import rollout
-    from sc3_jax.evaluate import sweep
-    from sc3_jax.sim.zoo import zoo_names
+    from sc3_jax.benchmarks.bussing import sweep
+    from sc3_jax.benchmarks.bussing.zoo import zoo_names
 
     class Built(Exception):
         pass
@@ -154,9 +154,10 @@ def test_success_estimate_scores_the_kept_frames_of_objects_the_store_names(tmp_
     """The perception scorer on the last context frame and the frames kept before termination (nothing after),
     with the recorded episodes' physics labels beside it; none, with the reason, where it cannot apply."""
     from sc3_jax.config import load_config
-    from sc3_jax.evaluate import perception
+    from sc3_jax.benchmarks.bussing import perception
     from sc3_jax.evaluate.diagnose_outcomes import success_rates
-    from sc3_jax.evaluate.scorers import PerceptionScorer, RolloutView
+    from sc3_jax.evaluate.scorers import RolloutView
+    from sc3_jax.benchmarks.bussing.scorers import PerceptionScorer, perception_scorer
     from sc3_jax.rollout_io import success_estimate
 
     store = _tiny_store(tmp_path / "eps", n=1, steps=60)
@@ -168,7 +169,7 @@ def test_success_estimate_scores_the_kept_frames_of_objects_the_store_names(tmp_
     imagined = np.concatenate([frames[:, 1:kept + 1], garbage], 1)
     result = {"initial_frames": frames[None, :, :1], "frames": imagined[None],
               "frame_valid": np.r_[np.ones(kept, bool), np.zeros(4, bool)][None]}
-    est = success_estimate(result, ["ep00"], store, cfg)
+    est = success_estimate(result, ["ep00"], store, cfg, perception_scorer)
     objects = tuple(o["name"] for o in ep.meta["labels"]["objects"])
     dests = {o["name"]: o["destination"] for o in ep.meta["labels"]["objects"]}
     want = PerceptionScorer(perception.load()).score(RolloutView("ep00", frames[:, :kept + 1], objects, dests))
@@ -177,6 +178,7 @@ def test_success_estimate_scores_the_kept_frames_of_objects_the_store_names(tmp_
                                                                                             1), objects, dests))
     assert success_rates([read_all]) != est["imagined"]  # the frames after termination would change it (a placing)
     assert est["recorded_physics"] == success_rates([ep.meta["labels"]["objects"]])
-    assert "names no objects" in success_estimate(result, ["ep00"], None, cfg)["note"]  # an .npz of conditions
+    # an .npz of conditions
+    assert "names no objects" in success_estimate(result, ["ep00"], None, cfg, perception_scorer)["note"]
     small = load_config("tiny")
-    assert "64x64" in success_estimate(result, ["ep00"], store, small)["note"]
+    assert "64x64" in success_estimate(result, ["ep00"], store, small, perception_scorer)["note"]

@@ -1,5 +1,6 @@
 """``sc3 sim SUBCOMMAND``: every option's --help text sits under its own flag, the spellings from before the move
-(``sc3 sim ...``, ``python -m sc3_jax.sim.zoo_train|measure ...``) still parse, a wrong subcommand is a usage error
+(``sc3 sim ...``, ``python -m sc3_jax.benchmarks.bussing.zoo_train|measure ...``) still parse, a wrong subcommand is a usage
+error
 listing them, and the cheap subcommands run and say what their numbers mean."""
 from __future__ import annotations
 
@@ -60,7 +61,7 @@ def test_a_missing_or_unknown_subcommand_is_rc_2_with_the_list(argv, capsys):
      sim.ZooEval("o", 4, False, ("bus_bc_full", "rev_bc_full"))),
     (["zoo-eval", "--out", "o"], sim.ZooEval("o", 36, True, None)),
     (["zoo-list"], sim.ZooList()),
-    # python -m sc3_jax.sim.zoo_train train|list|manifest, python -m sc3_jax.sim.measure
+    # python -m sc3_jax.benchmarks.bussing.zoo_train train|list|manifest, python -m sc3_jax.benchmarks.bussing.measure
     (["zoo-train", "--workdir", "w", "--runs", "clean", "small"], sim.ZooTrain("w", None, ("clean", "small"))),
     (["zoo-train"], sim.ZooTrain("/tmp/sc3_zoo", None, None)),
     (["zoo-manifest"], sim.ZooManifest(None)),
@@ -81,7 +82,7 @@ def test_missing_or_bad_options_are_usage_errors(argv, capsys):
 
 def test_the_library_modules_keep_no_command_line():
     for lib in ("cli", "measure", "zoo_train"):
-        tree = ast.parse((ROOT / "sc3_jax" / "sim" / f"{lib}.py").read_text())
+        tree = ast.parse((ROOT / "sc3_jax" / "benchmarks" / "bussing" / f"{lib}.py").read_text())
         imported = {a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names}
         imported |= {n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)}
         assert "argparse" not in imported, f"sim/{lib}.py imports argparse"
@@ -90,7 +91,7 @@ def test_the_library_modules_keep_no_command_line():
 
 
 def test_zoo_list_and_manifest_say_what_they_hold(tmp_path, capsys):
-    from sc3_jax.sim.zoo import ZOO
+    from sc3_jax.benchmarks.bussing.zoo import ZOO
 
     assert sim.main(["zoo-list"]) == 0
     out = capsys.readouterr().out
@@ -126,7 +127,7 @@ def test_demos_refuses_a_policy_that_is_not_a_bussing_zoo_policy(tmp_path):
 
 
 def test_eval_and_measure_say_what_their_numbers_are(monkeypatch, capsys):
-    from sc3_jax.sim import measure, policy_eval
+    from sc3_jax.benchmarks.bussing import measure, policy_eval
 
     rates = {"language": 0.9, "lifting": 0.8, "placing": 0.7, "outcome/language": 0.1, "outcome/lifting": 0.1,
              "outcome/placing": 0.1, "outcome/no failure": 0.7, "n_objects": 6}
@@ -144,7 +145,7 @@ def test_eval_and_measure_say_what_their_numbers_are(monkeypatch, capsys):
 
 
 def test_mixture_writes_and_demos_stats_sets_it_beside_the_zoo(tmp_path, capsys):
-    from sc3_jax.sim.mixture import CATEGORIES
+    from sc3_jax.benchmarks.bussing.mixture import CATEGORIES
 
     store = tmp_path / "mix"
     assert sim.main(["mixture", "--out", str(store), "--episodes", "2", "--image-size", "16", "16",
@@ -182,6 +183,6 @@ def test_mixture_and_stats_refuse_bad_options_in_one_line(argv, message, tmp_pat
 def test_the_mixture_command_offers_every_recipe():
     import typing
 
-    from sc3_jax.sim.mixture import RECIPES
+    from sc3_jax.benchmarks.bussing.mixture import RECIPES
 
     assert set(typing.get_args(typing.get_type_hints(sim.Mixture)["recipe"])) == set(RECIPES)

@@ -161,7 +161,7 @@ def test_perception_training_summary_gives_each_head_and_the_always_no_baseline(
 
 
 def test_majority_guess_and_validation_summary():
-    from sc3_jax.evaluate.perception_train import majority_agreement
+    from sc3_jax.benchmarks.bussing.perception_train import majority_agreement
     from sc3_jax.evaluate.scorers import agreement
 
     def obj(language, lifting, placing, outcome):

@@ -12,7 +12,7 @@ import jax
 import numpy as np
 import pytest
 
-import sc3_jax.sim  # noqa: F401  (picks the GL backend before mujoco is imported)
+import sc3_jax.benchmarks.bussing  # noqa: F401  (picks the GL backend before mujoco is imported)
 from sc3_jax import checkpoint, train
 from sc3_jax.config import load_config, replace
 from sc3_jax.data.episodes import Episode, EpisodeStore
@@ -52,8 +52,8 @@ def test_temporal_median_erases_a_moving_arm_and_the_centroid_finds_it():
 
 
 def _tiny_store(root, n=2, steps=40):
-    from sc3_jax.sim.env import BussingEnv
-    from sc3_jax.sim.expert import run_expert_episode
+    from sc3_jax.benchmarks.bussing.env import BussingEnv
+    from sc3_jax.benchmarks.bussing.expert import run_expert_episode
     env = BussingEnv(image_size=(64, 64))
     store = EpisodeStore(root, views=list(env.views), fps=env.control_hz, image_size=(64, 64), create=True)
     for i in range(n):
@@ -108,7 +108,7 @@ def test_table_prints_every_section(run):
 
 def test_diagnose_samples_as_the_sweep_does(run):
     """The world model's own 3 steps are replaced by the sweep's sampler settings (one set for every command)."""
-    from sc3_jax.evaluate.sweep import SweepConfig
+    from sc3_jax.benchmarks.bussing.sweep import SweepConfig
 
     _, result, text = run
     st, sweep = result["settings"], SweepConfig()

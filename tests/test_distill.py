@@ -287,7 +287,7 @@ def test_resume_is_exact_and_reads_the_teacher_again(teacher, monkeypatch):
 
 
 def test_a_student_sampled_at_other_than_1_step_is_warned_about():
-    from sc3_jax.evaluate.sweep import SweepConfig
+    from sc3_jax.benchmarks.bussing.sweep import SweepConfig
     from sc3_jax.evaluate.world_model_defaults import evaluation_config, warn_if_student_off_its_step
 
     student = replace(load_config("tiny"), flow=dict(distill_teacher="teacher/"))

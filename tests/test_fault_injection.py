@@ -23,13 +23,13 @@ import numpy as np
 import orbax.checkpoint as ocp
 import pytest
 
-import sc3_jax.sim  # noqa: F401  (picks the GL backend before mujoco is imported)
+import sc3_jax.benchmarks.bussing  # noqa: F401  (picks the GL backend before mujoco is imported)
 from conftest import FAST_COMPILE
 from sc3_jax import atomic, checkpoint
 from sc3_jax.config import load_config, replace
 from sc3_jax.data import synthetic
 from sc3_jax.data.norm_stats import NormStats
-from sc3_jax.evaluate import perception
+from sc3_jax.benchmarks.bussing import perception
 from sc3_jax.evaluate.results import ResultsStore
 from sc3_jax.model import autoencoder as ae
 from sc3_jax.train import read_metrics

@@ -25,7 +25,7 @@ import gpu_playbook as pb  # noqa: E402
 
 def test_the_sweep_runs_the_archived_stores_protocol_on_both_splits():
     from sc3_jax.commands import parse
-    from sc3_jax.evaluate.sweep import SweepConfig
+    from sc3_jax.benchmarks.bussing.sweep import SweepConfig
 
     ctx = pb.Ctx(pb.Args("sweep"), Path("/r"), Path("/o"), 0.0)
     cfg = parse(SweepConfig, pb._sweep_protocol(ctx), "sweep")

@@ -104,7 +104,7 @@ def find_cycle(graph: dict[str, set[str]]) -> list[str] | None:
 
 def test_sc3_jax_has_no_import_cycle():
     graph = import_graph(ROOT / "sc3_jax")
-    assert len(graph) > 50 and "sc3_jax.rollout" in graph["sc3_jax.evaluate.sweep"]  # the walk sees the package
+    assert len(graph) > 50 and "sc3_jax.rollout" in graph["sc3_jax.benchmarks.bussing.sweep"]  # the walk sees the package
     cycle = find_cycle(graph)
     assert cycle is None, "import cycle: " + " -> ".join(cycle)
 
@@ -148,7 +148,7 @@ def test_type_checking_imports_and_acyclic_graphs_pass(tmp_path, closing):
 LAYERS: list[tuple[str, tuple[str, ...]]] = [
     ("utilities", ("errors", "atomic", "xla_cost", "safe_names", "locks")),
     ("video", ("video",)),
-    ("metrics", ("evaluate.metrics",)),
+    ("metrics", ("evaluate.metrics", "evaluate.permanence")),
     ("episodes", ("data",)),
     ("normalisation", ("data.norm_stats",)),
     ("pipeline", ("data.pipeline", "data.latent_cache")),
@@ -161,20 +161,18 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
     ("checkpoint", ("checkpoint",)),
     ("train", ("train", "sharding", "tokenizer_train", "distill")),
     ("policies", ("policies",)),
-    ("simulator", ("sim",)),
     ("policy names", ("policies.resolve",)),
     ("rollout", ("rollout", "imagination_state")),
     ("results", ("evaluate.results",)),
-    ("scoring", ("evaluate.scorers", "evaluate.perception", "evaluate.perception_train",
-                 "evaluate.annotation", "evaluate.degrade", "evaluate.rescore", "evaluate.labels")),
+    ("scoring", ("evaluate.scorers", "evaluate.degrade", "evaluate.labels")),
     ("diagnostics", ("evaluate.world_model", "evaluate.world_model_defaults", "evaluate.diagnose",
                      "evaluate.diagnose_video", "evaluate.diagnose_actions", "evaluate.diagnose_outcomes",
                      "evaluate.diagnose_report", "evaluate.diagnose_table", "rollout_io", "plan", "plan_vae")),
-    ("sweep", ("evaluate.sweep", "evaluate.real_workers", "evaluate.model_workers", "evaluate.worker_pool",
-               "evaluate.ic_sweep")),
+    ("sweep", ("evaluate.worker_pool", "evaluate.ic_sweep")),
     ("report", ("evaluate.report", "evaluate.report_html", "evaluate.calibrate", "evaluate.intervals", "evaluate.bootstrap",
                 "evaluate.merged", "evaluate.curve", "evaluate.ic_ranking")),
-    ("commands", ("cli", "commands", "convert_cli", "demo", "sim.cli")),
+    ("benchmarks", ("benchmarks",)),
+    ("commands", ("cli", "commands", "convert_cli", "demo")),
 ]
 
 
@@ -193,7 +191,7 @@ def layer_violations(graph: dict[str, set[str]], layers=LAYERS, top: str = "sc3_
     """Every import from a lower layer to a higher one, and every module no layer places."""
     out = []
     for mod in sorted(graph):
-        if mod == top or mod == f"{top}.evaluate":
+        if mod in (top, f"{top}.evaluate", f"{top}.benchmarks"):
             continue  # empty package __init__s: nothing to place (the others match their package's prefix)
         if (lm := layer_of(mod, layers, top)) is None:
             out.append(f"{mod}: in no layer (add it to LAYERS and docs/architecture.md)")
@@ -230,3 +228,40 @@ def test_an_import_against_the_layers_is_reported(tmp_path):
         "pkg.low (layer 'bottom') imports pkg.high (higher layer 'top')",
         "pkg.stray: in no layer (add it to LAYERS and docs/architecture.md)"]
     assert layer_violations({"pkg.low": set(), "pkg.high": {"pkg.low"}}, layers, "pkg") == []
+
+
+def folder_violations(graph: dict[str, set[str]], top: str = "sc3_jax") -> list[str]:
+    """The folders' rules: a benchmark (``benchmarks/NAME/``) is a plug-in of the evaluation core, so nothing but the
+    commands imports one, and no benchmark imports another or the commands."""
+    def bench(m: str) -> str | None:
+        parts = m.split(".")
+        return parts[2] if len(parts) > 2 and parts[1] == "benchmarks" else None
+
+    def command(m: str) -> bool:
+        return m == f"{top}.cli" or m.startswith(f"{top}.commands")
+    out = []
+    for mod in sorted(graph):
+        for dep in sorted(graph[mod]):
+            b, d = bench(mod), bench(dep)
+            if d and not b and not command(mod):
+                out.append(f"{mod} imports the benchmark {dep}: pass what it needs in from the command instead")
+            elif b and d and b != d:
+                out.append(f"{mod} (benchmark {b}) imports {dep} (benchmark {d})")
+            elif b and command(dep):
+                out.append(f"{mod} (benchmark {b}) imports the command {dep}")
+    return out
+
+
+def test_nothing_below_the_commands_imports_a_benchmark():
+    graph = import_graph(ROOT / "sc3_jax")
+    assert any(m.startswith("sc3_jax.benchmarks.bussing.") for m in graph)  # the walk sees the benchmark
+    problems = folder_violations(graph)
+    assert not problems, "\n".join(problems)
+
+
+def test_the_folder_check_catches_the_core_importing_a_benchmark():
+    graph = {"sc3_jax.evaluate.report": {"sc3_jax.benchmarks.bussing.zoo"},
+             "sc3_jax.benchmarks.so101.zoo": {"sc3_jax.benchmarks.bussing.zoo", "sc3_jax.evaluate.results"},
+             "sc3_jax.commands.sweep": {"sc3_jax.benchmarks.bussing.sweep"},
+             "sc3_jax.benchmarks.bussing.zoo": {"sc3_jax.commands.sim"}}
+    assert len(folder_violations(graph)) == 3

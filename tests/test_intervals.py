@@ -7,7 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from sc3_jax.evaluate import bootstrap, calibrate, degrade, intervals, metrics, report, sweep
+from sc3_jax.evaluate import bootstrap, calibrate, degrade, intervals, metrics, report
+from sc3_jax.benchmarks.bussing import sweep
 from sc3_jax.evaluate.results import ResultsStore, seed_blocks
 
 

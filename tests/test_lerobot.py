@@ -229,10 +229,10 @@ def test_error_undecodable_codec_and_missing_video(datasets, tmp_path):
 # -- export -> import of the simulated benchmark's demonstrations ------------------------------------------------
 def test_sim_export_import_roundtrip(tmp_path):
     pytest.importorskip("mujoco")
-    import sc3_jax.sim  # noqa: F401
+    import sc3_jax.benchmarks.bussing  # noqa: F401
     from sc3_jax.data.episodes import EpisodeStore
     from sc3_jax.cli import main
-    from sc3_jax.sim.demos import generate_demos
+    from sc3_jax.benchmarks.bussing.demos import generate_demos
 
     generate_demos(tmp_path / "demos", 2, seed=0, image_size=(64, 64), progress=False)
     assert main(["data", "export-lerobot", str(tmp_path / "demos"), "--out", str(tmp_path / "lr")]) == 0

@@ -5,7 +5,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-import sc3_jax.sim  # noqa: F401  (picks the GL backend before mujoco is imported)
+import sc3_jax.benchmarks.bussing  # noqa: F401  (picks the GL backend before mujoco is imported)
+from sc3_jax.benchmarks.bussing.zoo import named_policy
 from sc3_jax.policies import resolve as R
 from sc3_jax.policies.base import JaxPolicy, as_host
 from sc3_jax.policies.openpi_client import WebsocketClientPolicy
@@ -51,12 +52,14 @@ def test_parse_splits_name_spec_and_task():
 
 
 def test_zoo_name():
-    r = R.resolve("rev_confused")
+    r = R.resolve("rev_confused", named=named_policy)
     assert (r.name, r.task) == ("rev_confused", "reverse") and isinstance(r.policy, JaxPolicy)
-    r = R.resolve("mine=rev_confused@bussing")
+    r = R.resolve("mine=rev_confused@bussing", named=named_policy)
     assert (r.name, r.task) == ("mine", "bussing")  # renamed, task overridden
     with pytest.raises(ValueError, match="zoo policies are"):
-        R.resolve("no_such_policy")
+        R.resolve("no_such_policy", named=named_policy)
+    with pytest.raises(ValueError, match="unknown policy 'rev_confused'"):  # no benchmark's names: the layer's own
+        R.resolve("rev_confused")
 
 
 def test_builtin_names_take_the_chunk():
@@ -89,10 +92,10 @@ def test_websocket_server(server):
 
 def test_every_command_resolves_every_spelling(server, monkeypatch):
     """sc3 sweep (needs a task), sc3 serve-policy, sc3 sim eval and sc3 rollout all call ``resolve``."""
-    from sc3_jax.evaluate import sweep
+    from sc3_jax.benchmarks.bussing import sweep
     from sc3_jax.commands import parse, serve_policy
-    from sc3_jax.sim import cli as sim_cli
-    from sc3_jax.sim import policy_eval
+    from sc3_jax.benchmarks.bussing import cli as sim_cli
+    from sc3_jax.benchmarks.bussing import policy_eval
 
     assert sweep._resolve("rev_confused")[:2] == ("rev_confused", "reverse")
     assert sweep._resolve(f"{__name__}:make_policy@bussing")[:2] == (f"{__name__}:make_policy", "bussing")

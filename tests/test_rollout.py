@@ -283,7 +283,7 @@ def test_cli_writes_arrays_and_videos(tmp_path, setup, capsys):
 
     from sc3_jax import train
     from sc3_jax.cli import main
-    from sc3_jax.evaluate.sweep import SweepConfig
+    from sc3_jax.benchmarks.bussing.sweep import SweepConfig
 
     cfg = replace(setup[0], data=dict(path=str(tmp_path / "eps")), sample=dict(steps=3),
                   train=dict(workdir=str(tmp_path / "run"), async_checkpointing=False))

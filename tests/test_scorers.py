@@ -5,10 +5,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from sc3_jax.evaluate import perception
-from sc3_jax.evaluate.scorers import (PerceptionScorer, RolloutView, SimScorer, agreement, criteria_from_predicates,
-                                      first_run, held)
-from sc3_jax.sim.criteria import evaluate_object
+from sc3_jax.benchmarks.bussing import perception
+from sc3_jax.benchmarks.bussing.scorers import PerceptionScorer, SimScorer, criteria_from_predicates
+from sc3_jax.evaluate.scorers import RolloutView, agreement, first_run, held
+from sc3_jax.benchmarks.bussing.criteria import evaluate_object
 
 DEST = {"cup": "bin", "bag": "can"}
 
@@ -116,7 +116,7 @@ def test_perception_architecture_is_stored_and_weights_of_any_size_load(tmp_path
 
 
 def test_loss_weights_positive_labels_only():
-    from sc3_jax.evaluate.perception_train import loss_fn
+    from sc3_jax.benchmarks.bussing.perception_train import loss_fn
     rng = np.random.default_rng(3)
     params = perception.init(jax.random.key(3))
     x = jnp.asarray(rng.integers(0, 255, (4, 3, 64, 64, 3)), jnp.uint8)
@@ -147,7 +147,7 @@ def test_scorers_share_one_interface_and_agreement():
 
 
 def test_augment_degrades_per_sample_and_depends_only_on_the_key():
-    from sc3_jax.evaluate.perception_train import augment
+    from sc3_jax.benchmarks.bussing.perception_train import augment
     imgs = jnp.asarray(np.random.default_rng(0).integers(60, 200, (16, 3, 64, 64, 3)), jnp.uint8)
     a, b = augment(jax.random.key(1), imgs), augment(jax.random.key(1), imgs)
     c = augment(jax.random.key(2), imgs)
@@ -159,7 +159,7 @@ def test_augment_degrades_per_sample_and_depends_only_on_the_key():
 
 
 def test_train_warm_starts_from_given_weights():
-    from sc3_jax.evaluate.perception_train import train
+    from sc3_jax.benchmarks.bussing.perception_train import train
     rng = np.random.default_rng(0)
     n = 24
     data = (rng.integers(0, 255, (n, 3, 64, 64, 3), dtype=np.uint8), rng.random((n, 6, 3)) > 0.5,

@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from sc3_jax import checkpoint, rollout
-from sc3_jax.evaluate import perception, sweep
+from sc3_jax.benchmarks.bussing import perception, sweep
 
 
 def test_command_1s_default_is_the_headline_model_and_loads_with_its_tokenizer_and_state_reader():
@@ -15,7 +15,7 @@ def test_command_1s_default_is_the_headline_model_and_loads_with_its_tokenizer_a
     assert sweep.SweepConfig().world_model == str(path)
     cfg, stats, params = checkpoint.load(path)
     assert cfg.name == "bussing_latent_gpu" and cfg.model.tokenizer == "conv_ae"
-    # the headline's gripper reader (perception_ft1, git show 2897b53:sc3_jax/evaluate/perception.npz)
+    # the headline's gripper reader (perception_ft1, git show 2897b53:sc3_jax/benchmarks/bussing/perception.npz)
     reader_path = path / sweep.STATE_READER_FILE
     assert hashlib.sha256(reader_path.read_bytes()).hexdigest().startswith("5d93f49d9337f397")
     reader = perception.state_reader(perception.load(reader_path))

@@ -2,13 +2,13 @@
 import numpy as np
 import pytest
 
-import sc3_jax.sim  # noqa: F401  (picks the GL backend before MuJoCo is imported)
+import sc3_jax.benchmarks.bussing  # noqa: F401  (picks the GL backend before MuJoCo is imported)
 
 pytest.importorskip("mujoco")
 
-from sc3_jax.sim import criteria as C  # noqa: E402
-from sc3_jax.sim.scene import BIN_WALL_H, CAN_INNER  # noqa: E402
-from sc3_jax.sim.tasks import OBJECT_BY_NAME, destination, make_initial_condition  # noqa: E402
+from sc3_jax.benchmarks.bussing import criteria as C  # noqa: E402
+from sc3_jax.benchmarks.bussing.scene import BIN_WALL_H, CAN_INNER  # noqa: E402
+from sc3_jax.benchmarks.bussing.tasks import OBJECT_BY_NAME, destination, make_initial_condition  # noqa: E402
 
 BIN = np.array([0.2, -0.13])
 CAN = np.array([0.2, 0.13])
@@ -121,7 +121,7 @@ def test_prompts_are_grammatical_for_every_template_and_object_count():
     import itertools
     import re
 
-    from sc3_jax.sim.tasks import N_TEMPLATES, OBJECT_NAMES, make_prompt
+    from sc3_jax.benchmarks.bussing.tasks import N_TEMPLATES, OBJECT_NAMES, make_prompt
     assert make_prompt(["spoon", "bottle", "lid"], "bussing", template=1) == (
         "Clear the table. The yellow spoon goes in the bin; the blue bottle and the purple lid go in the trash.")
     assert make_prompt(["cup", "bowl", "bag"], "reverse", template=2) == (

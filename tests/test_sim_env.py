@@ -4,7 +4,7 @@ import json
 import numpy as np
 import pytest
 
-import sc3_jax.sim  # noqa: F401  (picks the GL backend before MuJoCo is imported)
+import sc3_jax.benchmarks.bussing  # noqa: F401  (picks the GL backend before MuJoCo is imported)
 
 pytest.importorskip("mujoco")
 
@@ -13,13 +13,13 @@ import jax.numpy as jnp  # noqa: E402
 
 from sc3_jax.data.episodes import EpisodeStore  # noqa: E402
 from sc3_jax.policies.base import JaxPolicy, as_host  # noqa: E402
-from sc3_jax.sim import zoo  # noqa: E402
-from sc3_jax.sim.criteria import success_rates  # noqa: E402
-from sc3_jax.sim.demos import generate_demos  # noqa: E402
-from sc3_jax.sim.env import BussingEnv  # noqa: E402
-from sc3_jax.sim.policy_eval import run_policy_episode  # noqa: E402
-from sc3_jax.sim.expert import ExpertKnobs, run_expert_episode  # noqa: E402
-from sc3_jax.sim.scene import OPEN_WIDTH  # noqa: E402
+from sc3_jax.benchmarks.bussing import zoo  # noqa: E402
+from sc3_jax.benchmarks.bussing.criteria import success_rates  # noqa: E402
+from sc3_jax.benchmarks.bussing.demos import generate_demos  # noqa: E402
+from sc3_jax.benchmarks.bussing.env import BussingEnv  # noqa: E402
+from sc3_jax.benchmarks.bussing.policy_eval import run_policy_episode  # noqa: E402
+from sc3_jax.benchmarks.bussing.expert import ExpertKnobs, run_expert_episode  # noqa: E402
+from sc3_jax.benchmarks.bussing.scene import OPEN_WIDTH  # noqa: E402
 
 
 @pytest.fixture(scope="module")

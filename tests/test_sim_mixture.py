@@ -1,4 +1,4 @@
-"""The failure-rich mixture (sim/mixture.py): its data-collection policies are not the evaluated zoo, it never holds
+"""The failure-rich mixture (benchmarks/bussing/mixture.py): its data-collection policies are not the evaluated zoo, it never holds
 the reverse task or an every-object swap, it is deterministic per (seed, episode) whatever the sharding, its
 failure modes happen, and its outcome categories read the same from demo stores and sweep records."""
 from __future__ import annotations
@@ -7,11 +7,11 @@ import json
 
 import numpy as np
 
-import sc3_jax.sim  # noqa: F401  (picks the GL backend before mujoco is imported)
-from sc3_jax.sim import mixture as M
-from sc3_jax.sim.env import BussingEnv
-from sc3_jax.sim.tasks import make_initial_condition
-from sc3_jax.sim.zoo import ZOO
+import sc3_jax.benchmarks.bussing  # noqa: F401  (picks the GL backend before mujoco is imported)
+from sc3_jax.benchmarks.bussing import mixture as M
+from sc3_jax.benchmarks.bussing.env import BussingEnv
+from sc3_jax.benchmarks.bussing.tasks import make_initial_condition
+from sc3_jax.benchmarks.bussing.zoo import ZOO
 
 
 def test_no_data_collection_source_is_an_evaluated_zoo_policy():
@@ -25,7 +25,7 @@ def test_no_data_collection_source_is_an_evaluated_zoo_policy():
 
 
 def test_the_mixture_writes_bussing_only_without_loading_any_zoo_policy(tmp_path, monkeypatch):
-    from sc3_jax.sim import zoo
+    from sc3_jax.benchmarks.bussing import zoo
 
     def refuse(*a, **k):
         raise AssertionError("a data-collection policy loaded zoo weights")
@@ -49,7 +49,7 @@ def test_the_mixture_writes_bussing_only_without_loading_any_zoo_policy(tmp_path
 
 
 def test_every_object_in_the_other_container_is_refused(tmp_path, monkeypatch):
-    from sc3_jax.sim.expert import run_expert_episode
+    from sc3_jax.benchmarks.bussing.expert import run_expert_episode
 
     def all_wrong(env, source, knobs, sim_seed, record=True):
         r = run_expert_episode(env, sim_seed, "bussing", record=record)
@@ -96,7 +96,7 @@ def test_sharded_writes_equal_one_write(tmp_path):
 
 
 def test_the_data_collection_expert_retries_and_drops():
-    from sc3_jax.sim.expert import ExpertKnobs, run_expert_episode
+    from sc3_jax.benchmarks.bussing.expert import ExpertKnobs, run_expert_episode
     env = BussingEnv(render=False)
     seed = 4_000_003
     objects = make_initial_condition(seed, "bussing", 3).objects
@@ -116,7 +116,7 @@ def test_the_data_collection_expert_retries_and_drops():
 
 def _run_missing_first(env, seed, expert):
     """run_expert_episode with every object's first grasp aimed 5 cm off (set after the expert's own reset)."""
-    from sc3_jax.sim.expert import run_expert_episode
+    from sc3_jax.benchmarks.bussing.expert import run_expert_episode
     reset = expert.reset
 
     def reset_then_offset(e):
@@ -128,8 +128,8 @@ def _run_missing_first(env, seed, expert):
 
 
 def test_the_state_controller_takes_its_wrong_object_to_the_other_container():
-    from sc3_jax.sim.policy_eval import run_policy_episode
-    from sc3_jax.sim.zoo import ControlKnobs
+    from sc3_jax.benchmarks.bussing.policy_eval import run_policy_episode
+    from sc3_jax.benchmarks.bussing.zoo import ControlKnobs
     env = BussingEnv(image_size=(16, 16))
     seed = 4_000_001
     wrong = make_initial_condition(seed, "bussing", 3).objects[0]

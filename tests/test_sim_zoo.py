@@ -6,7 +6,7 @@ import types
 import numpy as np
 import pytest
 
-import sc3_jax.sim  # noqa: F401  (picks the GL backend before MuJoCo is imported)
+import sc3_jax.benchmarks.bussing  # noqa: F401  (picks the GL backend before MuJoCo is imported)
 
 pytest.importorskip("mujoco")
 
@@ -14,12 +14,12 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 
 from sc3_jax.policies.base import as_host  # noqa: E402
-from sc3_jax.sim import zoo  # noqa: E402
-from sc3_jax.sim.demos import store_contents  # noqa: E402
-from sc3_jax.sim.env import BussingEnv  # noqa: E402
-from sc3_jax.sim.expert import ExpertKnobs, ScriptedExpert  # noqa: E402
-from sc3_jax.sim.scene import OPEN_WIDTH  # noqa: E402
-from sc3_jax.sim.tasks import OBJECT_BY_NAME, destination, make_initial_condition  # noqa: E402
+from sc3_jax.benchmarks.bussing import zoo  # noqa: E402
+from sc3_jax.benchmarks.bussing.demos import store_contents  # noqa: E402
+from sc3_jax.benchmarks.bussing.env import BussingEnv  # noqa: E402
+from sc3_jax.benchmarks.bussing.expert import ExpertKnobs, ScriptedExpert  # noqa: E402
+from sc3_jax.benchmarks.bussing.scene import OPEN_WIDTH  # noqa: E402
+from sc3_jax.benchmarks.bussing.tasks import OBJECT_BY_NAME, destination, make_initial_condition  # noqa: E402
 
 HAVE_WEIGHTS = all((zoo.ZOO_DIR / e.weights).exists() for e in zoo.ZOO.values())
 

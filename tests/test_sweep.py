@@ -16,19 +16,21 @@ import jax
 import numpy as np
 import pytest
 
-import sc3_jax.sim  # noqa: F401  (picks the GL backend before mujoco is imported)
+import sc3_jax.benchmarks.bussing  # noqa: F401  (picks the GL backend before mujoco is imported)
 from sc3_jax import checkpoint, rollout, train
 from sc3_jax.config import load_config, replace
 from sc3_jax.data.norm_stats import NormStats
-from sc3_jax.evaluate import annotation, metrics, perception, report, sweep
+from sc3_jax.evaluate import metrics, report
+from sc3_jax.benchmarks.bussing import annotation, perception, sweep
 from sc3_jax.errors import UserError
 from sc3_jax.evaluate.results import EVAL_MODES, ResultsStore, rollout_id, seed_blocks
-from sc3_jax.evaluate.scorers import HumanScorer, RolloutView
+from sc3_jax.evaluate.scorers import RolloutView
+from sc3_jax.benchmarks.bussing.scorers import HumanScorer
 from sc3_jax.policies import resolve
 
 def _one_per_split():
     """The zoo's first policy of each task (names come from the zoo, which may change)."""
-    from sc3_jax.sim.zoo import ZOO, zoo_names
+    from sc3_jax.benchmarks.bussing.zoo import ZOO, zoo_names
     return tuple(next(n for n in zoo_names() if ZOO[n].task == task) for task in ("bussing", "reverse"))
 
 
@@ -89,7 +91,7 @@ def test_sweep_writes_every_rollout(setup):
 
 
 def test_validate_rescores_real_rollouts_as_the_sweep_scored_them(setup):
-    from sc3_jax.evaluate.perception_train import validate
+    from sc3_jax.benchmarks.bussing.perception_train import validate
     from sc3_jax.evaluate.scorers import agreement
     root, cfg = setup
     real = [r for r in ResultsStore(cfg.out).records() if r["mode"] == "real"]
@@ -98,8 +100,9 @@ def test_validate_rescores_real_rollouts_as_the_sweep_scored_them(setup):
     truth = [r["objects"] for r in real]
     assert got["clean"] == agreement([r["perception"] for r in real], truth)
     # the sweep read degraded copies of the calibration rollouts only: rescored, they are what it recorded
-    from sc3_jax.evaluate.scorers import PerceptionScorer, RolloutView
-    from sc3_jax.sim.tasks import make_initial_condition
+    from sc3_jax.evaluate.scorers import RolloutView
+    from sc3_jax.benchmarks.bussing.scorers import PerceptionScorer
+    from sc3_jax.benchmarks.bussing.tasks import make_initial_condition
     scorer = PerceptionScorer(perception.load(root / "perception.npz"))
     degraded = [r for r in real if "perception_degraded" in r]
     # validate reads every rollout clean and degraded (and names the majority-guess floor beside them)
@@ -183,7 +186,7 @@ def test_rescore_reproduces_the_sweep_and_guards_the_store(setup, tmp_path):
     sweep.json names them, and resuming it with the old weights is refused until it is re-scored back."""
     import shutil
 
-    from sc3_jax.evaluate import rescore
+    from sc3_jax.benchmarks.bussing import rescore
     root, cfg = setup
     out = tmp_path / "store"
     shutil.copytree(cfg.out, out)
@@ -435,7 +438,7 @@ def test_compute_curve_over_sweeps_sharing_one_real_set(setup, tmp_path):
 def test_sweep_resumes_after_sigkill_with_identical_results(setup):
     root, cfg = setup
     out = root / "killed"
-    code = ("import math, sys; import sc3_jax.sim; from sc3_jax.evaluate import sweep; "
+    code = ("import math, sys; import sc3_jax.benchmarks.bussing; from sc3_jax.benchmarks.bussing import sweep; "
             f"sweep.run_sweep(sweep.SweepConfig(out={str(out)!r}, world_model={cfg.world_model!r}, "
             f"perception={cfg.perception!r}, policies={POLICIES!r}, episodes=2, episode_seconds=1.6, batch=2, "
             "progress=False, taus=(math.inf, 1.0, 0.5), calibration_episodes=1, ceiling_episodes=1, "
@@ -531,7 +534,7 @@ def sweep_spec():
 def test_remote_policy_over_the_openpi_protocol(setup, tmp_path):
     """A policy behind an openpi-protocol server is evaluated like a zoo policy (real + online via the host loop)."""
     from sc3_jax.policies.openpi_server import PolicyServer
-    from sc3_jax.sim.zoo import load_policy
+    from sc3_jax.benchmarks.bussing.zoo import load_policy
     root, cfg = setup
     server = PolicyServer(load_policy(POLICIES[0]), host="127.0.0.1", port=0).start()
     try:

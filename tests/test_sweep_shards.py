@@ -11,9 +11,10 @@ import jax
 import numpy as np
 import pytest
 
-import sc3_jax.sim  # noqa: F401  (picks the GL backend before mujoco is imported)
+import sc3_jax.benchmarks.bussing  # noqa: F401  (picks the GL backend before mujoco is imported)
 from sc3_jax.errors import UserError
-from sc3_jax.evaluate import perception, report, sweep
+from sc3_jax.evaluate import report
+from sc3_jax.benchmarks.bussing import perception, sweep
 from sc3_jax.evaluate.merged import open_store
 from sc3_jax.evaluate.results import EVAL_MODES, ResultsStore, seed_blocks
 from test_sweep import POLICIES, tiny_world_model
@@ -81,7 +82,7 @@ def test_two_shard_processes_merge_into_the_unsharded_sweep(setup, tmp_path):
     out = tmp_path / "sharded"
     procs = []
     for i in range(2):
-        code = ("import math; import sc3_jax.sim; from sc3_jax.evaluate import sweep; "
+        code = ("import math; import sc3_jax.benchmarks.bussing; from sc3_jax.benchmarks.bussing import sweep; "
                 f"sweep.run_sweep(sweep.SweepConfig(out={str(out)!r}, world_model={cfg.world_model!r}, "
                 f"perception={cfg.perception!r}, policies={POLICIES!r}, episodes=3, episode_seconds=1.6, batch=2, "
                 "progress=False, taus=(math.inf, 1.0), calibration_episodes=1, ceiling_episodes=1, workers=1, "

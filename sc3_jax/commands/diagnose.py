@@ -59,7 +59,7 @@ def evaluated_config(a: Args):
     """The world model's config with the sweep's evaluation settings (SweepConfig's defaults), before any
     --SECTION.FIELD override."""
     from sc3_jax import checkpoint
-    from sc3_jax.evaluate.sweep import SweepConfig
+    from sc3_jax.benchmarks.bussing.sweep import SweepConfig
     from sc3_jax.evaluate.world_model_defaults import evaluation_config
 
     return evaluation_config(checkpoint.read_config(a.world_model), SweepConfig())
@@ -69,11 +69,13 @@ def main(argv: list[str]) -> int:
     a, cfg = parse_with_config(Args, argv, "diagnose", evaluated_config)
     from sc3_jax.evaluate.world_model_defaults import warn_if_student_off_its_step
     warn_if_student_off_its_step(cfg)  # after the --sample.steps override
+    from sc3_jax.benchmarks.bussing.scorers import object_pixels, perception_scorer
     from sc3_jax.evaluate import diagnose
 
     fields = {f.name for f in dataclasses.fields(DiagnoseConfig)}
     dc = DiagnoseConfig(**{k: v for k, v in dataclasses.asdict(a).items() if k in fields})
-    result = diagnose.diagnose(a.world_model, a.data, dc, model_config=cfg)
+    result = diagnose.diagnose(a.world_model, a.data, dc, model_config=cfg, scorer_for=perception_scorer,
+                               scene=object_pixels)
     print(diagnose.render_table(result))
     st = result["settings"]
     print(f"sampler: {st['sample_steps']} forward Euler steps, U re-read in {st['inverse_steps']} (`sc3 sweep`'s "

@@ -1,5 +1,5 @@
 """``sc3 rescore RESULTS [--perception WEIGHTS]``: re-score a store's stored frames with other scorer weights
-(sc3_jax/evaluate/rescore.py says what is re-scored and why ``--state-reader``)."""
+(sc3_jax/benchmarks/bussing/rescore.py says what is re-scored and why ``--state-reader``)."""
 from __future__ import annotations
 
 import dataclasses
@@ -29,7 +29,7 @@ class Args:
 
 def main(argv: list[str]) -> int:
     a = parse(Args, argv, "rescore")
-    from sc3_jax.evaluate import rescore
+    from sc3_jax.benchmarks.bussing import rescore
 
     changed = rescore.rescore(a.results, a.perception, a.state_reader, progress=a.progress)
     print(json.dumps({"results": a.results, "rollouts_changed": changed}))

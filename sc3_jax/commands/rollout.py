@@ -66,7 +66,7 @@ def evaluated_config(a: Args):
     """The checkpoint's config with the sweep's evaluation settings (SweepConfig's defaults), before any
     --SECTION.FIELD override."""
     from sc3_jax import checkpoint
-    from sc3_jax.evaluate.sweep import SweepConfig
+    from sc3_jax.benchmarks.bussing.sweep import SweepConfig
     from sc3_jax.evaluate.world_model_defaults import evaluation_config
 
     return evaluation_config(checkpoint.read_config(a.checkpoint), SweepConfig())
@@ -79,7 +79,9 @@ def main(argv: list[str]) -> int:
     import numpy as np
 
     from sc3_jax import atomic, checkpoint, rollout, rollout_io
+    from sc3_jax.benchmarks.bussing.scorers import perception_scorer
     from sc3_jax.policies.openpi_mappings import for_world_model, get_mapping
+    from sc3_jax.benchmarks.bussing.zoo import named_policy
     from sc3_jax.policies.resolve import resolve
 
     stats = checkpoint.read_norm_stats(a.checkpoint)
@@ -96,7 +98,7 @@ def main(argv: list[str]) -> int:
         table = list(dict.fromkeys(prompts))
         ics = ics._replace(task=np.asarray([table.index(p) for p in prompts], np.int32))
         family = for_world_model(a.family, tuple(cfg.data.views), table, f"--family {a.family}")
-    policy = resolve(a.policy, cfg.rollout.policy_chunk, family, action_space=stats.action_space,
+    policy = resolve(a.policy, cfg.rollout.policy_chunk, family, action_space=stats.action_space, named=named_policy,
                      num_views=len(cfg.data.views)).policy
     n, s, tau = len(ids), ro.spec, ro.tau
     size = a.batch_size or n
@@ -112,7 +114,7 @@ def main(argv: list[str]) -> int:
                "sample_steps": s.steps, "inverse_steps": s.inverse_steps or s.steps,
                "termination_rate": result["termination_rate"], "terminated_at": result["terminated_at"].tolist(),
                "mean_u": u.pop("u_mean_per_episode"), **u,
-               "success": rollout_io.success_estimate(result, ids, store, cfg, a.perception)}
+               "success": rollout_io.success_estimate(result, ids, store, cfg, perception_scorer, a.perception)}
     if a.video:
         summary["videos"] = rollout_io.write_videos(out, ids, result, cfg.data.views, cfg.rollout.control_hz)
     if a.offline:

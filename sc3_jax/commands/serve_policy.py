@@ -100,7 +100,8 @@ def build_server(a: Args, resolve: Callable[[str], Any] | None = None):
     if resolve is None:  # after the options are checked: loading a policy can take seconds
         from sc3_jax.policies.resolve import resolve as resolve_spec
 
-        resolve = lambda spec: resolve_spec(spec).policy  # noqa: E731
+        from sc3_jax.benchmarks.bussing.zoo import named_policy
+        resolve = lambda spec: resolve_spec(spec, named=named_policy).policy  # noqa: E731
     try:
         policy = resolve(a.policy)
     except (ValueError, ImportError) as e:  # a spelling, or a module:attr that does not import

@@ -73,7 +73,7 @@ class Mixture(Scene):
     seed: int = 40
     """mixture seed, below 100 (40: disjoint from every demo, held-out and scorer seed of docs/sim.md)"""
     recipe: Literal["failure_rich", "clean"] = "failure_rich"
-    """weights of the sources (sim/mixture.py RECIPES): failure_rich = a quarter each of the clean expert, the noisy
+    """weights of the sources (benchmarks/bussing/mixture.py RECIPES): failure_rich = a quarter each of the clean expert, the noisy
     expert, the expert with retries / drops / one wrong container, and the chunk controller on noisy state;
     clean = the clean expert only"""
     workers: int = 1
@@ -122,7 +122,7 @@ class ZooTrain:
     workdir: str = "/tmp/sc3_zoo"
     """where the training demo sets are written (resumable)"""
     out: str | None = None
-    """where the weights and zoo.json go (None: the shipped sc3_jax/sim/zoo/)"""
+    """where the weights and zoo.json go (None: the shipped sc3_jax/benchmarks/bussing/zoo/)"""
     runs: tuple[str, ...] | None = None
     """training runs to do, of clean, small, reverse (None: all)"""
 
@@ -151,7 +151,7 @@ class ZooManifest:
     """Rewrite zoo.json from the registry (no training; measured training times are kept)."""
 
     out: str | None = None
-    """directory whose zoo.json is rewritten (None: the shipped sc3_jax/sim/zoo/)"""
+    """directory whose zoo.json is rewritten (None: the shipped sc3_jax/benchmarks/bussing/zoo/)"""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -172,8 +172,8 @@ def main(argv: list[str]) -> int:
 
 
 def _rates(s: dict) -> list[str]:
-    """What the per-object success rates of sim/criteria.py mean, each next to its value."""
-    from sc3_jax.sim.criteria import LIFT_CLEARANCE
+    """What the per-object success rates of benchmarks/bussing/criteria.py mean, each next to its value."""
+    from sc3_jax.benchmarks.bussing.criteria import LIFT_CLEARANCE
 
     out = " / ".join(f"{s[f'outcome/{k}']:.2f}" for k in ("language", "lifting", "placing", "no failure"))
     return [f"  language {s['language']:.2f}  share of objects never brought into the wrong container",
@@ -187,10 +187,10 @@ def _rates(s: dict) -> list[str]:
 
 
 def _demos(a: Demos) -> int:
-    from sc3_jax.sim import cli as lib
+    from sc3_jax.benchmarks.bussing import cli as lib
 
     if a.policy is not None:
-        from sc3_jax.sim.zoo import ZOO
+        from sc3_jax.benchmarks.bussing.zoo import ZOO
 
         bussing = sorted(n for n, e in ZOO.items() if e.task == "bussing")
         if a.policy not in bussing:
@@ -210,7 +210,7 @@ def _demos(a: Demos) -> int:
 
 
 def _mixture(a: Mixture) -> int:
-    from sc3_jax.sim.mixture import CATEGORIES, SOURCES, generate_mixture, rates
+    from sc3_jax.benchmarks.bussing.mixture import CATEGORIES, SOURCES, generate_mixture, rates
 
     shard = _shard(a.shard)
     try:
@@ -255,8 +255,8 @@ def _resolve_store(path: str) -> Path:
 
 
 def _demos_stats(a: DemosStats) -> int:
-    from sc3_jax.sim.demos import store_contents
-    from sc3_jax.sim.mixture import CATEGORIES, CATEGORY_MEANING, rates, store_outcomes, zoo_real_outcomes
+    from sc3_jax.benchmarks.bussing.demos import store_contents
+    from sc3_jax.benchmarks.bussing.mixture import CATEGORIES, CATEGORY_MEANING, rates, store_outcomes, zoo_real_outcomes
 
     if not a.store:
         raise UserError("--store: give at least one episode store")
@@ -314,7 +314,7 @@ def _demos_stats(a: DemosStats) -> int:
 
 
 def _eval(a: Eval) -> int:
-    from sc3_jax.sim import cli as lib
+    from sc3_jax.benchmarks.bussing import cli as lib
 
     res = lib.eval(a.policy, a.task, a.episodes, a.out, a.videos, a.image_size)
     print(json.dumps(res, indent=1, default=str))
@@ -329,8 +329,8 @@ def _eval(a: Eval) -> int:
 
 
 def _zoo_train(a: ZooTrain) -> int:
-    from sc3_jax.sim.zoo import ZOO_DIR
-    from sc3_jax.sim.zoo_train import RUNS, train_zoo
+    from sc3_jax.benchmarks.bussing.zoo import ZOO_DIR
+    from sc3_jax.benchmarks.bussing.zoo_train import RUNS, train_zoo
 
     if unknown := sorted(set(a.runs or ()) - set(RUNS)):
         raise UserError(f"--runs: unknown {unknown}; choose from {list(RUNS)}")
@@ -343,7 +343,7 @@ def _zoo_train(a: ZooTrain) -> int:
 
 
 def _zoo_eval(a: ZooEval) -> int:
-    from sc3_jax.sim.policy_eval import evaluate_zoo
+    from sc3_jax.benchmarks.bussing.policy_eval import evaluate_zoo
 
     print(evaluate_zoo(a.out, a.episodes, a.videos, list(a.policies) if a.policies else None))
     print(f"each policy on its own task over {a.episodes} episodes (simulator seeds from 10,000,000). language / "
@@ -354,7 +354,7 @@ def _zoo_eval(a: ZooEval) -> int:
 
 
 def _zoo_list(a: ZooList) -> int:
-    from sc3_jax.sim.zoo import ZOO, ZOO_DIR
+    from sc3_jax.benchmarks.bussing.zoo import ZOO, ZOO_DIR
 
     for n, e in ZOO.items():
         print(f"{n:20s} {e.task:8s} {e.weights:22s} {e.recipe}")
@@ -365,8 +365,8 @@ def _zoo_list(a: ZooList) -> int:
 
 
 def _zoo_manifest(a: ZooManifest) -> int:
-    from sc3_jax.sim.zoo import ZOO_DIR
-    from sc3_jax.sim.zoo_train import write_manifest
+    from sc3_jax.benchmarks.bussing.zoo import ZOO_DIR
+    from sc3_jax.benchmarks.bussing.zoo_train import write_manifest
 
     if a.out:
         Path(a.out).mkdir(parents=True, exist_ok=True)
@@ -377,7 +377,7 @@ def _zoo_manifest(a: ZooManifest) -> int:
 
 
 def _measure(a: Measure) -> int:
-    from sc3_jax.sim.measure import measure_all
+    from sc3_jax.benchmarks.bussing.measure import measure_all
 
     res = measure_all(a.episodes)
     print(json.dumps(res, indent=1))

@@ -10,7 +10,7 @@ from pathlib import Path
 
 from sc3_jax.commands import parse
 from sc3_jax.errors import UserError
-from sc3_jax.evaluate.sweep import SweepConfig
+from sc3_jax.benchmarks.bussing.sweep import SweepConfig
 
 SUMMARY = "policies x initial conditions, real and inside the world model, then the report"  # the line `sc3 --help` shows
 
@@ -56,14 +56,16 @@ def main(argv: list[str]) -> int:
         if value:
             raise UserError(f"{name} applies to a sweep without simulator: add --initial-conditions STORE")
     cfg = SweepConfig(**{f.name: getattr(a, f.name) for f in dataclasses.fields(SweepConfig)})
-    from sc3_jax.evaluate import report, sweep
+    from sc3_jax.evaluate import report
+    from sc3_jax.benchmarks.bussing import sweep
 
     out = sweep.run_sweep(cfg)
     if out != Path(cfg.out):  # one shard of several: the report reads them all once every shard has finished
         print(f"shard done: {out}; once every shard has finished: sc3 report {cfg.out}")
         return 0
     try:
-        md = report.render(out, out / "report")
+        from sc3_jax.benchmarks.bussing.scorers import object_pixels
+        md = report.render(out, out / "report", scene=object_pixels)
     except UserError as e:  # e.g. --modes online alone: the rollouts are kept, the report waits for real ones
         print(f"rollouts: {out}; no report: {e}")
         return 0
@@ -88,7 +90,8 @@ def _without_simulator(a: Args) -> int:
         rollout_seed=a.rollout_seed, episode_seconds=a.episode_seconds, sample_steps=a.sample_steps,
         inverse_steps=a.inverse_steps, taus=a.taus, tau_units=a.tau_units, start=a.start, real=a.real,
         family=a.family, progress=a.progress)
-    out = ic_sweep.run(cfg)
+    from sc3_jax.benchmarks.bussing.zoo import named_policy
+    out = ic_sweep.run(cfg, named=named_policy)
     md = ic_ranking.render(out, out / "report", cfg.real or None)
     t = json.loads((out / "report" / "report.json").read_text())
     print(f"sweep: {len(cfg.policies)} policies x {cfg.episodes} held-out initial conditions (+ "

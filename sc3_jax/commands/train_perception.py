@@ -1,6 +1,6 @@
 """``sc3 train-perception --store STORE ... [--out WEIGHTS]`` | ``--validate RESULTS ... --init WEIGHTS``: train the
 perception scorer on simulator frames labelled by physics, or check weights against physics on a sweep's real
-rollouts (``sc3_jax/evaluate/perception_train.py``)."""
+rollouts (``sc3_jax/benchmarks/bussing/perception_train.py``)."""
 from __future__ import annotations
 
 import dataclasses
@@ -32,7 +32,7 @@ class Args:
     init: str | None = None
     """warm-start from these weights (None: fresh weights); with --validate, the weights to check"""
     out: str | None = None
-    """where the trained weights go (None: the shipped weights' file, sc3_jax/evaluate/perception.npz, which sweeps
+    """where the trained weights go (None: the shipped weights' file, sc3_jax/benchmarks/bussing/perception.npz, which sweeps
     read); with --validate and no --init, the weights to check"""
     steps: int = 2500
     """training steps"""
@@ -70,8 +70,8 @@ def main(argv: list[str]) -> int:
                         "at least two")
     import time
 
-    from sc3_jax.evaluate import perception
-    from sc3_jax.evaluate import perception_train as pt
+    from sc3_jax.benchmarks.bussing import perception
+    from sc3_jax.benchmarks.bussing import perception_train as pt
 
     out = a.out or str(perception.DEFAULT_WEIGHTS)
     t0 = time.time()
@@ -113,8 +113,8 @@ def training_summary(out: str, m: dict, predicates) -> list[str]:
 
 
 def _validate(a: Args) -> int:
-    from sc3_jax.evaluate import perception
-    from sc3_jax.evaluate import perception_train as pt
+    from sc3_jax.benchmarks.bussing import perception
+    from sc3_jax.benchmarks.bussing import perception_train as pt
 
     weights = a.init or a.out or str(perception.DEFAULT_WEIGHTS)
     params = perception.load(weights)

@@ -4,7 +4,8 @@ one-line ``UserError`` naming both sides, before anything compiles.
 
 - :func:`shape_from_dataset` (``sc3 train``): fills ``data.views``, ``model.num_views``, ``data.image_size``,
   ``model.action_dim`` from the store, and turns pseudo-actions off (``data.pseudo_action_prob`` 0) where the data
-  cannot give them (no measured end-effector pose, or actions that are not delta_ee); the fields named in
+  cannot give them (no measured end-effector pose, or actions that are not delta_ee), and cross-view inpainting off
+  (``modes.probs``' second share to the other two, in proportion) where the model sees one view; the fields named in
   ``explicit`` are checked instead of filled.
 - :func:`check_shape` (a trained model against a store of initial conditions, ``sc3 rollout``): checks only.
 - :func:`explicit_fields`: which of those fields a command line set (``--SECTION.FIELD``).
@@ -23,7 +24,8 @@ from sc3_jax.data.episodes import EpisodeStore
 from sc3_jax.errors import UserError
 
 # the fields this module fills (``section.field``), in the order they are decided
-SHAPE_FIELDS = ("data.views", "model.num_views", "data.image_size", "model.action_dim", "data.pseudo_action_prob")
+SHAPE_FIELDS = ("data.views", "model.num_views", "data.image_size", "model.action_dim", "data.pseudo_action_prob",
+                "modes.probs")
 
 
 def shape_from_dataset(cfg, store, explicit: Collection[str] = ()):
@@ -52,7 +54,24 @@ def shape_from_dataset(cfg, store, explicit: Collection[str] = ()):
         pseudo = 0.0
     return dataclasses.replace(
         cfg, data=dataclasses.replace(data, views=views, image_size=image_size, pseudo_action_prob=pseudo),
-        model=dataclasses.replace(model, num_views=num_views, action_dim=action_dim))
+        model=dataclasses.replace(model, num_views=num_views, action_dim=action_dim),
+        modes=dataclasses.replace(cfg.modes, probs=_mode_probs(cfg.modes.probs, views, "modes.probs" in explicit,
+                                                                where)))
+
+
+def _mode_probs(probs, views: tuple[str, ...], explicit: bool, where: str) -> tuple[float, float, float]:
+    """Cross-view inpainting needs a second view to inpaint from: with one view its share goes to forward and inverse
+    dynamics in proportion (an explicit share is refused instead)."""
+    fd, cvi, inv = (float(p) for p in probs)
+    if len(views) > 1 or cvi <= 0:
+        return (fd, cvi, inv)
+    if explicit:
+        raise UserError(f"modes.probs={list(probs)}: cross-view inpainting (the second share) needs two views or "
+                        f"more; the model sees one ({views[0]!r} of {where}): set it to 0")
+    if fd + inv <= 0:
+        raise UserError(f"modes.probs={list(probs)}: with one view ({where}) only forward and inverse dynamics can "
+                        "train: give them a share")
+    return (fd / (fd + inv), 0.0, inv / (fd + inv))
 
 
 def check_shape(cfg, store) -> None:

@@ -42,7 +42,7 @@ from typing import Any, Literal
 import numpy as np
 
 # numpy only, all of them: the module stays cheap for report.py to import
-from sc3_jax.evaluate import diagnose_actions, diagnose_outcomes, diagnose_video
+from sc3_jax.evaluate import diagnose_actions, diagnose_outcomes, diagnose_video, permanence
 from sc3_jax.evaluate.diagnose_actions import AXES, InverseErrors, arm_centroid  # noqa: F401  (public names)
 from sc3_jax.evaluate.diagnose_report import (GATES, NOT_RUN_NOTE, gates, load_result,  # noqa: F401
                                               render_table, save_result, verdict)
@@ -129,6 +129,8 @@ class _Plan:
     calib: dict
     scorer: Any
     scorer_note: str | None
+    scene: Any  # the benchmark's scene measure (permanence.SceneMeasure) or None
+    kept_at: list  # the open-loop frame indices (0: the last context frame) permanence reads
     id_mean: Any  # one sampler step from pure noise = the model's conditional-mean estimate
 
 
@@ -141,15 +143,20 @@ class _Sums:
     cf_rows: list = dataclasses.field(default_factory=list)
     u: list = dataclasses.field(default_factory=list)
     outcomes: list = dataclasses.field(default_factory=list)
+    kept: list = dataclasses.field(default_factory=list)  # per episode (imagined, real) amounts [V, len(kept_at)]
 
 
 def diagnose(world_model, heldout_store, config: DiagnoseConfig | None = None, *, model_config=None,
-             **overrides) -> dict:
+             scorer_for=None, scene=None, **overrides) -> dict:
     """Every diagnostic of ``world_model`` (a path or ``(cfg, norm_stats, params)``) on the episode store
     ``heldout_store`` (path or ``EpisodeStore``); see the module docstring. ``model_config``: the world model's
     config to evaluate under (default: its own; ``sc3 diagnose`` passes the sweep's evaluation settings and the
-    command line's overrides). Returns a JSON-able dict (non-finite numbers as floats: write it with
-    :func:`save_result`)."""
+    command line's overrides). ``scorer_for(views, image_size, weights) -> (scorer, None) | (None, why not)``: the
+    benchmark's outcome scorer for the open-loop stage (``sc3 diagnose`` passes the simulated benchmark's
+    ``perception_scorer``; None: no outcome reproduction); ``scene``: the benchmark's scene measure
+    (``permanence.SceneMeasure``; the simulated benchmark's ``object_pixels``), with which the open-loop stage says
+    how much of the objects the imagined rollout keeps over time (None: not measured). Returns a JSON-able dict (non-finite numbers as floats:
+    write it with :func:`save_result`)."""
     from tqdm import tqdm
 
     from sc3_jax.data.episodes import EpisodeStore
@@ -160,7 +167,7 @@ def diagnose(world_model, heldout_store, config: DiagnoseConfig | None = None, *
     cfg, stats, params, name = load(world_model, model_config)
     store = heldout_store if isinstance(heldout_store, EpisodeStore) else EpisodeStore(heldout_store)
     ids = _episodes(store, cfg, dc.episodes)
-    p = _plan(cfg, stats, params, store, ids, dc)
+    p = _plan(cfg, stats, params, store, ids, dc, scorer_for or diagnose_outcomes.no_scorer, scene)
     acc = _Sums()
     bar = tqdm(total=len(p.eps), desc="diagnose", unit="episode", disable=not dc.progress)
     for g0 in range(0, len(p.eps), p.batch):  # episodes per step: one open-loop batch
@@ -201,7 +208,7 @@ def _episodes(store, cfg, n: int | None) -> list[str]:
     return ids
 
 
-def _plan(cfg, stats, params, store, ids, dc: DiagnoseConfig) -> _Plan:
+def _plan(cfg, stats, params, store, ids, dc: DiagnoseConfig, scorer_for, scene) -> _Plan:
     from sc3_jax import rollout as ro_mod
     from sc3_jax.config import replace
     from sc3_jax.evaluate.world_model import make_sampler
@@ -221,8 +228,7 @@ def _plan(cfg, stats, params, store, ids, dc: DiagnoseConfig) -> _Plan:
     samples = diagnose_video.tf_starts(eps, tf.spec, keep, stride)
     medians = [np.stack([temporal_median(ep.frames[v]) for v in views]) for ep in eps]
     third = [i for i, v in enumerate(views) if "wrist" not in v]
-    scorer, note = diagnose_outcomes.perception_scorer(views, cfg.data.image_size, dc.perception) \
-        if "open_loop" in dc.stages else (None, None)
+    scorer, note = scorer_for(views, cfg.data.image_size, dc.perception) if "open_loop" in dc.stages else (None, None)
     return _Plan(
         dc=dc, cfg=cfg, stats=stats, params=params, views=views, third=third, eps=eps, tf=tf,
         ol=ro_mod.Rollout(cfg, stats, data_fps=store.fps, num_chunks=n_chunks), stride=stride, keep=keep, off=off,
@@ -232,7 +238,8 @@ def _plan(cfg, stats, params, store, ids, dc: DiagnoseConfig) -> _Plan:
         horizon_steps=[int(round(h * hz)) for h in dc.horizons],
         # the camera fit reads every stride-th frame of every episode: only the counterfactual pass needs it
         calib=diagnose_actions.calibrate(eps, views, third, medians, stride, dc) if "counterfactual" in dc.stages
-        else {}, scorer=scorer, scorer_note=note,
+        else {}, scorer=scorer, scorer_note=note, scene=scene,
+        kept_at=sorted(set(permanence.times(cfg.rollout.control_hz).values())),
         id_mean=make_sampler(cfg, steps=1))
 
 
@@ -320,9 +327,26 @@ def _open_loop(p: _Plan, acc: _Sums, group: list[int]):
                 if hs <= len(valid) and valid[hs - 1]:
                     diagnose_video.add_horizon(acc.ol, ("drift", hi), pred[:, hs - 1], tgt[:, hs - 1], ctx_last,
                                                p.first[e], p.medians[e], p.dc.moving_threshold)
+            if p.scene is not None:  # index 0: the last context frame, then the valid (recorded) steps
+                n = int(np.asarray(valid).sum())
+                acc.kept.append(permanence.measure_pair(np.concatenate([ctx_last[:, None], tgt[:, :n]], 1),
+                                                        np.concatenate([ctx_last[:, None], pred[:, :n]], 1),
+                                                        p.scene, p.kept_at))
             if p.scorer is not None:
                 acc.outcomes.append(diagnose_outcomes.outcome(p.scorer, p.eps[e], ics.frames[j], pred, tgt, valid,
                                                               p.steps_in[e]))
+
+
+def _kept_section(p: _Plan, acc: _Sums) -> dict:
+    """Objects kept over the open loop (permanence.summary over the episodes), or a note why not."""
+    if p.scene is None:
+        return {"note": "no scene measure (a benchmark's: `sc3 diagnose` passes the simulated benchmark's)"}
+    if not acc.kept:
+        return {"note": "no open-loop rollout"}
+    at = permanence.times(p.cfg.rollout.control_hz)
+    return {"times": permanence.summary(np.stack([a for a, _ in acc.kept]), np.stack([b for _, b in acc.kept]),
+                                        {label: p.kept_at.index(k) for label, k in at.items()}, p.views,
+                                        seed=p.dc.seed)}
 
 
 def _result(p: _Plan, acc: _Sums, name: str, store, ids) -> dict:
@@ -346,4 +370,5 @@ def _result(p: _Plan, acc: _Sums, name: str, store, ids) -> dict:
         "inverse_dynamics": ran("teacher_forced", acc.inverse.section),
         "outcomes": ran("open_loop", lambda: diagnose_outcomes.outcome_section(acc.outcomes, p.scorer_note,
                                                                                seed=dc.seed)),
+        "permanence": ran("open_loop", lambda: _kept_section(p, acc)),
     }

@@ -1,4 +1,5 @@
-"""Outcomes read off imagined frames by the perception scorer: ``sc3 diagnose``'s offline outcome reproduction (the
+"""Outcomes read off imagined frames by a benchmark's scorer (the simulated benchmark's perception scorer, passed
+in by the command): ``sc3 diagnose``'s offline outcome reproduction (the
 open-loop imagined rollout vs the real episode's physics labels, ``meta.labels`` of ``sc3 sim demos``, per object;
 where the rollout does not cover the whole episode or no labels exist, vs the perception scorer on the real frames of
 the same window instead) and ``sc3 rollout``'s success estimate."""
@@ -15,15 +16,9 @@ BOOTSTRAP_DRAWS = 2000
 MIN_OBJECTS = 150
 
 
-def perception_scorer(views, image_size, weights: str | None = None):
-    """(PerceptionScorer, None), or (None, why not): the scorer reads left/right/wrist frames at 64x64 only.
-    ``weights``: perception weights (None: the shipped ones)."""
-    if list(views) != ["left", "right", "wrist"] or tuple(image_size) != (64, 64):
-        return None, f"the perception scorer reads left/right/wrist at 64x64; this model has {list(views)} at " \
-                     f"{tuple(image_size)}"
-    from sc3_jax.evaluate import perception
-    from sc3_jax.evaluate.scorers import PerceptionScorer
-    return PerceptionScorer(perception.load(weights or perception.DEFAULT_WEIGHTS)), None
+def no_scorer(views, image_size, weights=None):
+    """The outcome scorer when the caller names none: (None, why)."""
+    return None, "no outcome scorer for this model's frames (a benchmark's, e.g. the simulated benchmark's perception)"
 
 
 def episode_objects(meta: dict):

@@ -103,8 +103,12 @@ def render_table(result: dict) -> str:
             ("counterfactual", "Counterfactual actions{}", _counterfactual_lines),
             ("inverse_dynamics", "Inverse dynamics on real frames{}", _inverse_lines),
             ("outcomes", "Offline outcome reproduction (perception scorer on the open-loop rollout){}",
-             _outcome_lines)):
-        sec = result[key]
+             _outcome_lines),
+            ("permanence", "Objects kept (open loop: the benchmark's measure of its objects, imagined over real){}",
+             _kept_lines)):
+        sec = result.get(key)
+        if sec is None:  # a diagnose.json from before the section existed
+            continue
         if ran(sec):
             detail, lines = body(sec)
             L += ["", f"### {heading.format(detail)}", ""] + lines
@@ -114,6 +118,20 @@ def render_table(result: dict) -> str:
     for g in result["gates"]:
         L.append(f"| {g['gate']} | {_f(g['value'])} | {g['threshold']:g} | {_pass(g)} | {g['note']} |")
     return "\n".join(L) + "\n"
+
+
+def _kept_lines(sec: dict) -> tuple[str, list[str]]:
+    if "note" in sec:
+        return "", [sec["note"]]
+    rows = sec["times"]
+    if not rows:
+        return "", ["no episode reaches 1 s of open loop"]
+    cols = list(next(iter(rows.values()))["kept"])
+    cell = lambda c: f"{_f(c['value'])} [{_f(c['lo'])}, {_f(c['hi'])}]"  # noqa: E731
+    return "", ["| time | episodes | " + " | ".join(cols) + " |", "|---" * (len(cols) + 2) + "|"] + [
+        f"| {label} | {e['rollouts']} | " + " | ".join(cell(e["kept"][c]) for c in cols) + " |"
+        for label, e in rows.items()] + ["", "1: the objects stay as in the recorded episode; toward 0: they fade "
+                                             "(95% bootstrap over episodes)."]
 
 
 def _teacher_forced_lines(tf: dict) -> tuple[str, list[str]]:
@@ -179,7 +197,7 @@ def _outcome_lines(oc: dict) -> tuple[str, list[str]]:
     return "", L
 
 
-# metrics' outcome categories (the first criterion an object fails) in the simulator's words (sim/mixture.py)
+# metrics' outcome categories (the first criterion an object fails) in the simulator's words (benchmarks/bussing/mixture.py)
 CATEGORY_NAMES = {"no_failure": "placed", "placing": "dropped / off target", "lifting": "missed (never lifted)",
                   "language": "wrong container"}
 

@@ -136,7 +136,7 @@ def families(cfg: ICSweepConfig) -> dict[str, tuple[str, str]]:
     return {n: chosen.get(n, chosen.get(None, ("native", "native"))) for n in served}
 
 
-def _resolve(specs: tuple[str, ...], chunk: int, mappings: dict, action_space, num_views: int
+def _resolve(specs: tuple[str, ...], chunk: int, mappings: dict, action_space, num_views: int, named=None
              ) -> list[tuple[str, str, object]]:
     """(name, spec, policy) per --policies entry; names unique. ``mappings``: name -> the ObsMapping of a mapped
     ws:// policy; built-in policies (zero, random, linear) act in the world model's ``action_space``."""
@@ -146,7 +146,8 @@ def _resolve(specs: tuple[str, ...], chunk: int, mappings: dict, action_space, n
     for spec in specs:
         try:
             name, body, _ = parse(spec)
-            r = resolve(spec, chunk, mappings.get(name or body), action_space=action_space, num_views=num_views)
+            r = resolve(spec, chunk, mappings.get(name or body), action_space=action_space, num_views=num_views,
+                        named=named)
         except UserError:
             raise
         except (ValueError, TypeError, ImportError, AttributeError, ConnectionError) as e:
@@ -178,8 +179,9 @@ def _mesh(batch: int):
     return sharding.make_mesh(MeshConfig(-1, 1, 1), devices[:d])
 
 
-def run(cfg: ICSweepConfig) -> Path:
-    """Run (or resume) the sweep; returns the store's directory. See the module docstring."""
+def run(cfg: ICSweepConfig, named=None) -> Path:
+    """Run (or resume) the sweep; returns the store's directory. See the module docstring. ``named``: a benchmark's
+    own policy names (``policies.resolve``'s; ``sc3 sweep`` passes the simulated benchmark's zoo)."""
     import jax
     from tqdm import tqdm
 
@@ -215,7 +217,8 @@ def run(cfg: ICSweepConfig) -> Path:
         m = for_world_model(fam, tuple(wcfg.data.views), table, f"--family {entry}")
         if m is not None:
             mappings[n] = m
-    policies = _resolve(cfg.policies, wcfg.rollout.policy_chunk, mappings, stats.action_space, len(wcfg.data.views))
+    policies = _resolve(cfg.policies, wcfg.rollout.policy_chunk, mappings, stats.action_space, len(wcfg.data.views),
+                        named)
     check_policy_names([n for n, _, _ in policies])
     for name, spec, policy in policies:  # dimensions first: one line naming both sides, before any compile
         try:

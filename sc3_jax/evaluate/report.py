@@ -19,10 +19,10 @@ import numpy as np
 
 from sc3_jax import atomic
 from sc3_jax.errors import UserError
-from sc3_jax.evaluate import bootstrap, calibrate, intervals, metrics, report_html
+from sc3_jax.evaluate import bootstrap, calibrate, intervals, metrics, permanence, report_html
 from sc3_jax.evaluate.calibrate import object_rows as _object_rows
 from sc3_jax.evaluate.merged import open_store
-from sc3_jax.evaluate.results import EVAL_MODES, SPLIT_ORDER, ResultsStore, rollout_id, seed_blocks
+from sc3_jax.evaluate.results import EVAL_MODES, SPLIT_ORDER, ResultsStore, paired_frames, seed_blocks
 from sc3_jax.safe_names import file_name
 
 
@@ -68,11 +68,13 @@ def policy_order(real_records) -> list[tuple[str, str]]:
     return sorted({(r["policy"], r["split"]) for r in real_records}, key=lambda x: (x[1], x[0]))
 
 
-def compute(results: str | Path, taus=None, draws: int = 2000, seed: int = 0) -> dict:
+def compute(results: str | Path, taus=None, draws: int = 2000, seed: int = 0, scene=None) -> dict:
     """All report numbers from the results store at ``results`` (see the module docstring; several stores, or a
     directory of a sharded sweep's shards, are read as one: ``merged.open_store``). ``taus`` overrides
     the sweep's candidate thresholds (every online record stores U_chunk and the outcomes of every cut, so any
-    threshold is evaluated without rolling out again). ``draws`` / ``seed``: the paired bootstrap's."""
+    threshold is evaluated without rolling out again). ``draws`` / ``seed``: the paired bootstrap's. ``scene``: the
+    benchmark's scene measure (``permanence.SceneMeasure``): with it, and the frames of real and online rollouts
+    kept, how much of the objects the online rollouts keep over time (``permanence``)."""
     store = open_store(results)
     cfg = store.config()
     if taus is not None:
@@ -139,11 +141,29 @@ def compute(results: str | Path, taus=None, draws: int = 2000, seed: int = 0) ->
         # the paper's PSNR table is split in / out of distribution
         out["psnr"] = {**_psnr(pv), "views": _views(cfg["world_model"], pv.shape[1]),
                        "by_split": {s: _psnr(pv[split == s]) for s in SPLIT_ORDER[:-1] if (split == s).any()}}
+    if scene is not None and by["evaluation", "online"]:
+        kept = _permanence(store, cfg, by["evaluation", "online"], scene, draws, seed)
+        if kept:
+            out["permanence"] = kept
     out["diagnose"] = _diagnose_gates(cfg["world_model"])
     out["training_data"] = training_data(cfg["world_model"], {r["task"] for r in real.values()})
     out["read_from"] = str(store.root)  # the directory read (sweep.json's "out" is where the sweep wrote it)
     out["warnings"] = degenerate(policies)
     return out
+
+
+def _permanence(store, cfg: dict, online: dict, scene, draws: int, seed: int) -> dict | None:
+    """permanence.from_pairs over the evaluation conditions whose real and online frames the store keeps, at the
+    model's frame rate (the online frames over the sweep's horizon); None without the frames or the horizon."""
+    if not cfg.get("episode_seconds"):
+        return None
+    rec = next(iter(online.values()))
+    fps = rec["frames_per_chunk"] * rec["num_chunks"] / cfg["episode_seconds"]
+    got = (paired_frames(store, policy, s, r["stride"]) for (policy, s), r in online.items())
+    pairs = [(real[:, at], imagined) for real, imagined, at, _ in filter(None, got)]
+    if not pairs:
+        return None
+    return permanence.from_pairs(pairs, scene, fps, _views(cfg["world_model"], pairs[0][0].shape[0]), draws, seed)
 
 
 RANKED_BY = metrics.CRITERIA[-1]  # placing: the cumulative success of an object, what "success" means here
@@ -414,6 +434,14 @@ def tables(t: dict) -> list[tuple[str, list[str], list[list[str]]]]:
         rows = [[k, str(q["rollouts"])] + [_fmt(x, 2) for x in q["per_view"]] + [_fmt(q["mean"], 2)]
                 for k, q in list(p.get("by_split", {}).items()) + [(metrics.OVERALL, p)]]
         out.append(("Offline PSNR (dB, mean over valid frames)", ["split", "rollouts"] + p["views"] + ["mean"], rows))
+    if t.get("permanence"):
+        p = t["permanence"]
+        cols = list(next(iter(p.values()))["kept"])
+        out.append(("Objects kept (object permanence): the benchmark's measure of its objects in the online "
+                    "rollouts' frames over that of the real rollouts' at the same time, summed over the evaluation "
+                    "conditions whose frames the store keeps; 95% bootstrap over conditions. 1: the objects stay; "
+                    "toward 0: they fade.", ["time", "rollouts"] + cols,
+                    [[label, str(e["rollouts"])] + [ci(e["kept"][c]) for c in cols] for label, e in p.items()]))
     if t.get("training_data"):
         out.append(_training_data_table(t["training_data"]))
     d = t.get("diagnose") or {}
@@ -569,23 +597,10 @@ def u_plot(store: ResultsStore, t: dict, path: Path) -> None:
     plt.close(fig)
 
 
-def _pair(store: ResultsStore, policy: str, seed: int):
-    """(real frames [V, T, ...], imagined frames [V, n, ...] at the model's rate, the real frame index of each
-    imagined one, offline frames or None) of one condition; None if its real or online arrays are not kept."""
-    ids = {m: rollout_id(policy, seed, m) for m in EVAL_MODES}
-    if not all(store.array_path(ids[m]).exists() for m in ("real", "online")):
-        return None
-    real, online = (store.load_arrays(ids[m])["frames"] for m in ("real", "online"))
-    stride = next(r for r in store.records() if r["id"] == ids["online"])["stride"]
-    at = np.minimum(np.arange(online.shape[1]) * stride, real.shape[1] - 1)
-    offline = store.load_arrays(ids["offline"])["frames"] if store.array_path(ids["offline"]).exists() else None
-    return real, online, at, offline
-
-
 def filmstrip(store: ResultsStore, policy: str, seed: int, path: Path, frames: int = 6) -> bool:
     """A picture of one condition: per view a row of real frames over a row of imagined ones, at the same moments;
     False if the store does not keep both rollouts' frames."""
-    got = _pair(store, policy, seed)
+    got = paired_frames(store, policy, seed)
     if got is None:
         return False
     import matplotlib
@@ -615,7 +630,7 @@ def side_by_side(store: ResultsStore, policy: str, seed: int, path: Path, fps: i
     """mp4 of real | online (| offline where kept) as columns, views as rows, at the model's frame rate; False if the
     store does not keep the real and online frames."""
     from sc3_jax.video import write_mp4
-    got = _pair(store, policy, seed)
+    got = paired_frames(store, policy, seed)
     if got is None:
         return False
     real, online, at, offline = got
@@ -625,14 +640,15 @@ def side_by_side(store: ResultsStore, policy: str, seed: int, path: Path, fps: i
     return True
 
 
-def render(results: str | Path, out: str | Path, videos: int | None = None, taus=None, draws: int = 2000) -> Path:
+def render(results: str | Path, out: str | Path, videos: int | None = None, taus=None, draws: int = 2000,
+           scene=None) -> Path:
     """Write report.md, report.html, report.json, plots, a filmstrip and a video per policy (``videos``: at most that
     many videos) to ``out``; returns report.md. Every file is written to a staging directory and moved into ``out`` only once all of them
     exist (report.md last), so a failure (a damaged frames file, an unwritable ``out``) or a kill leaves the previous
     report as it was."""
     out = Path(out)
     store = open_store(results)
-    t = compute(results, taus, draws)
+    t = compute(results, taus, draws, scene=scene)
     with atomic.staged(out, last=("report.md",)) as stage:
         (stage / "report.json").write_text(json.dumps(t, indent=1))
         figures = []

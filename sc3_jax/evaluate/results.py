@@ -197,6 +197,21 @@ class ResultsStore:
             return {k: z[k] for k in z.files}
 
 
+def paired_frames(store, policy: str, seed: int, stride: int | None = None):
+    """(real frames [V, T, ...], online frames [V, n, ...] at the model's rate, the real frame index of each online
+    one, offline frames or None) of one condition of ``store``; None if its real or online arrays are not kept.
+    ``stride``: the online record's (None: read from the store's records)."""
+    ids = {m: rollout_id(policy, seed, m) for m in EVAL_MODES}
+    if not all(store.array_path(ids[m]).exists() for m in ("real", "online")):
+        return None
+    real, online = (store.load_arrays(ids[m])["frames"] for m in ("real", "online"))
+    if stride is None:
+        stride = next(r for r in store.records() if r["id"] == ids["online"])["stride"]
+    at = np.minimum(np.arange(online.shape[1]) * stride, real.shape[1] - 1)
+    offline = store.load_arrays(ids["offline"])["frames"] if store.array_path(ids["offline"]).exists() else None
+    return real, online, at, offline
+
+
 def check_actions(rid: str, actions, u_raw=None) -> None:
     """A policy's actions must be finite, and so must the uncertainty they give (1e30 overflows U_chunk to inf, which
     a tau reads as "terminate": a silent success). One line naming the rollout (its id starts with the policy)."""

@@ -1,6 +1,6 @@
 """One way to name a policy, for every command that takes one (``sc3 rollout``, ``sc3 sweep``, ``sc3 serve-policy``).
 
-    bus_bc_full              a zoo policy (``sim/zoo.py``; acts on its zoo entry's task)
+    bus_bc_full              a zoo policy (``benchmarks/bussing/zoo.py``; acts on its zoo entry's task)
     zero | random | linear   a built-in JAX policy (``policies/simple.py``), built for the world model's action space
                              and views where the command passes them (else the benchmark's: 7-D delta_ee, 3 views)
     package.module:attr      a JaxPolicy / HostPolicy, or a zero-argument factory of one
@@ -49,11 +49,13 @@ def parse(spec: str) -> tuple[str | None, str, str | None]:
 
 
 def resolve(spec: str, chunk: int | None = None, family: str | ObsMapping | None = None,
-            action_space: ActionSpace | None = None, num_views: int | None = None) -> Resolved:
+            action_space: ActionSpace | None = None, num_views: int | None = None, named=None) -> Resolved:
     """The policy ``spec`` names (see the module docstring). ``chunk``: a built-in policy's actions per call
     (default its own); ``family``: the openpi observation mapping of a ``ws://`` server (None / "native": ours);
     ``action_space`` and ``num_views``: what a built-in policy acts in and sees, the world model's
-    (``NormStats.action_space``, ``len(cfg.data.views)``; None: the benchmark's 7-D delta_ee and 3 views)."""
+    (``NormStats.action_space``, ``len(cfg.data.views)``; None: the benchmark's 7-D delta_ee and 3 views);
+    ``named(NAME) -> (policy, its task)``: a benchmark's own policy names (the simulated benchmark's zoo:
+    ``benchmarks/bussing/zoo.named_policy``), which this layer below the benchmarks does not know."""
     from sc3_jax.policies import simple
 
     name, body, task = parse(spec)
@@ -65,10 +67,10 @@ def resolve(spec: str, chunk: int | None = None, family: str | ObsMapping | None
     elif ":" in body:
         policy = load_object(body)
     else:
-        from sc3_jax.sim.zoo import ZOO, load_policy
-        if body not in ZOO:
-            raise ValueError(f"unknown policy {body!r}: expected {SPELLINGS}; zoo policies are {sorted(ZOO)}")
-        policy, task = load_policy(body), task or ZOO[body].task
+        if named is None:
+            raise ValueError(f"unknown policy {body!r}: expected {SPELLINGS}")
+        policy, own_task = named(body)
+        task = task or own_task
     return Resolved(name or body, task, policy)
 
 

@@ -36,9 +36,10 @@ def rescore(results: str | Path, weights: str | Path | None = None, state_reader
     of rollouts per mode whose perception-scored outcomes changed. ``state_reader``: see the module docstring."""
     from tqdm import tqdm
 
-    from sc3_jax.evaluate import perception
-    from sc3_jax.evaluate.scorers import PerceptionScorer, RolloutView
-    from sc3_jax.sim.tasks import make_initial_condition
+    from sc3_jax.benchmarks.bussing import perception
+    from sc3_jax.evaluate.scorers import RolloutView
+    from sc3_jax.benchmarks.bussing.scorers import PerceptionScorer
+    from sc3_jax.benchmarks.bussing.tasks import make_initial_condition
     store = ResultsStore(results)
     if store.archived:
         raise UserError(f"{results}: an archived store (results.jsonl.gz) is read-only: re-score a copy with "

@@ -14,8 +14,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .. import atomic
-from ..data.episodes import EpisodeStore
+from sc3_jax import atomic
+from sc3_jax.data.episodes import EpisodeStore
 from .demos import _expert_runner, write_episodes
 from .expert import ExpertKnobs
 from .zoo import N_OBJ, PICK_X_MAX, XY_SCALE, ZOO, ZOO_DIR, ControlKnobs, init_net, net_apply, save_params

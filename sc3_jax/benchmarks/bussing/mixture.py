@@ -319,7 +319,7 @@ def _check(spec: MixtureSpec, shard: tuple[int, int], workers: int) -> None:
 
 
 def _open_store(spec: MixtureSpec):
-    from ..data.episodes import EpisodeStore
+    from sc3_jax.data.episodes import EpisodeStore
     from .scene import VIEWS
     return EpisodeStore(spec.out, views=list(VIEWS), fps=spec.control_hz, image_size=spec.image_size, create=True)
 
@@ -332,7 +332,7 @@ def _shard_worker(args) -> dict:
 def _write_shard(spec: MixtureSpec, shard: tuple[int, int], deadline: float | None, progress: bool) -> dict:
     from tqdm import tqdm
 
-    from ..data.episodes import Episode
+    from sc3_jax.data.episodes import Episode
     from .demos import episode_meta, episode_seed
     from .env import BussingEnv
     from .tasks import make_initial_condition
@@ -425,7 +425,7 @@ def store_outcomes(*roots: str | Path) -> dict:
 def default_zoo_real() -> Path:
     """The archived 72-condition sweep of the zoo (``docs/stores/sweep72_gpu``): its real rollouts are the zoo's
     measured outcomes (physics) on the evaluation conditions."""
-    return Path(__file__).resolve().parents[2] / "docs" / "stores" / "sweep72_gpu"
+    return Path(__file__).resolve().parents[3] / "docs" / "stores" / "sweep72_gpu"
 
 
 def zoo_real_outcomes(path: str | Path | None = None) -> dict:

@@ -16,9 +16,9 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from .. import atomic
-from ..policies.base import JaxAsHost, JaxPolicy, as_host
-from ..video import write_mp4
+from sc3_jax import atomic
+from sc3_jax.policies.base import JaxAsHost, JaxPolicy, as_host
+from sc3_jax.video import write_mp4
 from .criteria import ObjectOutcome, inside_container, success_rates
 from .env import BussingEnv
 from .expert import MAX_STEPS_20HZ, EpisodeResult, finish
@@ -86,7 +86,7 @@ def run_policy_episode(env: BussingEnv, policy, seed: int, task: str = "bussing"
 def evaluate_policy(policy, task: str = "bussing", episodes: int = 36, out: str | Path | None = None,
                     seed0: int = EVAL_SEED0, image_size: tuple[int, int] = (64, 64), videos: bool = True,
                     progress: bool = True) -> dict:
-    """Evaluate ``policy`` (a JaxPolicy or a host policy; ``sim/cli.py`` resolves names, so the simulator never imports
+    """Evaluate ``policy`` (a JaxPolicy or a host policy; ``benchmarks/bussing/cli.py`` resolves names, so the simulator never imports
     ``policies/resolve.py``, which imports the zoo) on ``episodes`` initial conditions.
 
     Writes (if ``out``): ``episodes.jsonl`` (per-episode, per-object outcomes), ``summary.json`` (per-criterion

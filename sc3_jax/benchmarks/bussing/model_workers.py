@@ -49,10 +49,10 @@ class ModelRunner:
         from sc3_jax import checkpoint, sharding
         from sc3_jax import rollout as ro_mod
         from sc3_jax.config import MeshConfig
-        from sc3_jax.evaluate import perception
-        from sc3_jax.evaluate.scorers import PerceptionScorer
+        from sc3_jax.benchmarks.bussing import perception
+        from sc3_jax.benchmarks.bussing.scorers import PerceptionScorer
         from sc3_jax.evaluate.world_model_defaults import evaluation_config
-        from sc3_jax.sim.policy_eval import make_env
+        from sc3_jax.benchmarks.bussing.policy_eval import make_env
         cfg = setup.sweep
         wcfg, stats, self.params = checkpoint.load(cfg.world_model)
         wcfg = evaluation_config(wcfg, cfg)  # the one set of evaluation settings (sc3 rollout / diagnose too)
@@ -69,8 +69,9 @@ class ModelRunner:
 
     def __call__(self, job: ModelJob) -> list[dict]:
         if job.spec not in self.policies:
+            from sc3_jax.benchmarks.bussing.zoo import named_policy
             from sc3_jax.policies.resolve import resolve
-            self.policies[job.spec] = resolve(job.spec).policy
+            self.policies[job.spec] = resolve(job.spec, named=named_policy).policy
         return run_batch(job, self.ro, self.params, self.env, self.policies[job.spec], self.setup.sweep.rollout_seed,
                          self.store, self.scorer)
 
@@ -87,7 +88,7 @@ def run_batch(job: ModelJob, ro, params, env, policy, rollout_seed: int, store: 
     from sc3_jax import rollout as ro_mod
     from sc3_jax.evaluate.metrics import psnr_by_view
     from sc3_jax.policies.base import JaxPolicy
-    from sc3_jax.sim.tasks import make_initial_condition, task_id
+    from sc3_jax.benchmarks.bussing.tasks import make_initial_condition, task_id
     s, name, seeds = ro.spec, job.name, job.seeds
     obs = [initial_observation(env, seed, job.task) for seed in seeds]
     frames0 = np.stack([np.repeat(f[:, None], s.context, 1) for f, _ in obs])  # [B, V, K, H, W, 3]: at rest
@@ -134,7 +135,7 @@ _RUNNER: ModelRunner | None = None  # the worker process's own (set once by _ini
 
 def _init(setup: ModelSetup) -> None:
     global _RUNNER
-    import sc3_jax.sim  # noqa: F401  (picks the GL backend before mujoco is imported)
+    import sc3_jax.benchmarks.bussing  # noqa: F401  (picks the GL backend before mujoco is imported)
     _RUNNER = ModelRunner(setup)
 
 

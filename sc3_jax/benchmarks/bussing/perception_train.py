@@ -38,8 +38,8 @@ import numpy as np
 import optax
 
 from sc3_jax.errors import UserError
-from sc3_jax.evaluate import perception
-from sc3_jax.evaluate.perception import PREDICATES, WIDTH_SCALE, apply, predicate_labels, predict
+from sc3_jax.benchmarks.bussing import perception
+from sc3_jax.benchmarks.bussing.perception import PREDICATES, WIDTH_SCALE, apply, predicate_labels, predict
 
 SCORER_KNOBS = ({}, {"grasp_noise": 0.04}, {"release_noise": 0.08}, {"wrong_destination_prob": 0.5},
                 {"action_noise": 0.012})
@@ -54,8 +54,8 @@ def generate_scorer_data(out: str | Path, episodes: int, seed: int = 50, image_s
     from tqdm import tqdm
 
     from sc3_jax.data.episodes import Episode, EpisodeStore
-    from sc3_jax.sim.env import BussingEnv
-    from sc3_jax.sim.expert import ExpertKnobs, run_expert_episode
+    from sc3_jax.benchmarks.bussing.env import BussingEnv
+    from sc3_jax.benchmarks.bussing.expert import ExpertKnobs, run_expert_episode
     env = BussingEnv(image_size=tuple(image_size))
     store = EpisodeStore(out, views=list(env.views), fps=env.control_hz, image_size=tuple(image_size), create=True)
     for i in tqdm(range(episodes), desc="scorer data", disable=not progress):
@@ -65,8 +65,8 @@ def generate_scorer_data(out: str | Path, episodes: int, seed: int = 50, image_s
             continue
         if policies:
             from sc3_jax.policies.base import as_host
-            from sc3_jax.sim.policy_eval import run_policy_episode
-            from sc3_jax.sim.zoo import ZOO, load_policy
+            from sc3_jax.benchmarks.bussing.policy_eval import run_policy_episode
+            from sc3_jax.benchmarks.bussing.zoo import ZOO, load_policy
             name = sorted(ZOO)[i % len(ZOO)]
             task = ZOO[name].task
             r = run_policy_episode(env, as_host(load_policy(name)), sim_seed, task, max_steps=240)
@@ -196,9 +196,10 @@ def validate(results: str | Path, params: dict, score_stride: int = 2, degradati
     scores them (every ``score_stride``-th frame and the last; the same seeded degradations): {frames kind:
     agreement per criterion}, and under "majority_guess" the agreement of a scorer that gives every object each
     criterion's most common verdict (the floor)."""
-    from sc3_jax.evaluate.scorers import PerceptionScorer, RolloutView, agreement
+    from sc3_jax.evaluate.scorers import RolloutView, agreement
+    from sc3_jax.benchmarks.bussing.scorers import PerceptionScorer
     from sc3_jax.evaluate.results import ResultsStore
-    from sc3_jax.sim.tasks import make_initial_condition
+    from sc3_jax.benchmarks.bussing.tasks import make_initial_condition
     store = ResultsStore(results)
     real = [r for r in store.records() if r["mode"] == "real"]
     if not real:

@@ -43,7 +43,7 @@ def export_blinded(results: str | Path, out: str | Path, key_path: str | Path | 
                    fps: int = 10) -> tuple[Path, Path]:
     """Write ``out/clips/<id>.mp4``, ``out/annotations.csv`` (template) and the key (default ``<out>_key.json``,
     outside ``out``). Returns (csv path, key path)."""
-    from sc3_jax.sim.tasks import make_initial_condition
+    from sc3_jax.benchmarks.bussing.tasks import make_initial_condition
     from sc3_jax.video import write_mp4
     store = ResultsStore(results)
     recs = store.records()

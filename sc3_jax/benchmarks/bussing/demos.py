@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from ..data.episodes import Episode, EpisodeStore
+from sc3_jax.data.episodes import Episode, EpisodeStore
 from .criteria import success_rates
 from .env import BussingEnv
 from .expert import ExpertKnobs, run_expert_episode
@@ -92,7 +92,7 @@ def _expert_runner(knobs: ExpertKnobs):
 
 
 def _policy_runner(name: str):
-    from ..policies.base import as_host
+    from sc3_jax.policies.base import as_host
     from .policy_eval import run_policy_episode
     from .zoo import load_policy
     host = as_host(load_policy(name))  # jitted once, reused for every episode

@@ -37,8 +37,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .. import atomic
-from ..policies.base import JaxPolicy
+from sc3_jax import atomic
+from sc3_jax.policies.base import JaxPolicy
 from . import scene as S
 from .convnet import dense_init, init_trunk, mlp, trunk_features
 from .tasks import OBJECTS
@@ -202,7 +202,7 @@ def policy_apply(params: dict, obs: dict, rng: jax.Array) -> jax.Array:
 class ZooEntry:
     name: str
     task: str  # the task the policy is meant for
-    weights: str  # estimator file under sc3_jax/sim/zoo/
+    weights: str  # estimator file under sc3_jax/benchmarks/bussing/zoo/
     recipe: str  # how the estimator was trained and which knobs are set
     knobs: ControlKnobs = ControlKnobs()
 
@@ -264,8 +264,17 @@ def load_params(path: str | Path) -> dict:
     return net
 
 
+def named_policy(name: str) -> tuple[JaxPolicy, str]:
+    """A zoo policy by its name, with the task it acts on: ``policies.resolve``'s ``named``."""
+    from sc3_jax.policies.resolve import SPELLINGS
+
+    if name not in ZOO:
+        raise ValueError(f"unknown policy {name!r}: expected {SPELLINGS}; zoo policies are {sorted(ZOO)}")
+    return load_policy(name), ZOO[name].task
+
+
 def load_policy(name: str, zoo_dir: str | Path | None = None) -> JaxPolicy:
-    """The zoo policy ``name``: its estimator weights (``sc3_jax/sim/zoo/<weights>``) and its control knobs."""
+    """The zoo policy ``name``: its estimator weights (``sc3_jax/benchmarks/bussing/zoo/<weights>``) and its control knobs."""
     if name not in ZOO:
         raise KeyError(f"unknown zoo policy {name!r}; known: {sorted(ZOO)}")
     path = Path(zoo_dir or ZOO_DIR) / ZOO[name].weights

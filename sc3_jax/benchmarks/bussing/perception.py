@@ -1,7 +1,7 @@
 """Learned perception for the simulated benchmark: from the three camera frames, the per-object predicates the
 ground-truth criteria are made of, and the gripper's finger gap.
 
-The criteria (``sim/criteria.py``) are functions of three geometric predicates per object and frame -- *lifted*
+The criteria (``benchmarks/bussing/criteria.py``) are functions of three geometric predicates per object and frame -- *lifted*
 (bottom more than ``LIFT_CLEARANCE`` above the table), *in the bin*, *in the can* -- plus the final state. A
 scorer that reads only frames therefore needs exactly those predicates: this network predicts them for each of
 the six object types (the initial condition says which three are on the table), trained by supervised learning
@@ -22,9 +22,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from sc3_jax import atomic
-from sc3_jax.sim.convnet import dense_init, init_trunk, mlp, trunk_features
-from sc3_jax.sim.criteria import LIFT_CLEARANCE, inside_container
-from sc3_jax.sim.tasks import OBJECTS
+from sc3_jax.benchmarks.bussing.convnet import dense_init, init_trunk, mlp, trunk_features
+from sc3_jax.benchmarks.bussing.criteria import LIFT_CLEARANCE, inside_container
+from sc3_jax.benchmarks.bussing.tasks import OBJECTS
 
 PREDICATES = ("lifted", "in_bin", "in_can")
 TYPES = tuple(o.name for o in OBJECTS)

@@ -48,9 +48,9 @@ class _Runner:
     """Simulator, scorer and resolved policies of one process (the parent's when ``workers == 1``)."""
 
     def __init__(self, setup: RealSetup, policies: dict | None = None, env=None, scorer=None):
-        from sc3_jax.evaluate import perception
-        from sc3_jax.evaluate.scorers import PerceptionScorer
-        from sc3_jax.sim.policy_eval import make_env
+        from sc3_jax.benchmarks.bussing import perception
+        from sc3_jax.benchmarks.bussing.scorers import PerceptionScorer
+        from sc3_jax.benchmarks.bussing.policy_eval import make_env
         self.setup, self.policies = setup, dict(policies or {})
         self.env = env or make_env(setup.image_size)
         self.scorer = scorer or PerceptionScorer(perception.load(setup.perception))
@@ -58,8 +58,9 @@ class _Runner:
 
     def __call__(self, job: RealJob) -> dict:
         if job.spec not in self.policies:
+            from sc3_jax.benchmarks.bussing.zoo import named_policy
             from sc3_jax.policies.resolve import resolve
-            self.policies[job.spec] = resolve(job.spec).policy
+            self.policies[job.spec] = resolve(job.spec, named=named_policy).policy
         s = self.setup
         rid = rollout_id(job.name, job.seed, "real")
         try:
@@ -77,8 +78,9 @@ def run_real(env, name, task, policy, seed, scorer, max_steps: int, score_stride
     """One simulated rollout, scored by physics and by perception (on every ``score_stride``-th frame and the last:
     the world model's frame rate, so real and imagined rollouts are read alike); with ``degradations`` also by
     perception on degraded copies of the frames (``degrade.py``: how the scorer reads generated-looking frames)."""
-    from sc3_jax.evaluate.scorers import RolloutView, SimScorer
-    from sc3_jax.sim.policy_eval import run_policy_episode
+    from sc3_jax.evaluate.scorers import RolloutView
+    from sc3_jax.benchmarks.bussing.scorers import SimScorer
+    from sc3_jax.benchmarks.bussing.policy_eval import run_policy_episode
     r = run_policy_episode(env, policy, seed, task, record=True, max_steps=max_steps)
     frames = np.stack([r.frames[v] for v in env.views])  # [V, T, H, W, 3] at 20 Hz
     view = RolloutView(rollout_id(name, seed, "real"), frames, r.ic.objects, r.ic.destinations(),
@@ -97,7 +99,7 @@ _RUNNER: _Runner | None = None  # the worker process's own (set once by _init; n
 
 def _init(setup: RealSetup) -> None:
     global _RUNNER
-    import sc3_jax.sim  # noqa: F401  (picks the GL backend before mujoco is imported)
+    import sc3_jax.benchmarks.bussing  # noqa: F401  (picks the GL backend before mujoco is imported)
     _RUNNER = _Runner(setup)
 
 

@@ -19,11 +19,12 @@ def demos(out: str, episodes: int = 100, seed: int = 0, grasp_noise: float = 0.0
 
 def eval(policy: str, task: str = "bussing", episodes: int = 36, out: str | None = None, videos: bool = True,
          image_size: tuple[int, int] = (64, 64), progress: bool = True) -> dict:  # noqa: A001 (CLI verb)
-    from ..errors import UserError
-    from ..policies.resolve import resolve  # any spelling; a command may import above the simulator
+    from sc3_jax.errors import UserError
+    from sc3_jax.policies.resolve import resolve  # any spelling; a command may import above the simulator
+    from sc3_jax.benchmarks.bussing.zoo import named_policy
     from .policy_eval import evaluate_policy
     try:
-        resolved = resolve(policy)
+        resolved = resolve(policy, named=named_policy)
     except ValueError as e:  # a misspelt name: the message lists the spellings and the zoo
         raise UserError(f"--policy: {e}") from None
     return evaluate_policy(resolved.policy, task, episodes, out, image_size=tuple(image_size), videos=videos,

@@ -235,7 +235,7 @@ def run_expert_episode(env: BussingEnv, seed: int, task: str = "bussing", knobs:
                        record: bool = True, max_steps: int | None = None,
                        expert: ScriptedExpert | None = None) -> EpisodeResult:
     """Reset ``env`` to ``(seed, task)`` and let the expert bus it. Frame t is observed before action t.
-    ``expert``: another expert of the same interface (``sim/mixture.py``'s data-collection variants) in place of
+    ``expert``: another expert of the same interface (``benchmarks/bussing/mixture.py``'s data-collection variants) in place of
     ``ScriptedExpert(knobs, seed)``."""
     max_steps = max_steps or MAX_STEPS_20HZ * env.control_hz // 20
     env.reset(seed, task)

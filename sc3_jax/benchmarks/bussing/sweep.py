@@ -43,7 +43,7 @@ from sc3_jax.evaluate.results import (EVAL_MODES, REAL_ONLY_STRIDE, SPLITS, Resu
                                       rollout_id, score_strides, seed_blocks)
 
 # the best shipped world model (docs/results.md's headline): README command 1 evaluates the zoo inside it
-SHIPPED_WORLD_MODEL = Path(__file__).resolve().parent / "shipped" / "bussing_latent_gpu"
+SHIPPED_WORLD_MODEL = Path(__file__).resolve().parents[2] / "evaluate" / "shipped" / "bussing_latent_gpu"
 # a world model may ship the gripper-state reader its published sweeps used (see default_state_reader)
 STATE_READER_FILE = "state_reader.npz"
 
@@ -150,12 +150,12 @@ def run_sweep(cfg: SweepConfig) -> Path:
 
     from sc3_jax import checkpoint
     from sc3_jax import rollout as ro_mod
-    from sc3_jax.evaluate import perception
-    from sc3_jax.evaluate.rescore import weights_digest
-    from sc3_jax.evaluate.model_workers import ModelJob, ModelRunner, ModelSetup, in_workers, run_model_jobs
-    from sc3_jax.evaluate.real_workers import RealJob, RealSetup, default_workers, run_real_jobs
-    from sc3_jax.evaluate.scorers import PerceptionScorer
-    from sc3_jax.sim.policy_eval import make_env
+    from sc3_jax.benchmarks.bussing import perception
+    from sc3_jax.benchmarks.bussing.rescore import weights_digest
+    from sc3_jax.benchmarks.bussing.model_workers import ModelJob, ModelRunner, ModelSetup, in_workers, run_model_jobs
+    from sc3_jax.benchmarks.bussing.real_workers import RealJob, RealSetup, default_workers, run_real_jobs
+    from sc3_jax.benchmarks.bussing.scorers import PerceptionScorer
+    from sc3_jax.benchmarks.bussing.policy_eval import make_env
 
     cfg = dataclasses.replace(cfg, degradations=degradations_choice(cfg.degradations))
     bad = [m for m in cfg.modes if m not in EVAL_MODES]
@@ -402,9 +402,10 @@ def link_real(store: ResultsStore, source: str | Path, recs: list[dict]) -> None
 
 def _resolve(spec: str):
     """(name, task, policy) of a sweep policy: any spelling of ``policies.resolve``, with a task."""
+    from sc3_jax.benchmarks.bussing.zoo import named_policy
     from sc3_jax.policies.resolve import TASKS, resolve
     try:
-        r = resolve(spec)
+        r = resolve(spec, named=named_policy)
     except UserError:
         raise
     except ValueError as e:  # an unknown name or a malformed spelling: the user's to fix
@@ -416,5 +417,5 @@ def _resolve(spec: str):
 
 
 def _zoo_names(tasks=None):
-    from sc3_jax.sim.zoo import zoo_names
+    from sc3_jax.benchmarks.bussing.zoo import zoo_names
     return [n for n in zoo_names() if tasks is None or any(n in zoo_names(t) for t in tasks)]
