@@ -157,7 +157,8 @@ def test_success_estimate_scores_the_kept_frames_of_objects_the_store_names(tmp_
     from sc3_jax.benchmarks.bussing import perception
     from sc3_jax.evaluate.diagnose_outcomes import success_rates
     from sc3_jax.evaluate.scorers import RolloutView
-    from sc3_jax.benchmarks.bussing.scorers import PerceptionScorer, perception_scorer
+    from sc3_jax.benchmarks.bussing.hooks import perception_scorer
+    from sc3_jax.benchmarks.bussing.scorers import PerceptionScorer
     from sc3_jax.rollout_io import success_estimate
 
     store = _tiny_store(tmp_path / "eps", n=1, steps=60)

@@ -265,3 +265,16 @@ def test_the_folder_check_catches_the_core_importing_a_benchmark():
              "sc3_jax.commands.sweep": {"sc3_jax.benchmarks.bussing.sweep"},
              "sc3_jax.benchmarks.bussing.zoo": {"sc3_jax.commands.sim"}}
     assert len(folder_violations(graph)) == 3
+
+
+def test_the_benchmarks_hooks_load_no_simulator_for_a_labs_robot():
+    """The commands pass the simulated benchmark's hooks on every run; for a lab's robot (other views, its own
+    policies) they must not load MuJoCo or the perception network (the ``[sim]`` extra may be absent)."""
+    import subprocess
+    import sys
+    code = ("import sys, numpy as np; from sc3_jax.benchmarks.bussing import hooks; "
+            "assert hooks.perception_scorer(['front'], (96, 128))[0] is None; "
+            "hooks.object_pixels(np.zeros((1, 2, 4, 4, 3), np.uint8)); "
+            "print(sorted(m for m in ('mujoco', 'sc3_jax.benchmarks.bussing.perception') if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "[]", out

@@ -4,7 +4,7 @@ with the simulated benchmark's measure (its objects' colours, shading-invariant)
 import numpy as np
 import pytest
 
-from sc3_jax.benchmarks.bussing.scorers import object_pixels
+from sc3_jax.benchmarks.bussing.hooks import object_pixels
 from sc3_jax.evaluate import permanence, report
 from sc3_jax.evaluate.results import ResultsStore, rollout_id
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 import sc3_jax.benchmarks.bussing  # noqa: F401  (picks the GL backend before mujoco is imported)
-from sc3_jax.benchmarks.bussing.zoo import named_policy
+from sc3_jax.benchmarks.bussing.hooks import named_policy
 from sc3_jax.policies import resolve as R
 from sc3_jax.policies.base import JaxPolicy, as_host
 from sc3_jax.policies.openpi_client import WebsocketClientPolicy

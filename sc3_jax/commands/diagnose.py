@@ -69,7 +69,7 @@ def main(argv: list[str]) -> int:
     a, cfg = parse_with_config(Args, argv, "diagnose", evaluated_config)
     from sc3_jax.evaluate.world_model_defaults import warn_if_student_off_its_step
     warn_if_student_off_its_step(cfg)  # after the --sample.steps override
-    from sc3_jax.benchmarks.bussing.scorers import object_pixels, perception_scorer
+    from sc3_jax.benchmarks.bussing.hooks import object_pixels, perception_scorer
     from sc3_jax.evaluate import diagnose
 
     fields = {f.name for f in dataclasses.fields(DiagnoseConfig)}

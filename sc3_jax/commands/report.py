@@ -48,7 +48,7 @@ def main(argv: list[str]) -> int:
     if a.real:
         raise UserError("--real is for a sweep from --initial-conditions; a simulated sweep's real rollouts are in "
                         "its store")
-    from sc3_jax.benchmarks.bussing.scorers import object_pixels
+    from sc3_jax.benchmarks.bussing.hooks import object_pixels
     md = report.render(list(a.results), a.out or f"{a.results[0]}/report", a.videos, a.taus, a.draws,
                        scene=object_pixels)
     print(f"report: {md}")

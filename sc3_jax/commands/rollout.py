@@ -79,9 +79,8 @@ def main(argv: list[str]) -> int:
     import numpy as np
 
     from sc3_jax import atomic, checkpoint, rollout, rollout_io
-    from sc3_jax.benchmarks.bussing.scorers import perception_scorer
+    from sc3_jax.benchmarks.bussing.hooks import named_policy, perception_scorer
     from sc3_jax.policies.openpi_mappings import for_world_model, get_mapping
-    from sc3_jax.benchmarks.bussing.zoo import named_policy
     from sc3_jax.policies.resolve import resolve
 
     stats = checkpoint.read_norm_stats(a.checkpoint)

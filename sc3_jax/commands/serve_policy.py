@@ -100,7 +100,7 @@ def build_server(a: Args, resolve: Callable[[str], Any] | None = None):
     if resolve is None:  # after the options are checked: loading a policy can take seconds
         from sc3_jax.policies.resolve import resolve as resolve_spec
 
-        from sc3_jax.benchmarks.bussing.zoo import named_policy
+        from sc3_jax.benchmarks.bussing.hooks import named_policy
         resolve = lambda spec: resolve_spec(spec, named=named_policy).policy  # noqa: E731
     try:
         policy = resolve(a.policy)

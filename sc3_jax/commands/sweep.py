@@ -64,7 +64,7 @@ def main(argv: list[str]) -> int:
         print(f"shard done: {out}; once every shard has finished: sc3 report {cfg.out}")
         return 0
     try:
-        from sc3_jax.benchmarks.bussing.scorers import object_pixels
+        from sc3_jax.benchmarks.bussing.hooks import object_pixels
         md = report.render(out, out / "report", scene=object_pixels)
     except UserError as e:  # e.g. --modes online alone: the rollouts are kept, the report waits for real ones
         print(f"rollouts: {out}; no report: {e}")
@@ -90,7 +90,7 @@ def _without_simulator(a: Args) -> int:
         rollout_seed=a.rollout_seed, episode_seconds=a.episode_seconds, sample_steps=a.sample_steps,
         inverse_steps=a.inverse_steps, taus=a.taus, tau_units=a.tau_units, start=a.start, real=a.real,
         family=a.family, progress=a.progress)
-    from sc3_jax.benchmarks.bussing.zoo import named_policy
+    from sc3_jax.benchmarks.bussing.hooks import named_policy
     out = ic_sweep.run(cfg, named=named_policy)
     md = ic_ranking.render(out, out / "report", cfg.real or None)
     t = json.loads((out / "report" / "report.json").read_text())

@@ -21,7 +21,7 @@ def eval(policy: str, task: str = "bussing", episodes: int = 36, out: str | None
          image_size: tuple[int, int] = (64, 64), progress: bool = True) -> dict:  # noqa: A001 (CLI verb)
     from sc3_jax.errors import UserError
     from sc3_jax.policies.resolve import resolve  # any spelling; a command may import above the simulator
-    from sc3_jax.benchmarks.bussing.zoo import named_policy
+    from sc3_jax.benchmarks.bussing.hooks import named_policy
     from .policy_eval import evaluate_policy
     try:
         resolved = resolve(policy, named=named_policy)

@@ -69,7 +69,7 @@ class ModelRunner:
 
     def __call__(self, job: ModelJob) -> list[dict]:
         if job.spec not in self.policies:
-            from sc3_jax.benchmarks.bussing.zoo import named_policy
+            from sc3_jax.benchmarks.bussing.hooks import named_policy
             from sc3_jax.policies.resolve import resolve
             self.policies[job.spec] = resolve(job.spec, named=named_policy).policy
         return run_batch(job, self.ro, self.params, self.env, self.policies[job.spec], self.setup.sweep.rollout_seed,

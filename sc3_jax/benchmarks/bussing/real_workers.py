@@ -58,7 +58,7 @@ class _Runner:
 
     def __call__(self, job: RealJob) -> dict:
         if job.spec not in self.policies:
-            from sc3_jax.benchmarks.bussing.zoo import named_policy
+            from sc3_jax.benchmarks.bussing.hooks import named_policy
             from sc3_jax.policies.resolve import resolve
             self.policies[job.spec] = resolve(job.spec, named=named_policy).policy
         s = self.setup

@@ -112,20 +112,3 @@ class HumanScorer:
                 raise KeyError(f"no annotation for rollout {rollout.id!r}, object {name!r}")
             out.append(outcome(name, rollout.destinations[name], *(self.labels[key][c] for c in CRITERIA)))
         return out
-
-
-def perception_scorer(views, image_size, weights: str | None = None):
-    """(PerceptionScorer, None), or (None, why not): the scorer reads left/right/wrist frames at 64x64 only.
-    ``weights``: perception weights (None: the shipped ones)."""
-    if list(views) != ["left", "right", "wrist"] or tuple(image_size) != (64, 64):
-        return None, f"the perception scorer reads left/right/wrist at 64x64; this model has {list(views)} at " \
-                     f"{tuple(image_size)}"
-    return PerceptionScorer(perception.load(weights or perception.DEFAULT_WEIGHTS)), None
-
-
-def object_pixels(frames: np.ndarray) -> np.ndarray:
-    """The benchmark's scene measure (``evaluate/permanence.py``): the fraction of pixels of its objects' colours
-    (``tasks.OBJECTS``), frames uint8 [V, T, H, W, 3] -> [V, T]."""
-    from sc3_jax.benchmarks.bussing.tasks import OBJECTS
-    from sc3_jax.evaluate.permanence import pixels_of
-    return pixels_of(frames, np.array([o.rgba[:3] for o in OBJECTS]))

@@ -402,7 +402,7 @@ def link_real(store: ResultsStore, source: str | Path, recs: list[dict]) -> None
 
 def _resolve(spec: str):
     """(name, task, policy) of a sweep policy: any spelling of ``policies.resolve``, with a task."""
-    from sc3_jax.benchmarks.bussing.zoo import named_policy
+    from sc3_jax.benchmarks.bussing.hooks import named_policy
     from sc3_jax.policies.resolve import TASKS, resolve
     try:
         r = resolve(spec, named=named_policy)

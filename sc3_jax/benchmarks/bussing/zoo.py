@@ -264,15 +264,6 @@ def load_params(path: str | Path) -> dict:
     return net
 
 
-def named_policy(name: str) -> tuple[JaxPolicy, str]:
-    """A zoo policy by its name, with the task it acts on: ``policies.resolve``'s ``named``."""
-    from sc3_jax.policies.resolve import SPELLINGS
-
-    if name not in ZOO:
-        raise ValueError(f"unknown policy {name!r}: expected {SPELLINGS}; zoo policies are {sorted(ZOO)}")
-    return load_policy(name), ZOO[name].task
-
-
 def load_policy(name: str, zoo_dir: str | Path | None = None) -> JaxPolicy:
     """The zoo policy ``name``: its estimator weights (``sc3_jax/benchmarks/bussing/zoo/<weights>``) and its control knobs."""
     if name not in ZOO:

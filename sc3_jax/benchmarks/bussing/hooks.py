@@ -1,0 +1,35 @@
+"""What the commands hand the evaluation core of this benchmark: its policy names, its outcome scorer and its scene
+measure. Each imports its heavy part (MuJoCo, the perception network) only when it applies, so a command run on a
+lab's own robot, without the ``[sim]`` extra, can import this module and pass these along."""
+from __future__ import annotations
+
+import numpy as np
+
+
+def named_policy(name: str):
+    """A zoo policy by its name, with the task it acts on: ``policies.resolve``'s ``named``."""
+    from sc3_jax.benchmarks.bussing.zoo import ZOO, load_policy
+    from sc3_jax.policies.resolve import SPELLINGS
+
+    if name not in ZOO:
+        raise ValueError(f"unknown policy {name!r}: expected {SPELLINGS}; zoo policies are {sorted(ZOO)}")
+    return load_policy(name), ZOO[name].task
+
+
+def perception_scorer(views, image_size, weights: str | None = None):
+    """(PerceptionScorer, None), or (None, why not): the scorer reads left/right/wrist frames at 64x64 only.
+    ``weights``: perception weights (None: the shipped ones). ``diagnose``'s ``scorer_for``."""
+    if list(views) != ["left", "right", "wrist"] or tuple(image_size) != (64, 64):
+        return None, f"the perception scorer reads left/right/wrist at 64x64; this model has {list(views)} at " \
+                     f"{tuple(image_size)}"
+    from sc3_jax.benchmarks.bussing import perception
+    from sc3_jax.benchmarks.bussing.scorers import PerceptionScorer
+    return PerceptionScorer(perception.load(weights or perception.DEFAULT_WEIGHTS)), None
+
+
+def object_pixels(frames: np.ndarray) -> np.ndarray:
+    """The benchmark's scene measure (``evaluate/permanence.py``): the fraction of pixels of its objects' colours
+    (``tasks.OBJECTS``), frames uint8 [V, T, H, W, 3] -> [V, T]."""
+    from sc3_jax.benchmarks.bussing.tasks import OBJECTS
+    from sc3_jax.evaluate.permanence import pixels_of
+    return pixels_of(frames, np.array([o.rgba[:3] for o in OBJECTS]))
