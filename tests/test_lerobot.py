@@ -346,3 +346,29 @@ def test_import_keeps_next_success_as_the_real_outcome(tmp_path):
     shutil.rmtree(tmp_path / "lr")  # the store alone carries them now
     real = labels.read([f"pi={tmp_path / 'store'}"])
     assert [(r.policy, r.outcomes) for r in real] == [("pi", {"success": want[i]}) for i in range(3)]
+
+
+def test_episodes_split_one_dataset_into_a_training_and_a_held_out_store(datasets, tmp_path, capsys):
+    """`--episodes 0:1` and `--episodes 1:` import disjoint episodes of one dataset; the episode sweep counts the
+    initial conditions its world model trained on (all of a training store's, none of the held-out one's)."""
+    from sc3_jax.cli import main
+    from sc3_jax.data.episodes import EpisodeStore
+    from sc3_jax.evaluate.ic_sweep import trained_on
+
+    root = datasets("v3.0")
+    common = ["--image-size", "16", "24", "--allow-missing-pose"]
+    assert main(["data", "import-lerobot", str(root), "--out", str(tmp_path / "train"), "--episodes", "0:1",
+                 *common]) == 0
+    assert main(["data", "import-lerobot", str(root), "--out", str(tmp_path / "held"), "--episodes", "1:",
+                 *common]) == 0
+    train, held = EpisodeStore(tmp_path / "train"), EpisodeStore(tmp_path / "held")
+    assert train.episode_ids() == ["lerobot000000"] and held.episode_ids() == ["lerobot000001", "lerobot000002"]
+    assert trained_on(held, held.episode_ids(), str(train.root)) == 0
+    assert trained_on(train, train.episode_ids(), str(train.root)) == 1  # the same store
+    written = import_lerobot(root, tmp_path / "both", image_size=(16, 24), allow_missing_pose=True, episodes={0, 2})
+    both = EpisodeStore(tmp_path / "both")
+    assert written["written"] == 2
+    assert trained_on(both, both.episode_ids(), str(train.root)) == 1  # episode 0 of the same dataset
+    assert trained_on(held, held.episode_ids(), str(tmp_path / "elsewhere")) is None  # not here to compare
+    assert main(["data", "import-lerobot", str(root), "--out", str(tmp_path / "x"), "--episodes", "1-3"]) == 2
+    assert "--episodes '1-3'" in capsys.readouterr().err

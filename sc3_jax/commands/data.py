@@ -56,6 +56,9 @@ class ImportLerobot:
     state_key: str = "auto"
     """the proprioceptive state feature, of any size, stored as the episodes' state ("auto":
     observation.state when present and not already the ee_pose; "none": no state)"""
+    episodes: Annotated[tuple[str, ...] | None, tyro.conf.arg(metavar="A:B|N ...")] = None
+    """which episodes (the dataset's episode_index) to import: ranges A:B (B excluded, either end open) or single
+    indices, e.g. `--episodes 0:20` for a training store and `--episodes 20:` for a held-out one (None: all)"""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -96,6 +99,34 @@ def _frames(store) -> int:
     return sum(store.load(e, mmap=True, validate=False).length for e in store.episode_ids())
 
 
+class _Selection:
+    """episode_index values as ranges and single indices (``episode_selection``); supports ``in``."""
+
+    def __init__(self, ranges: list[tuple[int, float]]):
+        self.ranges = ranges
+
+    def __contains__(self, i: int) -> bool:
+        return any(a <= i < b for a, b in self.ranges)
+
+
+def episode_selection(spec: tuple[str, ...] | None) -> _Selection | None:
+    """``--episodes`` as a container of episode_index values; a malformed entry is a one-line UserError."""
+    if spec is None:
+        return None
+    ranges = []
+    for s in spec:
+        try:
+            if ":" in s:
+                a, b = s.split(":")
+                ranges.append((int(a) if a else 0, int(b) if b else float("inf")))
+            else:
+                ranges.append((int(s), int(s) + 1))
+        except ValueError:
+            raise UserError(f"--episodes {s!r}: expected A:B (either end may be left out) or an episode index, e.g. "
+                            "0:20 or 20: or 3") from None
+    return _Selection(ranges)
+
+
 def _import(a: ImportLerobot) -> int:
     from sc3_jax.data.episodes import EpisodeStore
     from sc3_jax.data.lerobot import import_lerobot
@@ -105,6 +136,7 @@ def _import(a: ImportLerobot) -> int:
                        allow_missing_pose=a.allow_missing_pose, progress=True, action_space=a.action_space,
                        action_names=list(a.action_names) if a.action_names else None,
                        action_targets=list(a.action_targets) if a.action_targets else None,
+                       episodes=episode_selection(a.episodes),
                        **({} if a.state_key == "auto" else {"state_key": None if a.state_key == "none" else a.state_key}))
     store = EpisodeStore(s["out"])
     print(f"imported {s['written']} episodes ({s['skipped']} already there) from {a.root}; {s['out']} now holds "

@@ -246,6 +246,10 @@ class LeRobotEpisodes:
             raise IndexError(f"episode {i} out of range (dataset has {len(self._episodes)})")
         return self._episodes[i]
 
+    def episode_index(self, i: int) -> int:
+        """The dataset's episode_index of episode ``i`` (its position), read from the metadata alone."""
+        return int(self._episode_row(i)["episode_index"])
+
     def episode(self, i: int) -> LeRobotEpisode:
         """Episode ``i`` (position in episode_index order), resampled to ``self.fps``; frames decode lazily."""
         ep, tab = self._episode_row(i), self._tabular(i)
@@ -462,7 +466,7 @@ def import_lerobot(root: str | os.PathLike, out: str | os.PathLike, views=None, 
                    pose_key: str | None = "observation.state", allow_missing_pose: bool = False,
                    progress: bool = False, *, action_space: str | None = None,
                    action_names: list[str] | None = None, action_targets: list[int] | None = None,
-                   state_key: str | None = _OPTIONAL) -> dict:  # type: ignore[assignment]
+                   state_key: str | None = _OPTIONAL, episodes=None) -> dict:  # type: ignore[assignment]
     """Convert the LeRobot dataset at ``root`` into an episode store at ``out``.
 
     The action space (``data/action_space.py``): ``action_space`` ("delta_ee", "absolute" or "velocity") with
@@ -477,8 +481,9 @@ def import_lerobot(root: str | os.PathLike, out: str | os.PathLike, views=None, 
     ``state_key``: the proprioceptive state feature of any size (default ``observation.state`` when present and not
     already the ee_pose; None: none), stored as ``state``. ``image_size`` resizes every view (our store has one size
     for all views). A ``next.success`` feature becomes each episode's meta ``"labels": {"success": any frame's}``
-    (the real outcomes ``sc3 sweep --real STORE`` reads). Episodes are named ``lerobot{episode_index:06d}``;
-    existing ones are skipped (resumable).
+    (the real outcomes ``sc3 sweep --real STORE`` reads). ``episodes``: the episode_index values to import (a
+    container; None: all), so that one dataset gives a training store and a held-out one. Episodes are named
+    ``lerobot{episode_index:06d}``; existing ones are skipped (resumable).
     """
     from .action_space import ActionSpace, names_of
     from .episodes import Episode, EpisodeStore
@@ -529,6 +534,8 @@ def import_lerobot(root: str | os.PathLike, out: str | os.PathLike, views=None, 
     with locks.hold(store.root, "import"):  # two imports into one store would race on its episodes
         _check_same_source(store, source)
         for i in range(len(src)):
+            if episodes is not None and src.episode_index(i) not in episodes:
+                continue
             ep = src.episode(i)
             eid = f"lerobot{ep.episode_index:06d}"
             if eid in store:

@@ -38,6 +38,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import sys
 import time
 from pathlib import Path
 
@@ -160,6 +161,24 @@ def _resolve(specs: tuple[str, ...], chunk: int, mappings: dict, action_space, n
     return out
 
 
+def trained_on(store, ids, train_path: str) -> int | None:
+    """How many of the episodes ``ids`` of ``store`` are in the world model's training store (``train_path``): all
+    when it is the same store, else those imported from the same LeRobot dataset with the same episode_index (other
+    stores' episode ids say nothing: two simulator stores both begin at ep000000); None when the training store is
+    not here to compare."""
+    train = Path(train_path)
+    if not (train / "dataset.json").exists():
+        return None
+    if train.resolve() == Path(store.root).resolve():
+        return len(ids)
+
+    def key(root: Path, e: str):
+        meta = atomic.read_json(root / e / "meta.json")
+        return (meta["lerobot_root"], meta["episode_index"]) if "lerobot_root" in meta else None
+    seen = {key(train, p.name) for p in train.iterdir() if (p / "meta.json").exists()} - {None}
+    return sum(key(Path(store.root), e) in seen for e in ids)
+
+
 def cut(u: np.ndarray, tau: float) -> int:
     """Chunks a rollout with U_chunk ``u`` [N] keeps under threshold ``tau``: those before the first with U > tau
     (``calibrate.cut``'s rule, which the report applies to the stored ``u`` / ``u_raw``)."""
@@ -208,6 +227,11 @@ def run(cfg: ICSweepConfig, named=None) -> Path:
         raise UserError(f"--initial-conditions {cfg.initial_conditions}: {len(ids)} episodes, the sweep needs "
                         f"--episodes {cfg.episodes} + --calibration-episodes {cfg.calibration_episodes} = {want}: "
                         "lower them or give more held-out episodes")
+    seen = trained_on(store, ids, wcfg.data.path) if store else None
+    if seen:
+        print(f"warning: {seen} of the {len(ids)} initial conditions are episodes the world model trained on "
+              f"(its data.path {wcfg.data.path}): they rank what it has seen; give held-out episodes (e.g. `sc3 data "
+              "import-lerobot ... --episodes 20:` beside a training import of `--episodes 0:20`)", file=sys.stderr)
     prompts = [atomic.read_json(store.root / e / "meta.json").get("prompt", "") if store else "" for e in ids]
     # a mapped (openpi) server reads a prompt, not our task id: condition i's task id indexes its own prompt
     table = list(dict.fromkeys(prompts))
