@@ -204,6 +204,8 @@ def test_rerun_adds_nothing(swept, aloha, capsys):
     assert (out / "results.jsonl").read_text() == before and not SEEN and len(aloha.policy.requests) == asked
     said = capsys.readouterr().out
     assert "ranking by success" in said and "report:" in said and "r " in said and "half (aloha)" in said
+    # these conditions are copies of the training store's episodes (same dataset, same episode_index): said so
+    assert "warning: 4 of the 4 initial conditions are episodes the world model trained on" in said
     assert _sweep(ic, run, out, "--real", str(real), policies=("hold", "reach")) == 2  # another sweep: refused
     assert "different sweep" in _error(capsys)
 

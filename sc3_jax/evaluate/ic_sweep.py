@@ -38,7 +38,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-import sys
 import time
 from pathlib import Path
 
@@ -231,7 +230,7 @@ def run(cfg: ICSweepConfig, named=None) -> Path:
     if seen:
         print(f"warning: {seen} of the {len(ids)} initial conditions are episodes the world model trained on "
               f"(its data.path {wcfg.data.path}): they rank what it has seen; give held-out episodes (e.g. `sc3 data "
-              "import-lerobot ... --episodes 20:` beside a training import of `--episodes 0:20`)", file=sys.stderr)
+              "import-lerobot ... --episodes 20:` beside a training import of `--episodes 0:20`)")
     prompts = [atomic.read_json(store.root / e / "meta.json").get("prompt", "") if store else "" for e in ids]
     # a mapped (openpi) server reads a prompt, not our task id: condition i's task id indexes its own prompt
     table = list(dict.fromkeys(prompts))
