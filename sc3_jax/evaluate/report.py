@@ -11,6 +11,7 @@ every mode being compared, so a partial sweep still reports consistent numbers (
 """
 from __future__ import annotations
 
+import itertools
 import json
 import math
 from pathlib import Path
@@ -160,10 +161,12 @@ def _permanence(store, cfg: dict, online: dict, scene, draws: int, seed: int) ->
     rec = next(iter(online.values()))
     fps = rec["frames_per_chunk"] * rec["num_chunks"] / cfg["episode_seconds"]
     got = (paired_frames(store, policy, s, r["stride"]) for (policy, s), r in online.items())
-    pairs = [(real[:, at], imagined) for real, imagined, at, _ in filter(None, got)]
-    if not pairs:
+    pairs = ((real[:, at], imagined) for real, imagined, at, _ in filter(None, got))  # one condition's frames at a time
+    first = next(pairs, None)
+    if first is None:
         return None
-    return permanence.from_pairs(pairs, scene, fps, _views(cfg["world_model"], pairs[0][0].shape[0]), draws, seed)
+    return permanence.from_pairs(itertools.chain([first], pairs), scene, fps,
+                                 _views(cfg["world_model"], first[0].shape[0]), draws, seed)
 
 
 RANKED_BY = metrics.CRITERIA[-1]  # placing: the cumulative success of an object, what "success" means here
