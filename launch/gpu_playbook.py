@@ -431,7 +431,7 @@ def phase_sweep(ctx: Ctx) -> dict:
     if "model" not in res["model"]:
         return res
     store = ctx.run / "sweep"
-    cmd = ctx.sc3 + ["sweep", "--out", str(store), "--world-model", res["model"]["model"], "--modes", "real",
+    cmd = ctx.sc3 + ["sweep", "bench", "--out", str(store), "--world-model", res["model"]["model"], "--modes", "real",
                      "online", "--batch", str(1 if ctx.a.dry_run else ctx.a.sweep_batch), "--workers",
                      str(1 if ctx.a.dry_run else ctx.a.workers), "--no-progress"] + _sweep_protocol(ctx)
     # the real rollouts' worker processes may start JAX too: none may take the GPU's memory up front

@@ -157,9 +157,15 @@ INT8_MIN_SIZE = 4096  # smaller arrays (norms, biases, embeddings of a few rows)
 
 
 def export(workdir: str | Path, out: str | Path, dtype=np.float16) -> Path:
-    """Write a run's latest params (as ``dtype``), config and norm stats to ``out`` -- small enough to commit."""
+    """Write a run's latest params (as ``dtype``), config and norm stats to ``out`` -- small enough to commit -- and
+    its learned robot state (``state_head.npz``) where it has one."""
     cfg, stats, params = load(workdir)
-    return save(out, cfg, stats, params, dtype)
+    out = save(out, cfg, stats, params, dtype)
+    head = Path(workdir) / "state_head.npz"
+    if head.exists():
+        with atomic.replacing(out / head.name) as tmp:
+            shutil.copyfile(head, tmp)
+    return out
 
 
 def save(out: str | Path, cfg: Config, stats: NormStats, params, dtype=np.float16) -> Path:

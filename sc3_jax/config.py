@@ -341,7 +341,7 @@ class RolloutConfig:
     """termination threshold: a rollout stops at the first chunk whose U_chunk exceeds tau (in tau_units). None:
     follow the world model's action space (rollout.resolve_tau): 0.02 for the benchmark's delta_ee actions (the
     paper's value, in their raw units), no early termination (inf) for any other (14-D joint radians, say), whose
-    units 0.02 does not fit: calibrate one on held-out conditions (`sc3 sweep --initial-conditions STORE --taus
+    units 0.02 does not fit: calibrate one on held-out conditions (`sc3 sweep episodes --initial-conditions STORE --taus
     ...`, in the dataset's raw units) and pass it"""
     tau_units: str = "raw"
     """U_chunk's units, the one convention of `sc3 rollout`, `sc3 sweep` and the report: "raw" (metres / radians /

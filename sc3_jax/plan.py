@@ -195,7 +195,7 @@ def chunk_flops(cfg, action_space=None, data_fps: float = 20.0) -> dict[str, flo
         params = jax.eval_shape(lambda: dit.init_params(m, st.tok.token_dim, jax.random.key(0), st.grid))
         V, K, T, H, W, A = spec.views, spec.context, spec.predict, *spec.image_size, spec.action_dim
         ctx = sds((V, K, H, W, 3), jnp.float32)
-        carry = rollout.Carry(ctx, sds((A,), jnp.float32), sds((), bool), sds((), jnp.int32))
+        carry = rollout.Carry(ctx, sds((A,), jnp.float32), sds((), bool), sds((), jnp.int32), sds((0,), jnp.float32))
         Kt, Tt = st.window  # token frames (fewer than frames with a time-compressing tokenizer)
         key = jax.eval_shape(lambda: jax.random.key_data(jax.random.key(0)))
         norm = sds((4, A), jnp.float32)  # NormStats.as_array: action mean, std, state mean, std
@@ -338,7 +338,7 @@ def fitting_plan(cfg, mesh_cfg, device: str, free: float) -> dict | None:
     m = cfg.model
     impl = m.attention_impl
     if impl == "dense":  # never worth keeping when memory binds: same math, no [N, N] scores
-        impl = "blockwise" if device == "v5p" else "fused"
+        impl = "blockwise" if device in ("v5p", "cpu") else "fused"
     for remat in REMAT_POLICIES:
         c = dataclasses.replace(cfg, model=dataclasses.replace(m, attention_impl=impl, remat=remat))
         k = _microbatches(c, mesh_cfg, free)
@@ -347,6 +347,57 @@ def fitting_plan(cfg, mesh_cfg, device: str, free: float) -> dict | None:
             return {"attention_impl": impl, "remat": remat, "microbatches": k,
                     "activations_bytes": activation_estimate(c, mesh_cfg), "cfg": c}
     return None
+
+
+def available_bytes() -> tuple[float, str]:
+    """(bytes one device of this machine may use, what they are): an accelerator's memory limit, or the host's
+    available memory shared by its CPU devices."""
+    import jax
+
+    dev = jax.local_devices()[0]
+    stats = dev.memory_stats() if dev.platform != "cpu" else None
+    if stats and stats.get("bytes_limit"):
+        return float(stats["bytes_limit"]), f"{dev.device_kind} memory"
+    with open("/proc/meminfo") as f:
+        avail = next(int(line.split()[1]) * 1024 for line in f if line.startswith("MemAvailable:"))
+    n = jax.local_device_count()
+    return avail / n, f"the host's available memory{f' over {n} CPU devices' if n > 1 else ''}"
+
+
+def fit_to_memory(cfg, num_devices: int, fixed=frozenset()):
+    """(config, note) for training ``cfg`` on ``cfg.mesh`` over ``num_devices`` on this machine, decided before
+    anything compiles: ``cfg`` itself (note None) when its estimated train step (train state + activations, per
+    device) fits a device here; else the cheapest memory plan that fits (``fitting_plan``: the memory-efficient
+    attention kernel, remat, micro-batches -- the same model and the same math) and a line saying so. Refused in one
+    line naming the estimate, the memory and the flags that fit when nothing fits, or when the plan would change a
+    field in ``fixed`` (the ones the user set: ``model.attention_impl``, ...)."""
+    import jax
+
+    from sc3_jax import sharding
+
+    names = sharding.mesh_axes(cfg.mesh)
+    mesh_cfg = dataclasses.replace(cfg.mesh, **dict(zip(names, sharding.mesh_shape(cfg.mesh, num_devices))))
+    with shape_only_vae(cfg):
+        from sc3_jax.model import tokenizer
+        tokens = tokenizer.tokens_per_sample(cfg)
+    state, act = sum(state_bytes(cfg, mesh_cfg).values()), activation_estimate(cfg, mesh_cfg)
+    free, what = available_bytes()
+    if state + act <= free:
+        return cfg, None
+    need = (f"the train step needs about {(state + act) / 1e9:.1f} GB per device ({tokens} tokens per sample, batch "
+            f"{cfg.data.batch_size}, {cfg.model.attention_impl} attention, remat {cfg.model.remat}), a device here "
+            f"has {free / 1e9:.1f} GB ({what})")
+    fit = fitting_plan(cfg, mesh_cfg, "cpu" if jax.local_devices()[0].platform == "cpu" else "gpu", free - state)
+    if fit is None:
+        raise UserError(f"{need}: nothing fits at this batch; lower --data.batch-size, --data.image-size or the "
+                        "model's width")
+    changed = {k for k, old, new in (("model.attention_impl", cfg.model.attention_impl, fit["attention_impl"]),
+                                     ("model.remat", cfg.model.remat, fit["remat"]),
+                                     ("train.grad_accum", cfg.train.grad_accum, fit["microbatches"])) if old != new}
+    about = f"{_fit_flags(fit)} (about {(state + fit['activations_bytes']) / 1e9:.1f} GB)"
+    if changed & set(fixed):
+        raise UserError(f"{need}: it fits with {about}")
+    return fit["cfg"], f"{need}: training with {about}, the same model and math in less memory"
 
 
 def compiled_memory(cfg, mesh_cfg):

@@ -52,7 +52,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from sc3_jax import flow, imagination_state, modes, sharding
+from sc3_jax import flow, imagination_state, modes, sharding, state_head
 from sc3_jax.config import Config, MeshConfig
 from sc3_jax.data.action_space import DELTA_EE, ActionSpace
 from sc3_jax.errors import UserError
@@ -81,6 +81,7 @@ class RolloutSpec:
     inverse_steps: int | None = None  # Euler steps of the inverse-dynamics re-read (None: steps)
     action_space: ActionSpace = DELTA_EE  # what the actions mean (compose, imagined state, holding still)
     data_fps: float = 20.0  # the frame rate of the data the model was trained on
+    state_dim: int = 0  # the learned robot state's size (state_head.py); 0: policies see the imagined commands
 
     @property
     def action_dim(self) -> int:
@@ -107,8 +108,9 @@ class RolloutSpec:
 
 
 def make_spec(cfg: Config, data_fps: float = 20.0, num_chunks: int | None = None,
-              action_space: ActionSpace | None = None) -> RolloutSpec:
-    """``action_space``: the world model's (``NormStats.action_space``); None: the simulated benchmark's delta_ee."""
+              action_space: ActionSpace | None = None, state_dim: int = 0) -> RolloutSpec:
+    """``action_space``: the world model's (``NormStats.action_space``); None: the simulated benchmark's delta_ee.
+    ``state_dim``: its learned state's size (0: none)."""
     r, d = cfg.rollout, cfg.data
     space = DELTA_EE if action_space is None else action_space
     if space.dim != cfg.model.action_dim:
@@ -133,7 +135,7 @@ def make_spec(cfg: Config, data_fps: float = 20.0, num_chunks: int | None = None
     return RolloutSpec(len(d.views), tuple(d.image_size), d.context_frames, d.future_frames, r.keep_frames,
                        r.policy_chunk, int(num_chunks), int(round(stride)), cfg.sample.steps, ratio,
                        float(cfg.sample.context_noise), r.tau_units, cfg.sample.inverse_steps, space,
-                       float(data_fps))
+                       float(data_fps), int(state_dim))
 
 
 BENCHMARK_TAU = 0.02  # the paper's threshold, set in the raw units of delta_ee actions (metres, radians)
@@ -143,7 +145,7 @@ def resolve_tau(tau: float | None, action_space: ActionSpace) -> float:
     """``rollout.tau`` as a rollout of a world model acting in ``action_space`` uses it: as given, or where None
     (the default) ``BENCHMARK_TAU`` for the benchmark's delta_ee actions and inf (no early termination) for any other
     action space, whose units (joint radians, ...) that value means nothing in until a tau is calibrated on held-out
-    conditions in the dataset's own units (``sc3 sweep --initial-conditions STORE --taus ...``)."""
+    conditions in the dataset's own units (``sc3 sweep episodes --initial-conditions STORE --taus ...``)."""
     if tau is not None:
         return float(tau)
     return BENCHMARK_TAU if action_space.kind == "delta_ee" else math.inf
@@ -153,6 +155,11 @@ class InitialConditions(NamedTuple):
     frames: Any  # uint8 [B, V, K, H, W, 3] the first K context frames (at the rollout's stride)
     state: Any  # float32 [B, A] imagined state at the last context frame (delta_ee: the end-effector pose)
     task: Any  # int32 [B]
+    robot: Any = None  # float32 [B, S] the robot's recorded state there (a world model with a learned state)
+
+    def take(self, idx) -> InitialConditions:
+        """The conditions at ``idx`` (indices or a slice), each field that is given."""
+        return InitialConditions(*(None if x is None else np.asarray(x)[idx] for x in self))
 
 
 class Carry(NamedTuple):  # one episode (no batch axis); vmapped
@@ -160,6 +167,7 @@ class Carry(NamedTuple):  # one episode (no batch axis); vmapped
     state: jax.Array  # [A]
     done: jax.Array  # bool []
     chunk: jax.Array  # int32 []
+    robot: jax.Array  # [S] the learned robot state (S = 0: none)
 
 
 def episode_keys(seed: int, n: int, start: int = 0) -> jax.Array:
@@ -184,8 +192,9 @@ class ChunkFns:
         # token frames of the (context, prediction) window; raises on impossible bookkeeping
         self.window = window_tokens(self.tok, spec.context, spec.predict)
 
-    def init(self, frames, state) -> Carry:
-        return Carry(to_unit(frames), jnp.asarray(state, jnp.float32), jnp.zeros((), bool), jnp.zeros((), jnp.int32))
+    def init(self, frames, state, robot) -> Carry:
+        return Carry(to_unit(frames), jnp.asarray(state, jnp.float32), jnp.zeros((), bool), jnp.zeros((), jnp.int32),
+                     jnp.asarray(robot, jnp.float32))
 
     def keys(self, key_data, chunk):
         """(policy, forward, inverse) keys of this chunk."""
@@ -193,12 +202,13 @@ class ChunkFns:
         return jax.random.split(k, 3)
 
     def observe(self, carry: Carry, task, key_data, reader_params=None, reader=None):
-        """What the policy sees: the last context frame of every view, the imagined state, the task. With a
-        ``reader`` (a pure ``apply(params, images uint8 [V, H, W, 3]) -> gripper width``) the state's gripper entry
+        """What the policy sees: the last context frame of every view, the state, the task. The state is the learned
+        robot state where the world model has one (``spec.state_dim``), else the imagined commanded state; with a
+        ``reader`` (a pure ``apply(params, images uint8 [V, H, W, 3]) -> gripper width``) the latter's gripper entry
         is read from the frames: commanded actions cannot tell whether the fingers closed on an object or on air."""
         images = to_uint8(carry.context[:, -1])
-        state = carry.state
-        if reader is not None:
+        state = carry.robot if self.spec.state_dim else carry.state
+        if reader is not None and not self.spec.state_dim:
             state = state.at[6].set(reader(reader_params, images).astype(state.dtype))
         obs = {"images": images, "state": state, "task": jnp.asarray(task, jnp.int32)}
         return obs, jax.random.key_data(self.keys(key_data, carry.chunk)[0])
@@ -206,7 +216,8 @@ class ChunkFns:
     def model_step(self, params, norm, carry: Carry, actions, key_data, tau, raw: bool = True):
         """Algorithm 1 after the policy: ``actions`` [C, A] -> (next carry, emitted arrays). ``raw``: the policy's
         actions at ``policy_hz`` (composed ``ratio`` at a time to the model's rate); else already model-rate actions
-        (offline replay). ``norm``: (action mean [A], action std [A], state mean, state std), ``NormStats.arrays``."""
+        (offline replay). ``norm``: (action mean [A], action std [A], state mean, state std) of ``NormStats.arrays``,
+        then the learned state's head (``state_head.py``; None without one)."""
         s, m = self.spec, self.model_cfg
         K, T, l, V = s.context, s.predict, s.keep, s.views
         Kt, Tt = self.window  # token frames (= K, T unless the tokenizer compresses time)
@@ -247,11 +258,15 @@ class ChunkFns:
         # the l executed steps: l * r raw actions; the state at each kept frame is every r-th integrated state
         state, states = imagination_state.integrate(carry.state, actions[:l * r], space,
                                                     s.raw_dt if raw else s.model_dt)
-        new = Carry(jnp.where(done, carry.context, context), jnp.where(done, carry.state, state), done,
-                    carry.chunk + 1)
         emit = {"frames": to_uint8(kept), "actions": model_actions[:l],
                 "reread": a_hat[:l] * std + mean, "states": states[r - 1::r], "u": u, "u_raw": u_raw,
                 "done": done}
+        robot = carry.robot
+        if s.state_dim:  # the robot's state at each kept frame, read off the frame its action produced
+            robots = state_head.unroll(norm[4], carry.robot, model_actions[:l], jnp.moveaxis(kept, 1, 0))
+            robot, emit["robot_states"] = robots[-1], robots
+        new = Carry(jnp.where(done, carry.context, context), jnp.where(done, carry.state, state), done,
+                    carry.chunk + 1, jnp.where(done, carry.robot, robot))
         return new, emit
 
 
@@ -269,6 +284,7 @@ class Rollout:
         actions float32 [B, N*l, A]         commanded raw actions a[0:l] of every chunk
         reread  float32 [B, N*l, A]         raw actions re-read by the inverse mode
         states  float32 [B, N*l, A]         imagined state after each commanded action (delta_ee: the pose)
+        robot_states float32 [B, N*l, S]    the learned robot state at each kept frame (world models with one)
         u float32 [B, N], done bool [B, N]  U_chunk (normalised units) and done' after each chunk; valid = ~done
         u_raw float32 [B, N]                the same mean L2 distance in raw action units
         tau_units str                       which of the two decided termination (rollout.tau_units)
@@ -276,9 +292,11 @@ class Rollout:
     """
 
     def __init__(self, cfg: Config, norm_stats, mesh=None, data_fps: float = 20.0, num_chunks: int | None = None,
-                 cache: bool = True, state_reader=None):
+                 cache: bool = True, state_reader=None, head=None):
+        """``head``: the world model's learned state (``state_head.load``; None: policies see the imagined
+        commanded state)."""
         self.cfg = cfg
-        self.spec = make_spec(cfg, data_fps, num_chunks, norm_stats.action_space)
+        self.spec = make_spec(cfg, data_fps, num_chunks, norm_stats.action_space, state_head.state_dim(head))
         self.tau = resolve_tau(cfg.rollout.tau, self.spec.action_space)  # what run / run_host use by default
         if state_reader is not None and self.spec.action_space.kind != "delta_ee":
             raise UserError(f"a state reader sets the gripper entry of an end-effector pose; this world model's "
@@ -287,7 +305,7 @@ class Rollout:
         self._batch = sharding.batch_sharding(self.mesh)
         self._repl = sharding.replicated(self.mesh)
         self.batch_multiple = self.mesh.shape["data"] * self.mesh.shape["fsdp"]
-        self.norm = jax.device_put(tuple(norm_stats.arrays()), self._repl)
+        self.norm = jax.device_put((*norm_stats.arrays(), head), self._repl)
         self.chunk_fns, self._init, self._observe, self._model_step_fn, self._scan_policy, self._scan_actions = \
             _compiled(cfg.model, cfg.flow, self.spec, cache, state_reader and state_reader.apply)
         # context-parallel attention traces under the mesh; a no-op for meshes without a "context" axis
@@ -315,6 +333,7 @@ class Rollout:
         return jax.device_put(x, self._batch)
 
     def _inputs(self, ics: InitialConditions, keys):
+        """(B, frames, (imagined commanded state, learned robot state), task, keys), padded to the mesh's batch."""
         s = self.spec
         want = (s.views, s.context, *s.image_size, 3)
         if tuple(np.shape(ics.frames)[1:]) != want:
@@ -325,8 +344,13 @@ class Rollout:
             raise UserError(f"initial state {list(np.shape(ics.state))}, the world model's imagined state is "
                             f"[B, {s.action_dim}] ({s.action_space.kind} actions)")
         B = np.shape(ics.frames)[0]
+        robot = np.zeros((B, 0), np.float32) if ics.robot is None else np.asarray(ics.robot, np.float32)
+        if robot.shape[1:] != (s.state_dim,):
+            raise UserError(f"initial robot state {list(robot.shape)}, the world model's learned state is "
+                            f"[B, {s.state_dim}]" + (" (an episode store that records the state, or an .npz with "
+                                                     "robot [B, S])" if s.state_dim else " (it has none)"))
         n = -(-B // self.batch_multiple) * self.batch_multiple
-        frames, state = self._pad(ics.frames, n), self._pad(np.asarray(ics.state, np.float32), n)
+        frames, state = self._pad(ics.frames, n), (self._pad(np.asarray(ics.state, np.float32), n), self._pad(robot, n))
         task, keys = self._pad(np.asarray(ics.task, np.int32), n), self._pad(np.asarray(keys), n)
         return B, frames, state, task, keys
 
@@ -370,7 +394,7 @@ class Rollout:
         tau = self.tau if tau is None else tau
         B, frames, state, task, keys = self._inputs(ics, keys)
         params = self.place_params(params)
-        carry = self._init(frames, state)
+        carry = self._init(frames, *state)
         emits = []
         chunks = range(self.spec.num_chunks)
         if progress:
@@ -405,22 +429,24 @@ class Rollout:
         than this world model's; a JaxPolicy's output shape is also traced (``jax.eval_shape``, nothing runs)."""
         s = self.spec
         name = getattr(policy, "name", None) or type(policy).__name__
-        check_dims(policy, s.action_dim, s.action_dim, name,
-                   f"the world model ({s.action_space.kind} actions, model.action_dim)")
+        seen = s.state_dim or s.action_dim  # the state a policy is handed
+        check_dims(policy, s.action_dim, seen, name,
+                   f"the world model ({s.action_space.kind} actions, model.action_dim"
+                   + (f"; the robot's {s.state_dim}-D learned state)" if s.state_dim else ")"))
         need = getattr(policy, "min_views", None)  # an openpi mapping's cameras (ALOHA: 4)
         if need is not None and s.views < need:
             raise UserError(f"policy {name!r} reads {need} views (its mapping's min_views), the world model has "
                             f"{s.views} (data.views)")
         if isinstance(policy, JaxPolicy):
             obs = {"images": jax.ShapeDtypeStruct((s.views, *s.image_size, 3), jnp.uint8),
-                   "state": jax.ShapeDtypeStruct((s.action_dim,), jnp.float32),
+                   "state": jax.ShapeDtypeStruct((seen,), jnp.float32),
                    "task": jax.ShapeDtypeStruct((), jnp.int32)}
             try:
                 out = jax.eval_shape(policy.apply, policy.params, obs, jax.random.key(0))
             except (TypeError, ValueError) as e:  # e.g. a matmul sized for another state: say which sides
                 first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
                 raise UserError(f"policy {name!r} cannot take this world model's observation (images "
-                                f"[{s.views}, {s.image_size[0]}, {s.image_size[1]}, 3], state [{s.action_dim}]): "
+                                f"[{s.views}, {s.image_size[0]}, {s.image_size[1]}, 3], state [{seen}]): "
                                 f"{first}") from e
             if len(out.shape) != 2 or out.shape[1] != s.action_dim:
                 raise UserError(f"policy {name!r} returns actions of shape {list(out.shape)}, the world model takes "
@@ -440,7 +466,8 @@ class Rollout:
         flat = lambda x: x.reshape(B, s.num_frames, *x.shape[3:])  # noqa: E731  [B, N, l, ...] -> [B, N*l, ...]
         done = e["done"].astype(bool)
         actions, reread = flat(e["actions"]), flat(e["reread"])
-        return {"frames": frames, "initial_frames": np.asarray(ics.frames), "actions": actions,
+        extra = {"robot_states": flat(e["robot_states"])} if "robot_states" in e else {}
+        return {**extra, "frames": frames, "initial_frames": np.asarray(ics.frames), "actions": actions,
                 "reread": reread, "states": flat(e["states"]), "u": e["u"].astype(np.float32),
                 "u_raw": e["u_raw"].astype(np.float32), "tau_units": s.tau_units,
                 "done": done, "frame_valid": np.repeat(~done, s.keep, axis=1),
@@ -465,11 +492,11 @@ def _compiled(model_cfg, flow_cfg, spec: RolloutSpec, cache: bool, reader=None):
             obs, k_pol = observe_b(carry, task, keys, reader_params)
             return step_b(params, norm, carry, jax.vmap(act)(obs, k_pol), keys, tau)
 
-        return jax.lax.scan(body, jax.vmap(st.init)(frames, state), None, length=spec.num_chunks)[1]
+        return jax.lax.scan(body, jax.vmap(st.init)(frames, *state), None, length=spec.num_chunks)[1]
 
     def scan_actions(params, norm, frames, state, task, keys, tau, actions):
         body = lambda carry, a: step_offline(params, norm, carry, a, keys, tau)  # noqa: E731
-        return jax.lax.scan(body, jax.vmap(st.init)(frames, state), jnp.swapaxes(actions, 0, 1))[1]
+        return jax.lax.scan(body, jax.vmap(st.init)(frames, *state), jnp.swapaxes(actions, 0, 1))[1]
 
     return (st, jax.jit(jax.vmap(st.init)), jax.jit(observe_b), jax.jit(step_b),
             jax.jit(scan_policy, static_argnums=(0,)), jax.jit(scan_actions))
@@ -539,5 +566,7 @@ def max_offline_chunks(length: int, spec: RolloutSpec, start: int = 0) -> int:
 
 
 def stack_initial_conditions(items) -> InitialConditions:
-    frames, state, task = zip(*items)
-    return InitialConditions(np.stack(frames), np.stack(state).astype(np.float32), np.asarray(task, np.int32))
+    """(frames, state, task[, robot state]) per condition -> InitialConditions (robot None when none is given)."""
+    frames, state, task, *robot = zip(*items)
+    robot = np.stack(robot[0]).astype(np.float32) if robot and robot[0][0] is not None else None
+    return InitialConditions(np.stack(frames), np.stack(state).astype(np.float32), np.asarray(task, np.int32), robot)

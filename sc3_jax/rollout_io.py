@@ -15,7 +15,9 @@ from sc3_jax.errors import UserError
 def load_initial_conditions(path: str, cfg, spec, episodes: int | None, start: int, task: int):
     """(ids, InitialConditions, store or None) of an episode store (its first K frames at the rollout stride from
     frame ``start``, and the state measured at the last of them) or an ``.npz`` with ``frames`` uint8 [B, V, K, H, W, 3],
-    ``state`` float32 [B, A] (the model's imagined state: A = its action dimension) and optionally ``task`` int32 [B]; the first ``episodes`` of them (None: all)."""
+    ``state`` float32 [B, A] (the model's imagined state: A = its action dimension), optionally ``task`` int32 [B] and
+    ``robot`` float32 [B, S] (the robot's state, for a world model with a learned state); the first ``episodes`` of
+    them (None: all)."""
     from sc3_jax import rollout
 
     p = Path(path)
@@ -23,7 +25,9 @@ def load_initial_conditions(path: str, cfg, spec, episodes: int | None, start: i
         with atomic.open_npz(p, "write the initial conditions again") as z:
             n = len(z["frames"]) if episodes is None else min(episodes, len(z["frames"]))
             tasks = z["task"][:n] if "task" in z else np.full(n, task, np.int32)
-            ics = rollout.InitialConditions(z["frames"][:n], z["state"][:n].astype(np.float32), tasks.astype(np.int32))
+            robot = z["robot"][:n].astype(np.float32) if "robot" in z else None
+            ics = rollout.InitialConditions(z["frames"][:n], z["state"][:n].astype(np.float32), tasks.astype(np.int32),
+                                            robot)
         return [f"ic{i:04d}" for i in range(n)], ics, None
     from sc3_jax.data.episodes import EpisodeStore
 
@@ -31,6 +35,10 @@ def load_initial_conditions(path: str, cfg, spec, episodes: int | None, start: i
 
     store = EpisodeStore(p)
     check_shape(cfg, store)  # views, image size, action dimension: one line naming both sides, before any compile
+    if spec.state_dim and store.state_dim != spec.state_dim:
+        raise UserError(f"{p}: the world model's learned state is {spec.state_dim}-D, this store records "
+                        f"{'no state' if not store.state_dim else f'a {store.state_dim}-D one'} (dataset.json "
+                        "\"state\"): give held-out episodes of the robot it was trained on")
     ids = store.episode_ids()[:episodes]
     if not ids:
         raise UserError(f"{p}: no episodes")
@@ -43,7 +51,8 @@ def load_initial_conditions(path: str, cfg, spec, episodes: int | None, start: i
             raise UserError(f"{p}: episode {eid} has {ep.length} frames, the initial context needs frame {idx[-1]}; "
                             "give a smaller --start")
         frames = np.stack([np.asarray(ep.frames[v])[idx] for v in cfg.data.views])
-        items.append((frames, rollout.initial_state(ep, spec, idx[-1]), np.int32(task)))
+        robot = np.asarray(ep.state[idx[-1]], np.float32) if spec.state_dim else None
+        items.append((frames, rollout.initial_state(ep, spec, idx[-1]), np.int32(task), robot))
     return ids, rollout.stack_initial_conditions(items), store
 
 
@@ -91,10 +100,9 @@ def run_batched(fn, n: int, size: int, progress: bool, desc: str) -> dict:
 def closed_loop(ro, params, policy, ics, keys, tau: float, size: int, progress: bool) -> dict:
     """``policy`` acting inside the world model from ``ics``, ``size`` episodes per jitted call: JAX policies run
     inside the scan, host policies between jitted chunk steps."""
-    from sc3_jax import rollout
     from sc3_jax.policies.base import JaxPolicy
 
-    pick = lambda sl: rollout.InitialConditions(*(np.asarray(x)[sl] for x in ics))  # noqa: E731
+    pick = ics.take
     if isinstance(policy, JaxPolicy):
         return run_batched(lambda sl: ro.run(params, policy, pick(sl), keys[sl], tau), len(keys), size, progress,
                            "rollout")
@@ -120,7 +128,7 @@ def offline(cfg, stats, params, store, ids, fps: float, spec, start: int, task: 
     items = [rollout.from_episode(ep, cfg.data.views, ro.spec, start, task) for ep in eps]
     ics = rollout.stack_initial_conditions([it[0] for it in items])
     acts, tgts = np.stack([it[1] for it in items]), np.stack([it[2] for it in items])
-    pick = lambda sl: rollout.InitialConditions(*(np.asarray(x)[sl] for x in ics))  # noqa: E731
+    pick = ics.take
     off = run_batched(lambda sl: ro.run_offline(params, pick(sl), acts[sl], keys[sl], math.inf), len(ids), size,
                       progress, "offline")
     off["psnr"], off["psnr_view"] = (x.astype(np.float32) for x in psnr_by_view(off["frames"], tgts,

@@ -2,7 +2,7 @@
 # Rebuild the shipped world model and perception scorer of the simulated benchmark from nothing (resumable: every
 # step skips what exists). On the 2-core CPU machine: demos ~6 min, world model ~80 min
 # (the shipped one was stopped at step 2,177 of 2,600 for time), scorer ~20 min + ~40 min.
-#   bash scripts/bussing_sim.sh [RUNS_DIR]        then: sc3 sweep --world-model RUNS_DIR/train ...
+#   bash scripts/bussing_sim.sh [RUNS_DIR]        then: sc3 sweep bench --world-model RUNS_DIR/train ...
 set -euo pipefail
 R=${1:-runs/bussing}
 D=$R/demos

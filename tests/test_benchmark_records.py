@@ -1,5 +1,5 @@
 """The simulated benchmark's records do not move when the library generalises (issue 33: "README command 1 writes
-records identical to today's"): a small `sc3 sweep` (real and online, evaluation, calibration and ceiling blocks,
+records identical to today's"): a small `sc3 sweep bench` (real and online, evaluation, calibration and ceiling blocks,
 the shipped world model and scorer) gives exactly the records and rollout arrays that the code before actions and
 state became data (commit b64205e) wrote. tests/golden/benchmark_sweep.json was made by that commit:
 
@@ -50,7 +50,7 @@ def test_benchmark_sweep_records_and_arrays_are_todays(tmp_path):
     # as a user runs it: one device, XLA's default optimisation (the test processes' 8 devices and fast compile
     # move U in its 7th digit)
     env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
-    subprocess.run([sys.executable, "-m", "sc3_jax.cli", "sweep", "--out", str(out), "--degradations", "all", *ARGS],
+    subprocess.run([sys.executable, "-m", "sc3_jax.cli", "sweep", "bench", "--out", str(out), "--degradations", "all", *ARGS],
                    env=env, check=True, capture_output=True)
     records = [json.loads(line) for line in (out / "results.jsonl").read_text().splitlines()]
     key = lambda r: (r["policy"], r["mode"], r["seed"])  # noqa: E731

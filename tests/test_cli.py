@@ -1,3 +1,5 @@
+import pytest
+
 from sc3_jax.cli import main
 
 
@@ -21,3 +23,19 @@ def test_configs_lists_parameter_counts(capsys):
     paper = next(line for line in out.splitlines() if line.strip().startswith("paper "))
     assert 1800 < float(paper.split()[1].rstrip("M")) < 2400
     assert "ablation_no_id" in out and "tiny" in out
+
+
+def test_a_sweep_names_its_job_and_the_old_spelling_says_the_new_one(capsys):
+    """`sc3 sweep bench` and `sc3 sweep episodes` are the two jobs; options without a job are refused in one line
+    that gives the command back with the job the options imply, so nothing the user typed is lost."""
+    assert main(["sweep", "--help"]) == 0
+    out = capsys.readouterr().out
+    assert "bench" in out and "episodes" in out
+    assert main(["sweep", "--out", "x", "--episodes", "3"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "`sc3 sweep bench --out x --episodes 3`" in err
+    assert main(["sweep", "--initial-conditions", "ic", "--out", "y"]) == 2
+    assert "`sc3 sweep episodes --initial-conditions ic --out y`" in capsys.readouterr().err
+    with pytest.raises(SystemExit):  # a usage error, as every command's: its required options are named
+        main(["sweep", "episodes", "--out", "y"])
+    assert "--initial-conditions" in capsys.readouterr().err

@@ -1,5 +1,5 @@
 """``sc3 rollout`` and ``sc3 diagnose`` on the tyro surface: ``--help`` gives every option its own docstring, both
-commands sample a world model exactly as ``sc3 sweep`` does (``SweepConfig``'s defaults, not the checkpoint's own
+commands sample a world model exactly as ``sc3 sweep bench`` does (``SweepConfig``'s defaults, not the checkpoint's own
 settings), a ``--SECTION.FIELD`` override reaches the config, and an unknown option is a usage error. The runs
 themselves are tested in test_rollout.py and test_diagnose.py."""
 from __future__ import annotations
@@ -14,7 +14,7 @@ from test_diagnose import _copy_last_model, _tiny_store
 
 from sc3_jax.cli import main
 from sc3_jax.commands import diagnose as diagnose_cmd
-from sc3_jax.commands import parse, parse_with_config
+from sc3_jax.commands import parse, parse_evaluated
 from sc3_jax.commands import rollout as rollout_cmd
 from sc3_jax.benchmarks.bussing.sweep import SweepConfig
 
@@ -30,7 +30,8 @@ def _required(command: str, wm) -> list[str]:
 def _config(command: str, wm, *overrides: str):
     """The config the command would evaluate the world model under (parsing only: nothing runs)."""
     mod = COMMANDS[command]
-    return parse_with_config(mod.Args, _required(command, wm) + list(overrides), command, mod.evaluated_config)[1]
+    return parse_evaluated(mod.Args, _required(command, wm) + list(overrides), command,
+                          "checkpoint" if command == "rollout" else "world_model")[1]
 
 
 @pytest.fixture(scope="module")
@@ -57,11 +58,14 @@ def test_help_gives_every_option_its_own_docstring(command, capsys, monkeypatch)
 
 
 def test_rollout_diagnose_and_sweep_sample_a_world_model_alike(wm, tmp_path, monkeypatch):
-    """The config `sc3 sweep` builds its rollouts from (caught where it constructs them) is the one both commands
-    evaluate under: the same sampler steps, inverse re-read steps, horizon and U units."""
+    """The config `sc3 sweep bench` builds its rollouts from (caught where it constructs them) is the one both
+    commands evaluate under: the same sampler steps, inverse re-read steps and U units; the horizon is the only
+    difference (the benchmark's 12 s in the sweep, the world model's own in rollout and diagnose)."""
     from sc3_jax import rollout
     from sc3_jax.benchmarks.bussing import sweep
     from sc3_jax.benchmarks.bussing.zoo import zoo_names
+    from sc3_jax.config import replace
+    from sc3_jax.evaluate.world_model_defaults import Sampler
 
     class Built(Exception):
         pass
@@ -74,20 +78,23 @@ def test_rollout_diagnose_and_sweep_sample_a_world_model_alike(wm, tmp_path, mon
         sweep.run_sweep(SweepConfig(out=str(tmp_path / "sweep"), world_model=str(wm), modes=("online",),
                                     policies=(zoo_names("bussing")[0],), progress=False,
                                     workers=1))  # in this process, where Rollout is caught
-    swept = e.value.args[0]
-    defaults = SweepConfig()
+    swept, defaults = e.value.args[0], Sampler()
     assert (swept.sample.steps, swept.sample.inverse_steps, swept.rollout.episode_seconds,
-            swept.rollout.tau_units) == (defaults.sample_steps, defaults.inverse_steps, defaults.episode_seconds,
+            swept.rollout.tau_units) == (defaults.sample_steps, defaults.inverse_steps, SweepConfig().episode_seconds,
                                          defaults.tau_units)
+    from sc3_jax import checkpoint
+    own = checkpoint.read_config(wm).rollout.episode_seconds
     for command in COMMANDS:
-        assert _config(command, wm) == swept, command
+        cfg = _config(command, wm)
+        assert cfg.rollout.episode_seconds == own, command
+        assert replace(cfg, rollout=dict(episode_seconds=swept.rollout.episode_seconds)) == swept, command
 
 
 @pytest.mark.parametrize("command", sorted(COMMANDS))
 def test_a_dotted_override_reaches_the_config(command, wm):
     cfg = _config(command, wm, "--sample.steps", "8", "--rollout.tau", "0.05", "--rollout.episode-seconds", "6")
     assert (cfg.sample.steps, cfg.rollout.tau, cfg.rollout.episode_seconds) == (8, 0.05, 6.0)
-    assert cfg.sample.inverse_steps == SweepConfig().inverse_steps  # what was not overridden keeps the sweep's
+    assert cfg.sample.inverse_steps == SweepConfig().inverse_steps  # what was not overridden keeps the sampler's
     assert _config(command, wm, "--sample.inverse-steps", "None").sample.inverse_steps is None  # the model's own
 
 

@@ -318,18 +318,18 @@ def test_tokenizer_log_survives_a_line_cut_by_a_kill(tmp_path):
 
 
 # ================================================================================================================
-# sc3 sweep (and the report it ends with)
+# sc3 sweep bench (and the report it ends with)
 # ================================================================================================================
 @pytest.fixture(scope="module")
 def sweep_ref(tmp_path_factory):
-    """A tiny world model, perception weights, and an uninterrupted `sc3 sweep` over them (with its report); the
+    """A tiny world model, perception weights, and an uninterrupted `sc3 sweep bench` over them (with its report); the
     length of its start-up (until its first record)."""
     root = tmp_path_factory.mktemp("sweep")
     wm = tiny_world_model(root)
     perception.save(root / "perception.npz", perception.init(jax.random.key(1)))
 
     def cmd(out):
-        return CLI + ["sweep", "--out", str(out), "--world-model", str(wm), "--perception",
+        return CLI + ["sweep", "bench", "--out", str(out), "--world-model", str(wm), "--perception",
                       str(root / "perception.npz"), "--policies", "bus_bc_full", "--episodes", "2",
                       "--episode-seconds", "1.6", "--batch", "1", "--no-progress", "--taus", "inf", "1.0",
                       "--calibration-episodes", "1", "--ceiling-episodes", "1", "--modes", "real", "offline",

@@ -1,4 +1,4 @@
-"""Evaluation without a simulator (issue 33 item 3 and its acceptance): `sc3 sweep --initial-conditions` ranks
+"""Evaluation without a simulator (issue 33 item 3 and its acceptance): `sc3 sweep episodes --initial-conditions` ranks
 policies inside a world model from held-out episodes of the tiny bimanual 14-D robot of test_any_robot.py -- two
 `module:attr` host policies and one served over a real websocket by an openpi-style ALOHA server (`--family aloha`:
 4 CHW cameras, 14-D state) -- scored by a `module:attr` scorer, resumably, and compares the ranking with real
@@ -103,8 +103,8 @@ def _real_store(root):
 
 
 def _sweep(ic, run, out, *extra, policies=("hold", "half", "reach"), scorer="test_ic_sweep:score"):
-    """`sc3 sweep --initial-conditions`; a policy NAME is test_ic_sweep:NAME, a NAME=SPEC is given as is."""
-    return main(["sweep", "--initial-conditions", str(ic), "--world-model", str(run), "--policies",
+    """`sc3 sweep episodes --initial-conditions`; a policy NAME is test_ic_sweep:NAME, a NAME=SPEC is given as is."""
+    return main(["sweep", "episodes", "--initial-conditions", str(ic), "--world-model", str(run), "--policies",
                  *[p if "=" in p else f"{p}=test_ic_sweep:{p}" for p in policies], "--scorer", scorer,
                  "--episodes", "2", "--calibration-episodes", "2", "--batch", "2", "--episode-seconds", "0.6", "--taus", "inf", "0.5",
                  "--out", str(out), "--no-progress", *extra])
@@ -213,7 +213,7 @@ def test_rerun_adds_nothing(swept, aloha, capsys):
 def test_ranking_and_faithfulness_in_report(swept):
     out = swept[3]
     t = json.loads((out / "report" / "report.json").read_text())
-    assert (out / "report" / "report.md").read_text().startswith("# Simulator-free sweep report")
+    assert (out / "report" / "report.md").read_text().startswith("# Sweep report: held-out episodes")
     ranked = [p["policy"] for p in t["policies"]]
     assert ranked[0] == "reach" and t["policies"][0]["rank"] == 1 and t["policies"][0]["p_best"] == 1.0
     rates = {p["policy"]: {c: v["value"] for c, v in p["rates"].items()} for p in t["policies"]}

@@ -162,7 +162,7 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
     ("train", ("train", "sharding", "tokenizer_train", "distill")),
     ("policies", ("policies",)),
     ("policy names", ("policies.resolve",)),
-    ("rollout", ("rollout", "imagination_state")),
+    ("rollout", ("rollout", "imagination_state", "state_head")),
     ("results", ("evaluate.results",)),
     ("scoring", ("evaluate.scorers", "evaluate.degrade", "evaluate.labels")),
     ("diagnostics", ("evaluate.world_model", "evaluate.world_model_defaults", "evaluate.diagnose",
@@ -170,7 +170,7 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
                      "evaluate.diagnose_report", "evaluate.diagnose_table", "rollout_io", "plan", "plan_vae")),
     ("sweep", ("evaluate.worker_pool", "evaluate.ic_sweep")),
     ("report", ("evaluate.report", "evaluate.report_html", "evaluate.calibrate", "evaluate.intervals", "evaluate.bootstrap",
-                "evaluate.merged", "evaluate.curve", "evaluate.ic_ranking")),
+                "evaluate.merged", "evaluate.curve", "evaluate.report_episodes", "evaluate.report_figures")),
     ("benchmarks", ("benchmarks",)),
     ("commands", ("cli", "commands", "convert_cli", "demo")),
 ]

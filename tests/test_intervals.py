@@ -239,9 +239,9 @@ def test_a_store_without_real_rollouts_gets_no_report_and_its_sweep_keeps_them(t
     (root / "results.jsonl").write_text("".join(json.dumps(r) + "\n" for r in online_only))
     with pytest.raises(UserError, match="no real rollouts on the evaluation seeds.*--modes real"):
         report.compute(root, draws=10)
-    # `sc3 sweep --modes online`: the rollouts stay, the command ends well and says why there is no report
+    # `sc3 sweep bench --modes online`: the rollouts stay, the command ends well and says why there is no report
     monkeypatch.setattr(sweep, "run_sweep", lambda cfg: root)
-    assert sweep_cmd.main(["--out", str(root), "--modes", "online"]) == 0
+    assert sweep_cmd.main(["bench", "--out", str(root), "--modes", "online"]) == 0
     out = capsys.readouterr().out
     assert f"rollouts: {root}; no report:" in out and not (root / "report" / "report.md").exists()
     assert len(ResultsStore(root).records()) == len(online_only)

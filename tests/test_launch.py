@@ -134,7 +134,7 @@ def test_slurm_two_processes_train_and_checkpoint(tmp_path):
 
 
 def test_sweep_array_gives_each_task_its_share(tmp_path):
-    """launch/sweep_array.sbatch: task I of an array of N runs `sc3 sweep --shard I/N` with one worker per core."""
+    """launch/sweep_array.sbatch: task I of an array of N runs `sc3 sweep bench --shard I/N` with one worker per core."""
     fake = tmp_path / "sc3"
     fake.write_text('#!/bin/bash\necho "$@"\n')
     fake.chmod(0o755)
@@ -142,7 +142,7 @@ def test_sweep_array_gives_each_task_its_share(tmp_path):
            "SLURM_ARRAY_TASK_MAX": "7", "SLURM_ARRAY_TASK_ID": "6", "SLURM_CPUS_PER_TASK": "16"}
     out = subprocess.run(["bash", str(ROOT / "launch" / "sweep_array.sbatch"), "--out", "/x"], env=env,
                          capture_output=True, text=True, check=True).stdout.split()
-    assert out == ["sweep", "--shard", "2/4", "--workers", "16", "--no-progress", "--out", "/x"]
+    assert out == ["sweep", "bench", "--shard", "2/4", "--workers", "16", "--no-progress", "--out", "/x"]
     del env["SLURM_ARRAY_TASK_MAX"]  # not an array job: refused, with how to submit it
     r = subprocess.run(["bash", str(ROOT / "launch" / "sweep_array.sbatch")], env=env, capture_output=True,
                        text=True)

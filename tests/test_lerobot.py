@@ -331,7 +331,7 @@ def test_a_one_value_feature_is_written_as_lerobot_does_and_read_back(tmp_path, 
 
 def test_import_keeps_next_success_as_the_real_outcome(tmp_path):
     """next.success becomes each episode's meta labels (any frame's, even one the import's fps skips), which
-    `sc3 sweep --real NAME=STORE` (evaluate/labels.py) reads with the LeRobot source gone."""
+    `sc3 sweep episodes --real NAME=STORE` (evaluate/labels.py) reads with the LeRobot source gone."""
     from sc3_jax.data.episodes import EpisodeStore
     from sc3_jax.evaluate import labels
 

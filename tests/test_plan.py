@@ -264,3 +264,23 @@ def test_aloha_wan_config_shape():
     with plan_vae.shape_only_vae(cfg):
         from sc3_jax.model import tokenizer
         assert tokenizer.tokens_per_sample(cfg) == 4 * (2 + 6) * 15 * 20 + 24
+
+
+def test_a_train_step_that_cannot_fit_trains_with_the_memory_plan_that_does(monkeypatch):
+    """The tiny config on 4 cameras at 96 x 128 (4,612 tokens per sample) with dense attention at batch 32: its
+    [N, N] scores alone are ~11 GB a layer. With 8 GB per device the memory-efficient kernel (the same math, in
+    tiles) is chosen before anything compiles, and said; a user who set the kernel is refused in one line with the
+    flags that fit; nothing fitting is said too."""
+    cfg = replace(load_config("tiny"), data=dict(views=("a", "b", "c", "d"), image_size=(96, 128)),
+                  model=dict(num_views=4))
+    monkeypatch.setattr(plan, "available_bytes", lambda: (8e9, "test memory"))
+    fitted, note = plan.fit_to_memory(cfg, 8)
+    assert fitted.model.attention_impl == "blockwise" and fitted.model.dim == cfg.model.dim
+    assert "4612 tokens per sample" in note and "dense attention" in note and "--model.attention-impl blockwise" in note
+    assert plan.fit_to_memory(fitted, 8) == (fitted, None)  # fits as it is
+    with pytest.raises(UserError) as e:
+        plan.fit_to_memory(cfg, 8, {"model.attention_impl"})
+    assert "\n" not in str(e.value) and "it fits with --model.attention-impl blockwise" in str(e.value)
+    monkeypatch.setattr(plan, "available_bytes", lambda: (1e6, "test memory"))
+    with pytest.raises(UserError, match="nothing fits"):  # not even one sample per device
+        plan.fit_to_memory(cfg, 8)

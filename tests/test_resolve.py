@@ -91,7 +91,7 @@ def test_websocket_server(server):
 
 
 def test_every_command_resolves_every_spelling(server, monkeypatch):
-    """sc3 sweep (needs a task), sc3 serve-policy, sc3 sim eval and sc3 rollout all call ``resolve``."""
+    """sc3 sweep bench (needs a task), sc3 serve-policy, sc3 sim eval and sc3 rollout all call ``resolve``."""
     from sc3_jax.benchmarks.bussing import sweep
     from sc3_jax.commands import parse, serve_policy
     from sc3_jax.benchmarks.bussing import cli as sim_cli

@@ -184,13 +184,13 @@ def test_tau_units_decide_which_u_is_compared(setup):
     B_, frames, state, task, k = ro._inputs(ics, keys)
     acts = ro._pad(np.random.default_rng(0).normal(0, 0.01, (len(k), 5, 7)).astype(np.float32), len(k))
     params = ro.place_params(params)
-    _, emit = ro._model_step(params, ro._init(frames, state), acts, k, jnp.float32(math.inf))
+    _, emit = ro._model_step(params, ro._init(frames, *state), acts, k, jnp.float32(math.inf))
     u, u_raw = np.asarray(emit["u"])[:B_], np.asarray(emit["u_raw"])[:B_]
     assert np.all(u > 10 * u_raw)  # std 0.01: normalised U is ~100x the raw one
     tau = float(np.sqrt(u.min() * u_raw.max()))  # between every raw and every normalised U
     norm = rollout.Rollout(replace(cfg, rollout=dict(tau_units="normalised")), STATS, num_chunks=N)
     for r, stops in ((ro, False), (norm, True)):
-        c, _ = r._model_step(params, r._init(frames, state), acts, k, jnp.float32(tau))
+        c, _ = r._model_step(params, r._init(frames, *state), acts, k, jnp.float32(tau))
         assert np.all(np.asarray(c.done)[:B_] == stops)
     with pytest.raises(ValueError, match="tau_units"):
         rollout.make_spec(replace(cfg, rollout=dict(tau_units="metres")))
@@ -199,7 +199,7 @@ def test_tau_units_decide_which_u_is_compared(setup):
 def test_context_unchanged_by_terminating_chunk(setup):
     cfg, ro, params, policy, ics, keys, ref = setup
     B_, frames, state, task, k = ro._inputs(ics, keys)
-    carry = ro._init(frames, state)
+    carry = ro._init(frames, *state)
     acts = ro._pad(np.random.default_rng(0).normal(0, 0.01, (len(k), 5, 7)).astype(np.float32), len(k))
     params = ro.place_params(params)
     stop, emit = ro._model_step(params, carry, acts, k, jnp.float32(-1.0))  # every U > -1

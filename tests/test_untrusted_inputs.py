@@ -72,7 +72,7 @@ def slow():
 
 
 def _sweep_args(ic, run, out, *policies: str) -> list[str]:
-    return ["sweep", "--initial-conditions", str(ic), "--world-model", str(run), "--policies", *policies,
+    return ["sweep", "episodes", "--initial-conditions", str(ic), "--world-model", str(run), "--policies", *policies,
             "--scorer", "test_untrusted_inputs:score", "--episodes", "2", "--calibration-episodes", "0", "--batch", "2",
             "--episode-seconds", "0.6", "--out", str(out), "--no-progress"]
 

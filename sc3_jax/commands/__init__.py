@@ -40,6 +40,20 @@ def parse_with_config(args: type[T], argv: list[str], command: str, base: Callab
     return a, cfg
 
 
+def parse_evaluated(args: type[T], argv: list[str], command: str, world_model: str):
+    """``parse_with_config`` for a command that samples a saved world model (its path: the parsed options' field
+    ``world_model``): its config under the evaluation sampler's defaults (``world_model_defaults.Sampler``, as the
+    sweeps sample), then the ``--SECTION.FIELD`` overrides; a distilled student sampled off its one step is warned
+    about."""
+    from sc3_jax import checkpoint
+    from sc3_jax.evaluate.world_model_defaults import evaluation_config, warn_if_student_off_its_step
+
+    a, cfg = parse_with_config(args, argv, command,
+                               lambda a: evaluation_config(checkpoint.read_config(getattr(a, world_model))))
+    warn_if_student_off_its_step(cfg)
+    return a, cfg
+
+
 def one_or_more(name: str):
     """For a positional ``tuple[str, ...]``: tyro parses it as zero or more values, shown optional; this shows it as
     argparse's ``nargs="+"`` did (the command itself refuses an empty one)."""

@@ -7,7 +7,7 @@ from typing import Annotated
 
 import tyro
 
-from sc3_jax.commands import parse_with_config
+from sc3_jax.commands import parse_evaluated
 from sc3_jax.evaluate.diagnose import DiagnoseConfig, Stage
 
 SUMMARY = "the checks that gate a world-model checkpoint, on held-out episodes"  # the line `sc3 --help` shows
@@ -55,20 +55,8 @@ class Args:
     a large outcome set at the cost of its open-loop rollouts alone"""
 
 
-def evaluated_config(a: Args):
-    """The world model's config with the sweep's evaluation settings (SweepConfig's defaults), before any
-    --SECTION.FIELD override."""
-    from sc3_jax import checkpoint
-    from sc3_jax.benchmarks.bussing.sweep import SweepConfig
-    from sc3_jax.evaluate.world_model_defaults import evaluation_config
-
-    return evaluation_config(checkpoint.read_config(a.world_model), SweepConfig())
-
-
 def main(argv: list[str]) -> int:
-    a, cfg = parse_with_config(Args, argv, "diagnose", evaluated_config)
-    from sc3_jax.evaluate.world_model_defaults import warn_if_student_off_its_step
-    warn_if_student_off_its_step(cfg)  # after the --sample.steps override
+    a, cfg = parse_evaluated(Args, argv, "diagnose", "world_model")
     from sc3_jax.benchmarks.bussing.hooks import object_pixels, perception_scorer
     from sc3_jax.evaluate import diagnose
 

@@ -29,7 +29,7 @@ class Args:
     draws: int = 2000
     """paired bootstrap draws for the 95% intervals"""
     real: tuple[str, ...] | None = None
-    """a sweep from --initial-conditions only: real outcomes of the same policies, [NAME=]PATH (episode stores with
+    """a sweep of held-out episodes only: real outcomes of the same policies, [NAME=]PATH (episode stores with
     labels, a LeRobot dataset, a CSV; docs/your_robot.md), instead of the sweep's own --real"""
 
 
@@ -37,19 +37,11 @@ def main(argv: list[str]) -> int:
     a = parse(Args, argv, "report")
     if not a.results:  # tyro takes a positional tuple as zero or more; argparse asked for one at least
         raise UserError("give at least one RESULTS store")
-    from sc3_jax.evaluate import ic_ranking, report  # after parsing: --help and a typo need not load plotting
-
-    if len(a.results) == 1 and ic_ranking.is_ic_store(a.results[0]):  # `sc3 sweep --initial-conditions`'s store
-        md = ic_ranking.render(a.results[0], a.out or f"{a.results[0]}/report", real=a.real, draws=a.draws)
-        for w in json.loads((md.parent / "report.json").read_text())["warnings"]:  # as the sweep says them
-            print(f"warning: {w}")
-        print(f"report: {md} (and report.html, report.json)")
-        return 0
-    if a.real:
-        raise UserError("--real is for a sweep from --initial-conditions; a simulated sweep's real rollouts are in "
-                        "its store")
     from sc3_jax.benchmarks.bussing.hooks import object_pixels
-    md = report.render(list(a.results), a.out or f"{a.results[0]}/report", a.videos, a.taus, a.draws,
-                       scene=object_pixels)
-    print(f"report: {md}")
+    from sc3_jax.evaluate import report  # after parsing: --help and a typo need not load plotting
+
+    md = report.render(list(a.results), a.out, a.videos, a.taus, a.draws, scene=object_pixels, real=a.real)
+    t = json.loads((md.parent / "report.json").read_text())
+    print("\n".join(report.closing_lines(t)))
+    print(f"report: {md} (and report.html, report.json)")
     return 0

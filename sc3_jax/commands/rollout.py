@@ -10,7 +10,7 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
-from sc3_jax.commands import parse_with_config
+from sc3_jax.commands import parse_evaluated
 
 SUMMARY = "closed-loop and offline rollouts of a policy inside a world model"  # the line `sc3 --help` shows
 
@@ -56,29 +56,20 @@ class Args:
     """also replay the recorded actions open loop and compare with the recorded frames (episode stores only)"""
     perception: str | None = None
     """perception weights for the success estimate (None: the shipped ones)"""
+    learned_state: bool = True
+    """hand the policy the world model's learned robot state where it has one (state_head.npz); --no-learned-state:
+    the integrated commands (exact for absolute targets, or velocities of the recorded state)"""
     video: bool = True
     """one mp4 per episode and view (--no-video: none)"""
     progress: bool = True
     """progress bars on stderr (--no-progress: none, for batch logs)"""
 
 
-def evaluated_config(a: Args):
-    """The checkpoint's config with the sweep's evaluation settings (SweepConfig's defaults), before any
-    --SECTION.FIELD override."""
-    from sc3_jax import checkpoint
-    from sc3_jax.benchmarks.bussing.sweep import SweepConfig
-    from sc3_jax.evaluate.world_model_defaults import evaluation_config
-
-    return evaluation_config(checkpoint.read_config(a.checkpoint), SweepConfig())
-
-
 def main(argv: list[str]) -> int:
-    a, cfg = parse_with_config(Args, argv, "rollout", evaluated_config)
-    from sc3_jax.evaluate.world_model_defaults import warn_if_student_off_its_step
-    warn_if_student_off_its_step(cfg)  # after the --sample.steps override
+    a, cfg = parse_evaluated(Args, argv, "rollout", "checkpoint")
     import numpy as np
 
-    from sc3_jax import atomic, checkpoint, rollout, rollout_io
+    from sc3_jax import atomic, checkpoint, rollout, rollout_io, state_head
     from sc3_jax.benchmarks.bussing.hooks import named_policy, perception_scorer
     from sc3_jax.policies.openpi_mappings import for_world_model, get_mapping
     from sc3_jax.policies.resolve import resolve
@@ -86,13 +77,13 @@ def main(argv: list[str]) -> int:
     stats = checkpoint.read_norm_stats(a.checkpoint)
     params = checkpoint.load_params(a.checkpoint, cfg, a.step)
     fps = rollout_io.data_fps(a.initial_conditions, a.data_fps)
-    ro = rollout.Rollout(cfg, stats, data_fps=fps)
+    ro = rollout.Rollout(cfg, stats, data_fps=fps, head=state_head.load(a.checkpoint) if a.learned_state else None)
     ids, ics, store = rollout_io.load_initial_conditions(a.initial_conditions, cfg, ro.spec, a.episodes, a.start,
                                                          a.task)
     family = a.family
     if store is not None and get_mapping(a.family) is not None:
         # an openpi server reads each episode's own instruction (not the bussing table by --task), and its
-        # cameras by the model's view names where it has them (as `sc3 sweep --initial-conditions` sends them)
+        # cameras by the model's view names where it has them (as `sc3 sweep episodes --initial-conditions` sends them)
         prompts = [atomic.read_json(store.root / e / "meta.json").get("prompt", "") for e in ids]
         table = list(dict.fromkeys(prompts))
         ics = ics._replace(task=np.asarray([table.index(p) for p in prompts], np.int32))

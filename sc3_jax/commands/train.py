@@ -37,6 +37,22 @@ def main(argv: list[str]) -> int:
     # (no dataset there: train() says so, after refusing a changed config, which it checks first)
     if (Path(cfg.data.path) / "dataset.json").is_file():
         cfg = shape_from_dataset(cfg, cfg.data.path, explicit_fields(argv))
+    import jax
+
+    from sc3_jax import plan
+
+    # a step that cannot fit: the memory plan that does (or one line saying why not), never an allocator failure
+    cfg, note = plan.fit_to_memory(cfg, jax.device_count(), explicit_fields(argv))
+    if note:
+        print(note)
     last = train.train(cfg)
     print(f"done: step {last.get('step')} loss {last.get('loss', float('nan')):.4f} -> {cfg.train.workdir}")
+    from sc3_jax.data.episodes import EpisodeStore
+
+    has_state = (Path(cfg.data.path) / "dataset.json").is_file() and EpisodeStore(cfg.data.path).state_dim
+    if has_state:  # the robot records its state: the policies acting inside the world model will read it
+        from sc3_jax.commands import train_state
+        from sc3_jax.state_head import FitConfig
+
+        print(train_state.describe(*train_state.train(cfg.train.workdir, None, FitConfig(), cfg.train.progress)))
     return 0

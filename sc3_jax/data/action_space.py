@@ -167,9 +167,10 @@ class ActionSpace:
             return np.asarray(state[t], np.float32).copy()
         if self.kind == "absolute":  # no matching measurement: the first target stands in for it
             return np.asarray(actions[0], np.float32).copy()
-        raise UserError(f"velocity actions integrate from a recorded state of their dimension {self.dim} "
-                        f"(dataset.json \"state\"), this dataset has "
-                        f"{'none' if state is None else f'a {np.shape(state)[-1]}-D one'}")
+        # velocities of something the robot does not record (end-effector deltas under a joint state): the commands
+        # integrate from zero, a displacement since the window's (the rollout's) start; the policy is handed the
+        # robot's own state by the learned state head (state_head.py), not this
+        return np.zeros(self.dim, np.float32)
 
     def state_series(self, actions: np.ndarray, ee_pose: np.ndarray | None,
                      state: np.ndarray | None) -> np.ndarray | None:
@@ -179,7 +180,8 @@ class ActionSpace:
             return ee_pose
         if self.kind == "absolute":
             return actions
-        self._measured(actions, state, 0)  # refuses a missing or mismatched state
+        if state is None or np.shape(state)[-1] != self.dim:  # the displacement since the start (see _measured)
+            state = np.cumsum(np.asarray(actions, np.float64), axis=0)
         s = np.array(state, np.float64)
         s[:, list(self.targets)] = np.asarray(actions, np.float64)[:, list(self.targets)]
         return s

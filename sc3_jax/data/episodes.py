@@ -134,9 +134,6 @@ class EpisodeStore:
             state_names or [f"s{i}" for i in range(int(state_dim))])}
         if state is not None and len(state["names"]) != state["dim"]:
             raise ValueError(f"{len(state['names'])} state names for a {state_dim}-D state")
-        if action_space.kind == "velocity" and (state is None or state["dim"] != action_space.dim):
-            raise UserError(f"velocity actions integrate from a recorded state of their dimension "
-                            f"{action_space.dim}: declare one (state_dim), not {state and state['dim']}")
         declared = {"action_dim": action_space.dim, "action_space": action_space.to_dict(), "state": state,
                     "ee_pose": bool(has_pose)}
         if header.exists():

@@ -45,7 +45,7 @@ IMAGE_PREFIX = "observation.images."
 INFO_ACTION_SPACE = "sc3_action_space"
 SUCCESS_KEY = "next.success"  # LeRobot's per-frame success feature (evaluate/labels.py: LEROBOT_SUCCESS)
 MIN_EPISODE_FRAMES = 2  # an imported episode shorter than this is skipped (said): nothing can be learnt from it
-LABELS_FIELD = "labels"  # an imported episode's meta.json {criterion: bool}, what `sc3 sweep --real STORE` reads
+LABELS_FIELD = "labels"  # an imported episode's meta.json {criterion: bool}, what `sc3 sweep episodes --real STORE` reads
 _OPTIONAL = object()  # sentinel: "use observation.state if the dataset has it"
 
 
@@ -481,7 +481,7 @@ def import_lerobot(root: str | os.PathLike, out: str | os.PathLike, views=None, 
     ``state_key``: the proprioceptive state feature of any size (default ``observation.state`` when present and not
     already the ee_pose; None: none), stored as ``state``. ``image_size`` resizes every view (our store has one size
     for all views). A ``next.success`` feature becomes each episode's meta ``"labels": {"success": any frame's}``
-    (the real outcomes ``sc3 sweep --real STORE`` reads). ``episodes``: the episode_index values to import (a
+    (the real outcomes ``sc3 sweep episodes --real STORE`` reads). ``episodes``: the episode_index values to import (a
     container; None: all), so that one dataset gives a training store and a held-out one. Episodes are named
     ``lerobot{episode_index:06d}``; existing ones are skipped (resumable).
     """
@@ -518,9 +518,6 @@ def import_lerobot(root: str | os.PathLike, out: str | os.PathLike, views=None, 
     src.pose_key, src.state_key = (pose_key if has_pose else None), state_key
     state_dim = int(np.prod(feats[state_key]["shape"])) if state_key else None
     state_names = (names_of(feats[state_key].get("names"), state_dim) or None) if state_key else None
-    if space.kind == "velocity" and state_dim != dim:
-        raise LeRobotError(info_path, f"velocity actions integrate from a recorded state of their dimension {dim}; "
-                                      f"state key {state_key!r} is {state_dim or 'missing'}: pass state_key")
     sizes = {tuple(feats[k]["shape"][:2]) for k in src.cameras.values()}
     if image_size is None and len(sizes) > 1:
         raise LeRobotError(root, f"cameras have different sizes {sorted(sizes)}: pass image_size to resize them")
@@ -552,7 +549,7 @@ def import_lerobot(root: str | os.PathLike, out: str | os.PathLike, views=None, 
                     "tasks": ep.tasks, "source_fps": src.source_fps, "camera_keys": src.cameras,
                     "wrist_views": list(src.wrist_views), "timestamps": ep.timestamps.tolist(),
                     "ee_pose_source": pose_key if has_pose else "none", "state_source": state_key or "none"}
-            if ep.success is not None:  # the real outcome, so that `sc3 sweep --real STORE` needs no LeRobot source
+            if ep.success is not None:  # the real outcome, so that `sc3 sweep episodes --real STORE` needs no LeRobot source
                 meta[LABELS_FIELD] = {"success": ep.success}
                 labelled += 1
             store.write(Episode(eid, frames, ep.actions.reshape(ep.length, dim), ep.pose, ep.prompt, meta,

@@ -16,7 +16,7 @@ and its ablations at one budget, baseline = the full recipe).
 ``device`` and ``hours`` say what that cost where it ran (from the training log, stated by whoever trained it).
 Every faithfulness number comes from the stores (``report.compute``): r and MMRV of the online rollouts at tau = inf
 against the real rollouts scored by physics, with the paired bootstrap intervals, per split, plus the policy-blind
-floor and the noise ceiling. The points must share their real rollouts (``sc3 sweep --real-from``), which is checked:
+floor and the noise ceiling. The points must share their real rollouts (``sc3 sweep bench --real-from``), which is checked:
 a curve whose floor moves between points would compare checkpoints on different tests.
 """
 from __future__ import annotations
@@ -85,7 +85,7 @@ def compute(spec: dict, draws: int = 2000) -> dict:
                          {i for i in real["objects"] if real["objects"][i] != other["objects"][i]})
             why = "other evaluation or ceiling seeds" if other["blocks"] != real["blocks"] else f"e.g. {ids[:3]}"
             raise ValueError(f"{p['store']}: its real rollouts differ from {first}'s ({why}); sweep every point "
-                             "against one real set (sc3 sweep --real-from)")
+                             "against one real set (sc3 sweep bench --real-from)")
         t = report.compute(p["store"], draws=draws)
         if not points:
             rows = t["faithfulness"]["physics"]

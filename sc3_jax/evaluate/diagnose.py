@@ -254,7 +254,7 @@ def _teacher_forced(p: _Plan, acc: _Sums, group: list[int]):
                                     start=p.samples[p.donors[i]][1])[1] for i in idx]
     for a, b in bat.chunks(len(items)):
         part = items[a:b]
-        ics = ro_mod.InitialConditions(*(bat.pad(x) for x in ro_mod.stack_initial_conditions([it[0] for it in part])))
+        ics = _padded(bat, ro_mod.stack_initial_conditions([it[0] for it in part]))
         keys = np.asarray(ro_mod.episode_keys(p.dc.seed, p.batch, start=idx[a]))
         acts = bat.pad(np.stack([it[1] for it in part]))
         true = p.tf.run_offline(p.params, ics, acts, keys)
@@ -292,8 +292,7 @@ def _counterfactual(p: _Plan, acc: _Sums, group: list[int]):
     frames = []
     for a, b in bat.chunks(len(items)):
         part = items[a:b]
-        ics = ro_mod.InitialConditions(*(bat.pad(x) for x in ro_mod.stack_initial_conditions(
-            [it[3] for it in part])))
+        ics = _padded(bat, ro_mod.stack_initial_conditions([it[3] for it in part]))
         # every variant of one start shares its noise: the difference between them is the actions'
         keys = np.stack([np.asarray(ro_mod.episode_keys(p.dc.seed + 1, 1, start=it[0] * 100_000 + it[1]))[0]
                          for it in part])
@@ -316,7 +315,7 @@ def _open_loop(p: _Plan, acc: _Sums, group: list[int]):
         tgts.append(t)
         valids.append(v)
     for a, b in bat.chunks(len(group)):
-        ics = ro_mod.InitialConditions(*(bat.pad(x) for x in ro_mod.stack_initial_conditions(ics_l[a:b])))
+        ics = _padded(bat, ro_mod.stack_initial_conditions(ics_l[a:b]))
         keys = np.asarray(ro_mod.episode_keys(p.dc.seed + 2, p.batch, start=group[a]))
         out = p.ol.run_offline(p.params, ics, bat.pad(np.stack(acts_l[a:b])), keys)
         for j in range(b - a):
@@ -372,3 +371,8 @@ def _result(p: _Plan, acc: _Sums, name: str, store, ids) -> dict:
                                                                                seed=dc.seed)),
         "permanence": ran("open_loop", lambda: _kept_section(p, acc)),
     }
+
+
+def _padded(bat, ics):
+    """``ics`` with each given field padded to the batch (``bat.pad``)."""
+    return type(ics)(*(x if x is None else bat.pad(x) for x in ics))

@@ -1,13 +1,13 @@
 """Evaluation without a simulator (issue 33 item 3): rank policies inside a world model from held-out episodes.
 
-    sc3 sweep --initial-conditions HELDOUT --world-model RUN --policies a=pkg.mod:attr b=ws://HOST:PORT \
+    sc3 sweep episodes --initial-conditions HELDOUT --world-model RUN --policies a=pkg.mod:attr b=ws://HOST:PORT \
               [--family aloha] --scorer pkg.mod:score [--real REAL] --out DIR
 
 Each held-out episode of HELDOUT is one initial condition (its first K frames at the rollout stride from --start, and
 the robot state at the last of them: ``rollout_io.load_initial_conditions``, which checks the store's shape against
 the model's). Conditions ``0 .. episodes-1`` (in episode-id order) are the evaluation block; the next
 ``calibration_episodes`` are held out for choosing the early-termination threshold tau (only against real outcomes,
-``ic_ranking.py``) and never ranked. Every policy acts inside the world model from every condition, closed loop
+``report_episodes.py``) and never ranked. Every policy acts inside the world model from every condition, closed loop
 and untruncated (tau = inf), ``batch`` conditions per world-model call (padded to one shape, so each policy
 compiles once); condition i's sampling noise depends only on (rollout_seed, i), so every policy meets the same
 draws. The ``--scorer`` (``scorers.load_outcome_scorer``: ``{criterion: bool}`` per rollout) reads the imagined
@@ -45,38 +45,60 @@ import numpy as np
 
 from sc3_jax import atomic
 from sc3_jax.errors import UserError
+from sc3_jax.evaluate.world_model_defaults import Sampler
 from sc3_jax.evaluate.results import ResultsStore, check_policy_names, rollout_id, terminated_at
 
 KIND = "initial_conditions"
 REAL_FILE = "real.json"  # the --real sources the report reads by default
 
 
-@dataclasses.dataclass(frozen=True)
-class ICSweepConfig:
-    """What the simulator-free sweep reads (``sc3 sweep --initial-conditions``; the same option names)."""
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class ICSweepConfig(Sampler):
+    """Policies of any robot inside the world model from held-out episodes, ranked by a lab's scorer and (--real)
+    compared with real outcomes; no simulator. Resumable (rerun the same command); ends with OUT/report/report.md.
+    Every field is an option of `sc3 sweep episodes`."""
+
     initial_conditions: str
+    """an episode store of held-out episodes (or an .npz, as `sc3 rollout` reads): each is one initial condition
+    (its first frames and robot state); the first --episodes are ranked, the next --calibration-episodes choose tau
+    (against --real only)"""
     world_model: str
+    """a training run dir (checkpoints/) or an exported dir (params.npz)"""
     policies: tuple[str, ...]
+    """NAME=SPEC ...: package.module:attr (a JaxPolicy / HostPolicy or a factory of one), ws://HOST:PORT (an openpi
+    server), zero | random | linear"""
     scorer: str
+    """package.module:attr, a function or class called with each imagined rollout (a
+    sc3_jax.evaluate.scorers.RolloutView: frames [V, T, H, W, 3], state [T, S], id, instruction) returning
+    {criterion: bool}, e.g. {"success": True}"""
     out: str
+    """the results store: results.jsonl, rollouts/, sweep.json and report/ (rerun to resume)"""
     episodes: int = 18
+    """evaluation initial conditions per policy (the store's first episodes, in id order)"""
     calibration_episodes: int = 3
-    batch: int = 6
-    rollout_seed: int = 0
-    episode_seconds: float | None = None
-    sample_steps: int | None = 2
-    inverse_steps: int | None = 1
-    taus: tuple[float, ...] = (math.inf,)
-    tau_units: str = "raw"
+    """the next held-out episodes, for choosing tau against --real; never ranked"""
     start: int = 0
+    """first frame of the initial context in each episode"""
     task: int = 0
+    """task id given to native policies (a mapped ws:// policy gets each episode's own prompt)"""
     real: tuple[str, ...] = ()
-    family: tuple[str, ...] = ()  # openpi mappings of ws:// policies: FAMILY (all of them) or NAME=FAMILY
+    """real outcomes of the same policies, for r / MMRV against the imagined ranking: [NAME=]PATH, an episode store
+    (meta.json "policy" and "labels": {criterion: bool}), a LeRobot dataset with next.success (NAME= required) or a
+    .csv (policy, criterion columns); see sc3_jax/evaluate/labels.py"""
+    family: tuple[str, ...] = ()
+    """the openpi observation mapping the ws:// policies speak, FAMILY for all of them or NAME=FAMILY for one: native
+    (our observation dict as is), droid, libero or aloha (sc3_jax/policies/openpi_mappings.py). A mapped server gets
+    each held-out episode's own prompt"""
+    learned_state: bool = True
+    """hand the policies the world model's learned robot state where it has one (state_head.npz); --no-learned-state:
+    the integrated commands (exact for absolute targets, or velocities of the recorded state)"""
     progress: bool = True
+    """progress bar over rollouts (--no-progress: none, for batch logs)"""
 
     def to_json(self, conditions: list[str], names: list[str]) -> dict:
         """sweep.json: everything that decides the records (not ``real``: the report's; not ``progress``)."""
-        d = {k: v for k, v in dataclasses.asdict(self).items() if k not in ("real",)}
+        # learned_state kept only when off: on, it reads as a store written before it existed (whose models had none)
+        d = {k: v for k, v in dataclasses.asdict(self).items() if k != "real" and (k, v) != ("learned_state", True)}
         d.update(kind=KIND, taus=[str(float(t)) for t in self.taus], conditions=conditions, policy_names=names,
                  modes=["online"], seed0=0, calibration_seed0=self.episodes,
                  family=list(self.family) or None)  # None: a store written before --family matches
@@ -91,10 +113,10 @@ def blocks(cfg: ICSweepConfig) -> dict[str, list[int]]:
 
 def _check(cfg: ICSweepConfig) -> None:
     if not cfg.policies:
-        raise UserError("--initial-conditions: give the policies to rank, --policies NAME=SPEC ... (SPEC: "
+        raise UserError("give the policies to rank, --policies NAME=SPEC ... (SPEC: "
                         "package.module:attr, ws://HOST:PORT, zero | random | linear)")
     if not cfg.scorer:
-        raise UserError("--initial-conditions needs --scorer package.module:attr: a function or class taking a "
+        raise UserError("give --scorer package.module:attr: a function or class taking a "
                         "RolloutView and returning {criterion: bool} (docs/your_robot.md)")
     if cfg.episodes < 1 or cfg.calibration_episodes < 0 or cfg.batch < 1:
         raise UserError(f"--episodes {cfg.episodes}, --calibration-episodes {cfg.calibration_episodes}, --batch "
@@ -199,11 +221,11 @@ def _mesh(batch: int):
 
 def run(cfg: ICSweepConfig, named=None) -> Path:
     """Run (or resume) the sweep; returns the store's directory. See the module docstring. ``named``: a benchmark's
-    own policy names (``policies.resolve``'s; ``sc3 sweep`` passes the simulated benchmark's zoo)."""
+    own policy names (``policies.resolve``'s; ``sc3 sweep episodes`` passes the simulated benchmark's zoo)."""
     import jax
     from tqdm import tqdm
 
-    from sc3_jax import checkpoint, rollout, rollout_io
+    from sc3_jax import checkpoint, rollout, rollout_io, state_head
     from sc3_jax.evaluate.scorers import RolloutView, check_outcomes, load_outcome_scorer
     from sc3_jax.evaluate.world_model_defaults import evaluation_config, warn_if_student_off_its_step
     from sc3_jax.policies.openpi_mappings import for_world_model
@@ -217,8 +239,8 @@ def run(cfg: ICSweepConfig, named=None) -> Path:
     wcfg, stats, params = checkpoint.load(cfg.world_model)
     wcfg = evaluation_config(wcfg, cfg)  # the sweep's sampler settings (sc3 rollout / diagnose share them)
     warn_if_student_off_its_step(wcfg)
-    ro = rollout.Rollout(wcfg, stats, mesh=_mesh(cfg.batch),
-                         data_fps=rollout_io.data_fps(cfg.initial_conditions, None))
+    ro = rollout.Rollout(wcfg, stats, mesh=_mesh(cfg.batch), data_fps=rollout_io.data_fps(cfg.initial_conditions, None),
+                         head=state_head.load(cfg.world_model) if cfg.learned_state else None)
     s = ro.spec
     want = cfg.episodes + cfg.calibration_episodes
     ids, ics, store = rollout_io.load_initial_conditions(cfg.initial_conditions, wcfg, s, want, cfg.start, cfg.task)
@@ -265,7 +287,7 @@ def run(cfg: ICSweepConfig, named=None) -> Path:
             if all(r in done for r in rids):
                 continue
             sel = np.asarray(idx + [idx[-1]] * (cfg.batch - len(idx)))  # one shape for every batch: one compile
-            sub = rollout.InitialConditions(*(np.asarray(x)[sel] for x in (prompted if name in mappings else ics)))
+            sub = (prompted if name in mappings else ics).take(sel)
             keys = np.asarray(rollout.episode_keys(cfg.rollout_seed, len(sel), start=idx[0]))  # condition i: (seed, i)
             try:
                 out = rollout_io.closed_loop(ro, params, policy, sub, keys, math.inf, len(sel), False)
@@ -277,7 +299,10 @@ def run(cfg: ICSweepConfig, named=None) -> Path:
             recs = []
             for b, (i, rid) in enumerate(zip(idx, rids)):
                 frames = np.concatenate([out["initial_frames"][b][:, -1:], out["frames"][b]], 1)  # [V, 1 + N*l, ...]
-                states = np.concatenate([np.asarray(sub.state[b], np.float32)[None], out["states"][b]], 0)
+                # what the policy saw: the robot's learned state where the model has one, else the commands'
+                learned = "robot_states" in out
+                states = np.concatenate([np.asarray((sub.robot if learned else sub.state)[b], np.float32)[None],
+                                         out["robot_states" if learned else "states"][b]], 0)
                 u, u_raw = out["u"][b], out["u_raw"][b]
                 cuts = sorted({cut(u if cfg.tau_units == "normalised" else u_raw, t) for t in taus})
                 by_cut = {}
@@ -291,8 +316,7 @@ def run(cfg: ICSweepConfig, named=None) -> Path:
                         raise
                     by_cut[str(c)] = check_outcomes(cfg.scorer, got, rid, criteria)
                     criteria = criteria or tuple(sorted(by_cut[str(c)]))
-                results.save_arrays(rid, frames=frames, actions=out["actions"][b], states=out["states"][b], u=u,
-                                    u_raw=u_raw)
+                results.save_arrays(rid, frames=frames, actions=out["actions"][b], states=states[1:], u=u, u_raw=u_raw)
                 recs.append({"id": rid, "mode": "online", "policy": name, "seed": i, "episode": ids[i], "block": block,
                              "outcomes": by_cut[str(s.num_chunks)], "outcomes_by_cut": by_cut, "u": u.tolist(),
                              "u_raw": u_raw.tolist(), "num_chunks": s.num_chunks, "frames_per_chunk": s.keep,

@@ -1,6 +1,6 @@
-"""Real outcomes of the evaluated policies, for ``sc3 sweep --initial-conditions ... --real SOURCE``: per real episode,
+"""Real outcomes of the evaluated policies, for ``sc3 sweep episodes --initial-conditions ... --real SOURCE``: per real episode,
 the policy that ran it and ``{criterion: bool}``. They are the reference the imagined ranking is compared with
-(``ic_ranking.py``); nothing here is rolled out.
+(``report_episodes.py``); nothing here is rolled out.
 
 A SOURCE is ``PATH`` or ``NAME=PATH`` (then every episode of PATH is policy NAME's, whatever it says):
 

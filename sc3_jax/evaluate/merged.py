@@ -1,4 +1,4 @@
-"""Several results stores read as one: the shards of a sharded sweep (``sc3 sweep --shard I/N`` writes
+"""Several results stores read as one: the shards of a sharded sweep (``sc3 sweep bench --shard I/N`` writes
 ``OUT/shard-I-of-N``), or stores given together to ``sc3 report A B ...``.
 
 Stores merge only if they are shares of one sweep: the same config up to where and how the work ran (``out``,

@@ -20,7 +20,9 @@ import numpy as np
 
 from sc3_jax import atomic
 from sc3_jax.errors import UserError
-from sc3_jax.evaluate import bootstrap, calibrate, intervals, metrics, permanence, report_html
+from sc3_jax.evaluate import bootstrap, calibrate, intervals, metrics, permanence, report_episodes, report_figures, report_html
+from sc3_jax.evaluate.report_html import UNDEFINED, ci
+from sc3_jax.evaluate.report_html import fmt as _fmt
 from sc3_jax.evaluate.calibrate import object_rows as _object_rows
 from sc3_jax.evaluate.merged import open_store
 from sc3_jax.evaluate.results import EVAL_MODES, SPLIT_ORDER, ResultsStore, paired_frames, seed_blocks
@@ -69,8 +71,22 @@ def policy_order(real_records) -> list[tuple[str, str]]:
     return sorted({(r["policy"], r["split"]) for r in real_records}, key=lambda x: (x[1], x[0]))
 
 
-def compute(results: str | Path, taus=None, draws: int = 2000, seed: int = 0, scene=None) -> dict:
-    """All report numbers from the results store at ``results`` (see the module docstring; several stores, or a
+def compute(results, taus=None, draws: int = 2000, seed: int = 0, scene=None, real=None) -> dict:
+    """Every number of the report of the store(s) at ``results``, whichever sweep wrote it: a sweep of held-out
+    episodes (``report_episodes.compute``; ``real``: its real-outcome sources, None: the sweep's own) or a bench
+    sweep (:func:`bench`; ``scene``: the benchmark's object measure). ``taus``: other candidate thresholds, read
+    from the stored U_chunk (no new rollouts)."""
+    roots = [results] if isinstance(results, (str, Path)) else list(results)
+    if len(roots) == 1 and report_episodes.is_store(roots[0]):
+        return report_episodes.compute(roots[0], real, draws, seed, taus)
+    if real:
+        raise UserError("--real applies to a sweep of held-out episodes (sc3 sweep episodes); a bench sweep's real "
+                        "rollouts are in its store")
+    return bench(results, taus, draws, seed, scene)
+
+
+def bench(results, taus=None, draws: int = 2000, seed: int = 0, scene=None) -> dict:
+    """All report numbers from the bench sweep's results store at ``results`` (see the module docstring; several stores, or a
     directory of a sharded sweep's shards, are read as one: ``merged.open_store``). ``taus`` overrides
     the sweep's candidate thresholds (every online record stores U_chunk and the outcomes of every cut, so any
     threshold is evaluated without rolling out again). ``draws`` / ``seed``: the paired bootstrap's. ``scene``: the
@@ -89,7 +105,7 @@ def compute(results: str | Path, taus=None, draws: int = 2000, seed: int = 0, sc
     real = by["evaluation", "real"]
     if not real:
         raise UserError(f"{results}: no real rollouts on the evaluation seeds yet: faithfulness needs the "
-                        "simulator's ground truth (run sc3 sweep --modes real into this store, or start it with "
+                        "simulator's ground truth (run sc3 sweep bench --modes real into this store, or start it with "
                         "--real-from a store of the same protocol)")
     policies = policy_order(real.values())
     out: dict = {"config": cfg, "counts": {m: len(by["evaluation", m]) for m in EVAL_MODES},
@@ -331,17 +347,6 @@ def _with_intervals(by, sets, policies, chosen_tau, units, draws, seed) -> dict:
 # ================================================================================================================
 # Rendering
 # ================================================================================================================
-UNDEFINED = "n/a"  # a statistic undefined at these rates (said in the report's method paragraph)
-
-
-def _fmt(x, nd=3):
-    if x is None:
-        return "-"
-    if isinstance(x, float):
-        return UNDEFINED if math.isnan(x) else f"{x:.{nd}f}"
-    return str(x)
-
-
 def _splits(t: dict) -> list[str]:
     """The splits a report shows, in order: with one split, "overall" would repeat its numbers, so it is left out."""
     have = [s for s in SPLIT_ORDER if s in t["faithfulness"]["physics"]["policy_blind"]["splits"]]
@@ -353,15 +358,6 @@ ROW_NAMES = {"offline": "offline", "online": "online (tau = inf)", "online_tau":
              "ceiling": "noise ceiling"}
 REFERENCES = {"physics": "end to end: imagined (perception) vs real scored by physics",
               "perception": "same instrument: imagined vs real, both scored by perception"}
-
-
-def ci(cell: dict | None) -> str:
-    """value [lo, hi] of a bootstrap summary."""
-    if cell is None:
-        return "-"
-    if not math.isfinite(cell["value"]):
-        return UNDEFINED
-    return f"{_fmt(cell['value'])} [{_fmt(cell['lo'])}, {_fmt(cell['hi'])}]"
 
 
 def _interval_rows(rows: dict, pick, splits) -> list[list[str]]:
@@ -516,173 +512,90 @@ def method(t: dict) -> str:
             "(`sc3_jax.evaluate.report.compute`).")
 
 
-def markdown(t: dict) -> str:
+def _parts(t: dict) -> dict:
+    """What a report page shows, for either kind of sweep: title, headline lines, warnings, the answer's tables,
+    the detail tables, the method paragraph and the facts of the run."""
+    if t.get("kind") == report_episodes.KIND:
+        cfg, e = t["config"], report_episodes
+        return {"title": "Sweep report: held-out episodes", "headlines": e.verdict(t), "warnings": t["warnings"],
+                "answer": e.tables(t)[:1], "details": e.tables(t)[1:], "method": e.METHOD,
+                "facts": [f"World model {Path(cfg['world_model']).name}, initial conditions "
+                          f"{Path(cfg['initial_conditions']).name}; rollouts {t['rollouts']}"]}
     warn = incomplete(t)
-    warn = "\n".join(f"\n**{w}**\n" for w in ([warn] if warn else []) + t.get("warnings", []))
-    parts = [f"# Sweep report\n\n**{headline(t)}**\n" + warn]
-    for title, header, rows in ranking_tables(t) + tables(t):
-        parts.append(f"## {title}\n\n| " + " | ".join(header) + " |\n|" + "---|" * len(header) + "\n" +
-                     "".join("| " + " | ".join(r) + " |\n" for r in rows))
-    parts.append(f"## How it is measured\n\n{method(t)} Results: `{Path(t['read_from']).name}`; rollouts: "
-                 + ", ".join(f"{m} {k}" for m, k in t["counts"].items()) + "; compared cases: "
-                 + ", ".join(f"{m} {k}" for m, k in t["cases"].items()) + ".\n")
+    return {"title": "Sweep report: bench", "headlines": [headline(t)],
+            "warnings": ([warn] if warn else []) + t.get("warnings", []),
+            "answer": ranking_tables(t), "details": tables(t), "method": method(t),
+            "facts": ["Rollouts: " + ", ".join(f"{m} {k}" for m, k in t["counts"].items()) + "; compared cases: "
+                      + ", ".join(f"{m} {k}" for m, k in t["cases"].items())]}
+
+
+def markdown(t: dict) -> str:
+    p = _parts(t)
+    head = "".join(f"**{h}**\n\n" for h in p["headlines"][:1]) + "".join(f"{h}\n\n" for h in p["headlines"][1:])
+    parts = [f"# {p['title']}\n\n{head}" + "".join(f"**{w}**\n\n" for w in p["warnings"])]
+    parts += [report_html.markdown_table(*x) for x in p["answer"] + p["details"]]
+    parts.append(f"## How it is measured\n\n{p['method']} Results: `{Path(t['read_from']).name}`. "
+                 + " ".join(f"{f}." for f in p["facts"]) + "\n")
     return "\n".join(parts)
 
 
-def _html(t: dict, figures: list[tuple[str, str]], videos: list[str]) -> str:
-    return report_html.page(
-        "Sweep report", [headline(t)], ranking_tables(t), figures, videos, method(t), tables(t),
-        ([incomplete(t)] if incomplete(t) else []) + t.get("warnings", []),
-        [f"Results: {Path(t['read_from']).name}; rollouts: " + ", ".join(f"{m} {k}" for m, k in t["counts"].items())])
+def closing_lines(t: dict) -> list[str]:
+    """What the numbers say in a few lines: the sweep commands' closing words."""
+    if t.get("kind") == report_episodes.KIND:
+        return report_episodes.summary(t)
+    title, header, rows = next(x for x in tables(t) if x[0].startswith("Faithfulness, end to end"))
+    return [report_html.markdown_table(title, header, rows)] + verdict(t) + t.get("warnings", [])
 
 
-def scatter(t: dict, path: Path) -> None:
-    """Imagined against real success per (policy, criterion), each point named with its 95% interval bars, the
-    diagonal, and the policy-blind guess (grey x) the evaluator has to beat."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    splits = list(t["ranking"])
-    fig, axes = plt.subplots(1, len(splits), figsize=(5.6 * len(splits), 5.2), squeeze=False)
-    colors = dict(zip(metrics.CRITERIA, ("tab:blue", "tab:orange", "tab:green")))
-    for ax, split in zip(axes[0], splits):
-        r = t["ranking"][split]
-        for k, c in enumerate(metrics.CRITERIA):
-            pts = [(x["real"][c], x["rates"][c], x["policy"]) for x in r["policies"]]
-            xs, ys = [p[0]["value"] for p in pts], [p[1]["value"] for p in pts]
-            err = lambda cells, v: np.abs(np.array([[q["lo"] for q in cells], [q["hi"] for q in cells]]) - v)  # noqa
-            ax.errorbar(xs, ys, xerr=err([p[0] for p in pts], xs), yerr=err([p[1] for p in pts], ys), fmt="o",
-                        ms=4, color=colors[c], ecolor=colors[c], elinewidth=0.7, alpha=0.85, label=c)
-            guess = float(np.nanmean(xs)) if xs else np.nan
-            ax.plot(xs, [guess] * len(xs), "x", color="grey", ms=5, label="policy-blind guess" if k == 0 else None)
-            for x, y, (_, _, name) in zip(xs, ys, pts):
-                ax.annotate(name, (x, y), fontsize=6, xytext=(3, 2), textcoords="offset points")
-        ax.plot([0, 1], [0, 1], "k:", lw=1)
-        f = t["faithfulness"]["physics"].get(r["mode"], {}).get("splits", {}).get(split if len(splits) > 1 else
-                                                                                 _splits(t)[-1], {})
-        ax.set(xlabel="real success rate (simulator)", ylabel=f"imagined success rate ({r['mode']})",
-               xlim=(-0.03, 1.03), ylim=(-0.03, 1.03),
-               title=f"{split.replace('_', ' ')}: r {ci(f.get('pearson'))}")
-        ax.title.set_fontsize(9)
-        ax.legend(fontsize=7, loc="upper left")
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-
-
-def u_plot(store: ResultsStore, t: dict, path: Path) -> None:
-    """U_chunk over the chunks of a rollout, every policy: its median over the evaluation conditions, the band
-    between the quartiles, the candidate taus."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    units = t["tau"]["units"]
-    seeds = set(seed_blocks(t["config"])["evaluation"])
-    by: dict[str, list] = {}
-    for r in store.records():
-        if r["mode"] == "online" and r["seed"] in seeds:
-            by.setdefault(r["policy"], []).append(r["u"] if units == "normalised" else r["u_raw"])
-    fig, ax = plt.subplots(figsize=(7.5, 4.0))
-    for policy, us in sorted(by.items()):
-        n = min(len(u) for u in us)
-        u = np.array([x[:n] for x in us])
-        q1, med, q3 = np.quantile(u, [0.25, 0.5, 0.75], axis=0)
-        line, = ax.plot(np.arange(n), med, marker=".", label=policy)
-        ax.fill_between(np.arange(n), q1, q3, color=line.get_color(), alpha=0.12)
-    for tau in (calibrate.parse_tau(x) for x in t["config"]["taus"]):
-        if math.isfinite(tau):
-            ax.axhline(tau, ls="--", lw=1, color="grey")
-            ax.text(0, tau, f"tau={tau}", fontsize=7, va="bottom")
-    ax.set(xlabel="chunk", ylabel=f"U_chunk ({units})", yscale="log")
-    ax.legend(fontsize=7, ncol=2)
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-
-
-def filmstrip(store: ResultsStore, policy: str, seed: int, path: Path, frames: int = 6) -> bool:
-    """A picture of one condition: per view a row of real frames over a row of imagined ones, at the same moments;
-    False if the store does not keep both rollouts' frames."""
-    got = paired_frames(store, policy, seed)
-    if got is None:
-        return False
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    real, online, at, _ = got
-    pick = np.unique(np.linspace(0, online.shape[1] - 1, frames).round().astype(int))
-    rows, labels = [], []
-    for v in range(online.shape[0]):
-        rows += [np.concatenate(list(real[v, at[pick]]), 1), np.concatenate(list(online[v, pick]), 1)]
-        labels += [f"real, view {v}", f"imagined, view {v}"]
-    grid = np.concatenate(rows, 0)
-    h = real.shape[2]
-    fig, ax = plt.subplots(figsize=(min(12, 1.6 * len(pick)), 0.45 + 1.6 * len(rows) * h / real.shape[3]))
-    ax.imshow(grid)
-    ax.set_yticks([h * (i + 0.5) for i in range(len(rows))], labels, fontsize=7)
-    ax.set_xticks([real.shape[3] * (i + 0.5) for i in range(len(pick))], [f"step {int(x)}" for x in at[pick]],
-                  fontsize=7)
-    ax.set_title(f"{policy}, condition {seed}: real over imagined", fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return True
-
-
-def side_by_side(store: ResultsStore, policy: str, seed: int, path: Path, fps: int = 10) -> bool:
-    """mp4 of real | online (| offline where kept) as columns, views as rows, at the model's frame rate; False if the
-    store does not keep the real and online frames."""
-    from sc3_jax.video import write_mp4
-    got = paired_frames(store, policy, seed)
-    if got is None:
-        return False
-    real, online, at, offline = got
-    n = online.shape[1]
-    cols = [real[:, at], online] + ([offline[:, :n]] if offline is not None else [])
-    write_mp4(path, np.concatenate(list(np.concatenate(cols, axis=3)), axis=1), fps)  # views stacked vertically
-    return True
-
-
-def render(results: str | Path, out: str | Path, videos: int | None = None, taus=None, draws: int = 2000,
-           scene=None) -> Path:
-    """Write report.md, report.html, report.json, plots, a filmstrip and a video per policy (``videos``: at most that
-    many videos) to ``out``; returns report.md. Every file is written to a staging directory and moved into ``out`` only once all of them
-    exist (report.md last), so a failure (a damaged frames file, an unwritable ``out``) or a kill leaves the previous
-    report as it was."""
-    out = Path(out)
-    store = open_store(results)
-    t = compute(results, taus, draws, scene=scene)
+def render(results, out: str | Path | None = None, videos: int | None = None, taus=None, draws: int = 2000,
+           scene=None, real=None) -> Path:
+    """Write report.md, report.html and report.json (and, for a bench sweep, plots, a filmstrip and a video per
+    policy: ``videos`` at most) to ``out`` (None: the first store's report/); returns report.md. Every file is
+    written to a staging directory and moved into ``out`` only once all of them exist (report.md last), so a failure
+    (a damaged frames file, an unwritable ``out``) or a kill leaves the previous report as it was."""
+    roots = [results] if isinstance(results, (str, Path)) else list(results)
+    out = Path(out) if out is not None else Path(roots[0]) / "report"
+    t = compute(results, taus, draws, scene=scene, real=real)
     with atomic.staged(out, last=("report.md",)) as stage:
         (stage / "report.json").write_text(json.dumps(t, indent=1))
-        figures = []
-        if t.get("ranking"):
-            scatter(t, stage / "correlation.png")
-            figures.append(("correlation.png", "Imagined against real success per policy and criterion (95% "
-                                               "intervals); the dotted diagonal is perfect agreement, grey x the "
-                                               "policy-blind guess."))
-        seed = t["config"]["seed0"]
-        for policy, _ in t["policies"]:  # a filmstrip per policy: cheap to keep, shows what the model imagines
-            name = file_name(f"filmstrip_{policy}_{seed}", ".png")  # a policy name from the store: no path of its own
-            if filmstrip(store, policy, seed, stage / name):
-                figures.append((name, f"{policy}, condition {seed}: real (upper) and imagined (lower) frames per view"))
-        if "termination" in t:
-            u_plot(store, t, stage / "u_chunk.png")
-            figures.append(("u_chunk.png", "U_chunk per chunk, every policy (median and quartiles over the evaluation "
-                                           "conditions); dashed: the candidate taus."))
-        vids = []
-        for policy, _ in t["policies"]:
-            if videos is not None and len(vids) >= videos:
-                break
-            name = file_name(f"{policy}_{seed}", ".mp4")
-            if side_by_side(store, policy, seed, stage / name):
-                vids.append(name)
+        figures, vids = ([], []) if t.get("kind") == report_episodes.KIND else \
+            _figures(open_store(results), t, stage, videos)
         md = markdown(t)
         md += "".join(f"\n![{caption}]({name})\n" for name, caption in figures)
         if vids:
             md += "\n## Real | online (| offline) (rows: views)\n\n" + "".join(f"* [{v}]({v})\n" for v in vids)
         elif videos:
             md += ("\n(No videos: no policy has real and online frames of its first evaluation condition in this "
-                   "store's rollouts/; an archived store keeps only sweep.json and results.jsonl.)\n")
+                   "store's rollouts/; an archived store, or a sweep of held-out episodes, keeps no real frames.)\n")
         (stage / "report.md").write_text(md)
-        (stage / "report.html").write_text(_html(t, figures, vids))
+        p = _parts(t)
+        (stage / "report.html").write_text(report_html.page(
+            p["title"], p["headlines"], p["answer"], figures, vids, p["method"], p["details"], p["warnings"],
+            [f"Results: {Path(t['read_from']).name}"] + p["facts"]))
     return out / "report.md"
+
+
+def _figures(store: ResultsStore, t: dict, stage: Path, videos: int | None):
+    """A bench report's pictures, written into ``stage``: (figures [(file, caption)], videos [file])."""
+    figures = []
+    if t.get("ranking"):
+        report_figures.scatter(t, stage / "correlation.png", _splits(t)[-1])
+        figures.append(("correlation.png", "Imagined against real success per policy and criterion (95% intervals); "
+                                           "the dotted diagonal is perfect agreement, grey x the policy-blind guess."))
+    seed = t["config"]["seed0"]
+    for policy, _ in t["policies"]:  # a filmstrip per policy: cheap to keep, shows what the model imagines
+        name = file_name(f"filmstrip_{policy}_{seed}", ".png")  # a policy name from the store: no path of its own
+        if report_figures.filmstrip(store, policy, seed, stage / name):
+            figures.append((name, f"{policy}, condition {seed}: real (upper) and imagined (lower) frames per view"))
+    if "termination" in t:
+        report_figures.u_plot(store, t, stage / "u_chunk.png")
+        figures.append(("u_chunk.png", "U_chunk per chunk, every policy (median and quartiles over the evaluation "
+                                       "conditions); dashed: the candidate taus."))
+    vids = []
+    for policy, _ in t["policies"]:
+        if videos is not None and len(vids) >= videos:
+            break
+        name = file_name(f"{policy}_{seed}", ".mp4")
+        if report_figures.side_by_side(store, policy, seed, stage / name):
+            vids.append(name)
+    return figures, vids

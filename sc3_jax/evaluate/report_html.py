@@ -9,6 +9,7 @@ page needs no network and prints as it reads.
 from __future__ import annotations
 
 import html
+import math
 import re
 from urllib.parse import quote
 
@@ -20,6 +21,30 @@ STYLE = ("body{font-family:sans-serif;max-width:1100px;margin:1em auto;padding:0
          "@media print{details{display:block}}")
 
 Table = tuple[str, list[str], list[list[str]]]  # (title, header, rows); the title's first phrase is its heading
+UNDEFINED = "n/a"  # a statistic undefined at these rates (said in the report's method paragraph)
+
+
+def fmt(x, nd: int = 3) -> str:
+    """A report cell: a float to ``nd`` decimals, nan as UNDEFINED, None as '-'."""
+    if x is None:
+        return "-"
+    if isinstance(x, float):
+        return UNDEFINED if math.isnan(x) else f"{x:.{nd}f}"
+    return str(x)
+
+
+def ci(cell: dict | None, nd: int = 3) -> str:
+    """value [lo, hi] of a bootstrap summary ({"value", "lo", "hi"})."""
+    if cell is None:
+        return "-"
+    if not math.isfinite(cell["value"]):
+        return UNDEFINED
+    return f"{fmt(cell['value'], nd)} [{fmt(cell['lo'], nd)}, {fmt(cell['hi'], nd)}]"
+
+
+def markdown_table(title: str, header: list[str], rows: list[list[str]]) -> str:
+    return (f"## {title}\n\n| " + " | ".join(header) + " |\n|" + "---|" * len(header) + "\n" +
+            "".join("| " + " | ".join(r) + " |\n" for r in rows))
 
 
 def _e(x) -> str:

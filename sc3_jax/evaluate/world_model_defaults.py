@@ -1,28 +1,38 @@
-"""One set of evaluation settings for a world model, whichever command evaluates it: ``sc3 sweep`` computes U_chunk and
-the imagined frames with ``SweepConfig``'s sampler settings (2 forward Euler steps, 1 inverse re-read step, 12 s
-horizon, raw U units) rather than the checkpoint's own (e.g. 8 and 8), and ``sc3 rollout`` / ``sc3 diagnose`` apply
-the same ones through :func:`evaluation_config`, so a tau or a U read in one is read alike in the others. The values
-live in one place, ``SweepConfig``'s field defaults (where their measurements are cited); this module only applies
-them, and imports no sweep code, so that the sweep can call it too."""
+"""How a world model is sampled when it is evaluated, in one place: ``Sampler``'s fields are options of both sweeps
+(``sc3 sweep bench`` / ``sc3 sweep episodes``, which inherit them) and ``sc3 rollout`` / ``sc3 diagnose`` start from
+its defaults (then ``--sample.steps`` and the other config fields may override them), so a tau or a U read in one
+command is read alike in the others. Why 2 forward steps and 1 inverse step: docs/sweep.md#sampler-steps."""
 from __future__ import annotations
 
+import dataclasses
+import math
 import warnings
-from typing import Protocol
 
 
-class EvaluationSettings(Protocol):
-    """The fields of ``evaluate.sweep.SweepConfig`` that set how a world model is sampled (None / 0: the model's
-    own)."""
-    sample_steps: int | None
-    inverse_steps: int | None
-    episode_seconds: float | None
-    tau_units: str
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class Sampler:
+    """The evaluation sampler (None / 0: the world model's own setting)."""
+
+    sample_steps: int | None = 2
+    """forward-dynamics Euler steps per chunk (None: the world model's sample.steps)"""
+    inverse_steps: int | None = 1
+    """Euler steps of the inverse-dynamics re-read that yields U_chunk (None: the world model's
+    sample.inverse_steps); it never changes the frames or the outcomes"""
+    episode_seconds: float | None = None
+    """imagined horizon (None: the world model's rollout.episode_seconds)"""
+    taus: tuple[float, ...] = (math.inf,)
+    """candidate U_chunk thresholds; the calibration conditions choose one (inf: never stop)"""
+    tau_units: str = "raw"
+    """U_chunk's units, "raw" (the action's own) or "normalised" (per-dimension unit variance)"""
+    batch: int = 6
+    """initial conditions per world-model call (the resume unit)"""
+    rollout_seed: int = 0
+    """seed of the sampling noise: condition i's draws depend only on (rollout_seed, i)"""
 
 
-def evaluation_config(cfg, settings: EvaluationSettings):
-    """The world model's config ``cfg`` as it is evaluated under ``settings`` (a ``SweepConfig``; the commands pass
-    ``SweepConfig()``, the defaults): sample.steps, sample.inverse_steps and rollout.episode_seconds replaced where
-    set, rollout.tau_units always (one unit convention for tau and U)."""
+def evaluation_config(cfg, settings: Sampler = Sampler()):
+    """The world model's config ``cfg`` as it is evaluated under ``settings``: sample.steps, sample.inverse_steps and
+    rollout.episode_seconds replaced where set, rollout.tau_units always (one unit convention for tau and U)."""
     from sc3_jax.config import replace
 
     cfg = replace(cfg, sample={k: v for k, v in (("steps", settings.sample_steps),

@@ -18,19 +18,16 @@ Mapping (per layer i; ours are stacked on a leading layer axis; torch Linear wei
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
-import os
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from sc3_jax import atomic
 from sc3_jax.config import ModelConfig
 from sc3_jax.model import dit
 from sc3_jax.model.shapes import check_shapes
-from sc3_jax.model.wan_vae_convert import read_diffusers_dir
+from sc3_jax.model.wan_vae_convert import read_diffusers_dir, write_diffusers_dir
 
 WEIGHTS_NAME = "diffusion_pytorch_model.safetensors"
 CONFIG_NAME = "config.json"
@@ -286,14 +283,5 @@ def load_diffusers(path: str, config: dict | None = None, dtype=None, strict: bo
 def save_diffusers(cfg: ModelConfig, params: dict, path: str, dtype=None, extra_config: dict | None = None):
     """Write ``config.json`` + ``diffusion_pytorch_model.safetensors`` that
     ``Cosmos3OmniTransformer.from_pretrained`` loads."""
-    from safetensors.numpy import save_file
-
-    os.makedirs(path, exist_ok=True)
-    sd = state_dict_from_params(cfg, params, dtype)
-    with atomic.replacing(os.path.join(path, WEIGHTS_NAME)) as tmp:
-        save_file(sd, str(tmp), metadata={"format": "pt"})
-    conf = config_to_diffusers(cfg)
-    conf.update(extra_config or {})
-    # config.json last: from_pretrained reads a directory with one as complete
-    atomic.write_text(os.path.join(path, CONFIG_NAME), json.dumps(conf, indent=2))
-    return path
+    return write_diffusers_dir(path, state_dict_from_params(cfg, params, dtype),
+                               {**config_to_diffusers(cfg), **(extra_config or {})})

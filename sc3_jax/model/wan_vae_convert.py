@@ -217,13 +217,17 @@ def read_diffusers_dir(path: str, config: dict | None = None) -> tuple[dict, dic
 def save_diffusers(cfg: WanVAEConfig, params: dict, path: str, dtype=None, extra_config: dict | None = None):
     """Write ``config.json`` + ``diffusion_pytorch_model.safetensors`` that ``AutoencoderKLWan.from_pretrained``
     loads."""
+    return write_diffusers_dir(path, state_dict_from_params(cfg, params, dtype),
+                               {**config_to_diffusers(cfg), **(extra_config or {})})
+
+
+def write_diffusers_dir(path: str, state_dict: dict, conf: dict) -> str:
+    """A diffusers model directory: the weights (safetensors), then ``config.json`` -- last, because
+    ``from_pretrained`` reads a directory with one as complete."""
     from safetensors.numpy import save_file
+
     os.makedirs(path, exist_ok=True)
-    sd = state_dict_from_params(cfg, params, dtype)
     with atomic.replacing(os.path.join(path, WEIGHTS_NAME)) as tmp:
-        save_file(sd, str(tmp), metadata={"format": "pt"})
-    conf = config_to_diffusers(cfg)
-    conf.update(extra_config or {})
-    # config.json last: from_pretrained reads a directory with one as complete
+        save_file(state_dict, str(tmp), metadata={"format": "pt"})
     atomic.write_text(os.path.join(path, CONFIG_NAME), json.dumps(conf, indent=2))
     return path

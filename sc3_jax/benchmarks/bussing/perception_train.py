@@ -22,7 +22,7 @@ Fresh weights take their size from ``--keypoints``, ``--widths`` and ``--hidden`
 ``perception.arch``; the defaults are the shipped weights' size), and ``--pos-weight`` weights the loss of a positive
 predicate label (each predicate holds in only 7-12% of the frames of the validation store).
 
-``sc3 train-perception --validate STORE`` re-scores the real rollouts of a sweep results store (``sc3 sweep --modes
+``sc3 train-perception --validate STORE`` re-scores the real rollouts of a sweep results store (``sc3 sweep bench --modes
 real``) with the weights and prints their agreement with physics, clean and degraded: how a scorer is chosen before a
 sweep uses it.
 """
@@ -203,7 +203,7 @@ def validate(results: str | Path, params: dict, score_stride: int = 2, degradati
     store = ResultsStore(results)
     real = [r for r in store.records() if r["mode"] == "real"]
     if not real:
-        raise UserError(f"{results}: no real rollouts to validate on (run `sc3 sweep --modes real` first)")
+        raise UserError(f"{results}: no real rollouts to validate on (run `sc3 sweep bench --modes real` first)")
     scorer = PerceptionScorer(params)
     scored: dict[str, list] = {}
     for r in real:

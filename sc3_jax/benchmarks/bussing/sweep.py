@@ -39,6 +39,7 @@ import tyro
 
 from sc3_jax import atomic
 from sc3_jax.errors import UserError
+from sc3_jax.evaluate.world_model_defaults import Sampler
 from sc3_jax.evaluate.results import (EVAL_MODES, REAL_ONLY_STRIDE, SPLITS, ResultsStore, check_policy_names,
                                       rollout_id, score_strides, seed_blocks)
 
@@ -48,10 +49,10 @@ SHIPPED_WORLD_MODEL = Path(__file__).resolve().parents[2] / "evaluate" / "shippe
 STATE_READER_FILE = "state_reader.npz"
 
 
-@dataclasses.dataclass(frozen=True)
-class SweepConfig:
-    """Evaluate policies in the simulator and inside the world model; resumable (rerun the same command). Ends with
-    OUT/report/report.md. Every field is an option of `sc3 sweep` (--field-name VALUE)."""
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class SweepConfig(Sampler):
+    """The benchmark's policies in its simulator and inside the world model, then the report; resumable (rerun
+    the same command). Ends with OUT/report/report.md. Every field is an option of `sc3 sweep bench`."""
 
     out: str = "runs/sweep"
     """the results store: results.jsonl, rollouts/, sweep.json, timing.json and report/ (rerun to resume)"""
@@ -92,17 +93,6 @@ class SweepConfig:
     modes: tuple[str, ...] = ("real", "online")
     """evaluation modes (results.EVAL_MODES); offline replay (PSNR, open-loop faithfulness) is not in the quick
     protocol: it would cost as much again as online"""
-    taus: tuple[float, ...] = (math.inf, 0.1, 0.07, 0.05, 0.02, 0.01)
-    """candidate U_chunk thresholds (the calibration picks one; the report's post-hoc table lists them all). In raw
-    units (m, rad, gripper m) the paper's 0.02-0.05 is in the range our models' U takes; in normalised units
-    (per-dimension unit variance) it would stop every rollout at once"""
-    tau_units: str = "raw"
-    """U_chunk's units: written into the world model's rollout.tau_units, so the sweep, the report and `sc3
-    rollout` with the same config share one convention ("raw" or "normalised")"""
-    batch: int = 6
-    """initial conditions per world-model batch (the resume unit for offline/online)"""
-    rollout_seed: int = 0
-    """seed of the world model's sampling noise (every episode's key is folded in from it)"""
     degradations: str = "calibration"
     """which real rollouts the perception scorer also reads blurred / patch-noised / colour-shifted (its robustness
     to generated-looking frames: the report's "Perception scorer vs physics"): "calibration" (the calibration
@@ -110,15 +100,11 @@ class SweepConfig:
     rollout they were half of the real rollouts' time (bench/sweep.py), while the check needs only a sample of
     objects. Stores written before this choice hold a boolean: true reads as "all", false as "none"."""
     episode_seconds: float | None = 12.0
-    """real and imagined horizon (None: the world model's rollout config). 12 s: a successful zoo episode takes
-    6.5-7.5 s, a failing one retries until the limit; 12 s keeps every success and costs 60% of the 20 s default"""
-    sample_steps: int | None = 2
-    """forward-dynamics Euler steps (None: the world model's config). 2 instead of the shipped model's 8 costs a
-    third of the time per chunk and ranked the zoo as 8 do (docs/sweep.md#sampler-steps)"""
-    inverse_steps: int | None = 1
-    """Euler steps of the inverse-dynamics re-read (None: the world model's config). It yields U_chunk only, never
-    the frames or the outcomes; U read in 1 step correlates with U read in 8 at Pearson 0.981 (docs/sweep.md),
-    and tau is calibrated on U read the same way"""
+    """real and imagined horizon (None: the world model's rollout.episode_seconds). The benchmark's: a successful
+    zoo episode ends well before 12 s, a failing one retries until the limit"""
+    taus: tuple[float, ...] = (math.inf, 0.1, 0.07, 0.05, 0.02, 0.01)
+    """candidate U_chunk thresholds in the benchmark's raw action units (m, rad, gripper m); the calibration
+    conditions choose one and the report's post-hoc table lists them all"""
     real_from: str | None = None
     """start from another store's real rollouts (hard links; same protocol and scorer): world models compared on
     one real set, which is paid for once (e.g. the checkpoints of a compute curve, docs/results.md)"""

@@ -1,6 +1,7 @@
-"""The report of a simulator-free sweep (``ic_sweep.py``): the policies ranked by their imagined success, and -- where
-real outcomes of the same policies exist (``labels.py``) -- how faithfully the imagined per-policy rates follow the
-real ones. Every number comes from :func:`compute` (JSON-serialisable); :func:`render` formats it.
+"""The numbers and tables of a sweep of held-out episodes (``ic_sweep.py``), which ``report.render`` writes: the
+policies ranked by their imagined success, and -- where real outcomes of the same policies exist (``labels.py``) --
+how faithfully the imagined per-policy rates follow the real ones. Every number comes from :func:`compute`
+(JSON-serialisable).
 
 Ranking: per policy and criterion the success rate over the evaluation conditions (tau = inf, the whole rollout)
 with a 95% bootstrap interval; the conditions are resampled with replacement, one resample per draw for every
@@ -26,7 +27,6 @@ Draws resample the imagined conditions (paired across policies) and, independent
 """
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 
@@ -34,30 +34,33 @@ import numpy as np
 
 from sc3_jax import atomic
 from sc3_jax.errors import UserError
-from sc3_jax.evaluate import bootstrap, calibrate, intervals, report_html
+from sc3_jax.evaluate import bootstrap, calibrate, intervals
+from sc3_jax.evaluate.report_html import ci, fmt
 from sc3_jax.evaluate.ic_sweep import KIND, REAL_FILE
 from sc3_jax.evaluate.results import ResultsStore
 
 ALL = ["all"]  # one "split": intervals' helpers pool every policy under metrics.OVERALL
 
 
-def is_ic_store(results: str | Path) -> bool:
-    """Whether ``results`` holds a simulator-free sweep (``sweep.json`` kind ``initial_conditions``)."""
+def is_store(results: str | Path) -> bool:
+    """Whether ``results`` holds a sweep of held-out episodes (``sweep.json`` kind ``initial_conditions``)."""
     p = Path(results) / "sweep.json"
     return p.is_file() and atomic.read_json(p).get("kind") == KIND
 
 
 def compute(results: str | Path, real: tuple[str, ...] | list[str] | None = None, draws: int = 2000,
-            seed: int = 0) -> dict:
+            seed: int = 0, taus=None) -> dict:
     """Every number of the report of the store at ``results``. ``real``: real-outcome sources (``labels.py``;
-    None: those the sweep was given, ``real.json``; (): none)."""
+    None: those the sweep was given, ``real.json``; (): none). ``taus``: other candidate thresholds (None: the
+    sweep's)."""
     from sc3_jax.evaluate import labels
 
     store = ResultsStore(results)
-    if not is_ic_store(results):
-        raise UserError(f"{results}: not a simulator-free sweep (no sweep.json of kind {KIND!r}); a simulated "
-                        "sweep's store is read by `sc3 report`")
+    if not is_store(results):
+        raise UserError(f"{results}: not a sweep of held-out episodes (no sweep.json of kind {KIND!r})")
     cfg = store.config()
+    if taus is not None:
+        cfg["taus"] = [str(float(t)) for t in taus]
     if real is None:
         saved = Path(results) / REAL_FILE
         real = tuple(atomic.read_json(saved)["real"]) if saved.is_file() else ()
@@ -228,14 +231,6 @@ def _tau_table(by, matched, cal_seeds, shared, taus, units, rp) -> list[dict]:
 # ================================================================================================================
 # Rendering
 # ================================================================================================================
-def _f(x, nd=3) -> str:
-    return "-" if x is None else ("n/a" if isinstance(x, float) and math.isnan(x) else f"{x:.{nd}f}")
-
-
-def ci(cell: dict | None, nd: int = 3) -> str:
-    return "-" if cell is None else f"{_f(cell['value'], nd)} [{_f(cell['lo'], nd)}, {_f(cell['hi'], nd)}]"
-
-
 ROWS = {"online": "world model, online (tau = inf)", "online_tau": "world model, online (calibrated tau*)",
         "policy_blind": "policy-blind guess (floor)", "ceiling": "real vs real, split-half (ceiling)"}
 
@@ -249,7 +244,7 @@ def tables(t: dict) -> list[tuple[str, list[str], list[list[str]]]]:
             f"{how}; rank interval and P(best) over the same draws",
             ["rank", "policy", "score", "rank interval", "P(best)"] + crit + ["rollouts"],
             [[str(p["rank"]), p["policy"], ci(p["score"]), f"{p['rank_interval'][0]}-{p['rank_interval'][1]}",
-              _f(p["p_best"], 2)] + [ci(p["rates"][c]) for c in crit] + [str(p["rollouts"])]
+              fmt(p["p_best"], 2)] + [ci(p["rates"][c]) for c in crit] + [str(p["rollouts"])]
              for p in t["policies"]])]
     r = t.get("real")
     if r:
@@ -276,23 +271,10 @@ def tables(t: dict) -> list[tuple[str, list[str], list[list[str]]]]:
                     f"policy against the real rates (U_chunk in {tt['units']} action units); chosen: highest r, ties "
                     "lower MMRV, then larger tau. The real set is the one the faithfulness rows are scored on: the "
                     "tau* row is optimistic by this choice", ["tau", "termination rate", "r", "MMRV", "rollouts"],
-                    [[e["tau"] + (" (chosen)" if e["tau"] == tt["chosen"] else ""), _f(e["termination_rate"], 2),
-                      _f(e["faithfulness"]["overall"]["pearson"]), _f(e["faithfulness"]["overall"]["mmrv"]),
+                    [[e["tau"] + (" (chosen)" if e["tau"] == tt["chosen"] else ""), fmt(e["termination_rate"], 2),
+                      fmt(e["faithfulness"]["overall"]["pearson"]), fmt(e["faithfulness"]["overall"]["mmrv"]),
                       str(e["cases"])] for e in tt["calibration"]]))
     return out
-
-
-def markdown(t: dict) -> str:
-    cfg = t["config"]
-    parts = [f"# Simulator-free sweep report\n\n**{_verdict(t)[0]}**\n\nWorld model `{Path(cfg['world_model']).name}`, "
-             f"initial conditions `{Path(cfg['initial_conditions']).name}` ({t['conditions']['evaluation']} evaluation "
-             f"+ {t['conditions']['calibration']} calibration episodes), results `{Path(t['read_from']).name}`; rollouts "
-             f"{t['rollouts']}. Recompute every number with `sc3_jax.evaluate.ic_ranking.compute(RESULTS)`.\n"]
-    parts += [f"\n**{w}**\n" for w in t["warnings"]]
-    for title, header, rows in tables(t):
-        parts.append(f"## {title}\n\n| " + " | ".join(header) + " |\n|" + "---|" * len(header) + "\n" +
-                     "".join("| " + " | ".join(r) + " |\n" for r in rows))
-    return "\n".join(parts)
 
 
 def summary(t: dict) -> list[str]:
@@ -342,25 +324,9 @@ def _source_names(sources) -> list[str]:
     return [f"{name}={Path(path).name}" if name else Path(path).name for name, path in map(split_spec, sources)]
 
 
-def _verdict(t: dict) -> list[str]:
+def verdict(t: dict) -> list[str]:
     """The page's first lines: the verdict against the real outcomes (or that there are none), then the ranking."""
     said = summary(t)
     lines = said[:len(said) - len(t["warnings"])]
     verdict_last = not t.get("real") or bool(t["real"]["faithfulness"])  # summary's last line is then the verdict
     return lines[-1:] + lines[:-1] if verdict_last else lines
-
-
-def render(results: str | Path, out: str | Path | None = None, real=None, draws: int = 2000) -> Path:
-    """Write report.md, report.html and report.json to ``out`` (default RESULTS/report), staged so a failure leaves
-    the previous report as it was; returns report.md."""
-    t = compute(results, real, draws)
-    out = Path(out) if out is not None else Path(results) / "report"
-    with atomic.staged(out, last=("report.md",)) as stage:
-        (stage / "report.json").write_text(json.dumps(t, indent=1))
-        (stage / "report.md").write_text(markdown(t))
-        ranking, *details = tables(t)
-        (stage / "report.html").write_text(report_html.page(
-            "Simulator-free sweep report", _verdict(t), [ranking], method=METHOD, details=details,
-            warnings=t["warnings"], facts=[f"World model {Path(t['config']['world_model']).name}, initial conditions "
-                                           f"{Path(t['config']['initial_conditions']).name}; rollouts {t['rollouts']}"]))
-    return out / "report.md"
