@@ -191,6 +191,10 @@ class DataConfig:
     """K: clean context frames at the start of each window"""
     future_frames: int = 4
     """l': frames (and actions) predicted per window, after the context"""
+    anchor: bool = False
+    """memory: the episode's first frame kept in front of every window's context, a clean token frame at its true
+    time (in a rollout: the first observation, however many chunks ago), so what the scene held stays in view
+    (RoboWorld's anchored context). One token frame per frame (tokenizer 'pixel' or 'conv_ae')"""
     strides: tuple[int, ...] = (1, 2)
     """multi-FPS: each window's frame stride is drawn from these (recorded actions composed over the stride)"""
     pseudo_action_prob: float = 0.5

@@ -20,14 +20,15 @@ from sc3_jax.model import dit
 
 
 def noise_inputs(video, actions, stride, video_noisy, action_noisy, t, eps_video, eps_actions, pose=None,
-                 context_level=None):
+                 context_level=None, anchor_gap=None):
     """Noised model inputs. ``t`` [B] is the sample's noise level, applied to its noisy tokens only."""
     tv = jnp.where(video_noisy, t[:, None, None], 0.0)
     ta = jnp.where(action_noisy, t[:, None], 0.0)
     xv = jnp.where(video_noisy[..., None, None], (1 - tv[..., None, None]) * video + tv[..., None, None] * eps_video,
                    video)
     xa = jnp.where(action_noisy[..., None], (1 - ta[..., None]) * actions + ta[..., None] * eps_actions, actions)
-    return dit.Inputs(xv, xa, tv, video_noisy, ta, action_noisy, stride, pose=pose, context_level=context_level)
+    return dit.Inputs(xv, xa, tv, video_noisy, ta, action_noisy, stride, pose=pose, context_level=context_level,
+                      anchor_gap=anchor_gap)
 
 
 def noise_context(video, level, key, context_frames: int):
@@ -114,16 +115,18 @@ def self_forced_window(params, cfg: ModelConfig, video, actions, stride, rng, gr
 
 
 def loss(params, cfg: ModelConfig, video, actions, stride, rng, probs, grid, fcfg: FlowConfig = FlowConfig(),
-         context_frames: int | None = None, pose=None, self_forcing_shift: int = 0):
+         context_frames: int | None = None, pose=None, self_forcing_shift: int = 0, anchor_gap=None):
     """The training loss for a batch of clean tokens; modes, noise levels and noise drawn from ``rng``.
     ``context_frames``: see ``predict`` (token frames; default: frames - actions). ``pose``: see ``dit.Inputs``.
     With ``fcfg.self_forcing > 0`` the inputs are windows extended by ``self_forcing_shift`` frames, cut to the
     training windows by ``self_forced_window`` (its picks among forward-dynamics samples) before anything else.
     With ``fcfg.context_noise_max > 0`` the context frames are noised (``noise_context``) next; the targets stay the
-    clean frames."""
+    clean frames. ``anchor_gap``: see ``dit.Inputs`` (data.anchor: token frame 0 is the episode's first frame)."""
     k_mode, k_t, k_ev, k_ea = jax.random.split(rng, 4)
     picked = None
     if fcfg.self_forcing > 0:
+        if anchor_gap is not None:
+            raise ValueError("flow.self_forcing with data.anchor is not wired yet: set one of them off")
         if context_frames is not None:
             raise ValueError("flow.self_forcing needs one token frame per frame (context_frames None)")
         mode, _ = modes_lib.draw(k_mode, video.shape[0], video.shape[1], probs)  # the same draw as below
@@ -146,7 +149,8 @@ def loss(params, cfg: ModelConfig, video, actions, stride, rng, probs, grid, fcf
     t = draw_t(k_t, B, fcfg)
     eps_v = jax.random.normal(k_ev, video.shape, video.dtype)
     eps_a = jax.random.normal(k_ea, actions.shape, actions.dtype)
-    inp = noise_inputs(video, actions, stride, video_noisy, action_noisy, t, eps_v, eps_a, pose, context_level)
+    inp = noise_inputs(video, actions, stride, video_noisy, action_noisy, t, eps_v, eps_a, pose, context_level,
+                       anchor_gap)
     (v_v, v_a), (x0_v, x0_a) = predict(params, cfg, inp, grid, context_frames=context_frames)
     if cfg.prediction == "velocity":
         preds, targets = (v_v, v_a), (eps_v[:, :, K:] - clean[:, :, K:], eps_a - actions)
@@ -181,7 +185,7 @@ CACHES = ("auto", "context", "video", "none")
 
 def sample(params, cfg: ModelConfig, video, actions, stride, video_noisy, action_noisy, rng, steps: int, grid,
            cache: str = "auto", fcfg: FlowConfig = FlowConfig(), context_frames: int | None = None,
-           pose=None, context_noise: float = 0.0):
+           pose=None, context_noise: float = 0.0, anchor_gap=None):
     """Euler from t = 1 to t = 0 in ``steps`` Euler steps (``time_grid``); clean tokens held fixed. Returns (video,
     actions) with the noisy positions filled in (the context frames as given, never their noised copy).
 
@@ -190,7 +194,7 @@ def sample(params, cfg: ModelConfig, video, actions, stride, video_noisy, action
     all frames clean, all actions noisy), "none" = no cache (for checks), "auto" = "context" when the model's
     context attention is causal, else "none". ``context_frames``: see ``predict``. ``pose``: see ``dit.Inputs``.
     ``context_noise``: the level the context is noised with (models trained with context noise use a small one at
-    inference, as GameNGen does)."""
+    inference, as GameNGen does). ``anchor_gap``: see ``dit.Inputs``."""
     if cache not in CACHES:
         raise ValueError(f"cache {cache!r}: one of {CACHES}")
     K = video.shape[2] - actions.shape[1] if context_frames is None else context_frames
@@ -209,7 +213,7 @@ def sample(params, cfg: ModelConfig, video, actions, stride, video_noisy, action
     if cache != "none":
         clean = dit.Inputs(video, actions, jnp.zeros(video_noisy.shape), video_noisy,
                            jnp.zeros(action_noisy.shape), action_noisy, stride, pose=pose,
-                           context_level=context_level)
+                           context_level=context_level, anchor_gap=anchor_gap)
         context_kv = dit.encode_context(params, cfg, clean, grid, prefix=cache, context_frames=context_frames)
 
     ts = time_grid(steps, fcfg)
@@ -218,7 +222,7 @@ def sample(params, cfg: ModelConfig, video, actions, stride, video_noisy, action
         xv, xa = carry
         t, t_next = ts[i], ts[i + 1]
         inp = dit.Inputs(xv, xa, jnp.where(video_noisy, t, 0.0), video_noisy, jnp.where(action_noisy, t, 0.0),
-                         action_noisy, stride, pose=pose, context_level=context_level)
+                         action_noisy, stride, pose=pose, context_level=context_level, anchor_gap=anchor_gap)
         (v_v, v_a), _ = predict(params, cfg, inp, grid, context_kv, context_frames)
         fut = xv[:, :, K:] + (t_next - t) * v_v
         xv = xv.at[:, :, K:].set(jnp.where(video_noisy[:, :, K:, None, None], fut, xv[:, :, K:]))

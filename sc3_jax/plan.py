@@ -195,7 +195,8 @@ def chunk_flops(cfg, action_space=None, data_fps: float = 20.0) -> dict[str, flo
         params = jax.eval_shape(lambda: dit.init_params(m, st.tok.token_dim, jax.random.key(0), st.grid))
         V, K, T, H, W, A = spec.views, spec.context, spec.predict, *spec.image_size, spec.action_dim
         ctx = sds((V, K, H, W, 3), jnp.float32)
-        carry = rollout.Carry(ctx, sds((A,), jnp.float32), sds((), bool), sds((), jnp.int32), sds((0,), jnp.float32))
+        carry = rollout.Carry(ctx, sds((A,), jnp.float32), sds((), bool), sds((), jnp.int32), sds((0,), jnp.float32),
+                              sds((V, spec.anchor, H, W, 3), jnp.float32))
         Kt, Tt = st.window  # token frames (fewer than frames with a time-compressing tokenizer)
         key = jax.eval_shape(lambda: jax.random.key_data(jax.random.key(0)))
         norm = sds((4, A), jnp.float32)  # NormStats.as_array: action mean, std, state mean, std

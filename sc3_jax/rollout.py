@@ -82,6 +82,7 @@ class RolloutSpec:
     action_space: ActionSpace = DELTA_EE  # what the actions mean (compose, imagined state, holding still)
     data_fps: float = 20.0  # the frame rate of the data the model was trained on
     state_dim: int = 0  # the learned robot state's size (state_head.py); 0: policies see the imagined commands
+    anchor: int = 0  # 1: the first observation kept in front of every chunk's context (data.anchor)
 
     @property
     def action_dim(self) -> int:
@@ -135,7 +136,7 @@ def make_spec(cfg: Config, data_fps: float = 20.0, num_chunks: int | None = None
     return RolloutSpec(len(d.views), tuple(d.image_size), d.context_frames, d.future_frames, r.keep_frames,
                        r.policy_chunk, int(num_chunks), int(round(stride)), cfg.sample.steps, ratio,
                        float(cfg.sample.context_noise), r.tau_units, cfg.sample.inverse_steps, space,
-                       float(data_fps), int(state_dim))
+                       float(data_fps), int(state_dim), int(d.anchor))
 
 
 BENCHMARK_TAU = 0.02  # the paper's threshold, set in the raw units of delta_ee actions (metres, radians)
@@ -168,6 +169,7 @@ class Carry(NamedTuple):  # one episode (no batch axis); vmapped
     done: jax.Array  # bool []
     chunk: jax.Array  # int32 []
     robot: jax.Array  # [S] the learned robot state (S = 0: none)
+    anchor: jax.Array  # [V, a, H, W, 3] the first observation in [-1, 1] (a = spec.anchor: 1 with data.anchor, else 0)
 
 
 def episode_keys(seed: int, n: int, start: int = 0) -> jax.Array:
@@ -193,8 +195,9 @@ class ChunkFns:
         self.window = window_tokens(self.tok, spec.context, spec.predict)
 
     def init(self, frames, state, robot) -> Carry:
-        return Carry(to_unit(frames), jnp.asarray(state, jnp.float32), jnp.zeros((), bool), jnp.zeros((), jnp.int32),
-                     jnp.asarray(robot, jnp.float32))
+        unit = to_unit(frames)
+        return Carry(unit, jnp.asarray(state, jnp.float32), jnp.zeros((), bool), jnp.zeros((), jnp.int32),
+                     jnp.asarray(robot, jnp.float32), unit[:, :self.spec.anchor])
 
     def keys(self, key_data, chunk):
         """(policy, forward, inverse) keys of this chunk."""
@@ -229,13 +232,16 @@ class ChunkFns:
         model_actions = imagination_state.compose(actions[:T * r], r, space)  # [T, A] raw units, model rate
         a = (model_actions - mean) / std  # normalised [T, A]
         stride = jnp.full((1,), s.stride, jnp.int32)
-        ctx = self.tok.encode(carry.context)[None]  # [1, V, Kt, P, D]
+        # data.anchor: the first observation in front of the context, chunk x l x stride data frames before it
+        ctx = self.tok.encode(jnp.concatenate([carry.anchor, carry.context], axis=1))[None]  # [1, V, a + Kt, P, D]
+        Kt, K = Kt + s.anchor, K + s.anchor
+        gap = jnp.full((1,), carry.chunk * l * s.stride, jnp.int32) if s.anchor else None
         video = jnp.concatenate([ctx, jnp.zeros((1, V, Tt) + ctx.shape[3:], ctx.dtype)], axis=2)
         # pose condition: the pose at the last context frame, then integrated with the commanded actions
         pose = (imagination_state.frame_poses(carry.state, model_actions, space, s.model_dt) - norm[2]) / norm[3]
         sample = functools.partial(flow.sample, params, m, steps=s.steps, grid=self.grid, fcfg=self.flow_cfg,
                                    context_frames=Kt, pose=pose[None] if m.pose_conditioning else None,
-                                   context_noise=s.context_noise)
+                                   context_noise=s.context_noise, anchor_gap=gap)
         # forward dynamics: every view's future frames from the context and the commanded actions
         vn, an = modes.fixed(modes.FD, 1, V, Kt, Tt, num_actions=T)
         video, _ = sample(video, a[None], stride, vn, an, k_fd, cache="auto" if self.cache else "none")
@@ -254,7 +260,7 @@ class ChunkFns:
             kept = self.tok.decode(video[0][:, K:K + l], s.image_size)  # [V, l, H, W, 3] in [-1, 1]
         else:
             kept = self.tok.decode(video[0], s.image_size)[:, K:K + l]
-        context = jnp.concatenate([carry.context, kept.astype(carry.context.dtype)], axis=1)[:, -K:]
+        context = jnp.concatenate([carry.context, kept.astype(carry.context.dtype)], axis=1)[:, -s.context:]
         # the l executed steps: l * r raw actions; the state at each kept frame is every r-th integrated state
         state, states = imagination_state.integrate(carry.state, actions[:l * r], space,
                                                     s.raw_dt if raw else s.model_dt)
@@ -266,7 +272,7 @@ class ChunkFns:
             robots = state_head.unroll(norm[4], carry.robot, model_actions[:l], jnp.moveaxis(kept, 1, 0))
             robot, emit["robot_states"] = robots[-1], robots
         new = Carry(jnp.where(done, carry.context, context), jnp.where(done, carry.state, state), done,
-                    carry.chunk + 1, jnp.where(done, carry.robot, robot))
+                    carry.chunk + 1, jnp.where(done, carry.robot, robot), carry.anchor)
         return new, emit
 
 

@@ -119,6 +119,9 @@ def make_train_step(cfg: Config):
     K_tok = context_token_frames(cfg)
     shift = self_forcing_shift(cfg)
     teacher_cfg = teacher_config(cfg)
+    if cfg.data.anchor and (K_tok is not None or teacher_cfg is not None or shift):
+        raise UserError("data.anchor needs one token frame per frame (tokenizer 'pixel' or 'conv_ae') and is not "
+                        "wired into distillation or self-forcing yet: set data.anchor False")
 
     A, B = cfg.train.grad_accum, cfg.data.batch_size
     if A < 1 or B % A:
@@ -128,7 +131,8 @@ def make_train_step(cfg: Config):
         video = tok.from_latents(batch["latents"]) if "latents" in batch else tok.encode(batch["frames"])
         loss_fn = lambda p: flow.loss(p, cfg.model, video, batch["actions"], batch["stride"], rng,  # noqa: E731
                                       cfg.modes.probs, grid, cfg.flow, context_frames=K_tok,
-                                      pose=batch.get("pose"), self_forcing_shift=shift)
+                                      pose=batch.get("pose"), self_forcing_shift=shift,
+                                      anchor_gap=batch.get("anchor_gap"))
         if teacher_cfg is not None:  # the teacher is an argument, not differentiated: it costs forward passes only
             loss_fn = lambda p: flow.distill_loss(  # noqa: E731
                 p, teacher, cfg.model, video, batch["actions"], batch["stride"], rng, cfg.modes.probs, grid,
@@ -170,9 +174,11 @@ def uses_latent_cache(cfg: Config) -> bool:
 
 def batch_shapes(cfg: Config) -> dict[str, jax.ShapeDtypeStruct]:
     d = window_data(cfg)
-    B, V, F = d.batch_size, len(d.views), d.context_frames + d.future_frames
+    B, V, F = d.batch_size, len(d.views), int(d.anchor) + d.context_frames + d.future_frames
     shapes = {"actions": jax.ShapeDtypeStruct((B, d.future_frames, cfg.model.action_dim), jnp.float32),
               "stride": jax.ShapeDtypeStruct((B,), jnp.int32)}
+    if d.anchor:  # data frames between the anchor (the episode's first frame) and the first context frame
+        shapes["anchor_gap"] = jax.ShapeDtypeStruct((B,), jnp.int32)
     if uses_latent_cache(cfg):
         tok = make_tokenizer(cfg.model)
         h, w = tok.latent_size(d.image_size)

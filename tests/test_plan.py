@@ -284,3 +284,22 @@ def test_a_train_step_that_cannot_fit_trains_with_the_memory_plan_that_does(monk
     monkeypatch.setattr(plan, "available_bytes", lambda: (1e6, "test memory"))
     with pytest.raises(UserError, match="nothing fits"):  # not even one sample per device
         plan.fit_to_memory(cfg, 8)
+
+
+def test_a_resumed_run_keeps_the_memory_plan_it_started_with(tmp_path, monkeypatch):
+    """Free memory changes between runs, a workdir's config must not: `sc3 train` plans memory for a new workdir
+    only; a resumed one keeps its saved attention kernel, remat and micro-batches unless the command sets them."""
+    import dataclasses
+
+    from sc3_jax.commands import train as train_cmd
+
+    cfg = replace(load_config("tiny"), data=dict(views=("a", "b", "c", "d"), image_size=(96, 128)),
+                  model=dict(num_views=4), train=dict(workdir=str(tmp_path / "w")))
+    monkeypatch.setattr(plan, "available_bytes", lambda: (8e9, "test memory"))
+    planned = train_cmd._memory_plan(cfg, frozenset())
+    assert planned.model.attention_impl == "blockwise"
+    (tmp_path / "w").mkdir()
+    (tmp_path / "w" / "config.json").write_text(json.dumps(dataclasses.asdict(planned)))
+    monkeypatch.setattr(plan, "available_bytes", lambda: (1e12, "plenty"))  # more memory now: no re-plan
+    assert train_cmd._memory_plan(cfg, frozenset()).model.attention_impl == "blockwise"
+    assert train_cmd._memory_plan(cfg, frozenset({"model.attention_impl"})).model.attention_impl == "dense"

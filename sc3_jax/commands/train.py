@@ -37,14 +37,7 @@ def main(argv: list[str]) -> int:
     # (no dataset there: train() says so, after refusing a changed config, which it checks first)
     if (Path(cfg.data.path) / "dataset.json").is_file():
         cfg = shape_from_dataset(cfg, cfg.data.path, explicit_fields(argv))
-    import jax
-
-    from sc3_jax import plan
-
-    # a step that cannot fit: the memory plan that does (or one line saying why not), never an allocator failure
-    cfg, note = plan.fit_to_memory(cfg, jax.device_count(), explicit_fields(argv))
-    if note:
-        print(note)
+    cfg = _memory_plan(cfg, explicit_fields(argv))
     last = train.train(cfg)
     print(f"done: step {last.get('step')} loss {last.get('loss', float('nan')):.4f} -> {cfg.train.workdir}")
     from sc3_jax.data.episodes import EpisodeStore
@@ -56,3 +49,29 @@ def main(argv: list[str]) -> int:
 
         print(train_state.describe(*train_state.train(cfg.train.workdir, None, FitConfig(), cfg.train.progress)))
     return 0
+
+
+MEMORY_FIELDS = (("model", "attention_impl"), ("model", "remat"), ("train", "grad_accum"))
+
+
+def _memory_plan(cfg, explicit):
+    """A step that cannot fit this machine: the memory plan that does (``plan.fit_to_memory``: the same model and
+    math), or one line saying why not, before anything compiles -- never an allocator failure. A resumed run keeps
+    the plan its workdir was started with (free memory changes between runs; its config must not)."""
+    import jax
+
+    from sc3_jax import atomic, plan
+    from sc3_jax.config import replace
+
+    saved = Path(cfg.train.workdir) / "config.json"
+    if saved.is_file():
+        old = atomic.read_json(saved)
+        keep = {(sec, f): old.get(sec, {}).get(f) for sec, f in MEMORY_FIELDS if f"{sec}.{f}" not in explicit}
+        for (sec, f), v in keep.items():
+            if v is not None:
+                cfg = replace(cfg, **{sec: {f: v}})
+        return cfg
+    cfg, note = plan.fit_to_memory(cfg, jax.device_count(), explicit)
+    if note:
+        print(note)
+    return cfg

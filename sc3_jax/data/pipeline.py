@@ -223,6 +223,7 @@ class _MakeWindow:
         self.K, self.T = cfg.context_frames, cfg.future_frames
         self.strides = tuple(int(s) for s in cfg.strides)
         self.p = float(cfg.pseudo_action_prob)
+        self.anchor = bool(cfg.anchor)
 
     def __call__(self, pair, rng: np.random.Generator) -> dict:
         stride = self.strides[int(rng.integers(len(self.strides)))]
@@ -236,6 +237,8 @@ class _MakeWindow:
         out = {"actions": self.stats.normalize(acts), "pose": self.stats.normalize_pose(pose),
                "stride": np.int32(stride), "pseudo": np.bool_(pseudo), "episode": np.int32(ep_num),
                "start": np.int32(start)}
+        if self.anchor:  # the episode's first frame in front of the context, ``start`` frames before it
+            idx, out["anchor_gap"] = np.concatenate([[0], idx]), np.int32(start)
         if self.latents is not None:  # cached tokenizer latents instead of frames (data/latent_cache.py)
             out["latents"] = self.latents.window(ep_num, idx)
         else:
@@ -269,7 +272,8 @@ def collate(samples: list[dict]) -> dict:
 def make_dataset(cfg, store: EpisodeStore, stats: NormStats, process_index: int = 0, process_count: int = 1,
                  index: WindowIndex | None = None, latents=None) -> grain.MapDataset:
     """Infinite ``MapDataset`` of this process's local batches (``ds[i]`` = local batch i): dict with
-    ``frames`` uint8 [b, V, K+T, H, W, 3] (V in cfg.views order; with ``latents``, a ``latent_cache.LatentReader``,
+    ``frames`` uint8 [b, V, K+T, H, W, 3] (V in cfg.views order; with ``cfg.anchor`` the episode's first frame in front,
+    [b, V, 1+K+T, ...], and ``anchor_gap`` int32 [b] the frames between it and the first context frame; with ``latents``, a ``latent_cache.LatentReader``,
     ``latents`` float16 [b, V, K+T, h, w, C] instead), ``actions`` float32 [b, T, A] (normalised), ``pose``
     float32 [b, T+1, A] (normalised pose condition), ``stride`` int32 [b], ``pseudo`` bool [b], plus
     ``episode``/``start`` int32 [b] (provenance, for debugging), where b = cfg.batch_size // process_count.

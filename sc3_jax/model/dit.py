@@ -162,10 +162,15 @@ class Inputs(NamedTuple):
     # pose_conditioning configs; see imagination_state.frame_poses)
     pose: jax.Array | None = None
     context_level: jax.Array | None = None  # [B] noise level on the context frames (context_noise configs)
+    # data.anchor: token frame 0 is the episode's first frame, this many data frames [B] before token frame 1
+    anchor_gap: jax.Array | None = None
 
 
-def positions(stride: jax.Array, V: int, F: int, grid: tuple[int, int], T: int, K: int) -> jax.Array:
-    """[B, N, 3] (time, row, col) in packed order (context video, future video, actions)."""
+def positions(stride: jax.Array, V: int, F: int, grid: tuple[int, int], T: int, K: int,
+              anchor_gap: jax.Array | None = None) -> jax.Array:
+    """[B, N, 3] (time, row, col) in packed order (context video, future video, actions). Frame f sits at time
+    f x stride; with ``anchor_gap`` [B] (data.anchor) frame 0 is the anchor, ``anchor_gap`` data frames before frame
+    1: at time stride - anchor_gap."""
     rows, cols = grid
     f = jnp.arange(F, dtype=jnp.float32)
     r, c = jnp.meshgrid(jnp.arange(rows, dtype=jnp.float32), jnp.arange(cols, dtype=jnp.float32), indexing="ij")
@@ -176,7 +181,13 @@ def positions(stride: jax.Array, V: int, F: int, grid: tuple[int, int], T: int, 
     act = jnp.stack([act_t, jnp.zeros(T), jnp.zeros(T)], -1)
     pos = jnp.concatenate([ctx, fut, act], 0)  # [N, 3]
     scale = jnp.asarray([1.0, 0.0, 0.0]) * (stride.astype(jnp.float32)[:, None, None] - 1.0) + 1.0
-    return pos[None] * scale  # time axis scaled by the stride
+    pos = pos[None] * scale  # time axis scaled by the stride
+    if anchor_gap is None:
+        return pos
+    is_anchor = jnp.zeros((V, K, rows * cols), bool).at[:, 0].set(True).reshape(-1)  # the context's frame 0
+    is_anchor = jnp.concatenate([is_anchor, jnp.zeros(pos.shape[1] - is_anchor.shape[0], bool)])
+    t = (stride - anchor_gap).astype(jnp.float32)[:, None]
+    return pos.at[..., 0].set(jnp.where(is_anchor[None], t, pos[..., 0]))
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -377,9 +388,11 @@ def _text_prefix(params, cfg: ModelConfig, inp: Inputs, text_kv):
 
 def _rope(cfg: ModelConfig, inp: Inputs, V, F, grid, T, K, L: int, sl=slice(None)):
     if cfg.layout == "cosmos3":
+        if inp.anchor_gap is not None:
+            raise ValueError("data.anchor is not wired into the Cosmos3 layout's positions")
         return cosmos3.rope_cos_sin(cfg, cosmos3.positions(cfg, inp.stride, L, V, F, K, grid, T)[:, sl])
-    return layers.rope_cos_sin(positions(inp.stride, V, F, grid, T, K)[:, sl], cfg.head_dim, cfg.rope_axes_dim,
-                               cfg.rope_theta)
+    return layers.rope_cos_sin(positions(inp.stride, V, F, grid, T, K, inp.anchor_gap)[:, sl], cfg.head_dim,
+                               cfg.rope_axes_dim, cfg.rope_theta)
 
 
 def _prefix_columns(mask, n: int):
