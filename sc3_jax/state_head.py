@@ -117,16 +117,19 @@ def transitions(store_path: str | Path, views, stride: int, action_space, episod
     return out
 
 
-def _windows(seqs, n: int):
-    """Every window of ``n`` steps: (s0 [W, S], actions [W, n, A], feats [W, n, F], targets [W, n, S])."""
-    s0, a, f, y = [], [], [], []
-    for states, acts, feats in seqs:
-        for i in range(len(acts) - n + 1):
-            s0.append(states[i])
-            a.append(acts[i:i + n])
-            f.append(feats[i + 1:i + n + 1])
-            y.append(states[i + 1:i + n + 1])
-    return tuple(np.asarray(x, np.float32) for x in (s0, a, f, y))
+def _flat(seqs, n: int):
+    """The sequences end to end, as flat arrays -- states [N, S], actions [N, A] (row i moves state i to i + 1; a
+    zero row ends each sequence), features [N, F] float16 -- and the starts [W] of every ``n``-step window inside one
+    sequence: a window is gathered from them on the device, so memory grows with the frames, not with n."""
+    states, acts, feats, starts, at = [], [], [], [], 0
+    for st, ac, fe in seqs:
+        states.append(st)
+        acts.append(np.concatenate([ac, np.zeros((1, ac.shape[1]), np.float32)]))
+        feats.append(fe.astype(np.float16))
+        starts.append(at + np.arange(len(ac) - n + 1))
+        at += len(st)
+    return (np.concatenate(states), np.concatenate(acts), np.concatenate(feats),
+            np.concatenate(starts).astype(np.int32))
 
 
 # ================================================================================================================
@@ -148,44 +151,47 @@ def fit(seqs, cfg: FitConfig = FitConfig(), progress: bool = False) -> tuple[dic
     import optax
     from tqdm import tqdm
 
-    states = np.concatenate([s for s, _, _ in seqs])
-    acts = np.concatenate([a for _, a, _ in seqs])
     n = min(UNROLL, min(len(a) for _, a, _ in seqs))
-    s0, a, f, y = _windows(seqs, n)
+    states, acts, feats, starts = _flat(seqs, n)
+    real = np.concatenate([a for _, a, _ in seqs])  # the actions without the padding rows
     norm = {"state_mean": states.mean(0), "state_std": np.maximum(states.std(0), 1e-3),
-            "action_mean": acts.mean(0), "action_std": np.maximum(acts.std(0), 1e-3)}
+            "action_mean": real.mean(0), "action_std": np.maximum(real.std(0), 1e-3)}
     key = jax.random.key(cfg.seed)
-    params = init(key, states.shape[1], acts.shape[1], f.shape[-1], cfg.hidden)
+    params = init(key, states.shape[1], acts.shape[1], feats.shape[-1], cfg.hidden)
     opt = optax.adam(optax.cosine_decay_schedule(cfg.lr, cfg.steps))
     norm_j = {k: jnp.asarray(v) for k, v in norm.items()}
+    data = tuple(jnp.asarray(x) for x in (states, acts, feats, starts))
 
-    def loss(p, s0, a, f, y, k):
+    def loss(p, g, k):
+        """Windows starting at flat rows ``g`` [b]: n steps fed the head's own predictions."""
+        st, ac, fe, _ = data
+        idx = g[:, None] + jnp.arange(n)[None]  # [b, n]: the actions of each window
         head = {**p, **norm_j}
+        f = fe[idx + 1].astype(jnp.float32)
         f = f + cfg.feature_noise * jax.random.normal(k, f.shape)
-        s_n = (s0 - norm_j["state_mean"]) / norm_j["state_std"]
 
         def body(s, x):
             s = _step_n(head, s, *x)
             return s, s
-        pred = jax.lax.scan(body, s_n, (jnp.swapaxes(a, 0, 1), jnp.swapaxes(f, 0, 1)))[1]
-        target = (jnp.swapaxes(y, 0, 1) - norm_j["state_mean"]) / norm_j["state_std"]
+        s_n = (st[g] - norm_j["state_mean"]) / norm_j["state_std"]
+        pred = jax.lax.scan(body, s_n, (jnp.swapaxes(ac[idx], 0, 1), jnp.swapaxes(f, 0, 1)))[1]
+        target = (jnp.swapaxes(st[idx + 1], 0, 1) - norm_j["state_mean"]) / norm_j["state_std"]
         return jnp.mean(jnp.square(pred - target))
 
     @jax.jit
     def train_step(p, o, k):
         kb, kn = jax.random.split(k)
-        i = jax.random.randint(kb, (cfg.batch,), 0, len(s0))
-        val, g = jax.value_and_grad(loss)(p, s0_j[i], a_j[i], f_j[i], y_j[i], kn)
-        upd, o = opt.update(g, o)
+        g = data[3][jax.random.randint(kb, (cfg.batch,), 0, len(starts))]
+        val, grads = jax.value_and_grad(loss)(p, g, kn)
+        upd, o = opt.update(grads, o)
         return optax.apply_updates(p, upd), o, val
 
-    s0_j, a_j, f_j, y_j = (jnp.asarray(x) for x in (s0, a, f, y))
     o = opt.init(params)
     val = jnp.nan
     for i in tqdm(range(cfg.steps), desc="state head", unit="step", disable=not progress):
         params, o, val = train_step(params, o, jax.random.fold_in(key, i + 1))
     head = {k: np.asarray(v, np.float32) for k, v in {**params, **norm}.items()}
-    return head, {"loss": float(val), "sequences": len(s0), "unroll": n}
+    return head, {"loss": float(val), "sequences": len(starts), "unroll": n}
 
 
 def save(head: dict, model_dir: str | Path, meta: dict) -> Path:

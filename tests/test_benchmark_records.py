@@ -50,7 +50,8 @@ def test_benchmark_sweep_records_and_arrays_are_todays(tmp_path):
     # as a user runs it: one device, XLA's default optimisation (the test processes' 8 devices and fast compile
     # move U in its 7th digit)
     env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
-    subprocess.run([sys.executable, "-m", "sc3_jax.cli", "sweep", "bench", "--out", str(out), "--degradations", "all", *ARGS],
+    subprocess.run([sys.executable, "-m", "sc3_jax.cli", "sweep", "bench", "--out", str(out), "--degradations", "all",
+                    *ARGS],
                    env=env, check=True, capture_output=True)
     records = [json.loads(line) for line in (out / "results.jsonl").read_text().splitlines()]
     key = lambda r: (r["policy"], r["mode"], r["seed"])  # noqa: E731

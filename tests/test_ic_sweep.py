@@ -1,4 +1,4 @@
-"""Evaluation without a simulator (issue 33 item 3 and its acceptance): `sc3 sweep episodes --initial-conditions` ranks
+"""Evaluation without a simulator: `sc3 sweep episodes --initial-conditions` ranks
 policies inside a world model from held-out episodes of the tiny bimanual 14-D robot of test_any_robot.py -- two
 `module:attr` host policies and one served over a real websocket by an openpi-style ALOHA server (`--family aloha`:
 4 CHW cameras, 14-D state) -- scored by a `module:attr` scorer, resumably, and compares the ranking with real

@@ -272,9 +272,9 @@ def collate(samples: list[dict]) -> dict:
 def make_dataset(cfg, store: EpisodeStore, stats: NormStats, process_index: int = 0, process_count: int = 1,
                  index: WindowIndex | None = None, latents=None) -> grain.MapDataset:
     """Infinite ``MapDataset`` of this process's local batches (``ds[i]`` = local batch i): dict with
-    ``frames`` uint8 [b, V, K+T, H, W, 3] (V in cfg.views order; with ``cfg.anchor`` the episode's first frame in front,
-    [b, V, 1+K+T, ...], and ``anchor_gap`` int32 [b] the frames between it and the first context frame; with ``latents``, a ``latent_cache.LatentReader``,
-    ``latents`` float16 [b, V, K+T, h, w, C] instead), ``actions`` float32 [b, T, A] (normalised), ``pose``
+    ``frames`` uint8 [b, V, K+T, H, W, 3] (V in cfg.views order; with ``cfg.anchor`` the episode's first frame in
+    front, [b, V, 1+K+T, ...], and ``anchor_gap`` int32 [b] the frames between it and the first context frame; with
+    ``latents``, a ``latent_cache.LatentReader``, ``latents`` float16 [b, V, K+T, h, w, C] instead), ``actions`` float32 [b, T, A] (normalised), ``pose``
     float32 [b, T+1, A] (normalised pose condition), ``stride`` int32 [b], ``pseudo`` bool [b], plus
     ``episode``/``start`` int32 [b] (provenance, for debugging), where b = cfg.batch_size // process_count.
     ``stats`` must be in the store's action space (a fine-tune keeps its source's units, not its space)."""

@@ -1,5 +1,7 @@
-"""Reports from a sweep's results store: every number comes from :func:`compute` (one call, JSON-serialisable), and
-:func:`render` only formats it (markdown + HTML tables, plots, side-by-side videos).
+"""The report of a sweep's results store, whichever sweep wrote it (``sc3 sweep bench`` or ``sc3 sweep episodes``):
+every number comes from :func:`compute` (one call, JSON-serialisable), and :func:`render` only formats it (markdown
+and HTML tables; for a bench store plots and side-by-side videos, ``report_figures.py``). The numbers of a store of
+held-out episodes are ``report_episodes.py``'s; those of a bench store are here:
 
     from sc3_jax.evaluate.report import compute
     tables = compute("runs/sweep")            # the exact numbers in report.md / report.json
@@ -20,7 +22,8 @@ import numpy as np
 
 from sc3_jax import atomic
 from sc3_jax.errors import UserError
-from sc3_jax.evaluate import bootstrap, calibrate, intervals, metrics, permanence, report_episodes, report_figures, report_html
+from sc3_jax.evaluate import (bootstrap, calibrate, intervals, metrics, permanence, report_episodes, report_figures,
+                              report_html)
 from sc3_jax.evaluate.report_html import UNDEFINED, ci
 from sc3_jax.evaluate.report_html import fmt as _fmt
 from sc3_jax.evaluate.calibrate import object_rows as _object_rows
@@ -86,8 +89,8 @@ def compute(results, taus=None, draws: int = 2000, seed: int = 0, scene=None, re
 
 
 def bench(results, taus=None, draws: int = 2000, seed: int = 0, scene=None) -> dict:
-    """All report numbers from the bench sweep's results store at ``results`` (see the module docstring; several stores, or a
-    directory of a sharded sweep's shards, are read as one: ``merged.open_store``). ``taus`` overrides
+    """All report numbers from the bench sweep's results store at ``results`` (see the module docstring; several
+    stores, or a directory of a sharded sweep's shards, are read as one: ``merged.open_store``). ``taus`` overrides
     the sweep's candidate thresholds (every online record stores U_chunk and the outcomes of every cut, so any
     threshold is evaluated without rolling out again). ``draws`` / ``seed``: the paired bootstrap's. ``scene``: the
     benchmark's scene measure (``permanence.SceneMeasure``): with it, and the frames of real and online rollouts
