@@ -24,13 +24,9 @@ from sc3_jax.errors import UserError
 PACKAGE = Path(sc3_jax.__file__).parent
 
 # (file under sc3_jax/, enclosing function, writer) -> why it is safe
+STAGED = "report.render passes a path inside its atomic.staged directory"
 ALLOWED = {
-    ("evaluate/report_figures.py", "scatter", "savefig"):
-        "report.render passes a path inside its atomic.staged directory",
-    ("evaluate/report_figures.py", "u_plot", "savefig"):
-        "report.render passes a path inside its atomic.staged directory",
-    ("evaluate/report_figures.py", "filmstrip", "savefig"):
-        "report.render passes a path inside its atomic.staged directory",
+    **{("evaluate/report_figures.py", fn, "savefig"): STAGED for fn in ("scatter", "u_plot", "filmstrip")},
     ("evaluate/results.py", "ResultsStore.append", "open(a)"):
         "the append-only results.jsonl (flushed, fsynced); ResultsStore._repair drops a line cut by a kill",
     ("train.py", "MetricsLog.write", "open(a)"):
