@@ -31,7 +31,7 @@ MODULES = {"demo": "demo", "train": "train", "train-tokenizer": "train_tokenizer
            "train-perception": "train_perception", "diagnose": "diagnose", "diagnose-table": "diagnose_table",
            "rollout": "rollout", "sweep": "sweep", "report": "report",
            "curve": "curve", "rescore": "rescore", "data": "data", "sim": "sim", "serve-policy": "serve_policy",
-           "configs": "configs", "convert": "convert", "plan": "plan"}
+           "configs": "configs", "convert": "convert", "plan": "plan", "so101": "so101"}
 COMMANDS = {name: _command(m) for name, m in MODULES.items()}
 
 

@@ -79,7 +79,7 @@ def draw_t(rng, batch: int, fcfg: FlowConfig) -> jax.Array:
 
 
 def self_forced_window(params, cfg: ModelConfig, video, actions, stride, rng, grid, fcfg: FlowConfig, shift: int,
-                       eligible, pose=None):
+                       eligible, pose=None, anchor_gap=None):
     """Self-forced context (anti-drift, as ``noise_context``; RoboWorld's step forcing): in closed loop a chunk's
     context is the model's own earlier prediction, in training it is real. Takes windows extended by ``shift``
     frames -- video [B, V, K + T + shift], actions [B, T + shift], pose [B, T + shift + 1] -- and returns the K + T
@@ -91,23 +91,28 @@ def self_forced_window(params, cfg: ModelConfig, video, actions, stride, rng, gr
     through the first chunk's actions, as a rollout's are. That prediction is one forward pass of the whole batch
     (static shapes; selected with ``jnp.where``): one Euler step from pure noise (``sample``, steps=1: the
     conditional-mean estimate x0 = eps - v), forward dynamics from the real context, held constant for autodiff
-    (training learns from it, never through it). Later frames are real, so the loss targets stay real frames."""
+    (training learns from it, never through it). Later frames are real, so the loss targets stay real frames.
+    With ``anchor_gap`` [B] (data.anchor) token frame 0 is the episode's first frame: it stays frame 0 of both
+    windows, and a picked window's gap grows by shift x stride data frames, as a rollout's does chunk by chunk.
+    Returns (video, actions, pose, anchor_gap, picked)."""
     B = video.shape[0]
+    A = 0 if anchor_gap is None else 1  # the anchor's token frame, in front of the context
     T = actions.shape[1] - shift
     F = video.shape[2] - shift
-    K = F - T
+    K = F - T  # context token frames, the anchor's included
     if not 1 <= shift <= T:
         raise ValueError(f"self-forcing shift {shift} must be in [1, T = {T}] (rollout.keep_frames)")
     k_pick, k_pred = jax.random.split(rng)
     picked = eligible & (jax.random.uniform(k_pick, (B,)) < fcfg.self_forcing)
-    first = (video[:, :, :F], actions[:, :T], None if pose is None else pose[:, :T + 1])
-    later = (video[:, :, shift:shift + F], actions[:, shift:], None if pose is None else pose[:, shift:])
+    first = (video[:, :, :F], actions[:, :T], None if pose is None else pose[:, :T + 1], anchor_gap)
+    later = (jnp.concatenate([video[:, :, :A], video[:, :, A + shift:shift + F]], axis=2), actions[:, shift:],
+             None if pose is None else pose[:, shift:], None if anchor_gap is None else anchor_gap + shift * stride)
     video_noisy, action_noisy = modes_lib.fixed(modes_lib.FD, B, video.shape[1], K, T)
     const = jax.lax.stop_gradient
     predicted, _ = sample(const(params), cfg, *first[:2], stride, video_noisy, action_noisy, k_pred, 1, grid,
-                          cache="none", fcfg=fcfg, pose=first[2])
-    fed = jnp.concatenate([video[:, :, :K], const(predicted[:, :, K:K + shift])], axis=2)[:, :, -K:]
-    later = (later[0].at[:, :, :K].set(fed.astype(later[0].dtype)),) + later[1:]
+                          cache="none", fcfg=fcfg, pose=first[2], anchor_gap=anchor_gap)
+    fed = jnp.concatenate([video[:, :, A:K], const(predicted[:, :, K:K + shift])], axis=2)[:, :, -(K - A):]
+    later = (later[0].at[:, :, A:K].set(fed.astype(later[0].dtype)),) + later[1:]
 
     def pick(a, b):
         return None if a is None else jnp.where(picked.reshape((B,) + (1,) * (a.ndim - 1)), b, a)
@@ -125,14 +130,12 @@ def loss(params, cfg: ModelConfig, video, actions, stride, rng, probs, grid, fcf
     k_mode, k_t, k_ev, k_ea = jax.random.split(rng, 4)
     picked = None
     if fcfg.self_forcing > 0:
-        if anchor_gap is not None:
-            raise ValueError("flow.self_forcing with data.anchor is not wired yet: set one of them off")
         if context_frames is not None:
             raise ValueError("flow.self_forcing needs one token frame per frame (context_frames None)")
         mode, _ = modes_lib.draw(k_mode, video.shape[0], video.shape[1], probs)  # the same draw as below
-        video, actions, pose, picked = self_forced_window(params, cfg, video, actions, stride,
-                                                          jax.random.fold_in(rng, 11), grid, fcfg,
-                                                          self_forcing_shift, mode == modes_lib.FD, pose)
+        video, actions, pose, anchor_gap, picked = self_forced_window(
+            params, cfg, video, actions, stride, jax.random.fold_in(rng, 11), grid, fcfg, self_forcing_shift,
+            mode == modes_lib.FD, pose, anchor_gap)
     B, V, F = video.shape[:3]
     T = actions.shape[1]
     K = F - T if context_frames is None else context_frames

@@ -119,9 +119,9 @@ def make_train_step(cfg: Config):
     K_tok = context_token_frames(cfg)
     shift = self_forcing_shift(cfg)
     teacher_cfg = teacher_config(cfg)
-    if cfg.data.anchor and (K_tok is not None or teacher_cfg is not None or shift):
+    if cfg.data.anchor and (K_tok is not None or teacher_cfg is not None):
         raise UserError("data.anchor needs one token frame per frame (tokenizer 'pixel' or 'conv_ae') and is not "
-                        "wired into distillation or self-forcing yet: set data.anchor False")
+                        "wired into distillation yet: set data.anchor False")
 
     A, B = cfg.train.grad_accum, cfg.data.batch_size
     if A < 1 or B % A:

@@ -94,10 +94,50 @@ def test_training_windows_carry_the_episode_first_frame_and_the_gap(tmp_path):
         np.testing.assert_array_equal(b["frames"][k][:, 0], np.stack([ep.frames[v][0] for v in cfg.data.views]))
 
 
-@pytest.mark.parametrize("flag", [dict(flow=dict(self_forcing=0.25))])
-def test_what_the_anchor_is_not_wired_into_is_refused(flag):
-    from sc3_jax import train
-    from sc3_jax.errors import UserError
+def test_a_self_forced_window_keeps_the_anchor_and_moves_its_gap_with_the_chunk():
+    """With data.anchor, a picked self-forced sample keeps episode frame 0 as its token frame 0, its gap grows by
+    shift x stride data frames (the rollout's next chunk), its context is the one-step prediction made with the
+    anchor in view; an unpicked one is the first window with its gap unchanged."""
+    from test_self_forcing import GRID, K, MCFG, T, V, _extended, _params
+    from sc3_jax.config import FlowConfig
+    B, shift = 6, 2
+    params = _params(jax.random.key(0))
+    video, actions, pose = _extended(jax.random.key(2), B, shift)
+    anchor = jax.random.normal(jax.random.key(9), video[:, :, :1].shape)
+    video = jnp.concatenate([anchor, video], axis=2)  # [B, V, 1 + K + T + shift]
+    stride, gap = jnp.asarray([1, 2, 1, 2, 1, 2]), jnp.asarray([4, 0, 7, 2, 5, 1])
+    eligible, rng = jnp.ones((B,), bool), jax.random.key(3)
+    v2, a2, p2, g2, picked = jax.jit(lambda p: flow.self_forced_window(
+        p, MCFG, video, actions, stride, rng, GRID, FlowConfig(self_forcing=0.5), shift, eligible, pose, gap))(params)
+    picked = np.asarray(picked)
+    assert picked.any() and not picked.all(), "this key picks all or none: choose another"
+    vn, an = modes.fixed(modes.FD, B, V, 1 + K, T)
+    predicted, _ = jax.jit(lambda p: flow.sample(p, MCFG, video[:, :, :1 + K + T], actions[:, :T], stride, vn, an,
+                                                 jax.random.split(rng)[1], 1, GRID, cache="none",
+                                                 pose=pose[:, :T + 1], anchor_gap=gap))(params)
+    fed = jnp.concatenate([video[:, :, 1:1 + K], predicted[:, :, 1 + K:1 + K + shift]], axis=2)[:, :, -K:]
+    for b in range(B):
+        np.testing.assert_array_equal(v2[b, :, 0], anchor[b, :, 0])
+        if picked[b]:
+            assert int(g2[b]) == int(gap[b]) + shift * int(stride[b])
+            np.testing.assert_allclose(v2[b, :, 1:1 + K], fed[b], rtol=1e-6, atol=1e-6)
+            np.testing.assert_array_equal(v2[b, :, 1 + K:], video[b, :, 1 + shift + K:1 + shift + K + T])
+            np.testing.assert_array_equal(a2[b], actions[b, shift:])
+        else:
+            assert int(g2[b]) == int(gap[b])
+            np.testing.assert_array_equal(v2[b], video[b, :, :1 + K + T])
+    # the prediction saw the anchor: without it (other frame 0) the fed context differs
+    other, _ = jax.jit(lambda p: flow.sample(p, MCFG, video[:, :, :1 + K + T].at[:, :, 0].set(0.0), actions[:, :T],
+                                             stride, vn, an, jax.random.split(rng)[1], 1, GRID, cache="none",
+                                             pose=pose[:, :T + 1], anchor_gap=gap))(params)
+    assert float(jnp.abs(other[:, :, 1 + K:] - predicted[:, :, 1 + K:]).max()) > 1e-4
 
-    with pytest.raises(UserError, match="data.anchor"):
-        train.make_train_step(replace(_cfg(), data=dict(anchor=True), **flag))
+
+def test_a_train_step_self_forces_with_the_anchor():
+    from test_self_forcing import random_batch, small
+    from sc3_jax import train
+    cfg = replace(small(self_forcing=0.5), data=dict(anchor=True))
+    batch = random_batch(cfg)
+    assert batch["frames"].shape[2] == 1 + cfg.data.context_frames + cfg.data.future_frames + cfg.rollout.keep_frames
+    state, metrics = jax.jit(train.make_train_step(cfg))(train.init_state(cfg), batch)
+    assert np.isfinite(float(metrics["loss"])) and 0.0 < float(metrics["frac_self_forced"]) <= 1.0

@@ -129,7 +129,7 @@ def test_a_picked_sample_is_the_rollouts_next_chunk(shift):
     rng = jax.random.key(3)
     window = jax.jit(lambda p, *a: flow.self_forced_window(p, MCFG, *a[:4], GRID, FlowConfig(self_forcing=0.5),
                                                            shift, *a[4:]))  # jitted: one compile, not one per op
-    v2, a2, p2, picked = window(params, video, actions, stride, rng, eligible, pose)
+    v2, a2, p2, _, picked = window(params, video, actions, stride, rng, eligible, pose)
     picked = np.asarray(picked)
     assert not picked[~np.asarray(eligible)].any()
     assert picked.any() and (~picked & np.asarray(eligible)).any(), "this key picks all or none: choose another"
@@ -168,7 +168,7 @@ def test_no_gradient_flows_through_the_self_forced_context():
 
     (loss_on, metrics), grads = jax.jit(jax.value_and_grad(forced_loss, has_aux=True))(params)
     assert float(metrics["frac_self_forced"]) == 1.0
-    v2, a2, p2, picked = jax.jit(lambda p: flow.self_forced_window(
+    v2, a2, p2, _, picked = jax.jit(lambda p: flow.self_forced_window(
         p, MCFG, video, actions, stride, jax.random.fold_in(rng, 11), GRID, on, L, jnp.ones((B,), bool), pose))(params)
     assert bool(picked.all())
 

@@ -6,21 +6,6 @@ and ``osmesa`` is replaced by ``egl`` when the OSMesa library is not installed (
 """
 from __future__ import annotations
 
-import ctypes.util
-import os
-import warnings
+from sc3_jax.benchmarks import pick_gl_backend
 
-
-def _pick_gl_backend() -> None:
-    want = os.environ.get("MUJOCO_GL", "")
-    if want == "osmesa" and ctypes.util.find_library("OSMesa") is None:
-        warnings.warn("MUJOCO_GL=osmesa but libOSMesa is not installed; using egl", RuntimeWarning, stacklevel=2)
-        want = ""
-    if not want:
-        want = "egl"
-    os.environ["MUJOCO_GL"] = want
-    if want in ("egl", "osmesa"):
-        os.environ["PYOPENGL_PLATFORM"] = want
-
-
-_pick_gl_backend()
+pick_gl_backend()

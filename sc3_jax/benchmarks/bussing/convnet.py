@@ -5,17 +5,10 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
-import numpy as np
+
+from sc3_jax.policies.convnet import conv, conv_init
 
 NET_SIZE = 64
-
-
-def conv_init(key, k, cin, cout):
-    return {"w": jax.random.normal(key, (k, k, cin, cout)) * np.sqrt(2.0 / (k * k * cin)), "b": jnp.zeros(cout)}
-
-
-def dense_init(key, din, dout, scale=1.0):
-    return {"w": jax.random.normal(key, (din, dout)) * np.sqrt(1.0 / din) * scale, "b": jnp.zeros(dout)}
 
 
 def init_trunk(ks, n_kp: int, widths: tuple[int, int, int] = (16, 32, 32)) -> dict:
@@ -51,12 +44,3 @@ def trunk_features(net: dict, images: jax.Array) -> jax.Array:
     return jnp.concatenate([kp, jnp.tanh(pooled * 0.1)], -1)
 
 
-def conv(x, p, stride):
-    y = jax.lax.conv_general_dilated(x, p["w"], (stride, stride), "SAME", dimension_numbers=("NHWC", "HWIO", "NHWC"))
-    return y + p["b"]
-
-
-def mlp(net: dict, f: jax.Array, layers=("d1", "d2")) -> jax.Array:
-    for name in layers:
-        f = jax.nn.relu(f @ net[name]["w"] + net[name]["b"])
-    return f @ net["out"]["w"] + net["out"]["b"]

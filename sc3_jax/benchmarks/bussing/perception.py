@@ -22,7 +22,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from sc3_jax import atomic
-from sc3_jax.benchmarks.bussing.convnet import dense_init, init_trunk, mlp, trunk_features
+from sc3_jax.benchmarks.bussing.convnet import init_trunk, trunk_features
+from sc3_jax.policies.convnet import dense_init, mlp
 from sc3_jax.benchmarks.bussing.criteria import LIFT_CLEARANCE, inside_container
 from sc3_jax.benchmarks.bussing.tasks import OBJECTS
 

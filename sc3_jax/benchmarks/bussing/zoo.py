@@ -35,12 +35,12 @@ from pathlib import Path
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
-from sc3_jax import atomic
+from sc3_jax.policies import convnet
 from sc3_jax.policies.base import JaxPolicy
+from sc3_jax.policies.convnet import dense_init, mlp
 from . import scene as S
-from .convnet import dense_init, init_trunk, mlp, trunk_features
+from .convnet import init_trunk, trunk_features
 from .tasks import OBJECTS
 
 ZOO_DIR = Path(__file__).parent / "zoo"
@@ -249,19 +249,11 @@ def zoo_names(task: str | None = None) -> list[str]:
     return [n for n, e in ZOO.items() if task is None or e.task == task]
 
 
-def save_params(path: str | Path, net: dict) -> None:
-    """Weights ship as float16 (about 0.3 MB per policy); ``load_params`` casts them back to float32."""
-    flat = {f"{k}/{kk}": np.asarray(v, np.float16) for k, d in net.items() for kk, v in d.items()}
-    atomic.save_npz(path, **flat)
+save_params = convnet.save_params  # float16 weights (zoo_train writes them)
 
 
 def load_params(path: str | Path) -> dict:
-    with atomic.open_npz(path, "train them again (`sc3 sim zoo-train`), or restore the shipped ones with git") as z:
-        net: dict = {}
-        for key in z.files:
-            a, b = key.split("/")
-            net.setdefault(a, {})[b] = jnp.asarray(z[key], jnp.float32)
-    return net
+    return convnet.load_params(path, "train them again (`sc3 sim zoo-train`), or restore the shipped ones with git")
 
 
 def load_policy(name: str, zoo_dir: str | Path | None = None) -> JaxPolicy:

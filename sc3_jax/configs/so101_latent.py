@@ -1,0 +1,32 @@
+"""The SO-101 benchmark's world model (sc3_jax/benchmarks/so101, docs/so101.md): ``bussing_latent``'s recipe on one
+96 x 128 camera at the arm's 10 Hz, trained from the collected LeRobot data like any lab's.
+
+96 x 128 frames -> a conv autoencoder's 24 x 32 x 16 latents -> 4 x 4 patches: 48 tokens a frame, as many as the
+bussing model's three 64 x 64 views, so a step costs about the same (~0.5 steps/s on 2 cores). The model predicts
+l' = 12 frames and a rollout keeps l = 10: one policy chunk of the zoo (10 actions, 1 s) per world-model chunk, as
+the simulator executes it. The store records the 14-D joint state, so ``sc3 train`` trains the learned state after
+the world model (``state_head.py``): policies inside the model read the robot's own state.
+
+From nothing, on the 2-core machine (each step resumes what exists):
+
+    sc3 so101 collect --out ~/sc3-runs/so101/data --episodes 300 --heldout 40 --workers 2
+    sc3 data import-lerobot ~/sc3-runs/so101/data/train --out ~/sc3-runs/so101/train
+    sc3 data import-lerobot ~/sc3-runs/so101/data/heldout --out ~/sc3-runs/so101/heldout
+    sc3 train-tokenizer --data ~/sc3-runs/so101/train --heldout ~/sc3-runs/so101/heldout \\
+        --workdir ~/sc3-runs/so101/tokenizer --steps 2200 --ae.width 96 --ae.mid-width 48 --ae.out-width 24 \\
+        --ae.blocks 1 --ae.latent-channels 16
+    sc3 train --config so101_latent --model.tokenizer-path ~/sc3-runs/so101/tokenizer/tokenizer \\
+        --data.path ~/sc3-runs/so101/train --train.workdir ~/sc3-runs/so101/world_model
+"""
+from sc3_jax.config import load_config, replace
+
+
+def get_config(arg: str | None = None):
+    cfg = load_config("bussing_latent")
+    return replace(
+        cfg, name="so101_latent",
+        model=dict(tokenizer_path="runs/so101/tokenizer/tokenizer"),
+        data=dict(path="runs/so101/train", views=("front",), image_size=(96, 128), context_frames=2,
+                  future_frames=12, strides=(1, 1, 2)),
+        train=dict(workdir="runs/so101/world_model", steps=6000),
+        rollout=dict(policy_chunk=10, keep_frames=10, episode_seconds=12.0, control_hz=10.0, policy_hz=10.0))

