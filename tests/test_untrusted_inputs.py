@@ -71,6 +71,17 @@ def slow():
     return Slow()
 
 
+@pytest.fixture
+def ctrl_c_reaches_children():
+    """A shell that starts pytest in the background without job control (``cmd &`` in a script) passes SIGINT on as
+    ignored, an ignored signal stays ignored across exec, and Python then installs no KeyboardInterrupt handler:
+    Ctrl-C would do nothing in the commands these tests interrupt. Handled here while they start, it is back at its
+    default in them, as in a terminal."""
+    old = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, old)
+
+
 def _sweep_args(ic, run, out, *policies: str) -> list[str]:
     return ["sweep", "episodes", "--initial-conditions", str(ic), "--world-model", str(run), "--policies", *policies,
             "--scorer", "test_untrusted_inputs:score", "--episodes", "2", "--calibration-episodes", "0", "--batch", "2",
@@ -225,7 +236,7 @@ def _send(url: str, obs: dict, key: str | None = None):
     return ("error", reply) if isinstance(reply, str) else ("actions", msgpack_numpy.unpackb(reply))
 
 
-def test_the_policy_server_refuses_big_and_reshaped_messages_and_keeps_its_memory(tmp_path):
+def test_the_policy_server_refuses_big_and_reshaped_messages_and_keeps_its_memory(tmp_path, ctrl_c_reaches_children):
     key_file = tmp_path / "key"
     key_file.write_text("s3cret\n")
     env = {**os.environ, "PYTHONPATH": f"{TESTS}{os.pathsep}{os.environ.get('PYTHONPATH', '')}",
@@ -365,7 +376,7 @@ def test_an_object_array_params_file_is_one_line(tmp_path):
             z["w"]
 
 
-def test_ctrl_c_in_a_sweep_ends_in_one_line_saying_how_to_resume(ic, tmp_path):
+def test_ctrl_c_in_a_sweep_ends_in_one_line_saying_how_to_resume(ic, tmp_path, ctrl_c_reaches_children):
     heldout, run = ic
     out, mark = tmp_path / "sweep", tmp_path / "mark"
     env = {**os.environ, "PYTHONPATH": f"{TESTS}{os.pathsep}{os.environ.get('PYTHONPATH', '')}",
