@@ -74,6 +74,11 @@ def errors_cm(net, data, batch: int = 256) -> dict:
             "goal_xy": float(np.linalg.norm(err[:, 3:5], axis=1).mean())}
 
 
+def _short(path) -> str:
+    """A dataset's name for zoo.json: its folder and split (``data1/train``), not where it lay on the machine."""
+    return "/".join(Path(path).parts[-2:])
+
+
 def train_zoo(data: list[str | Path], heldout: str | Path | None = None, out: str | Path = ZOO_DIR) -> dict:
     """Train every estimator of ``RUNS`` on the datasets ``data`` (their held-out errors on ``heldout``), write them
     and ``zoo.json`` (the policies, their knobs, the estimators' recipe, errors and times) into ``out``."""
@@ -97,6 +102,6 @@ def train_zoo(data: list[str | Path], heldout: str | Path | None = None, out: st
         print(f"  {summary[name]}", flush=True)
     atomic.write_json(out / "zoo.json", {
         "policies": {k: {"weights": e.weights, "knobs": e.knobs.__dict__, "note": e.note} for k, e in ZOO.items()},
-        "estimators": summary, "data": [Path(d).name for d in data], "heldout": Path(heldout).name if heldout else None,
+        "estimators": summary, "data": [_short(d) for d in data], "heldout": _short(heldout) if heldout else None,
         "command": "sc3 so101 zoo-train --data DATA --heldout HELDOUT"})
     return summary
