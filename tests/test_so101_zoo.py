@@ -68,3 +68,13 @@ def test_the_estimator_learns_block_and_goal_from_a_collected_dataset(tmp_path):
     before = errors_cm(zoo.init_estimator(jax.random.key(0)), data)
     after = errors_cm(train_estimator(data, 150, log_every=1000), data)
     assert after["goal_xy"] < 0.5 * before["goal_xy"] and after["block_xy"] < before["block_xy"]
+
+
+def test_a_wrong_policy_or_dataset_is_one_line(tmp_path, capsys):
+    from sc3_jax.cli import main
+    assert main(["so101", "zoo-eval", "--episodes", "1", "--policies", "nosuch"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "nosuch" in err and "so_full" in err
+    assert main(["so101", "zoo-train", "--data", str(tmp_path / "none"), "--out", str(tmp_path / "zoo")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "not a LeRobot dataset" in err and not (tmp_path / "zoo" / "zoo.json").exists()

@@ -42,7 +42,7 @@ class Collect:
 
 @dataclasses.dataclass(frozen=True)
 class Controllers:
-    """Measure every controller recipe's success rate on the same seeds (the table of docs/so101.md)."""
+    """Measure every controller recipe's success rate on the same seeds (docs/results.md, "SO-101")."""
 
     episodes: int = 30
     """episodes per recipe (simulator seeds SEED*100000+i, shared by the recipes)"""
@@ -68,7 +68,7 @@ class ZooTrain:
 
 @dataclasses.dataclass(frozen=True)
 class ZooEval:
-    """Every zoo policy's real success rate in the simulator, on the same seeds (the zoo table of docs/so101.md)."""
+    """Every zoo policy's real success rate in the simulator, on the same seeds (docs/results.md, "SO-101")."""
 
     episodes: int = 36
     """episodes per policy (simulator seeds 20000000+i: neither the collection's training nor held-out seeds)"""
@@ -125,8 +125,13 @@ def _zoo_train(a: ZooTrain) -> int:
     from sc3_jax.benchmarks.so101.zoo import ZOO_DIR
     from sc3_jax.benchmarks.so101.zoo_train import train_zoo
 
+    from sc3_jax.errors import UserError
+
     out = a.out or ZOO_DIR
-    s = train_zoo(list(a.data), a.heldout, out)
+    try:
+        s = train_zoo(list(a.data), a.heldout, out)
+    except ValueError as e:  # a dataset that is not one (LeRobotError), or of another robot: one line
+        raise UserError(str(e)) from None
     print(json.dumps(s, indent=1))
     print(f"weights and zoo.json: {out}")
     return 0
@@ -144,7 +149,16 @@ def _zoo_eval(a: ZooEval) -> int:
     from sc3_jax.benchmarks.so101.rollouts import Job, Setup, run_episodes
     from sc3_jax.benchmarks.so101.zoo import ZOO
 
+    from sc3_jax.benchmarks.so101.zoo import named_policy
+    from sc3_jax.errors import UserError
+    from sc3_jax.policies.resolve import resolve
+
     names = list(a.policies or ZOO)
+    for n in names:  # a wrong name: one line here, not a traceback from a worker
+        try:
+            resolve(n, named=named_policy)
+        except (ValueError, KeyError, FileNotFoundError) as e:
+            raise UserError(f"--policies {n}: {e}") from None
     jobs = [Job(EVAL_SEED0 + i, policy=n) for n in names for i in range(a.episodes)]
     t0, ok = time.time(), {n: [] for n in names}
     for job, r in zip(jobs, tqdm(run_episodes(jobs, Setup(max_steps=a.max_steps, record=False), a.workers),

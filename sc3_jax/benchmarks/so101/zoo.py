@@ -27,10 +27,10 @@ import jax.numpy as jnp
 from sc3_jax.policies import convnet
 from sc3_jax.policies.convnet import conv, conv_init, dense_init, mlp
 from sc3_jax.policies.base import JaxPolicy
+from .env import ACTION_SCALE  # metres per unit position action (no simulator import: env loads it lazily)
 
 ZOO_DIR = Path(__file__).parent / "zoo"
 CHUNK = 10  # actions per inference: 1 s at the env's 10 Hz
-ACTION_SCALE = 0.025  # lerobot_env_so101.policy.DEFAULT_ACTION_SCALE: metres per unit position action
 STATE_DIM, ACTION_DIM = 14, 4
 GRIP, EE = 10, slice(11, 14)  # in the 14-D agent_pos: the gripper command, the end-effector (gripperframe) xyz
 # the grasp point between the jaws sits this far from the reported end-effector once the gripper points down
