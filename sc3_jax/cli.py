@@ -28,7 +28,8 @@ def _command(module: str):
 
 # command -> its module in sc3_jax/commands/
 MODULES = {"demo": "demo", "train": "train", "train-tokenizer": "train_tokenizer", "train-state": "train_state",
-           "train-perception": "train_perception", "diagnose": "diagnose", "diagnose-table": "diagnose_table",
+           "train-perception": "train_perception",
+           "train-detector": "train_detector", "diagnose": "diagnose", "diagnose-table": "diagnose_table",
            "rollout": "rollout", "sweep": "sweep", "report": "report",
            "curve": "curve", "rescore": "rescore", "data": "data", "sim": "sim", "serve-policy": "serve_policy",
            "configs": "configs", "convert": "convert", "plan": "plan", "so101": "so101"}

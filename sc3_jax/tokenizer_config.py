@@ -45,8 +45,8 @@ class TokenizerTrainConfig:
     """a separate episode store for the held-out evaluation (None: no evaluation)"""
     workdir: str = "runs/tokenizer"
     """checkpoints, metrics.jsonl and the exported tokenizer (WORKDIR/tokenizer)"""
-    views: tuple[str, ...] = ("left", "right", "wrist")
-    """the camera views trained on (all share one autoencoder)"""
+    views: tuple[str, ...] | None = None
+    """the camera views trained on (all share one autoencoder; None: every view of --data)"""
     steps: int = 3000
     """training steps"""
     batch_size: int = 32

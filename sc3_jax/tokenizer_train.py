@@ -36,11 +36,12 @@ from sc3_jax.tokenizer_config import TokenizerTrainConfig
 class ImageSampler:
     """Random single-view images with their moving-pixel masks; batch i is a pure function of (seed, i)."""
 
-    def __init__(self, root: str, views: tuple[str, ...], cache: int = 512):
+    def __init__(self, root: str, views: tuple[str, ...] | None, cache: int = 512):
         self.store = EpisodeStore(root)
         self.ids = self.store.episode_ids()
         if not self.ids:
             raise UserError(f"{root}: no episodes to train a tokenizer on (--data / --heldout: an episode store)")
+        views = tuple(self.store.views) if views is None else views
         missing = [v for v in views if v not in self.store.views]
         if missing:
             raise UserError(f"{root}: dataset views {self.store.views} lack {missing} (--views)")
@@ -223,7 +224,8 @@ def export(cfg: TokenizerTrainConfig, ae_cfg: ae.AEConfig, params, sampler: Imag
                                                      sampler.image_size[1] // ae_cfg.downsample,
                                                      ae_cfg.latent_channels]}
     if cfg.heldout:
-        result["heldout"] = evaluate(params, stats, cfg.heldout, cfg.views, cfg.eval_frames, cfg.moving_threshold)
+        result["heldout"] = evaluate(params, stats, cfg.heldout, sampler.views, cfg.eval_frames,
+                                     cfg.moving_threshold)
     atomic.write_json(out / "eval.json", result)
     return result
 

@@ -46,6 +46,10 @@ ALLOWED = {
         "into the episode's temporary directory (mkdtemp in the store), renamed into place whole (os.replace)",
     ("convert_cli.py", "_write_atomically", "shutil.move"):
         "moves a finished temporary directory beside --to into place: a rename (same file system)",
+    ("policies/lerobot_child.py", "main", "np.savez"):
+        "into an in-memory buffer (io.BytesIO): a message on the pipe to the parent, no file",
+    ("policies/lerobot_policy.py", "LeRobotPolicy.infer", "np.savez"):
+        "into an in-memory buffer (io.BytesIO): a message on the pipe to the LeRobot child, no file",
 }
 
 NP_SAVERS = {"save", "savez", "savez_compressed", "savetxt"}

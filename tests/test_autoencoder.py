@@ -174,3 +174,20 @@ def test_tokenizer_first_built_inside_a_trace(trained):
     jax.eval_shape(lambda: make_tokenizer(mcfg).encode(jnp.zeros((1, 16, 16, 3), jnp.uint8)))
     out = make_tokenizer(mcfg).encode(np.zeros((1, 16, 16, 3), np.uint8))  # UnexpectedTracerError before the fix
     assert out.shape == (1, 4, 16) and bool(jnp.all(jnp.isfinite(out)))
+
+
+def test_the_tokenizer_trains_on_every_view_of_its_data_unless_told(tmp_path):
+    """No robot's cameras are a default: a one-camera store (an SO-101's `front`) is sampled as it is."""
+    from sc3_jax.data.action_space import ActionSpace
+    from sc3_jax.data.episodes import Episode, EpisodeStore
+    from sc3_jax.errors import UserError
+    from sc3_jax.tokenizer_config import TokenizerTrainConfig
+    from sc3_jax.tokenizer_train import ImageSampler
+
+    st = EpisodeStore(tmp_path / "s", views=["front"], fps=10, image_size=(8, 8), create=True,
+                      action_space=ActionSpace("absolute", 2), has_pose=False)
+    st.write(Episode("e0", {"front": np.zeros((3, 8, 8, 3), np.uint8)}, np.zeros((3, 2), np.float32), None))
+    assert TokenizerTrainConfig().views is None
+    assert ImageSampler(str(st.root), None).views == ("front",)
+    with pytest.raises(UserError, match="lack \\['wrist'\\]"):
+        ImageSampler(str(st.root), ("front", "wrist"))

@@ -164,7 +164,7 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
     ("policy names", ("policies.resolve",)),
     ("rollout", ("rollout", "imagination_state", "state_head")),
     ("results", ("evaluate.results",)),
-    ("scoring", ("evaluate.scorers", "evaluate.degrade", "evaluate.labels")),
+    ("scoring", ("evaluate.scorers", "evaluate.degrade", "evaluate.labels", "evaluate.success_detector")),
     ("diagnostics", ("evaluate.world_model", "evaluate.world_model_defaults", "evaluate.diagnose",
                      "evaluate.diagnose_video", "evaluate.diagnose_actions", "evaluate.diagnose_outcomes",
                      "evaluate.diagnose_report", "evaluate.diagnose_table", "rollout_io", "plan", "plan_vae")),

@@ -1,18 +1,20 @@
-"""``sc3 sweep bench|episodes [--OPTION VALUE ...]``: policies x initial conditions inside the world model, then the
-report. ``bench``: the simulated benchmark's seeds, real rollouts in its simulator and its scorer
-(sc3_jax/benchmarks/bussing/sweep.py). ``episodes``: held-out episodes of any robot, a lab's scorer and (``--real``)
+"""``sc3 sweep bench|so101|episodes [--OPTION VALUE ...]``: policies x initial conditions inside the world model, then
+the report. ``bench``: the simulated benchmark's seeds, real rollouts in its simulator and its scorer
+(sc3_jax/benchmarks/bussing/sweep.py). ``so101``: the SO-101 benchmark's (sc3_jax/benchmarks/so101/sweep.py: the
+simulator's outcomes, a success detector on the imagined frames). ``episodes``: held-out episodes of any robot, a lab's scorer and (``--real``)
 real outcomes from labels (sc3_jax/evaluate/ic_sweep.py, docs/your_robot.md). One store format and one report."""
 from __future__ import annotations
 
 import json
 
 from sc3_jax.benchmarks.bussing.sweep import SweepConfig
+from sc3_jax.benchmarks.so101.sweep import So101SweepConfig
 from sc3_jax.commands import run_group
 from sc3_jax.errors import UserError
 from sc3_jax.evaluate.ic_sweep import ICSweepConfig
 
 SUMMARY = "policies x initial conditions inside the world model, then the report"  # the line `sc3 --help` shows
-SUBCOMMANDS: dict[str, type] = {"bench": SweepConfig, "episodes": ICSweepConfig}
+SUBCOMMANDS: dict[str, type] = {"bench": SweepConfig, "so101": So101SweepConfig, "episodes": ICSweepConfig}
 
 
 def bench(cfg: SweepConfig) -> int:
@@ -34,6 +36,23 @@ def bench(cfg: SweepConfig) -> int:
     t = json.loads((out / "report" / "report.json").read_text())
     print("\n".join(report.closing_lines(t)))
     print(f"report: {md} (and report.html, report.json, correlation.png)")
+    return 0
+
+
+def so101(cfg: So101SweepConfig) -> int:
+    from sc3_jax.atomic import read_json
+    from sc3_jax.benchmarks.so101 import sweep
+    from sc3_jax.evaluate import report
+
+    out = sweep.run(cfg)
+    md = report.render(out, out / "report", real=[str(out / sweep.REAL_FILE)])
+    t = read_json(out / "report" / "report.json")
+    c = read_json(out / sweep.CHECK_FILE)
+    print(f"SO-101: {cfg.episodes} simulator seeds per policy, real in the simulator, imagined inside "
+          f"{cfg.world_model}, scored by the detector {cfg.detector}")
+    print(f"the detector on the real episodes agrees with the simulator on {c['agreement']:.2f} of {c['all']['n']}")
+    print("\n".join(report.closing_lines(t)))
+    print(f"report: {md} (and report.html, report.json)")
     return 0
 
 
@@ -62,5 +81,5 @@ def main(argv: list[str]) -> int:
         raise UserError(f"name the sweep: `sc3 sweep {job} {' '.join(argv)}` (bench: the simulated benchmark; "
                         "episodes: held-out episodes of any robot)")
     return run_group("sweep", "Policies x initial conditions inside the world model, then the report "
-                     "(docs/sweep.md, docs/your_robot.md).", SUBCOMMANDS, {"bench": bench, "episodes": episodes},
+                     "(docs/sweep.md, docs/your_robot.md).", SUBCOMMANDS, {"bench": bench, "so101": so101, "episodes": episodes},
                      argv)

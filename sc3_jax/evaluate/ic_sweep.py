@@ -70,7 +70,8 @@ class ICSweepConfig(Sampler):
     scorer: str
     """package.module:attr, a function or class called with each imagined rollout (a
     sc3_jax.evaluate.scorers.RolloutView: frames [V, T, H, W, 3], state [T, S], id, instruction) returning
-    {criterion: bool}, e.g. {"success": True}"""
+    {criterion: bool}, e.g. {"success": True}; or detector:DIR, a success detector trained on the lab's labelled
+    episodes (`sc3 train-detector`)"""
     out: str
     """the results store: results.jsonl, rollouts/, sweep.json and report/ (rerun to resume)"""
     episodes: int = 18

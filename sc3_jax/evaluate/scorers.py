@@ -81,10 +81,17 @@ class OutcomeScorer(Protocol):
     def __call__(self, rollout: RolloutView) -> Mapping[str, bool]: ...
 
 
+DETECTOR_PREFIX = "detector:"  # --scorer detector:DIR
+
+
 def load_outcome_scorer(spec: str) -> Callable[[RolloutView], dict[str, bool]]:
     """The scorer ``spec`` = ``package.module:attr`` names: a function (called with each view), a class (built with
     no arguments; then its ``score`` method, else the instance, is called) or an object with a ``score`` method or
-    ``__call__``. One-line UserError naming ``spec`` when it cannot be imported or called."""
+    ``__call__``; or ``detector:DIR``, a success detector ``sc3 train-detector`` trained on the lab's labelled
+    episodes (``success_detector.py``). One-line UserError naming ``spec`` when it cannot be imported or called."""
+    if spec.startswith(DETECTOR_PREFIX):
+        from sc3_jax.evaluate import success_detector
+        return success_detector.load(spec[len(DETECTOR_PREFIX):])
     mod_name, colon, attr = spec.partition(":")
     if not colon or not mod_name or not attr:
         raise UserError(f"--scorer {spec!r}: expected package.module:attr (a function or class taking a RolloutView "

@@ -5,6 +5,8 @@
                              and views where the command passes them (else the benchmark's: 7-D delta_ee, 3 views)
     package.module:attr      a JaxPolicy / HostPolicy, or a zero-argument factory of one
     ws://HOST:PORT           a policy server speaking openpi's protocol (``policies/openpi_client.py``)
+    lerobot:PATH             a LeRobot pretrained_model directory, run by lerobot in its own environment
+                             (``policies/lerobot_policy.py``; SC3_LEROBOT_PYTHON=VENV/bin/python)
     NAME=SPEC                any of the above, called NAME (the sweep's record and directory name)
     SPEC@TASK                any of the above, acting on TASK ("bussing" or "reverse")
 
@@ -21,7 +23,9 @@ from sc3_jax.policies.base import HostPolicy, JaxPolicy
 from sc3_jax.policies.openpi_mappings import ObsMapping
 
 TASKS = ("bussing", "reverse")
-SPELLINGS = "a zoo name, zero | random | linear, package.module:attr or ws://HOST:PORT, as [NAME=]SPEC[@TASK]"
+LEROBOT = "lerobot:"
+SPELLINGS = ("a zoo name, zero | random | linear, package.module:attr, ws://HOST:PORT or lerobot:PATH, as "
+             "[NAME=]SPEC[@TASK]")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -64,6 +68,9 @@ def resolve(spec: str, chunk: int | None = None, family: str | ObsMapping | None
     elif body.startswith(("ws://", "wss://")):
         from sc3_jax.policies.openpi_client import WebsocketClientPolicy
         policy = WebsocketClientPolicy(body, port=None, mapping=None if family in (None, "native") else family)
+    elif body.startswith(LEROBOT):
+        from sc3_jax.policies.lerobot_policy import LeRobotPolicy
+        policy = LeRobotPolicy(body[len(LEROBOT):])
     elif ":" in body:
         policy = load_object(body)
     else:

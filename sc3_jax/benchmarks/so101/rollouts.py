@@ -26,6 +26,7 @@ from .env import ACTION_HIGH, ACTION_LOW, So101Env
 
 MAX_STEPS = 150  # 15 s at 10 Hz: the clean controller needs ~5 s
 EXECUTE = 10  # actions of a policy's chunk applied before it observes again: 1 s
+HOLD = np.array([0.0, 0.0, 0.0, 1.0], np.float32)  # stay, gripper open
 
 
 @dataclasses.dataclass
@@ -42,10 +43,13 @@ class EpisodeRecord:
 
 
 def run_episode(env: So101Env, act_fn: Callable, seed: int, max_steps: int = MAX_STEPS, record: bool = True,
-                source: str = "") -> EpisodeRecord:
+                source: str = "", hold: int = 0) -> EpisodeRecord:
     """One episode from ``seed``. ``act_fn(env, obs) -> action [4]``; its ``reset(seed)``, if it has one, is called
-    after the simulator's."""
+    after the simulator's. ``hold``: steps of ``HOLD`` applied after the reset, before the episode (not recorded):
+    the sweep's initial conditions are the reset frame and the frame after one such step (``sweep.py``)."""
     obs = env.reset(seed)
+    for _ in range(hold):
+        obs, _, _ = env.step(HOLD)
     if hasattr(act_fn, "reset"):
         act_fn.reset(seed)
     frames, actions, states, env_state, success = [], [], [], [], []
@@ -87,6 +91,8 @@ class PolicyActor:
             # the policy's draws come from a key of this initial condition: an episode's result does not depend on
             # which episodes ran before it with the same host
             self.host._rng = jax.random.fold_in(jax.random.key(0), int(seed))
+        elif hasattr(self.host, "reset"):  # e.g. a LeRobot policy: its action queue and history
+            self.host.reset()
         self.chunk, self.k = None, 0
 
     def __call__(self, env: So101Env, obs: dict) -> np.ndarray:
@@ -130,6 +136,7 @@ class Setup:
     max_steps: int = MAX_STEPS
     execute: int = EXECUTE
     record: bool = True
+    hold: int = 0  # steps of HOLD before each episode (run_episode)
 
 
 def default_workers() -> int:
@@ -150,14 +157,15 @@ class _Runner:
         if job.recipe is not None:
             from .controllers import RECIPE_BY_NAME
             ctl = RECIPE_BY_NAME[job.recipe].controller(job.controller_seed)
-            return run_episode(self.env, ctl, job.seed, s.max_steps, s.record, job.recipe)
+            return run_episode(self.env, ctl, job.seed, s.max_steps, s.record, job.recipe, s.hold)
         if job.policy not in self.actors:
             from sc3_jax.policies.resolve import resolve
 
             from .zoo import named_policy
             self.actors[job.policy] = PolicyActor(resolve(job.policy, named=named_policy).policy, s.execute)
         try:
-            return run_episode(self.env, self.actors[job.policy], job.seed, s.max_steps, s.record, job.policy)
+            return run_episode(self.env, self.actors[job.policy], job.seed, s.max_steps, s.record, job.policy,
+                               s.hold)
         except Exception as e:  # the policy's code: its traceback, and which policy and episode
             e.add_note(f"while policy {job.policy!r} acted in the SO-101 episode of seed {job.seed}")
             raise

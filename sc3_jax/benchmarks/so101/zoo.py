@@ -162,6 +162,8 @@ ZOO: dict[str, ZooEntry] = {
     "so_aim1": ZooEntry("est_full.npz", Knobs(grasp_sigma=0.008), "grasp aim error 8 mm"),
     "so_aim2": ZooEntry("est_full.npz", Knobs(grasp_sigma=0.015), "grasp aim error 15 mm"),
     "so_place": ZooEntry("est_full.npz", Knobs(release_sigma=0.02), "release aim error 20 mm"),
+    "so_noise2": ZooEntry("est_full.npz", Knobs(action_sigma=0.2), "noise of 0.2 on every position action"),
+    "so_noise3": ZooEntry("est_full.npz", Knobs(action_sigma=0.3), "noise of 0.3 on every position action"),
     "so_shaky": ZooEntry("est_full.npz", Knobs(action_sigma=0.5), "noise of 0.5 on every position action"),
     "so_small": ZooEntry("est_small.npz", note="an estimator of a tenth of the budget and data"),
 }

@@ -1,0 +1,174 @@
+"""``sc3 sweep so101``: the SO-101 benchmark's protocol, one command. Policies act in the simulator and inside the
+world model from the same initial conditions; the imagined outcomes, scored by a success detector trained on the
+collected data's own labels, are compared with the simulator's (r and MMRV with intervals, against the policy-blind
+floor and a split-half real-vs-real ceiling: ``report_episodes.py``).
+
+    OUT/initial_conditions/   an episode store: per evaluation seed, the frame at the simulator's reset and the frame
+                              after one HOLD step (the world model's two context frames) with the 14-D state
+    OUT/real.csv              per policy and seed, the simulator's success (``info["succeed"]``) within the horizon
+    OUT/detector_check.json   the detector's verdict on those real episodes' frames against the simulator's
+    OUT/results.jsonl ...     the imagined rollouts (``evaluate/ic_sweep.py``'s store), OUT/report/
+
+Initial conditions are identical: the simulator is reset at seed ``EVAL_SEED0 + i`` and stepped once with ``HOLD``;
+the real episode starts there, and those two frames are the imagined one's context. Both run ``episode_seconds``
+(the world model's rollout horizon, 12 s = 120 steps); a real episode ends early when the simulator says done, an
+imagined one is done when the detector sees the task done (``success_detector.decide``). Every step resumes what
+exists (conditions, real outcomes, rollouts).
+"""
+from __future__ import annotations
+
+import csv
+import dataclasses
+import math
+from pathlib import Path
+
+import numpy as np
+
+from sc3_jax import atomic
+from sc3_jax.errors import UserError
+
+EVAL_SEED0 = 20_000_000  # as `sc3 so101 zoo-eval`: neither the collection's training nor held-out seeds
+HOLD_STEPS = 1  # one step from the reset gives the world model's second context frame (and opens the gripper)
+REAL_FILE, CHECK_FILE, IC_DIR = "real.csv", "detector_check.json", "initial_conditions"
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class So101SweepConfig:
+    """The SO-101 policies in the simulator and inside the world model from the same seeds, then the report
+    (docs/so101.md). Resumable: rerun the same command."""
+
+    world_model: str
+    """an SO-101 world model: a `sc3 train --config so101_latent` run or its export"""
+    detector: str
+    """the success detector that scores imagined rollouts (`sc3 train-detector` on the imported collection)"""
+    out: str
+    """results: initial_conditions/, real.csv, detector_check.json, results.jsonl, rollouts/, report/"""
+    policies: tuple[str, ...] = ()
+    """the policies, any spelling `sc3 sweep` takes (an SO-101 zoo name, lerobot:PATH, module:attr; none: the zoo)"""
+    episodes: int = 36
+    """initial conditions (simulator seeds 20000000+i) per policy"""
+    episode_seconds: float | None = None
+    """horizon of both rollouts (None: the world model's rollout.episode_seconds)"""
+    sample_steps: int | None = 2
+    """forward-dynamics Euler steps per chunk (None: the world model's)"""
+    inverse_steps: int | None = 1
+    """Euler steps of the inverse-dynamics re-read (U_chunk)"""
+    batch: int = 6
+    """initial conditions per world-model call"""
+    workers: int = 1
+    """simulator processes for the real rollouts"""
+    learned_state: bool = True
+    """hand the policies the world model's learned 14-D state (state_head.npz)"""
+    progress: bool = True
+    """progress bars on stderr (--no-progress: none, for batch logs)"""
+
+
+def run(cfg: So101SweepConfig) -> Path:
+    """Every stage (see the module docstring); returns OUT."""
+    from sc3_jax import checkpoint
+    from sc3_jax.evaluate import ic_sweep, success_detector
+
+    from .zoo import ZOO, named_policy
+
+    if cfg.episodes < 1 or cfg.batch < 1 or cfg.workers < 1:
+        raise UserError(f"--episodes {cfg.episodes} --batch {cfg.batch} --workers {cfg.workers}: each at least 1")
+    out = Path(cfg.out)
+    detector = success_detector.load(cfg.detector)  # a bad path: one line before anything runs
+    wcfg = checkpoint.read_config(cfg.world_model)
+    seconds = cfg.episode_seconds or wcfg.rollout.episode_seconds
+    steps = int(round(seconds * wcfg.rollout.control_hz))
+    names = list(cfg.policies or ZOO)
+    seeds = [EVAL_SEED0 + i for i in range(cfg.episodes)]
+    out.mkdir(parents=True, exist_ok=True)
+    write_conditions(out / IC_DIR, seeds, tuple(wcfg.data.image_size))
+    real_outcomes(out, names, seeds, steps, tuple(wcfg.data.image_size), detector, cfg.workers, cfg.progress)
+    ic_cfg = ic_sweep.ICSweepConfig(
+        initial_conditions=str(out / IC_DIR), world_model=cfg.world_model, policies=tuple(names),
+        scorer=f"detector:{cfg.detector}", out=str(out), episodes=cfg.episodes, calibration_episodes=0,
+        real=(str(out / REAL_FILE),), sample_steps=cfg.sample_steps, inverse_steps=cfg.inverse_steps,
+        episode_seconds=seconds, taus=(math.inf,), batch=cfg.batch, learned_state=cfg.learned_state,
+        progress=cfg.progress)
+    return ic_sweep.run(ic_cfg, named=named_policy)
+
+
+def write_conditions(root: Path, seeds: list[int], image_size: tuple[int, int]) -> None:
+    """One episode per seed (``seed<SEED>``): the reset frame and state, then those after ``HOLD_STEPS`` of HOLD."""
+    from sc3_jax.data.action_space import ActionSpace
+    from sc3_jax.data.episodes import Episode, EpisodeStore
+
+    from .collect import FPS, TASK
+    from .env import ACTION_NAMES, STATE_NAMES, So101Env
+    from .rollouts import HOLD
+
+    store = EpisodeStore(root, views=["front"], fps=FPS, image_size=image_size, create=True,
+                         action_space=ActionSpace("velocity", 4, tuple(ACTION_NAMES), (3,)), state_dim=len(STATE_NAMES),
+                         state_names=list(STATE_NAMES), has_pose=False)
+    todo = [s for s in seeds if f"seed{s}" not in store]
+    if not todo:
+        return
+    env = So101Env(image_size)
+    try:
+        for s in todo:
+            obs = env.reset(s)
+            frames, states = [env.render()], [obs["agent_pos"]]
+            for _ in range(HOLD_STEPS):
+                obs, _, _ = env.step(HOLD)
+                frames.append(env.render())
+                states.append(obs["agent_pos"])
+            store.write(Episode(f"seed{s}", {"front": np.stack(frames)}, np.repeat(HOLD[None], len(frames), 0), None,
+                                TASK, {"seed": s, "source": "so101 reset + hold"},
+                                np.stack(states).astype(np.float32)))
+    finally:
+        env.close()
+
+
+def real_outcomes(out: Path, names: list[str], seeds: list[int], steps: int, image_size: tuple[int, int], detector,
+                  workers: int, progress: bool) -> None:
+    """Append to OUT/real.csv (policy, episode, success) the (policy, seed) episodes it lacks, and their detector
+    verdicts to OUT/detector_check.json (per policy: agreement of the detector with the simulator)."""
+    from tqdm import tqdm
+
+    from .rollouts import Job, Setup, run_episodes
+
+    path, check_path = out / REAL_FILE, out / CHECK_FILE
+    rows: list[dict] = []
+    if path.is_file():
+        with open(path, newline="") as f:
+            rows = list(csv.DictReader(f))
+    have = {(r["policy"], r["episode"]) for r in rows}
+    jobs = [Job(s, policy=n) for n in names for s in seeds if (_name(n), f"seed{s}") not in have]
+    if not jobs:
+        return
+    check = atomic.read_json(check_path)["per_policy"] if check_path.is_file() else {}
+    setup = Setup(image_size, max_steps=steps, record=True, hold=HOLD_STEPS)
+    try:
+        for job, r in zip(jobs, tqdm(run_episodes(jobs, setup, workers), total=len(jobs), desc="real rollouts",
+                                     unit="episode", disable=not progress)):
+            said = _detect(detector, r.frames)
+            rows.append({"policy": _name(job.policy), "episode": f"seed{job.seed}",
+                         "success": str(r.succeeded).lower()})
+            c = check.setdefault(_name(job.policy), {"agree": 0, "n": 0, "sim_done": 0, "detector_done": 0})
+            c["n"], c["agree"] = c["n"] + 1, c["agree"] + (said == r.succeeded)
+            c["sim_done"], c["detector_done"] = c["sim_done"] + r.succeeded, c["detector_done"] + said
+    finally:  # what finished is kept (a rerun runs the rest)
+        atomic.write_text(path, "policy,episode,success\n" + "".join(
+            f"{r['policy']},{r['episode']},{r['success']}\n" for r in rows))
+        total = {k: sum(c[k] for c in check.values()) for k in ("agree", "n", "sim_done", "detector_done")}
+        atomic.write_json(check_path, {"per_policy": check, "all": total,
+                                       "agreement": total["agree"] / max(total["n"], 1),
+                                       "what": "the success detector on the real episodes' frames (the rule it "
+                                               "scores imagined rollouts with) against the simulator's success"})
+
+
+def _name(spec: str) -> str:
+    """The name a policy spec is recorded under (``NAME=SPEC``: NAME), as the imagined sweep records it."""
+    from sc3_jax.policies.resolve import parse
+
+    name, body, _ = parse(spec)
+    return name or body
+
+
+def _detect(detector, frames: np.ndarray) -> bool:
+    from sc3_jax.evaluate.success_detector import decide
+
+    return decide(detector.probabilities(frames[None]), detector.cfg.threshold, detector.cfg.consecutive)

@@ -1,0 +1,138 @@
+"""``lerobot:PATH``: a LeRobot policy (a ``pretrained_model`` directory that ``lerobot-train`` wrote: ACT, diffusion
+policy, ...) acting in the world model or a simulator, run by LeRobot's own code, unchanged.
+
+LeRobot cannot live in our environment (lerobot 0.4.4, the newest for Python 3.11, pins ``torch<2.11`` and
+``diffusers<0.36``; our interop extra needs ``diffusers>=0.42``), so the policy runs in a child process started with
+the Python of the user's LeRobot environment: ``SC3_LEROBOT_PYTHON=VENV/bin/python`` (unset: this Python). The child
+is ``lerobot_child.py`` (standard library, numpy, torch and lerobot only); it talks over its stdin and stdout, so no
+port, no key and no websockets package are needed there, and it dies with us. (An openpi-wire server in that
+environment would work as well, at the price of a port and a dependency; a pipe is all a local policy needs.)
+
+The child starts on the first ``infer``; ``close()`` (or exit) ends it. Its stderr goes to a log file whose last
+lines are in the error when it fails."""
+from __future__ import annotations
+
+import io
+import json
+import os
+import struct
+import subprocess
+import sys
+import tempfile
+import weakref
+from pathlib import Path
+
+import numpy as np
+
+from sc3_jax.errors import UserError
+
+PREFIX = "lerobot:"
+PYTHON_ENV = "SC3_LEROBOT_PYTHON"  # the Python of an environment with lerobot installed
+CHILD = Path(__file__).with_name("lerobot_child.py")
+# the child imported as a top-level module from its directory: none of sc3_jax (nor jax) loads in that environment
+_RUN_CHILD = (f"import sys; sys.path.insert(0, {str(CHILD.parent)!r}); import lerobot_child; "
+              "sys.exit(lerobot_child.main(sys.argv[1:]))")
+
+
+def _declared(path: Path) -> tuple[int, int, int | None]:
+    """(chunk, action_dim, state_dim) from PATH/config.json, read without lerobot: known before the child starts."""
+    cfg_path = path / "config.json"
+    if not cfg_path.is_file():
+        raise UserError(f"lerobot:{path}: no config.json (give a LeRobot pretrained_model directory, e.g. "
+                        "OUTPUT/checkpoints/last/pretrained_model)")
+    try:
+        cfg = json.loads(cfg_path.read_text())
+        action = cfg["output_features"]["action"]["shape"][0]
+        state = (cfg.get("input_features") or {}).get("observation.state")
+        return int(cfg.get("n_action_steps", 1)), int(action), None if state is None else int(state["shape"][0])
+    except (ValueError, KeyError, TypeError, IndexError) as e:
+        raise UserError(f"{cfg_path}: not a LeRobot policy config ({type(e).__name__}: {e})") from None
+
+
+class LeRobotPolicy:
+    """A HostPolicy (``policies/base.py``) served by ``lerobot_child.py`` in the LeRobot environment."""
+
+    def __init__(self, path: str | os.PathLike, python: str | None = None, device: str = "cpu"):
+        self.path = Path(path).expanduser()
+        self.chunk, self.action_dim, self.state_dim = _declared(self.path)
+        self.python = python or os.environ.get(PYTHON_ENV) or sys.executable
+        self.device = device
+        self.name = f"{PREFIX}{path}"
+        self._proc: subprocess.Popen | None = None
+        self._log = None
+
+    # -- the child ----------------------------------------------------------------------------------------------
+    def _start(self) -> None:
+        self._log = tempfile.NamedTemporaryFile("w+b", prefix="sc3-lerobot-", suffix=".log", delete=False)
+        try:
+            self._proc = subprocess.Popen([self.python, "-c", _RUN_CHILD, str(self.path), "--device", self.device],
+                                          stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=self._log)
+        except OSError as e:
+            raise UserError(f"{self.name}: cannot start {self.python} ({e}); set {PYTHON_ENV} to the python of an "
+                            "environment with lerobot installed") from None
+        weakref.finalize(self, _stop, self._proc)
+        kind, payload = self._receive()
+        meta = json.loads(payload)
+        if meta["chunk"] != self.chunk or meta["action_dim"] != self.action_dim:
+            raise UserError(f"{self.name}: the loaded policy acts {meta['chunk']} x {meta['action_dim']}-D, its "
+                            f"config.json says {self.chunk} x {self.action_dim}-D")
+        self.views = meta["views"]
+
+    def _receive(self) -> tuple[bytes, bytes]:
+        head = self._proc.stdout.read(9)
+        if len(head) < 9:
+            raise UserError(f"{self.name}: the LeRobot child ({self.python}) ended: {self._tail()}")
+        (n,) = struct.unpack("<Q", head[1:])
+        kind, payload = head[:1], self._proc.stdout.read(n)
+        if kind == b"E":
+            said = payload.decode(errors="replace")
+            hint = (f"; set {PYTHON_ENV} to the python of an environment with lerobot"
+                    if said.startswith("ModuleNotFoundError") else "")
+            raise UserError(f"{self.name}: {said} (python: {self.python}{hint}; log {self._log.name})")
+        return kind, payload
+
+    def _send(self, kind: bytes, payload: bytes) -> None:
+        try:
+            self._proc.stdin.write(kind + struct.pack("<Q", len(payload)) + payload)
+            self._proc.stdin.flush()
+        except BrokenPipeError:
+            raise UserError(f"{self.name}: the LeRobot child ended: {self._tail()}") from None
+
+    def _tail(self) -> str:
+        self._log.flush()
+        lines = Path(self._log.name).read_text(errors="replace").strip().splitlines()
+        hint = f" (is lerobot installed for {self.python}? set {PYTHON_ENV})" if any(
+            "No module named 'lerobot'" in x for x in lines) else ""
+        return (lines[-1] if lines else "no output") + hint
+
+    # -- HostPolicy -----------------------------------------------------------------------------------------------
+    def infer(self, obs: dict[str, np.ndarray]) -> np.ndarray:
+        if self._proc is None:
+            self._start()
+        buf = io.BytesIO()
+        np.savez(buf, images=np.asarray(obs["images"], np.uint8), state=np.asarray(obs["state"], np.float32))
+        self._send(b"N", buf.getvalue())
+        _, payload = self._receive()
+        actions = np.load(io.BytesIO(payload))["actions"].astype(np.float32)
+        if actions.shape != (self.chunk, self.action_dim):
+            raise UserError(f"{self.name}: answered actions of shape {actions.shape}, expected "
+                            f"({self.chunk}, {self.action_dim})")
+        return actions
+
+    def reset(self) -> None:
+        """A new episode: clear the policy's action queue and history."""
+        if self._proc is not None:
+            self._send(b"J", json.dumps({"reset": True}).encode())
+
+    def close(self) -> None:
+        if self._proc is not None:
+            _stop(self._proc)
+            self._proc = None
+
+
+def _stop(proc: subprocess.Popen) -> None:
+    try:
+        proc.stdin.close()
+        proc.wait(timeout=10)
+    except (OSError, subprocess.TimeoutExpired):
+        proc.kill()
