@@ -79,3 +79,12 @@ def test_a_rerun_resumes_and_adds_nothing(swept, capsys):
     assert (tmp / "sweep" / "results.jsonl").read_text() == before
     assert (tmp / "sweep" / "real.csv").stat().st_mtime_ns == real
     assert "report:" in capsys.readouterr().out
+
+
+def test_an_unknown_policy_is_one_line_before_anything_runs(swept, capsys):
+    tmp, argv = swept
+    bad = argv[:argv.index("--policies") + 1] + ["so_nosuch"] + argv[argv.index("--batch"):]
+    bad[bad.index("--out") + 1] = str(tmp / "other")
+    assert main(bad) == 2
+    err = capsys.readouterr().err.strip()
+    assert "so_nosuch" in err and "\n" not in err and not (tmp / "other" / "real.csv").exists()

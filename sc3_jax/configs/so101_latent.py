@@ -7,16 +7,24 @@ l' = 12 frames and a rollout keeps l = 10: one policy chunk of the zoo (10 actio
 the simulator executes it. The store records the 14-D joint state, so ``sc3 train`` trains the learned state after
 the world model (``state_head.py``): policies inside the model read the robot's own state.
 
-From nothing, on the 2-core machine (each step resumes what exists):
+From nothing, on the 2-core machine (each step resumes what exists; the tokenizer needs no --views: it trains on
+the store's one camera):
 
     sc3 so101 collect --out ~/sc3-runs/so101/data --episodes 300 --heldout 40 --workers 2
     sc3 data import-lerobot ~/sc3-runs/so101/data/train --out ~/sc3-runs/so101/train
     sc3 data import-lerobot ~/sc3-runs/so101/data/heldout --out ~/sc3-runs/so101/heldout
-    sc3 train-tokenizer --data ~/sc3-runs/so101/train --heldout ~/sc3-runs/so101/heldout \\
-        --workdir ~/sc3-runs/so101/tokenizer --steps 2200 --ae.width 96 --ae.mid-width 48 --ae.out-width 24 \\
-        --ae.blocks 1 --ae.latent-channels 16
-    sc3 train --config so101_latent --model.tokenizer-path ~/sc3-runs/so101/tokenizer/tokenizer \\
+    sc3 train-tokenizer --data ~/sc3-runs/so101/train --heldout ~/sc3-runs/so101/heldout \
+        --workdir ~/sc3-runs/so101/tokenizer --steps 1500 --batch-size 16 --ae.width 96 --ae.mid-width 48 \
+        --ae.out-width 24 --ae.blocks 1 --ae.latent-channels 16
+    sc3 train --config so101_latent --model.tokenizer-path ~/sc3-runs/so101/tokenizer/tokenizer \
         --data.path ~/sc3-runs/so101/train --train.workdir ~/sc3-runs/so101/world_model
+    sc3 train-detector ~/sc3-runs/so101/train --out ~/sc3-runs/so101/detector
+    sc3 sweep so101 --world-model ~/sc3-runs/so101/world_model --detector ~/sc3-runs/so101/detector \
+        --out ~/sc3-runs/so101/sweep
+
+Measured (2026-11-28, docs/results.md "SO-101: the protocol's parts measured"): the tokenizer at step 1000 of 1500
+reconstructs held-out frames at 38.5 dB (moving pixels 28.4 dB against 9.4 for the static frame); a world-model step
+costs ~2 s on the 2 cores alone, 5-8 s beside other work.
 """
 from sc3_jax.config import load_config, replace
 

@@ -67,6 +67,7 @@ def run(cfg: So101SweepConfig) -> Path:
     """Every stage (see the module docstring); returns OUT."""
     from sc3_jax import checkpoint
     from sc3_jax.evaluate import ic_sweep, success_detector
+    from sc3_jax.policies.resolve import resolve
 
     from .zoo import ZOO, named_policy
 
@@ -78,6 +79,11 @@ def run(cfg: So101SweepConfig) -> Path:
     seconds = cfg.episode_seconds or wcfg.rollout.episode_seconds
     steps = int(round(seconds * wcfg.rollout.control_hz))
     names = list(cfg.policies or ZOO)
+    for n in names:  # a wrong name: one line here, not a traceback from a simulator worker
+        try:
+            resolve(n, named=named_policy)
+        except (ValueError, KeyError, FileNotFoundError) as e:
+            raise UserError(f"--policies {n}: {e}") from None
     seeds = [EVAL_SEED0 + i for i in range(cfg.episodes)]
     out.mkdir(parents=True, exist_ok=True)
     write_conditions(out / IC_DIR, seeds, tuple(wcfg.data.image_size))
