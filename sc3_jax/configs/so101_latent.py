@@ -2,9 +2,9 @@
 96 x 128 camera at the arm's 10 Hz, trained from the collected LeRobot data like any lab's.
 
 96 x 128 frames -> a conv autoencoder's 24 x 32 x 16 latents -> 4 x 4 patches: 48 tokens a frame, as many as the
-bussing model's three 64 x 64 views, so a step costs about the same (~0.5 steps/s on 2 cores). The model predicts
-l' = 12 frames and a rollout keeps l = 10: one policy chunk of the zoo (10 actions, 1 s) per world-model chunk, as
-the simulator executes it. The store records the 14-D joint state, so ``sc3 train`` trains the learned state after
+bussing model's three 64 x 64 views. The model predicts l' = 12 frames and a rollout keeps l = 10, as the simulator
+executes 10 actions of a chunk; the rollout needs 12 actions per chunk, and the zoo plans 10, so `sc3 sweep so101`
+refuses them until one of the two changes (docs/so101.md, "What is left" 1). The store records the 14-D joint state, so ``sc3 train`` trains the learned state after
 the world model (``state_head.py``): policies inside the model read the robot's own state.
 
 From nothing, on the 2-core machine (each step resumes what exists; the tokenizer needs no --views: it trains on
