@@ -329,7 +329,8 @@ class RolloutConfig:
     """Closed-loop rollouts of a policy inside the world model (sc3_jax/rollout.py)."""
 
     policy_chunk: int = 25
-    """actions proposed per policy call; at least data.future_frames x (policy_hz / control_hz)"""
+    """actions proposed per policy call; at least keep_frames x (policy_hz / control_hz); one shorter than
+    data.future_frames x that is held at its last action for the predicted frames the rollout discards"""
     keep_frames: int = 16
     """l: predicted frames of each chunk kept (executed, pushed into the context, averaged into U_chunk); in
     [1, data.future_frames]"""

@@ -200,7 +200,7 @@ def chunk_flops(cfg, action_space=None, data_fps: float = 20.0) -> dict[str, flo
         Kt, Tt = st.window  # token frames (fewer than frames with a time-compressing tokenizer)
         key = jax.eval_shape(lambda: jax.random.key_data(jax.random.key(0)))
         norm = sds((4, A), jnp.float32)  # NormStats.as_array: action mean, std, state mean, std
-        step = jax.jit(st.model_step).trace(params, norm, carry, sds((spec.policy_chunk, A), jnp.float32), key,
+        step = jax.jit(st.model_step).trace(params, norm, carry, sds((spec.step_actions, A), jnp.float32), key,
                                             sds((), jnp.float32))
         first = xla_cost.flops(step.lower(), False)
         P, Dt = jax.eval_shape(st.tok.encode, ctx).shape[-2:]

@@ -104,6 +104,17 @@ class RolloutSpec:
         return self.predict * self.ratio
 
     @property
+    def executed(self) -> int:
+        """Raw policy actions one chunk executes (the kept frames'); the fewest a policy may propose."""
+        return self.keep * self.ratio
+
+    @property
+    def step_actions(self) -> int:
+        """Raw actions one model step takes: the policy's chunk, extended to ``raw_needed`` by holding its last
+        action where it plans fewer than the model predicts (those frames are discarded, ``keep`` < ``predict``)."""
+        return max(self.policy_chunk, self.raw_needed)
+
+    @property
     def num_frames(self) -> int:
         return self.num_chunks * self.keep
 
@@ -123,9 +134,9 @@ def make_spec(cfg: Config, data_fps: float = 20.0, num_chunks: int | None = None
     if abs(ratio - round(ratio)) > 1e-6 or round(ratio) < 1:
         raise ValueError(f"rollout.policy_hz {r.policy_hz} / control_hz {r.control_hz} is not a positive integer")
     ratio = int(round(ratio))
-    if r.policy_chunk < d.future_frames * ratio:
-        raise ValueError(f"rollout.policy_chunk={r.policy_chunk} < data.future_frames={d.future_frames} x {ratio}: "
-                         "the model needs an action for every predicted frame")
+    if r.policy_chunk < r.keep_frames * ratio:  # a chunk may stop short of the discarded frames, not the kept ones
+        raise ValueError(f"rollout.policy_chunk={r.policy_chunk} < rollout.keep_frames={r.keep_frames} x {ratio}: "
+                         "the policy must propose an action for every frame the rollout keeps")
     stride = data_fps / r.control_hz
     if abs(stride - round(stride)) > 1e-6 or round(stride) < 1:
         raise ValueError(f"data fps {data_fps} / control_hz {r.control_hz} is not a positive integer frame stride")
@@ -170,6 +181,16 @@ class Carry(NamedTuple):  # one episode (no batch axis); vmapped
     chunk: jax.Array  # int32 []
     robot: jax.Array  # [S] the learned robot state (S = 0: none)
     anchor: jax.Array  # [V, a, H, W, 3] the first observation in [-1, 1] (a = spec.anchor: 1 with data.anchor, else 0)
+
+
+def fill_chunk(actions, n: int):
+    """``actions`` [..., C, A] -> [..., max(C, n), A]: a chunk shorter than the model's window extended by holding
+    its last action (the frames those actions condition are predicted and discarded, never kept)."""
+    short = n - actions.shape[-2]
+    if short <= 0:
+        return actions
+    last = actions[..., -1:, :]
+    return jnp.concatenate([actions, jnp.broadcast_to(last, (*last.shape[:-2], short, last.shape[-1]))], axis=-2)
 
 
 def episode_keys(seed: int, n: int, start: int = 0) -> jax.Array:
@@ -410,19 +431,18 @@ class Rollout:
             obs, k_pol = jax.device_get(self._observe(carry, task, keys, self.reader_params))
             done = np.asarray(jax.device_get(carry.done))
             A = self.spec.action_dim
-            acts = np.zeros((len(k_pol), self.spec.policy_chunk, A), np.float32)
+            acts = np.zeros((len(k_pol), self.spec.step_actions, A), np.float32)
             for b in range(B):  # padded episodes copy episode B-1: reuse its actions
                 if skip_done and done[b]:
                     continue
                 ob = {k: v[b] for k, v in obs.items()}
                 a = policy.infer(ob, rng=jax.random.wrap_key_data(k_pol[b])) if takes_rng else policy.infer(ob)
                 a = np.asarray(a, np.float32)
-                if a.ndim != 2 or a.shape[0] < self.spec.raw_needed or a.shape[1] != A:
+                if a.ndim != 2 or a.shape[0] < self.spec.executed or a.shape[1] != A:
                     raise UserError(f"policy {type(policy).__name__} returned actions of shape {list(a.shape)}, "
-                                    f"the world model takes [>={self.spec.raw_needed}, {A}] "
+                                    f"the world model takes [>={self.spec.executed}, {A}] "
                                     f"({self.spec.action_space.kind} actions)")
-                acts[b] = a[:self.spec.policy_chunk] if a.shape[0] >= self.spec.policy_chunk else np.pad(
-                    a, ((0, self.spec.policy_chunk - a.shape[0]), (0, 0)), mode="edge")
+                acts[b] = np.asarray(fill_chunk(a[:self.spec.step_actions], self.spec.step_actions))
             acts[B:] = acts[B - 1]
             carry, emit = self._model_step(params, carry, self._pad(acts, len(acts)), keys, jnp.float32(tau))
             emits.append(jax.device_get(emit))
@@ -459,9 +479,9 @@ class Rollout:
                                 f"[chunk, {s.action_dim}] ({s.action_space.kind} actions, model.action_dim)")
 
     def _check_chunk(self, chunk: int, name: str):
-        if chunk < self.spec.raw_needed:
-            raise ValueError(f"policy {name} proposes {chunk} actions per call; the world model predicts "
-                             f"{self.spec.predict} frames per chunk and needs {self.spec.raw_needed} raw actions")
+        if chunk < self.spec.executed:
+            raise ValueError(f"policy {name} proposes {chunk} actions per call; a chunk of this rollout executes "
+                             f"{self.spec.executed} (rollout.keep_frames x policy_hz / control_hz)")
 
     def _finish(self, emits: dict, ics: InitialConditions, B: int, tau: float, chunk_axis: int) -> dict:
         """[N, Bpad, ...] per-chunk emissions -> the documented [B, ...] episode arrays."""
@@ -496,7 +516,7 @@ def _compiled(model_cfg, flow_cfg, spec: RolloutSpec, cache: bool, reader=None):
 
         def body(carry, _):
             obs, k_pol = observe_b(carry, task, keys, reader_params)
-            return step_b(params, norm, carry, jax.vmap(act)(obs, k_pol), keys, tau)
+            return step_b(params, norm, carry, fill_chunk(jax.vmap(act)(obs, k_pol), spec.raw_needed), keys, tau)
 
         return jax.lax.scan(body, jax.vmap(st.init)(frames, *state), None, length=spec.num_chunks)[1]
 

@@ -408,3 +408,19 @@ def test_one_camera_turns_cross_view_inpainting_off_unless_it_was_asked_for(tmp_
                               {"modes.probs"}).modes.probs == (0.5, 0.0, 0.5)
     four = _store(tmp_path / "four", DELTA_EE)
     assert shape_from_dataset(cfg, four).modes.probs == cfg.modes.probs  # two views or more: kept as asked
+
+
+def test_diagnose_takes_the_model_s_own_action_space(bimanual):
+    """`sc3 diagnose` of a 14-D absolute-action model runs (it once built its window from the simulated benchmark's
+    7-D default action space and refused every other robot's model)."""
+    from sc3_jax.evaluate import diagnose
+
+    tmp, store = bimanual[0], bimanual[4]
+    dc = diagnose.DiagnoseConfig(episodes=1, progress=False, batch=1)
+    # a policy chunk of only the kept frames (3 of the 4 predicted), as SO-101's zoo plans
+    short = replace(bimanual[5], rollout=dict(policy_chunk=3))
+    result = diagnose.diagnose(str(tmp / "run"), store, dc, model_config=short)
+    assert result["settings"]["sample_steps"] == 2 and result["gates"]
+    assert result["teacher_forced"].get("available", True) and result["drift"].get("available", True)
+    assert "absolute" in result["counterfactual"]["note"]  # it displaces an end-effector pose: skipped, said why
+    assert result["counterfactual"]["note"] in diagnose.render_table(result)

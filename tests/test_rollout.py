@@ -1,5 +1,6 @@
 """Closed-loop rollout engine (sc3_jax/rollout.py): scan vs host loop, U_chunk, termination, context caching, offline
 replay, batching/sharding and the CLI. Tiny random-parameter models: semantics, not learning."""
+import dataclasses
 import math
 
 import jax
@@ -89,8 +90,8 @@ def test_shapes_and_spec(setup):
     assert (spec.num_chunks, spec.stride, spec.keep, spec.predict, spec.policy_chunk) == (13, 2, 16, 24, 25)
     with pytest.raises(ValueError, match="keep_frames"):
         rollout.make_spec(replace(cfg, rollout=dict(keep_frames=5)))
-    with pytest.raises(ValueError, match="policy_chunk"):
-        rollout.make_spec(replace(cfg, rollout=dict(policy_chunk=3)))
+    with pytest.raises(ValueError, match="policy_chunk"):  # fewer actions than the 3 frames a chunk keeps
+        rollout.make_spec(replace(cfg, rollout=dict(policy_chunk=2)))
 
 
 def test_scan_and_host_loop_agree(setup):
@@ -100,6 +101,28 @@ def test_scan_and_host_loop_agree(setup):
     # the policy actually uses its rng and its observation: another seed changes the actions
     other = ro.run(params, policy, ics, rollout.episode_keys(1, B), tau=math.inf)
     assert np.abs(other["actions"] - ref["actions"]).max() > 1e-4
+
+
+def test_a_chunk_shorter_than_the_window_is_held_at_its_last_action(setup):
+    """A policy that plans only the kept frames (3 of the 4 predicted) runs: the model's last frame is conditioned on
+    the chunk's last action held, in the scan and the host loop alike; fewer than the kept frames is refused."""
+    cfg, _, params, policy, ics, keys, _ = setup
+    short_cfg = replace(cfg, rollout=dict(policy_chunk=3))
+    ro = rollout.Rollout(short_cfg, STATS, num_chunks=N)
+    assert (ro.spec.executed, ro.spec.raw_needed, ro.spec.step_actions) == (3, 4, 4)
+    first3 = lambda p, o, k: policy.apply(p, o, k)[:3]  # noqa: E731
+    short = dataclasses.replace(policy, apply=first3, chunk=3)
+    held = dataclasses.replace(policy, apply=lambda p, o, k: rollout.fill_chunk(first3(p, o, k), 4), chunk=4)
+    got = ro.run(params, short, ics, keys, tau=math.inf)
+    _assert_same(got, ro.run(params, held, ics, keys, tau=math.inf))
+    _assert_same(got, ro.run_host(params, as_host(short), ics, keys, tau=math.inf))
+    # the held action matters: holding another one changes the (discarded) last frame, hence the kept ones
+    moved = dataclasses.replace(policy, apply=lambda p, o, k: jnp.concatenate(
+        [first3(p, o, k), first3(p, o, k)[-1:] + 0.5], 0), chunk=4)
+    assert np.abs(ro.run(params, moved, ics, keys, tau=math.inf)["frames"].astype(int)
+                  - got["frames"].astype(int)).max() > 0
+    with pytest.raises(ValueError, match="executes 3"):
+        ro.run(params, dataclasses.replace(policy, apply=lambda p, o, k: first3(p, o, k)[:2], chunk=2), ics, keys)
 
 
 def test_u_chunk_equals_numpy_recomputation(setup):

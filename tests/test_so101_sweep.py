@@ -15,8 +15,9 @@ from sc3_jax.data.episodes import EpisodeStore  # noqa: E402
 pytestmark = pytest.mark.slow
 SIZE = ("48", "64")
 TINY = ["--model.dim", "32", "--model.depth", "1", "--model.num-heads", "2", "--model.num-kv-heads", "1",
-        "--model.mlp-dim", "64", "--rollout.policy-chunk", "10", "--rollout.keep-frames", "3",
-        "--rollout.episode-seconds", "2"]
+        "--model.mlp-dim", "64", "--rollout.policy-chunk", "10", "--rollout.keep-frames", "10",
+        "--data.future-frames", "12", "--rollout.episode-seconds", "2"]  # so101_latent's window: 12 predicted, 10 kept
+# the zoo plans 10 actions, as many as the rollout keeps, fewer than the 12 frames the model predicts
 
 
 @pytest.fixture(scope="module")

@@ -21,7 +21,8 @@ store). Everything is computed first (:func:`diagnose` -> a JSON-able dict), the
 ``DiagnoseConfig.stages`` picks the passes that run: "teacher_forced" (frames one chunk ahead, shuffled actions,
 inverse dynamics), "counterfactual", "open_loop" (drift and outcomes). A section of a pass not run reads
 ``{"available": false, "note": "not run (--stages)"}`` and its gates neither pass nor fail (``"pass": null``), so a
-large outcome set costs only its open-loop rollouts.
+large outcome set costs only its open-loop rollouts. The counterfactual pass displaces an end-effector pose: a model
+whose actions are not delta_ee, or a store without the pose, skips it (its section says why).
 
 Moving pixels of a target frame: any channel differs from the reference frame (the last real context frame) by more
 than ``moving_threshold`` in [-1, 1] units (0.06 = 7.65 grey levels: above the renderer's anti-aliasing flicker,
@@ -167,6 +168,10 @@ def diagnose(world_model, heldout_store, config: DiagnoseConfig | None = None, *
     cfg, stats, params, name = load(world_model, model_config)
     store = heldout_store if isinstance(heldout_store, EpisodeStore) else EpisodeStore(heldout_store)
     ids = _episodes(store, cfg, dc.episodes)
+    # the displaced chunks move an end-effector pose and are read off it: a store without one skips that pass
+    cf_skip = "counterfactual" in dc.stages and (stats.action_space.kind != "delta_ee" or not store.has_pose)
+    if cf_skip:
+        dc = dataclasses.replace(dc, stages=tuple(s for s in dc.stages if s != "counterfactual"))
     p = _plan(cfg, stats, params, store, ids, dc, scorer_for or diagnose_outcomes.no_scorer, scene)
     acc = _Sums()
     bar = tqdm(total=len(p.eps), desc="diagnose", unit="episode", disable=not dc.progress)
@@ -180,6 +185,10 @@ def diagnose(world_model, heldout_store, config: DiagnoseConfig | None = None, *
         bar.update(len(g))
     bar.close()
     result = _result(p, acc, name, store, ids)
+    if cf_skip:
+        result["counterfactual"]["note"] = (f"not run: it displaces an end-effector pose, this model's actions are "
+                                            f"{stats.action_space.kind}" + ("" if store.has_pose else
+                                                                            " and the store records no pose"))
     result["gates"] = gates(result, dc)
     result["seconds"] = round(time.time() - t0, 1)
     return result
@@ -216,8 +225,10 @@ def _plan(cfg, stats, params, store, ids, dc: DiagnoseConfig, scorer_for, scene)
     views = list(cfg.data.views)
     eps = [store.load(e, mmap=True) for e in ids]
     K, Tp, hz = cfg.data.context_frames, cfg.data.future_frames, cfg.rollout.control_hz
-    tf = ro_mod.Rollout(replace(cfg, rollout=dict(keep_frames=Tp)), stats, data_fps=store.fps, num_chunks=1)
-    s = ro_mod.make_spec(cfg, store.fps, 1)
+    r = cfg.rollout  # teacher forcing keeps every predicted frame of recorded actions: no policy chunk to respect
+    whole = dict(keep_frames=Tp, policy_chunk=max(r.policy_chunk, Tp * round((r.policy_hz or r.control_hz) / r.control_hz)))
+    tf = ro_mod.Rollout(replace(cfg, rollout=whole), stats, data_fps=store.fps, num_chunks=1)
+    s = ro_mod.make_spec(cfg, store.fps, 1, stats.action_space)  # the model's action space, not the default
     stride, keep = s.stride, s.keep
     off = stride * (K - 1)
     steps_in = [(ep.length - 1 - off) // stride for ep in eps]
@@ -279,7 +290,8 @@ def _inverse_dynamics(p: _Plan, acc: _Sums, ics, targets, acts, first_sample: in
     pose = None
     if p.cfg.model.pose_conditioning:  # frame K-1's pose counts; the future ones are withheld in ID mode
         from sc3_jax.data.pipeline import integrate_poses
-        pose = p.stats.normalize_pose(np.stack([integrate_poses(s0, a0) for s0, a0 in zip(ics.state, acts[:, 0])]))
+        pose = p.stats.normalize_pose(np.stack([integrate_poses(s0, a0, p.stats.action_space, p.tf.spec.model_dt)
+                                                for s0, a0 in zip(ics.state, acts[:, 0])]))
     _, est = p.id_mean(p.params, window, np.zeros_like(a_norm), strides, k, modes.ID, 0, pose)
     acc.inverse.add(np.asarray(est)[:n], a_norm[:n])
 

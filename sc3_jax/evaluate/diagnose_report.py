@@ -159,6 +159,8 @@ def _drift_lines(drift: dict) -> tuple[str, list[str]]:
 
 
 def _counterfactual_lines(cf: dict) -> tuple[str, list[str]]:
+    if "views" not in cf:  # skipped for a model without an end-effector pose to displace: the note says so
+        return "", [cf["note"]]
     L = ["| view | pairs | points the commanded way | correlation | gain | opposite commands opposite | "
          "commanded px | imagined px | recorded-chunk arm error px | camera fit R^2 (row, col) |",
          "|---|---|---|---|---|---|---|---|---|---|"]
