@@ -163,6 +163,19 @@ def test_a_foreign_dataset_and_one_frame_episodes_are_said(tmp_path, capsys):
     assert main(["data", "import-lerobot", str(b), "--out", str(out), "--action-space", "absolute"]) == 2
     assert f"holds episodes imported from {a.resolve()}, not from {b.resolve()}" in one_line(capsys, "data")
     assert snapshot(out) == before
+    # a second recording session goes in under a prefix of its own; the same prefix again is refused
+    assert main(["data", "import-lerobot", str(b), "--out", str(out), "--action-space", "absolute",
+                 "--id-prefix", "s2_"]) == 0
+    capsys.readouterr()
+    assert EpisodeStore(out).episode_ids() == ["lerobot000000", "lerobot000002", "s2_lerobot000000",
+                                              "s2_lerobot000001"]
+    before = snapshot(out)
+    assert main(["data", "import-lerobot", str(a), "--out", str(out), "--action-space", "absolute",
+                 "--id-prefix", "s2_"]) == 2
+    assert "under this prefix" in one_line(capsys, "data") and snapshot(out) == before
+    assert main(["data", "import-lerobot", str(a), "--out", str(out), "--action-space", "absolute",
+                 "--id-prefix", "../x"]) == 2
+    assert "'../x'" in one_line(capsys, "data") and snapshot(out) == before
 
 
 # -- the report -----------------------------------------------------------------------------------------------------

@@ -59,6 +59,9 @@ class ImportLerobot:
     episodes: Annotated[tuple[str, ...] | None, tyro.conf.arg(metavar="A:B|N ...")] = None
     """which episodes (the dataset's episode_index) to import: ranges A:B (B excluded, either end open) or single
     indices, e.g. `--episodes 0:20` for a training store and `--episodes 20:` for a held-out one (None: all)"""
+    id_prefix: str = ""
+    """put in front of the episode ids (PREFIXlerobot000012): one store holds several datasets (recording
+    sessions) under a prefix each"""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -136,7 +139,7 @@ def _import(a: ImportLerobot) -> int:
                        allow_missing_pose=a.allow_missing_pose, progress=True, action_space=a.action_space,
                        action_names=list(a.action_names) if a.action_names else None,
                        action_targets=list(a.action_targets) if a.action_targets else None,
-                       episodes=episode_selection(a.episodes),
+                       episodes=episode_selection(a.episodes), id_prefix=a.id_prefix,
                        **({} if a.state_key == "auto" else {"state_key": None if a.state_key == "none" else a.state_key}))
     store = EpisodeStore(s["out"])
     print(f"imported {s['written']} episodes ({s['skipped']} already there) from {a.root}; {s['out']} now holds "

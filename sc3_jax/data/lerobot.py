@@ -25,6 +25,7 @@ import functools
 import json
 import math
 import os
+import re
 from collections import OrderedDict
 from pathlib import Path
 
@@ -466,7 +467,7 @@ def import_lerobot(root: str | os.PathLike, out: str | os.PathLike, views=None, 
                    pose_key: str | None = "observation.state", allow_missing_pose: bool = False,
                    progress: bool = False, *, action_space: str | None = None,
                    action_names: list[str] | None = None, action_targets: list[int] | None = None,
-                   state_key: str | None = _OPTIONAL, episodes=None) -> dict:  # type: ignore[assignment]
+                   state_key: str | None = _OPTIONAL, episodes=None, id_prefix: str = "") -> dict:  # type: ignore[assignment]
     """Convert the LeRobot dataset at ``root`` into an episode store at ``out``.
 
     The action space (``data/action_space.py``): ``action_space`` ("delta_ee", "absolute" or "velocity") with
@@ -483,8 +484,12 @@ def import_lerobot(root: str | os.PathLike, out: str | os.PathLike, views=None, 
     for all views). A ``next.success`` feature becomes each episode's meta ``"labels": {"success": any frame's}``
     (the real outcomes ``sc3 sweep episodes --real STORE`` reads). ``episodes``: the episode_index values to import (a
     container; None: all), so that one dataset gives a training store and a held-out one. Episodes are named
-    ``lerobot{episode_index:06d}``; existing ones are skipped (resumable).
+    ``{id_prefix}lerobot{episode_index:06d}``; existing ones are skipped (resumable). One prefix holds one dataset: a
+    lab's several recording sessions go into one store under a prefix each (``id_prefix``: letters, digits, ``_``,
+    ``-``).
     """
+    if not re.fullmatch(r"[A-Za-z0-9_-]*", id_prefix):
+        raise LeRobotError(out, f"id prefix {id_prefix!r}: letters, digits, '_' and '-' only (it names folders)")
     from .action_space import ActionSpace, names_of
     from .episodes import Episode, EpisodeStore
 
@@ -529,12 +534,12 @@ def import_lerobot(root: str | os.PathLike, out: str | os.PathLike, views=None, 
     written = skipped = labelled = 0
     short: list[int] = []
     with locks.hold(store.root, "import"):  # two imports into one store would race on its episodes
-        _check_same_source(store, source)
+        _check_same_source(store, source, id_prefix)
         for i in range(len(src)):
             if episodes is not None and src.episode_index(i) not in episodes:
                 continue
             ep = src.episode(i)
-            eid = f"lerobot{ep.episode_index:06d}"
+            eid = f"{id_prefix}lerobot{ep.episode_index:06d}"
             if eid in store:
                 skipped += 1
                 continue
@@ -562,17 +567,21 @@ def import_lerobot(root: str | os.PathLike, out: str | os.PathLike, views=None, 
             "success_labels": labelled}  # of the episodes written: those whose meta holds next.success
 
 
-def _check_same_source(store, source: str) -> None:
-    """Importing dataset B into a store made from dataset A would skip B's episodes as "already there" (their ids
-    are episode indices) and keep A's: refused, naming both."""
+def _check_same_source(store, source: str, prefix: str = "") -> None:
+    """Importing dataset B into a store made from dataset A under the same id prefix would skip B's episodes as
+    "already there" (their ids are episode indices) and keep A's: refused, naming both."""
     from sc3_jax import atomic
 
+    mine = re.compile(re.escape(prefix) + r"lerobot\d+")
     for eid in store.episode_ids():
+        if not mine.fullmatch(eid):
+            continue
         meta = atomic.read_json(store.root / eid / "meta.json", "restore it (the episode's metadata)")
         if meta.get("source") == "lerobot" and meta.get("lerobot_root") not in (None, source):
-            raise LeRobotError(store.root, f"holds episodes imported from {meta['lerobot_root']}, not from {source}: "
-                                           "import into another --out")
-        return  # one episode tells: every import into a store is from its one dataset
+            raise LeRobotError(store.root, f"holds episodes imported from {meta['lerobot_root']}, not from {source}"
+                                           f"{' under this prefix' if prefix else ''}: import into another --out or "
+                                           "under another --id-prefix")
+        return  # one episode tells: every import under one prefix is from its one dataset
 
 
 def _resize(frames: np.ndarray, size: tuple[int, int]) -> np.ndarray:
