@@ -4,8 +4,8 @@
 96 x 128 frames -> a conv autoencoder's 24 x 32 x 16 latents -> 4 x 4 patches: 48 tokens a frame, as many as the
 bussing model's three 64 x 64 views. The model predicts l' = 12 frames and a rollout keeps l = 10, as the simulator
 executes the zoo's 10-action chunks; the 2 frames past a chunk are predicted with its last action held and
-discarded (``rollout.fill_chunk``). The store records the 14-D joint state, so ``sc3 train`` trains the learned state after
-the world model (``state_head.py``): policies inside the model read the robot's own state.
+discarded (``rollout.fill_chunk``). The store records the 14-D joint state, so ``sc3 train`` trains the learned
+state after the world model (``state_head.py``): policies inside the model read the robot's own state.
 
 From nothing, on the 2-core machine (each step resumes what exists; the tokenizer needs no --views: it trains on
 the store's one camera):

@@ -467,7 +467,8 @@ def import_lerobot(root: str | os.PathLike, out: str | os.PathLike, views=None, 
                    pose_key: str | None = "observation.state", allow_missing_pose: bool = False,
                    progress: bool = False, *, action_space: str | None = None,
                    action_names: list[str] | None = None, action_targets: list[int] | None = None,
-                   state_key: str | None = _OPTIONAL, episodes=None, id_prefix: str = "") -> dict:  # type: ignore[assignment]
+                   state_key: str | None = _OPTIONAL, episodes=None,  # type: ignore[assignment]
+                   id_prefix: str = "") -> dict:
     """Convert the LeRobot dataset at ``root`` into an episode store at ``out``.
 
     The action space (``data/action_space.py``): ``action_space`` ("delta_ee", "absolute" or "velocity") with

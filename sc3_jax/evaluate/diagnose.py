@@ -226,7 +226,8 @@ def _plan(cfg, stats, params, store, ids, dc: DiagnoseConfig, scorer_for, scene)
     eps = [store.load(e, mmap=True) for e in ids]
     K, Tp, hz = cfg.data.context_frames, cfg.data.future_frames, cfg.rollout.control_hz
     r = cfg.rollout  # teacher forcing keeps every predicted frame of recorded actions: no policy chunk to respect
-    whole = dict(keep_frames=Tp, policy_chunk=max(r.policy_chunk, Tp * round((r.policy_hz or r.control_hz) / r.control_hz)))
+    ratio = round((r.policy_hz or r.control_hz) / r.control_hz)
+    whole = dict(keep_frames=Tp, policy_chunk=max(r.policy_chunk, Tp * ratio))
     tf = ro_mod.Rollout(replace(cfg, rollout=whole), stats, data_fps=store.fps, num_chunks=1)
     s = ro_mod.make_spec(cfg, store.fps, 1, stats.action_space)  # the model's action space, not the default
     stride, keep = s.stride, s.keep
