@@ -140,3 +140,31 @@ def test_a_missing_simulator_is_one_line_saying_how_to_install_it(monkeypatch, c
     assert main(["so101", "controllers", "--episodes", "1"]) == 2
     err = capsys.readouterr().err.strip()
     assert "\n" not in err and "install the extra" in err
+
+
+def test_the_scene_measure_counts_the_block_and_the_goal_marker():
+    """`sc3 diagnose --benchmark so101`'s "objects kept": the block's colour is the package's, the measure counts the
+    block and the goal marker on a rendered frame and nothing of the floor or the arm."""
+    import mujoco
+
+    from sc3_jax.benchmarks.so101.env import BLOCK_RGBA
+    from sc3_jax.benchmarks.so101.hooks import object_pixels
+    from sc3_jax.commands.diagnose import benchmark_hooks
+
+    counts = {}
+    for marker in (True, False):
+        e = So101Env((96, 128), goal_marker=marker)
+        try:
+            e.reset(3)
+            if marker:
+                model = e.unwrapped.model
+                block = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, "block")
+                np.testing.assert_allclose(model.geom_rgba[block], BLOCK_RGBA, atol=1e-6)
+            frame = e.render()
+        finally:
+            e.close()
+        counts[marker] = object_pixels(frame[None, None])[0, 0] * 96 * 128
+    assert 20 <= counts[False] < counts[True] - 20 < 200  # block; block + goal disc; no arm
+    floor = np.broadcast_to(frame[0, 0], (1, 1, 96, 128, 3))  # the frame's corner colour everywhere
+    assert object_pixels(floor).max() == 0
+    assert benchmark_hooks("so101") == (None, object_pixels) and benchmark_hooks("none") == (None, None)

@@ -3,7 +3,7 @@ checkpoint, on held-out episodes (sc3_jax/evaluate/diagnose.py, docs/world_model
 from __future__ import annotations
 
 import dataclasses
-from typing import Annotated
+from typing import Annotated, Literal
 
 import tyro
 
@@ -49,6 +49,9 @@ class Args:
     """perception weights for the outcome check (None: the shipped ones)"""
     progress: bool = D.progress
     """a progress bar on stderr (--no-progress: none, for batch logs)"""
+    benchmark: Literal["bussing", "so101", "none"] = "bussing"
+    """whose measures the open-loop pass reads: the simulated bussing benchmark's (perception outcome scorer, its
+    objects' pixels), SO-101's (the block's and the goal marker's pixels; no outcome scorer), or none"""
     stages: tuple[Stage, ...] = D.stages
     """the passes to run: teacher_forced (one chunk ahead, shuffled actions, inverse dynamics), counterfactual,
     open_loop (drift and outcome reproduction); the others' sections and gates read "not run". --stages open_loop:
@@ -57,13 +60,12 @@ class Args:
 
 def main(argv: list[str]) -> int:
     a, cfg = parse_evaluated(Args, argv, "diagnose", "world_model")
-    from sc3_jax.benchmarks.bussing.hooks import object_pixels, perception_scorer
     from sc3_jax.evaluate import diagnose
 
     fields = {f.name for f in dataclasses.fields(DiagnoseConfig)}
     dc = DiagnoseConfig(**{k: v for k, v in dataclasses.asdict(a).items() if k in fields})
-    result = diagnose.diagnose(a.world_model, a.data, dc, model_config=cfg, scorer_for=perception_scorer,
-                               scene=object_pixels)
+    scorer_for, scene = benchmark_hooks(a.benchmark)
+    result = diagnose.diagnose(a.world_model, a.data, dc, model_config=cfg, scorer_for=scorer_for, scene=scene)
     print(diagnose.render_table(result))
     st = result["settings"]
     print(f"sampler: {st['sample_steps']} forward Euler steps, U re-read in {st['inverse_steps']} (`sc3 sweep`'s "
@@ -73,3 +75,14 @@ def main(argv: list[str]) -> int:
     if a.out:
         print(f"result: {diagnose.save_result(result, a.out)}")
     return 0
+
+
+def benchmark_hooks(name: str):
+    """(outcome scorer factory or None, scene measure or None) of the benchmark ``name`` (``--benchmark``)."""
+    if name == "bussing":
+        from sc3_jax.benchmarks.bussing.hooks import object_pixels, perception_scorer
+        return perception_scorer, object_pixels
+    if name == "so101":
+        from sc3_jax.benchmarks.so101.hooks import object_pixels
+        return None, object_pixels
+    return None, None

@@ -352,7 +352,7 @@ def _open_loop(p: _Plan, acc: _Sums, group: list[int]):
 def _kept_section(p: _Plan, acc: _Sums) -> dict:
     """Objects kept over the open loop (permanence.summary over the episodes), or a note why not."""
     if p.scene is None:
-        return {"note": "no scene measure (a benchmark's: `sc3 diagnose` passes the simulated benchmark's)"}
+        return {"note": "no scene measure (a benchmark's: `sc3 diagnose --benchmark NAME` names whose)"}
     if not acc.kept:
         return {"note": "no open-loop rollout"}
     at = permanence.times(p.cfg.rollout.control_hz)

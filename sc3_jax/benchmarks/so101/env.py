@@ -28,6 +28,7 @@ JOINTS = ("shoulder_pan", "shoulder_lift", "elbow_flex", "wrist_flex", "wrist_ro
 STATE_NAMES = [f"{j}.pos" for j in JOINTS] + [f"{j}.vel" for j in JOINTS] + ["gripper", "ee_x", "ee_y", "ee_z"]
 ENV_STATE_NAMES = ["block_x", "block_y", "block_z", "goal_x", "goal_y", "goal_z"]
 GOAL_RGBA = np.array([0.15, 0.75, 0.25, 1.0], np.float32)
+BLOCK_RGBA = np.array([0.6, 0.3, 0.6, 1.0], np.float32)  # the package's "block" geom (tested against its model)
 INSTALL = "pip install -e '.[so101]'"
 
 
