@@ -189,8 +189,9 @@ def fill_chunk(actions, n: int):
     short = n - actions.shape[-2]
     if short <= 0:
         return actions
+    xp = np if isinstance(actions, np.ndarray) else jnp  # the host loop pads numpy: no device round trip per episode
     last = actions[..., -1:, :]
-    return jnp.concatenate([actions, jnp.broadcast_to(last, (*last.shape[:-2], short, last.shape[-1]))], axis=-2)
+    return xp.concatenate([actions, xp.broadcast_to(last, (*last.shape[:-2], short, last.shape[-1]))], axis=-2)
 
 
 def episode_keys(seed: int, n: int, start: int = 0) -> jax.Array:
@@ -442,7 +443,7 @@ class Rollout:
                     raise UserError(f"policy {type(policy).__name__} returned actions of shape {list(a.shape)}, "
                                     f"the world model takes [>={self.spec.executed}, {A}] "
                                     f"({self.spec.action_space.kind} actions)")
-                acts[b] = np.asarray(fill_chunk(a[:self.spec.step_actions], self.spec.step_actions))
+                acts[b] = fill_chunk(a[:self.spec.step_actions], self.spec.step_actions)
             acts[B:] = acts[B - 1]
             carry, emit = self._model_step(params, carry, self._pad(acts, len(acts)), keys, jnp.float32(tau))
             emits.append(jax.device_get(emit))

@@ -225,11 +225,10 @@ def _plan(cfg, stats, params, store, ids, dc: DiagnoseConfig, scorer_for, scene)
     views = list(cfg.data.views)
     eps = [store.load(e, mmap=True) for e in ids]
     K, Tp, hz = cfg.data.context_frames, cfg.data.future_frames, cfg.rollout.control_hz
-    r = cfg.rollout  # teacher forcing keeps every predicted frame of recorded actions: no policy chunk to respect
-    ratio = round((r.policy_hz or r.control_hz) / r.control_hz)
-    whole = dict(keep_frames=Tp, policy_chunk=max(r.policy_chunk, Tp * ratio))
-    tf = ro_mod.Rollout(replace(cfg, rollout=whole), stats, data_fps=store.fps, num_chunks=1)
     s = ro_mod.make_spec(cfg, store.fps, 1, stats.action_space)  # the model's action space, not the default
+    # teacher forcing keeps every predicted frame of recorded actions: a policy chunk as long as the window
+    whole = dict(keep_frames=Tp, policy_chunk=max(cfg.rollout.policy_chunk, s.raw_needed))
+    tf = ro_mod.Rollout(replace(cfg, rollout=whole), stats, data_fps=store.fps, num_chunks=1)
     stride, keep = s.stride, s.keep
     off = stride * (K - 1)
     steps_in = [(ep.length - 1 - off) // stride for ep in eps]
