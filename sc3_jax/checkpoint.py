@@ -14,6 +14,7 @@ position, for resuming) are written by ``train.py``; this module only reads thei
 from __future__ import annotations
 
 import dataclasses
+import math
 import shutil
 from pathlib import Path
 
@@ -24,9 +25,11 @@ import orbax.checkpoint as ocp
 from sc3_jax import atomic
 from sc3_jax.config import Config, config_from_dict
 from sc3_jax.data.norm_stats import NormStats
+from sc3_jax.errors import UserError
 from sc3_jax.model import dit
 from sc3_jax.model.shapes import check_shapes
 from sc3_jax.model.tokenizer import token_geometry
+from sc3_jax.validate import is_finite_number, json_object, numeric
 
 
 # ================================================================================================================
@@ -46,11 +49,35 @@ def read_config(path: str | Path, what: str = "") -> Config:
     if not (path / "config.json").exists():
         raise FileNotFoundError(f"{what}{path}: no config.json (expected a `sc3 train` workdir, an exported world "
                                 "model or a `sc3 convert` output)")
-    cfg = config_from_dict(atomic.read_json(path / "config.json"))
+    fix = "restore it from a copy, or export the model again"
+    raw = json_object(atomic.read_json(path / "config.json", fix), f"{path}/config.json", fix)
+    try:
+        cfg = config_from_dict(raw)
+    except (TypeError, ValueError, AttributeError) as e:  # a section retyped (a list where fields are)
+        raise UserError(f"{path}/config.json: does not read as a config ({e}); {fix}") from None
+    check_config_types(cfg, Config(), f"{path}/config.json", fix)
     tp = cfg.model.tokenizer_path
     if tp and not Path(tp).is_absolute() and (path / tp).exists():  # a tokenizer shipped inside the model dir
         cfg = dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, tokenizer_path=str((path / tp).absolute())))
     return cfg
+
+
+def check_config_types(cfg, default, where: str, fix: str, prefix: str = "") -> None:
+    """Every field of a config read from a file has its default's type (``model.dim: "abc"`` would otherwise be a
+    TypeError from inside JAX): one line naming the field. A field whose default is None may be anything."""
+    for f in dataclasses.fields(default):
+        have, want, name = getattr(cfg, f.name), getattr(default, f.name), prefix + f.name
+        if dataclasses.is_dataclass(want):
+            if not dataclasses.is_dataclass(have):
+                raise UserError(f"{where}: {name} is {have!r}, expected a section of fields; {fix}")
+            check_config_types(have, want, where, fix, name + ".")
+            continue
+        ok = {bool: lambda v: isinstance(v, bool), str: lambda v: isinstance(v, str),
+              int: lambda v: isinstance(v, int) and not isinstance(v, bool),
+              float: lambda v: is_finite_number(v) or v in (math.inf, -math.inf),
+              tuple: lambda v: isinstance(v, tuple)}.get(type(want))
+        if want is not None and ok is not None and not ok(have):
+            raise UserError(f"{where}: {name} is {have!r}, expected {type(want).__name__}; {fix}")
 
 
 def read_norm_stats(path: str | Path) -> NormStats:
@@ -83,9 +110,17 @@ def load_params(path: str | Path, cfg: Config, step: int | None = None, sharding
         return _load_npz(path / "params.npz", target)
     item, in_state = _orbax_item(path, step)
     target = {"params": target} if in_state else target
-    out = ocp.PyTreeCheckpointer().restore(item, args=ocp.args.PyTreeRestore(
-        item=target, restore_args=ocp.checkpoint_utils.construct_restore_args(target), partial_restore=True))
+    try:
+        out = ocp.PyTreeCheckpointer().restore(item, args=ocp.args.PyTreeRestore(
+            item=target, restore_args=ocp.checkpoint_utils.construct_restore_args(target), partial_restore=True))
+    except Exception as e:  # noqa: BLE001  (tensorstore raises a bare Exception for a checkpoint cut short)
+        raise UserError(f"{item}: not a whole checkpoint of this config's model ({_first_line(e)}); restore it, or "
+                        "give another --step / model") from None
     return out["params"] if in_state else out
+
+
+def _first_line(e: BaseException) -> str:
+    return " ".join((str(e).strip().splitlines() or [type(e).__name__])[0].split())[:200]
 
 
 def load_init_from(cfg: Config, shardings=None) -> dict:
@@ -138,9 +173,18 @@ def _orbax_item(path: Path, step: int | None) -> tuple[Path, bool]:
 def _load_npz(path: Path, target) -> dict:
     """``{"a/b/c": array}`` (written by :func:`save`) -> params placed as ``target`` says."""
     with atomic.open_npz(path, NPZ_FIX) as z:
+        names = ["/".join(k.key for k in kp) for kp, _ in jax.tree_util.tree_flatten_with_path(target)[0]]
+        missing = [n for n in names if n not in z.files]
+        if missing:
+            raise UserError(f"{path}: no array {missing[0]!r} ({len(missing)} of the config's {len(names)} params "
+                            f"missing): not this config's model; {NPZ_FIX}")
+
         def leaf(kp, t):
             name = "/".join(k.key for k in kp)
-            x = np.asarray(z[name])
+            x = numeric(np.asarray(z[name]), f"{path}: {name}", NPZ_FIX)
+            if x.shape != t.shape or not np.all(np.isfinite(x)):
+                raise UserError(f"{path}: {name} is {list(x.shape)}" + ("" if x.shape != t.shape else " with NaN/inf")
+                                + f", the config needs {list(t.shape)} finite; {NPZ_FIX}")
             if name + SCALE_SUFFIX in z.files:  # int8 export: dequantise
                 x = x.astype(np.float32) * z[name + SCALE_SUFFIX].astype(np.float32)
             x = x.astype(t.dtype)

@@ -182,3 +182,38 @@ def success_estimate(result: dict, ids, store, cfg, scorer_for, perception: str 
     return {"available": True, "episodes": len(imagined), "imagined": success_rates(imagined),
             # the recorded episodes' own outcomes: a reference for the same starts, under the recording's policy
             "recorded_physics": success_rates(recorded) if recorded else None}
+
+
+MAX_EPISODE_SECONDS = 3600.0  # an hour of imagined video per episode: beyond it the frames are the bound
+
+
+def check_seconds(episode_seconds: float) -> None:
+    """``--rollout.episode-seconds`` positive and finite (``-1`` was an IndexError blamed on the policy, ``inf`` an
+    OverflowError), at most ``MAX_EPISODE_SECONDS``: checked before the model loads."""
+    from sc3_jax.validate import in_range
+
+    in_range("--rollout.episode-seconds", episode_seconds, 1e-3, MAX_EPISODE_SECONDS, "seconds of one episode")
+
+
+def check_horizon(spec, episode_seconds: float, episodes: int) -> None:
+    """The uint8 frames of one batch of ``episodes`` within the machine's available memory (``1e9`` seconds would
+    grow until the kernel kills the run)."""
+    from sc3_jax.validate import host_available_bytes
+
+    frames = episodes * spec.num_chunks * spec.keep * spec.views * math.prod(spec.image_size) * 3
+    avail = host_available_bytes()
+    if avail is not None and frames > avail / 2:
+        raise UserError(f"--rollout.episode-seconds {episode_seconds:g}: {episodes} episodes' frames need about "
+                        f"{frames / 1e9:.1f} GB, this machine has {avail / 1e9:.1f} GB available; give fewer seconds "
+                        "or a smaller --batch-size")
+
+
+def check_result(result: dict, policy: str) -> None:
+    """The policy's actions (and the U they give) finite in every episode, as a sweep requires: else one line,
+    nothing written (a NaN in summary.json would read as a number)."""
+    from sc3_jax.evaluate.results import check_actions
+
+    u_raw = result.get("u_raw")
+    for b in range(len(result["actions"])):
+        check_actions(f"{policy}/{b}", result["actions"][b], None if u_raw is None else u_raw[b])
+

@@ -23,6 +23,7 @@ from sc3_jax.config import Config, config_from_dict
 from sc3_jax.errors import UserError
 from sc3_jax.model import dit
 from sc3_jax.model.tokenizer import context_token_frames, make_tokenizer, token_geometry
+from sc3_jax.validate import check_host_memory
 
 
 # ================================================================================================================
@@ -377,31 +378,35 @@ def train(cfg: Config, mesh=None, stop_at: int | None = None) -> dict:
     """Train (or resume) until ``cfg.train.steps`` (or ``stop_at``). Returns the last logged metrics.
 
     One run per workdir: process 0 holds the workdir's lock for the run (``locks``), so a second trainer on it stops
-    with a one-line error naming the first. A fresh run that fails before its first step (a config that does not
-    compile, a batch that does not fit) removes what it wrote (config.json, norm stats, latents), so the corrected
-    command is not refused as "another config" and reads no stats of other data."""
+    with a one-line error naming the first. A fresh run writes its config.json after its first step: one that fails
+    before it (a config that does not compile, a batch that does not fit) removes what it wrote (norm stats,
+    latents), and one killed before it (the kernel's OOM killer) is undone by the next attempt (``INCOMPLETE``), so
+    the corrected command is not refused as "another config" and reads no stats of other data."""
     check_workdir(cfg)
     teacher_config(cfg)  # a wrong teacher is refused before anything is written
     workdir = Path(cfg.train.workdir)
     lead = jax.process_index() == 0
     fresh = not (workdir / "config.json").exists()
+    if fresh:
+        check_host_memory(cfg)  # a batch the machine cannot hold: one line now, not a silent kill by the kernel
     existed = workdir.exists()
-    before = set(os.listdir(workdir)) if existed else set()
     workdir.mkdir(parents=True, exist_ok=True)
     lock = locks.Lock(workdir, "training run") if lead else None
-    started = False
+    started, before = False, None
     try:
         if lead:
             atomic.remove_stale(workdir, recursive=True)  # temporaries of writers killed in an earlier attempt
-            atomic.write_json(workdir / "config.json", dataclasses.asdict(cfg))
+            if fresh:
+                before = _begin_attempt(workdir)
         for last in _steps(cfg, workdir, mesh, stop_at):
+            if lead and fresh and not started:  # the run exists from its first step: config.json says so
+                atomic.write_json(workdir / "config.json", dataclasses.asdict(cfg))
+                (workdir / INCOMPLETE).unlink(missing_ok=True)
             started = True
         return last
     except Exception:
-        if lead and fresh and not started:  # a failed start: leave the workdir as it was
-            for name in set(os.listdir(workdir)) - before - {locks.LOCK_NAME}:
-                path = workdir / name
-                shutil.rmtree(path, ignore_errors=True) if path.is_dir() else path.unlink(missing_ok=True)
+        if before is not None and not started:  # a failed start: leave the workdir as it was
+            _undo_attempt(workdir, before)
             if not existed and os.listdir(workdir) == [locks.LOCK_NAME]:
                 (workdir / locks.LOCK_NAME).unlink()
                 workdir.rmdir()
@@ -409,6 +414,33 @@ def train(cfg: Config, mesh=None, stop_at: int | None = None) -> dict:
     finally:
         if lock is not None:
             lock.release()
+
+
+# A fresh run's workdir before its first step: what was there before the attempt (a kill -9, the kernel's OOM
+# killer, leaves it behind; the next attempt removes what the killed one wrote, so the retry is never refused as
+# "another config" nor reads the statistics of other data)
+INCOMPLETE = "incomplete.json"
+
+
+def _begin_attempt(workdir: Path) -> set[str]:
+    """The names the workdir held before this fresh attempt, after undoing an earlier attempt that was killed."""
+    marker = workdir / INCOMPLETE
+    if marker.exists():
+        try:
+            kept = set(atomic.read_json(marker).get("before", []))
+        except (UserError, AttributeError):  # the marker itself cut short: keep everything but what it marks
+            kept = set(os.listdir(workdir)) - {INCOMPLETE}
+        _undo_attempt(workdir, kept)
+    before = set(os.listdir(workdir)) - {locks.LOCK_NAME}
+    atomic.write_json(marker, {"before": sorted(before)})
+    return before
+
+
+def _undo_attempt(workdir: Path, before: set[str]) -> None:
+    """Remove what a failed fresh attempt wrote (config, norm stats, latents, checkpoints, its marker)."""
+    for name in set(os.listdir(workdir)) - before - {locks.LOCK_NAME}:
+        path = workdir / name
+        shutil.rmtree(path, ignore_errors=True) if path.is_dir() else path.unlink(missing_ok=True)
 
 
 def _steps(cfg: Config, workdir: Path, mesh, stop_at: int | None):

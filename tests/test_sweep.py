@@ -173,7 +173,7 @@ def test_store_written_before_a_field_existed_resumes_at_its_default(tmp_path):
         cfg = sweep.SweepConfig(out=str(tmp_path / name))
         old = cfg.to_json()
         del old["inverse_steps"]
-        ResultsStore(cfg.out, old)
+        ResultsStore(cfg.out, old).append([{"id": "p/0_real", "mode": "real"}])  # a store holding results
         if ok:
             ResultsStore(cfg.out, dataclasses.replace(cfg, inverse_steps=new).to_json())  # resumes
         else:

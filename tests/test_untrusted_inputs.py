@@ -6,6 +6,7 @@ rows, a foreign dataset, Ctrl-C. Policies and scorers here are named as `test_un
 import csv
 import json
 import os
+import shutil
 import signal
 import socket
 import subprocess
@@ -189,20 +190,20 @@ def test_report_html_escapes_every_value_and_links_only_its_own_files():
     assert file_name("bc_50_3", ".mp4") == "bc_50_3.mp4"
 
 
-def test_a_store_with_a_crafted_policy_name_gives_an_escaped_report(ic, tmp_path, capsys):
+def test_a_store_with_a_crafted_policy_name_is_refused_in_one_line_before_any_report(ic, tmp_path, capsys):
     heldout, run = ic
     out = tmp_path / "sweep"
     assert main(_sweep_args(heldout, run, out, "hold=test_ic_sweep:hold")) == 0
-    # as if someone handed us the store: its policy renamed to a script
+    # as if someone handed us the store: its policy renamed to a script (live in report.md wherever it is rendered)
     for name in ("results.jsonl", "sweep.json"):
         p = out / name
         p.write_text(p.read_text().replace('"hold', json.dumps(XSS)[:-1]))
     capsys.readouterr()
-    outside = {k: v for k, v in snapshot(tmp_path).items() if not k.startswith("sweep/report/")}
-    assert main(["report", str(out)]) == 0
-    page = (out / "report" / "report.html").read_text()
-    assert "<img src=x" not in page and "&lt;img src=x onerror=alert(1)&gt;" in page
-    assert {k: v for k, v in snapshot(tmp_path).items() if not k.startswith("sweep/report/")} == outside
+    shutil.rmtree(out / "report")
+    before = snapshot(tmp_path)
+    assert main(["report", str(out)]) == 2
+    assert "is not one a sweep writes" in one_line(capsys, "report")
+    assert snapshot(tmp_path) == before and not (out / "report").exists()
 
 
 # -- the policy server ---------------------------------------------------------------------------------------------
@@ -408,3 +409,216 @@ def test_ctrl_c_in_a_sweep_ends_in_one_line_saying_how_to_resume(ic, tmp_path, c
     assert last[-1] == ("sc3 sweep: interrupted; nothing half-written is left; the same command resumes it "
                         "(finished rollouts are kept)") and "Traceback" not in err, err[-3000:]
     assert all(r["policy"] == "slow" for r in _records(out))  # whole records only (none, or a finished batch)
+
+
+# -- issue 58: damaged files, failed starts, silent results, the server's bounds -------------------------------------
+def _small_store(root: Path) -> Path:
+    store = EpisodeStore(root, views=["cam"], fps=10, image_size=(4, 4), create=True,
+                         action_space=ActionSpace("absolute", 2), has_pose=False)
+    for i in range(2):
+        store.write(Episode(f"e{i}", {"cam": np.zeros((5, 4, 4, 3), np.uint8)}, np.zeros((5, 2), np.float32), None,
+                            ""))
+    return root
+
+
+def test_a_truncated_store_is_one_line_in_train_and_leaves_no_run(tmp_path, capsys):
+    store = _small_store(tmp_path / "store")
+    frames = store / "e1" / "frames" / "cam.npy"
+    frames.write_bytes(frames.read_bytes()[:-7])
+    assert main(["train", "--config", "tiny", "--data.path", str(store), "--train.workdir", str(tmp_path / "run"),
+                 "--train.steps", "1"]) == 2
+    err = one_line(capsys, "train")
+    assert "e1/frames/cam.npy: not a whole .npy array" in err and "mmap length" in err
+    assert not (tmp_path / "run").exists()
+
+
+def test_a_start_killed_before_its_first_step_is_undone_by_the_retry(tmp_path):
+    from sc3_jax import train
+
+    workdir = tmp_path / "run"
+    workdir.mkdir()
+    (workdir / "notes.txt").write_text("mine")  # a file the user put there before the first attempt
+    train._begin_attempt(workdir)
+    (workdir / "norm_stats.json").write_text("{}")  # what the killed attempt wrote (no config.json yet)
+    (workdir / "latents").mkdir()
+    before = train._begin_attempt(workdir)  # the retry
+    assert before == {"notes.txt"} and sorted(os.listdir(workdir)) == ["incomplete.json", "notes.txt"]
+
+
+def test_a_batch_the_machine_cannot_hold_is_refused_before_anything_is_written(tmp_path):
+    from sc3_jax import config, train
+
+    cfg = config.replace(config.load_config("tiny"), data=dict(batch_size=10**9, path=str(tmp_path / "none")),
+                         train=dict(workdir=str(tmp_path / "run")))
+    with pytest.raises(UserError, match=r"--data.batch-size 1000000000: its host-side batches need about .* GB "
+                                        r"available; lower it"):
+        train.train(cfg)
+    assert not (tmp_path / "run").exists()
+
+
+def test_a_store_holding_only_the_sweep_json_of_a_failed_run_takes_the_rerun(tmp_path):
+    out = tmp_path / "sweep"
+    ResultsStore(out, {"modes": ["online"], "scorer": "broken"}).close()
+    ResultsStore(out, {"modes": ["online"], "scorer": "fixed"}).close()  # nothing of the failed run was kept
+    assert atomic.read_json(out / "sweep.json")["scorer"] == "fixed"
+    (out / "results.jsonl").write_text(json.dumps({"id": "p/0_online", "policy": "p", "mode": "online"}) + "\n")
+    with pytest.raises(UserError, match="holds results of a different sweep"):
+        ResultsStore(out, {"modes": ["online"], "scorer": "other"})
+
+
+@pytest.mark.parametrize("outcome", [2, "yes", [True], None])
+def test_a_record_whose_outcome_is_not_true_or_false_is_one_line(tmp_path, outcome):
+    out = tmp_path / "sweep"
+    ok = {"id": "p/0_online", "policy": "p", "mode": "online", "outcomes": {"success": True}, "u": [0.1]}
+    bad = {**ok, "id": "p/1_online", "outcomes": {"success": outcome}}
+    out.mkdir()
+    (out / "results.jsonl").write_text("".join(json.dumps(r) + "\n" for r in (ok, bad)))
+    with pytest.raises(UserError, match=r"record 2 \('p/1_online'\): outcomes is .* expected \{criterion: true"):
+        ResultsStore(out).records()
+    missing = {k: v for k, v in bad.items() if k != "outcomes"}
+    (out / "results.jsonl").write_text("".join(json.dumps(r) + "\n" for r in (ok, missing)))
+    with pytest.raises(UserError, match="where the store's other online records carry"):
+        ResultsStore(out).records()
+    (out / "results.jsonl").write_text(json.dumps({**ok, "u": [float("nan")]}) + "\n")
+    with pytest.raises(UserError, match="u must be a list of finite numbers"):
+        ResultsStore(out).records()
+
+
+@pytest.mark.parametrize("value", [np.nan, np.inf, 1e30])
+def test_sc3_rollout_refuses_non_finite_actions_and_their_u_before_writing(value):
+    from sc3_jax import rollout_io
+
+    actions = np.zeros((2, 4, A), np.float32)
+    actions[1, 2, 0] = value
+    u_raw = np.where(np.isfinite(actions.sum(-1)), 0.1, np.inf).astype(np.float32) if value == 1e30 else None
+    if value == 1e30:
+        u_raw[1, 2] = np.inf  # 1e30 overflows U_chunk
+    with pytest.raises(UserError, match=r"rollout zero/1: the policy's .* are not finite"):
+        rollout_io.check_result({"actions": actions, "u_raw": u_raw}, "zero")
+    rollout_io.check_result({"actions": np.zeros((2, 4, A), np.float32)}, "zero")  # finite: accepted
+
+
+@pytest.mark.parametrize("seconds", [-1, 0, 1e9, float("inf"), float("nan")])
+def test_rollout_seconds_outside_what_a_run_can_hold_are_one_line(seconds):
+    from sc3_jax import rollout_io
+
+    with pytest.raises(UserError, match="--rollout.episode-seconds"):
+        rollout_io.check_seconds(seconds)
+
+
+def test_an_empty_episode_selection_and_a_dataset_under_two_prefixes_are_refused(tmp_path, capsys):
+    src = _tiny_lerobot(tmp_path / "src", lengths=(3, 3))
+    out = tmp_path / "store"
+    for sel in ("5:9", "9", "1:0", "-1", "", "-2:"):
+        assert main(["data", "import-lerobot", str(src), "--out", str(out), "--action-space", "absolute",
+                     "--episodes", sel]) == 2, sel
+        assert "--episodes" in one_line(capsys, "data") and not out.exists()
+    assert main(["data", "import-lerobot", str(src), "--out", str(out), "--action-space", "absolute"]) == 0
+    capsys.readouterr()
+    before = snapshot(out)
+    assert main(["data", "import-lerobot", str(src), "--out", str(out), "--action-space", "absolute",
+                 "--id-prefix", "again_"]) == 2
+    assert "holds episode 0 of" in one_line(capsys, "data") and snapshot(out) == before
+    assert main(["data", "import-lerobot", str(src), "--out", str(out), "--action-space", "absolute",
+                 "--id-prefix", "b_", "--episodes", "5:"]) == 2  # past the end: nothing to import
+    capsys.readouterr()
+
+
+def test_one_labels_file_given_relative_and_absolute_counts_once(tmp_path, monkeypatch):
+    (tmp_path / "real.csv").write_text("policy,success\nhold,1\n")
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(UserError, match="are one file, given twice"):
+        labels.read(["real.csv", str(tmp_path / "real.csv")])
+    (tmp_path / "bin.csv").write_bytes(b"policy,success\n\xff\xfe\x00\n")
+    with pytest.raises(UserError, match="bin.csv: not a CSV of UTF-8 text"):
+        labels.read(["bin.csv"])
+
+
+@pytest.mark.parametrize("template", ["/etc/hostname", "../../{episode_index}.parquet", "data/{bogus}.parquet"])
+def test_a_lerobot_info_json_naming_files_outside_or_unknown_placeholders_is_one_line(tmp_path, capsys, template):
+    src = _tiny_lerobot(tmp_path / "src")
+    info = json.loads((src / "meta" / "info.json").read_text())
+    (src / "meta" / "info.json").write_text(json.dumps({**info, "data_path": template}))
+    before = snapshot(tmp_path)
+    assert main(["data", "import-lerobot", str(src), "--out", str(tmp_path / "out"), "--action-space",
+                 "absolute"]) == 2
+    err = one_line(capsys, "data")
+    assert "data_path" in err and ("outside the dataset" in err or "does not fill in" in err)
+    assert {k: v for k, v in snapshot(tmp_path).items() if not k.startswith("out/")} == before
+
+
+def test_a_world_model_config_with_a_retyped_field_is_one_line_naming_it(tmp_path):
+    from sc3_jax import checkpoint
+    from test_sweep import tiny_world_model
+
+    wm = tiny_world_model(tmp_path)
+    cfg = json.loads((wm / "config.json").read_text())
+    cfg["model"]["dim"] = "abc"
+    (wm / "config.json").write_text(json.dumps(cfg))
+    with pytest.raises(UserError, match=r"config.json: model.dim is 'abc', expected int"):
+        checkpoint.read_config(wm)
+
+
+def test_a_failed_lerobot_policy_start_leaves_nothing_in_the_temp_folder(tmp_path, monkeypatch):
+    from sc3_jax.policies.lerobot_policy import LeRobotPolicy
+
+    monkeypatch.setenv("TMPDIR", str(tmp_path / "tmp"))
+    (tmp_path / "tmp").mkdir()
+    import tempfile
+    monkeypatch.setattr(tempfile, "tempdir", None)  # TMPDIR read again
+    model = tmp_path / "model"
+    model.mkdir()
+    (model / "config.json").write_text(json.dumps({"n_action_steps": 2, "output_features": {"action": {
+        "shape": [2]}}}))
+    policy = LeRobotPolicy(model, python=sys.executable)
+    with pytest.raises(UserError, match="lerobot"):
+        policy.infer({"images": np.zeros((1, 4, 4, 3), np.uint8), "state": np.zeros(2, np.float32)})
+    policy.close()
+    assert list((tmp_path / "tmp").iterdir()) == []
+
+
+# -- the policy server's bounds --------------------------------------------------------------------------------------
+def test_the_server_checks_shapes_sent_as_nested_lists_and_bounds_what_they_decode_to():
+    from sc3_jax.policies import msgpack_numpy
+    from sc3_jax.policies.openpi_server import MAX_VALUES, decode, signature
+
+    first = signature({"images": np.zeros((4, 4, 3), np.uint8)})
+    as_lists = signature(decode(msgpack_numpy.packb({"images": np.zeros((5, 4, 3)).tolist()})))
+    assert as_lists["images"] == ((5, 4, 3), "list") and as_lists != first
+    with pytest.raises(ValueError, match=f"more than {MAX_VALUES} list items"):
+        decode(msgpack_numpy.packb({"images": np.zeros((300, 300)).tolist()}))
+
+
+def test_the_server_caps_its_connections():
+    import websockets.exceptions
+
+    from sc3_jax.policies.openpi_server import PolicyServer
+
+    with PolicyServer(Jitting(), port=0, max_connections=1).start() as server:
+        import websockets.sync.client
+        with websockets.sync.client.connect(server.url) as ws:
+            ws.recv()  # metadata: the one connection is being served
+            with pytest.raises(websockets.exceptions.InvalidStatus, match="503"):
+                _send(server.url, {"images": np.zeros((4, 4, 3), np.uint8)})
+        time.sleep(0.2)  # the first connection's handler has ended: a new one is served
+        assert _send(server.url, {"images": np.zeros((4, 4, 3), np.uint8)})[0] == "actions"
+
+
+@pytest.mark.parametrize("argv, said", [(["--port", "99999"], "--port 99999: expected a number from 0 to 65535"),
+                                        (["--host", "0.0.0.0"], "--host 0.0.0.0 listens beyond this machine: set a "
+                                                                "key")])
+def test_serve_policy_bounds_its_port_and_wants_a_key_off_loopback(argv, said, capsys, monkeypatch):
+    monkeypatch.delenv("SC3_POLICY_API_KEY", raising=False)
+    assert main(["serve-policy", "--policy", "zero", *argv]) == 2
+    assert said in one_line(capsys, "serve-policy")
+
+
+def test_the_server_says_where_it_really_listens_and_masks_every_path():
+    from sc3_jax.commands.serve_policy import loopback
+    from sc3_jax.policies.openpi_server import PolicyServer, one_line as told
+
+    with PolicyServer(Jitting(), host="0.0.0.0", port=0, api_key="k") as server:
+        assert server.listening.startswith("ws://0.0.0.0:") and server.url.startswith("ws://127.0.0.1:")
+    assert loopback("127.0.0.1") and loopback("::1") and not loopback("0.0.0.0") and not loopback("example.org")
+    msg = told(OSError("cannot open /etc and ./a.npz and ../b and ~/k and sc3_jax/x.py for observation/image"))
+    assert msg == "OSError: cannot open <path> and <path> and <path> and <path> and <path> for observation/image"

@@ -127,6 +127,9 @@ def episode_selection(spec: tuple[str, ...] | None) -> _Selection | None:
         except ValueError:
             raise UserError(f"--episodes {s!r}: expected A:B (either end may be left out) or an episode index, e.g. "
                             "0:20 or 20: or 3") from None
+        a, b = ranges[-1]
+        if a < 0 or b <= a:  # an empty or negative range selects nothing: said here, not as an empty store
+            raise UserError(f"--episodes {s!r}: selects no episode (episode_index counts from 0; A:B needs A < B)")
     return _Selection(ranges)
 
 

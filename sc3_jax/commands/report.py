@@ -33,10 +33,28 @@ class Args:
     labels, a LeRobot dataset, a CSV; docs/your_robot.md), instead of the sweep's own --real"""
 
 
+MAX_DRAWS = 100_000  # a paired bootstrap's intervals settle long before; 2e8 draws took 3 GB
+
+
+def check_options(a: Args) -> None:
+    """Each numeric option within what the report can use, in one line (``--draws 0`` was a traceback)."""
+    import math
+
+    from sc3_jax.validate import in_range
+
+    in_range("--draws", a.draws, 10, MAX_DRAWS, "paired bootstrap draws")
+    if a.videos is not None:
+        in_range("--videos", a.videos, 0, 1000, "side-by-side videos")
+    for t in a.taus or ():
+        if math.isnan(t) or t < 0:
+            raise UserError(f"--taus {t}: a threshold is a non-negative number (inf: never stop)")
+
+
 def main(argv: list[str]) -> int:
     a = parse(Args, argv, "report")
     if not a.results:  # tyro takes a positional tuple as zero or more; argparse asked for one at least
         raise UserError("give at least one RESULTS store")
+    check_options(a)
     from sc3_jax.benchmarks.bussing.hooks import object_pixels
     from sc3_jax.evaluate import report  # after parsing: --help and a typo need not load plotting
 

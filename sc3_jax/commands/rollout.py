@@ -74,6 +74,7 @@ def main(argv: list[str]) -> int:
     from sc3_jax.policies.openpi_mappings import for_world_model, get_mapping
     from sc3_jax.policies.resolve import resolve
 
+    rollout_io.check_seconds(cfg.rollout.episode_seconds)
     stats = checkpoint.read_norm_stats(a.checkpoint)
     params = checkpoint.load_params(a.checkpoint, cfg, a.step)
     fps = rollout_io.data_fps(a.initial_conditions, a.data_fps)
@@ -92,10 +93,12 @@ def main(argv: list[str]) -> int:
                      num_views=len(cfg.data.views)).policy
     n, s, tau = len(ids), ro.spec, ro.tau
     size = a.batch_size or n
+    rollout_io.check_horizon(s, cfg.rollout.episode_seconds, min(size, n))
     out = Path(a.out)
-    out.mkdir(parents=True, exist_ok=True)
     keys = np.asarray(rollout.episode_keys(a.seed, n))
     result = rollout_io.closed_loop(ro, params, policy, ics, keys, tau, size, a.progress)
+    rollout_io.check_result(result, a.policy)  # before anything is written
+    out.mkdir(parents=True, exist_ok=True)
     atomic.save_npz(out / "rollout.npz", **result, episode_ids=np.asarray(ids))
     u = rollout_io.u_summary(result, tau, cfg.rollout.tau_units)
     summary = {"episodes": ids, "policy": a.policy, "seed": a.seed, "num_chunks": s.num_chunks, "keep_frames": s.keep,

@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
+import sys
 from typing import Annotated, Any, Callable, Literal
 
 import tyro
@@ -78,6 +79,18 @@ def api_key(a: Args) -> str | None:
     return os.environ.get(API_KEY_ENV) or None
 
 
+def loopback(host: str) -> bool:
+    """Whether ``host`` is reachable from this machine only (127.0.0.0/8, ::1, localhost)."""
+    import ipaddress
+
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:  # a host name: it may resolve to any interface
+        return False
+
+
 def build_server(a: Args, resolve: Callable[[str], Any] | None = None):
     """The bound, not yet serving ``PolicyServer`` for ``a``. ``resolve`` (optional) turns ``a.policy`` into a
     policy instead of ``policies.resolve``."""
@@ -94,9 +107,14 @@ def build_server(a: Args, resolve: Callable[[str], Any] | None = None):
         if a.task_prompt:
             changes["prompts"] = _prompts(a.task_prompt)
         mapping = mapping.replace(**changes)
-    if a.max_message_mb <= 0:
-        raise UserError(f"--max-message-mb {a.max_message_mb}: give a positive size")
+    from sc3_jax.validate import in_range
+
+    in_range("--port", a.port, 0, 65535, "0: any free port")
+    in_range("--max-message-mb", a.max_message_mb, 0.001, 1024, "one observation message")
     key = api_key(a)
+    if not loopback(a.host) and not key:  # anyone who reaches this machine could drive the policy
+        raise UserError(f"--host {a.host} listens beyond this machine: set a key (--api-key-file FILE, or the "
+                        "environment variable SC3_POLICY_API_KEY), or keep --host 127.0.0.1")
     if resolve is None:  # after the options are checked: loading a policy can take seconds
         from sc3_jax.policies.resolve import resolve as resolve_spec
 
@@ -108,7 +126,7 @@ def build_server(a: Args, resolve: Callable[[str], Any] | None = None):
         raise UserError(f"--policy {a.policy}: {' '.join(str(e).split())}") from e
     try:
         return PolicyServer(policy, a.host, a.port, None, mapping, key, int(a.max_message_mb * 2**20))
-    except OSError as e:  # the address is taken, or not this machine's
+    except (OSError, OverflowError) as e:  # the address is taken, or not this machine's
         raise UserError(f"--host {a.host} --port {a.port}: {e.strerror or e}; choose another --port (0: any free "
                         "one)") from e
     except ValueError as e:  # the policy does not fit --family (its action dimension)
@@ -123,8 +141,12 @@ def main(argv: list[str]) -> int:
     from sc3_jax.policies.openpi_server import serve_until_interrupted
 
     server = build_server(a)
-    print(f"serving {server.metadata['policy']} on {server.url} (family {server.metadata['family']}); health check: "
-          f"http://{server.url.split('://', 1)[1]}/healthz", flush=True)
+    if not loopback(a.host):
+        print(f"sc3 serve-policy: warning: listening on {server.listening}, beyond this machine: clients need the "
+              "key; the traffic is not encrypted (put it behind TLS or an SSH tunnel)", file=sys.stderr, flush=True)
+    local = "" if server.listening == server.url else f"; from this machine: {server.url}"
+    print(f"serving {server.metadata['policy']} on {server.listening}{local} (family {server.metadata['family']}); "
+          f"health check: http://{server.url.split('://', 1)[1]}/healthz", flush=True)
     print(f"metadata sent to every client: {json.dumps(server.metadata, default=str)}", flush=True)
     print(f"query it from our commands as --policy NAME={server.url}@TASK; Ctrl-C stops it", flush=True)
     serve_until_interrupted(server)

@@ -17,6 +17,31 @@ SUMMARY = "policies x initial conditions inside the world model, then the report
 SUBCOMMANDS: dict[str, type] = {"bench": SweepConfig, "so101": So101SweepConfig, "episodes": ICSweepConfig}
 
 
+# numeric options every sweep may have: (lowest, highest, what it counts); a value outside is one line, before
+# anything is loaded or written (--episode-seconds 1e9 grew without bound, -1 was an IndexError)
+BOUNDS = {"episodes": (1, 100_000, "initial conditions per policy"),
+          "calibration_episodes": (0, 100_000, "initial conditions for tau"),
+          "ceiling_episodes": (0, 100_000, "second real set"), "start": (0, 10**7, "a frame index"),
+          "batch": (1, 4096, "rollouts per batch"), "workers": (0, 256, "processes"),
+          "episode_seconds": (1e-3, 3600, "seconds of one episode"), "sample_steps": (1, 1000, "sampler steps"),
+          "inverse_steps": (1, 1000, "sampler steps")}
+
+
+def check_options(cfg) -> None:
+    """``cfg``'s numeric options within ``BOUNDS`` and its taus non-negative (inf: never stop)."""
+    import math
+
+    from sc3_jax.validate import in_range
+
+    for name, (low, high, what) in BOUNDS.items():
+        value = getattr(cfg, name, None)
+        if value is not None:
+            in_range(f"--{name.replace('_', '-')}", value, low, high, what)
+    for t in getattr(cfg, "taus", None) or ():
+        if math.isnan(t) or t < 0:
+            raise UserError(f"--taus {t}: a threshold is a non-negative number (inf: never stop)")
+
+
 def bench(cfg: SweepConfig) -> int:
     from pathlib import Path
 
@@ -24,6 +49,7 @@ def bench(cfg: SweepConfig) -> int:
     from sc3_jax.benchmarks.bussing.hooks import object_pixels
     from sc3_jax.evaluate import report
 
+    check_options(cfg)
     out = sweep.run_sweep(cfg)
     if out != Path(cfg.out):  # one shard of several: the report reads them all once every shard has finished
         print(f"shard done: {out}; once every shard has finished: sc3 report {cfg.out}")
@@ -44,6 +70,7 @@ def so101(cfg: So101SweepConfig) -> int:
     from sc3_jax.benchmarks.so101 import sweep
     from sc3_jax.evaluate import report
 
+    check_options(cfg)
     out = sweep.run(cfg)
     md = report.render(out, out / "report", real=[str(out / sweep.REAL_FILE)])
     t = read_json(out / "report" / "report.json")
@@ -60,6 +87,7 @@ def episodes(cfg: ICSweepConfig) -> int:
     from sc3_jax.benchmarks.bussing.hooks import named_policy
     from sc3_jax.evaluate import ic_sweep, report
 
+    check_options(cfg)
     out = ic_sweep.run(cfg, named=named_policy)
     md = report.render(out, out / "report", real=cfg.real or None)
     t = json.loads((out / "report" / "report.json").read_text())

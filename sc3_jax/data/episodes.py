@@ -42,6 +42,7 @@ from sc3_jax import atomic
 from sc3_jax.data.action_space import ActionSpace
 from sc3_jax.errors import UserError
 from sc3_jax.safe_names import check_name, join_inside
+from sc3_jax.validate import is_count, is_finite_number, json_object, load_npy, numeric
 
 FORMAT = "sc3-episodes"
 VERSION = 1
@@ -137,9 +138,7 @@ class EpisodeStore:
         declared = {"action_dim": action_space.dim, "action_space": action_space.to_dict(), "state": state,
                     "ee_pose": bool(has_pose)}
         if header.exists():
-            info = atomic.read_json(header)
-            if info.get("format") != FORMAT:
-                raise UserError(f"{header}: not an sc3 episode dataset (format={info.get('format')!r})")
+            info = read_header(header)
             have = {**info, **_declared(info)}
             asked = {k: v for k, v in (("views", views and list(views)), ("fps", fps)) if v is not None}
             for key, want in {**asked, **(declared if create else {})}.items():
@@ -182,22 +181,24 @@ class EpisodeStore:
         d = join_inside(self.root, episode_id)
         if not (d / "meta.json").exists():
             raise EpisodeError(episode_id, "meta.json", f"missing in {d}")
-        mode = "r" if mmap else None
+        fix = f"restore the episode from a copy, or delete {d} (a resumed import writes it again)"
         frames = {}
         for view in self.views:
             path = d / "frames" / f"{view}.npy"
             if not path.exists():
                 raise EpisodeError(episode_id, f"frames/{view}", f"missing view file {path}")
-            frames[view] = np.load(path, mmap_mode=mode)
+            frames[view] = load_npy(path, fix, mmap)
         arrays = {"ee_pose": None, "state": None}
         for field in self.array_fields():
             path = d / f"{field}.npy"
             if not path.exists():
                 raise EpisodeError(episode_id, field, f"missing file {path}")
-            arrays[field] = np.load(path)
-        meta = json.loads((d / "meta.json").read_text())
-        ep = Episode(episode_id, frames, arrays["actions"], arrays["ee_pose"], meta.get("prompt", ""), meta,
-                     arrays["state"])
+            arrays[field] = numeric(load_npy(path, fix), str(path), fix)
+        meta = json_object(atomic.read_json(d / "meta.json", fix), str(d / "meta.json"), fix)
+        prompt = meta.get("prompt", "")
+        if not isinstance(prompt, str):
+            raise EpisodeError(episode_id, "meta.json", f"prompt is {type(prompt).__name__}, expected text; {fix}")
+        ep = Episode(episode_id, frames, arrays["actions"], arrays["ee_pose"], prompt, meta, arrays["state"])
         if validate:
             self.validate(ep, min_length)
         return ep
@@ -233,6 +234,30 @@ class EpisodeStore:
             shutil.rmtree(tmp, ignore_errors=True)
             raise
         return final
+
+
+def read_header(path: Path) -> dict:
+    """A store's dataset.json, checked field by field: a retyped or missing declaration is one line naming it,
+    not a KeyError or TypeError wherever it is first used."""
+    fix = "restore it from a copy (or write the store again)"
+    info = json_object(atomic.read_json(path, fix), str(path), fix)
+    if info.get("format") != FORMAT:
+        raise UserError(f"{path}: not an sc3 episode dataset (format={info.get('format')!r})")
+
+    def need(key: str, ok: bool, want: str):
+        if not ok:
+            raise UserError(f"{path}: {key} is {info.get(key, 'missing')!r}, expected {want}; {fix}")
+    views, size, state = info.get("views"), info.get("image_size"), info.get("state")
+    need("views", isinstance(views, list) and bool(views) and all(isinstance(v, str) for v in views),
+         "a list of view names")
+    need("fps", is_finite_number(info.get("fps")) and 0 < info["fps"] <= 10_000, "a positive frame rate")
+    need("action_dim", is_count(info.get("action_dim"), 4096), "a positive integer")
+    need("image_size", isinstance(size, list) and len(size) == 2 and all(is_count(x, 65536) for x in size),
+         "[H, W], two positive integers")
+    need("state", state is None or (isinstance(state, dict) and is_count(state.get("dim"), 4096)),
+         'null or {"dim": S, "names": [...]}')
+    need("ee_pose", isinstance(info.get("ee_pose", True), bool), "true or false")
+    return info
 
 
 def _declared(info: dict) -> dict:

@@ -32,7 +32,9 @@ from pathlib import Path
 import numpy as np
 
 from sc3_jax import locks
-from sc3_jax.safe_names import ALLOWED, is_safe
+from sc3_jax.errors import UserError
+from sc3_jax.safe_names import ALLOWED, is_safe, join_inside
+from sc3_jax.validate import is_count, is_finite_number, json_object
 
 try:
     import pyarrow as pa
@@ -50,12 +52,34 @@ LABELS_FIELD = "labels"  # an imported episode's meta.json {criterion: bool}, wh
 _OPTIONAL = object()  # sentinel: "use observation.state if the dataset has it"
 
 
-class LeRobotError(ValueError):
-    """A LeRobot dataset we cannot read as asked. ``where`` names the file or feature key at fault."""
+class LeRobotError(UserError):
+    """A LeRobot dataset we cannot read as asked (a UserError: one line in every command that reads one).
+    ``where`` names the file or feature key at fault."""
 
     def __init__(self, where: str | os.PathLike, problem: str):
         self.where, self.problem = str(where), problem
         super().__init__(f"{where}: {problem}")
+
+
+def read_info(path: Path) -> dict:
+    """A LeRobot dataset's ``meta/info.json``, checked where it enters: its rate, features and path templates have
+    the types the reader needs (a retyped one is one line naming it, not a TypeError where it is first used)."""
+    from sc3_jax import atomic
+
+    fix = "restore it from the dataset's source"
+    info = json_object(atomic.read_json(path, fix), str(path), fix)
+
+    def need(key: str, ok: bool, want: str):
+        if not ok:
+            raise LeRobotError(path, f"{key} is {info.get(key, 'missing')!r}, expected {want}; {fix}")
+    need("fps", is_finite_number(info.get("fps")) and 0 < info["fps"] <= 10_000, "a positive frame rate")
+    need("features", isinstance(info.get("features"), dict) and all(
+        isinstance(f, dict) and isinstance(f.get("shape", []), list) for f in info["features"].values()),
+         "{key: {dtype, shape, ...}}")
+    for key in ("data_path", "video_path"):
+        need(key, isinstance(info.get(key, ""), str) or info.get(key) is None, "a path template")
+    need("chunks_size", info.get("chunks_size") is None or is_count(info["chunks_size"]), "a positive integer")
+    return info
 
 
 def view_name(key: str) -> str:
@@ -111,7 +135,7 @@ class LeRobotEpisodes:
         info_path = self.root / "meta" / "info.json"
         if not info_path.exists():
             raise LeRobotError(info_path, "missing (not a LeRobot dataset root)")
-        self.info = json.loads(info_path.read_text())
+        self.info = read_info(info_path)
         self.version = str(self.info.get("codebase_version"))
         if self.version not in SUPPORTED_VERSIONS:
             raise LeRobotError(info_path, f"unsupported codebase_version {self.version!r} "
@@ -183,26 +207,39 @@ class LeRobotEpisodes:
 
     def _data_path(self, ep: dict) -> Path:
         if self.version == "v3.0":
-            rel = self.info["data_path"].format(chunk_index=ep["data/chunk_index"], file_index=ep["data/file_index"])
-        else:
-            e = int(ep["episode_index"])
-            rel = self.info["data_path"].format(episode_chunk=e // int(self.info["chunks_size"]), episode_index=e)
-        return self.root / rel
+            return self._template("data_path", chunk_index=ep["data/chunk_index"], file_index=ep["data/file_index"])
+        e = int(ep["episode_index"])
+        return self._template("data_path", episode_chunk=e // int(self.info["chunks_size"]), episode_index=e)
+
+    def _template(self, key: str, **fields) -> Path:
+        """``info.json``'s path template ``key`` filled in, a file inside the dataset: an absolute template, one
+        that climbs out (``..``) or an unknown placeholder is one line, never read (``/etc/hostname``) or a
+        KeyError."""
+        where = self.root / "meta" / "info.json"
+        try:
+            rel = self.info[key].format(**fields)
+        except (KeyError, IndexError, ValueError, AttributeError) as e:
+            raise LeRobotError(where, f"{key} {self.info.get(key)!r} does not fill in with {sorted(fields)} "
+                                      f"({type(e).__name__}: {e}); restore info.json") from None
+        try:
+            return join_inside(self.root, rel)
+        except UserError:
+            raise LeRobotError(where, f"{key} {self.info[key]!r} names a file outside the dataset; restore "
+                                      "info.json (paths there are relative to the dataset)") from None
 
     def _video_segment(self, ep: dict, key: str) -> tuple[Path, float, float | None]:
         """(mp4 path, time of the episode's t=0 inside it, end time or None)."""
         if self.version != "v3.0":
             e = int(ep["episode_index"])
-            rel = self.info["video_path"].format(episode_chunk=e // int(self.info["chunks_size"]), video_key=key,
-                                                 episode_index=e)
-            return self.root / rel, 0.0, None
+            return self._template("video_path", episode_chunk=e // int(self.info["chunks_size"]), video_key=key,
+                                  episode_index=e), 0.0, None
         col = f"videos/{key}/"
         if col + "chunk_index" not in ep or ep[col + "chunk_index"] is None:
             raise LeRobotError(ep["_meta_file"], f"episode {ep['episode_index']} has no '{col}*' columns "
                                                  f"for camera {key!r}")
-        rel = self.info["video_path"].format(video_key=key, chunk_index=ep[col + "chunk_index"],
-                                             file_index=ep[col + "file_index"])
-        return self.root / rel, float(ep[col + "from_timestamp"]), float(ep[col + "to_timestamp"])
+        path = self._template("video_path", video_key=key, chunk_index=ep[col + "chunk_index"],
+                              file_index=ep[col + "file_index"])
+        return path, float(ep[col + "from_timestamp"]), float(ep[col + "to_timestamp"])
 
     # -- tabular data ------------------------------------------------------------------------------------------
     def _read_rows(self, ep: dict, columns: list[str]) -> pa.Table:
@@ -497,6 +534,11 @@ def import_lerobot(root: str | os.PathLike, out: str | os.PathLike, views=None, 
     src = LeRobotEpisodes(root, views=views, wrist_views=wrist_views, fps=fps, action_key=action_key,
                           state_key=None)
     feats, info_path = src.features, Path(root) / "meta" / "info.json"
+    chosen = [i for i in range(len(src)) if episodes is None or src.episode_index(i) in episodes]
+    if not chosen:  # nothing would be imported, yet the command would say "train on it"
+        have = [src.episode_index(i) for i in range(len(src))]
+        raise LeRobotError(root, f"--episodes selects none of its {len(have)} episodes (episode_index "
+                                 f"{min(have, default=0)}..{max(have, default=-1)})")
     dim = int(np.prod(feats[action_key]["shape"]))
     declared = src.info.get(INFO_ACTION_SPACE)
     if action_space is not None:
@@ -535,10 +577,8 @@ def import_lerobot(root: str | os.PathLike, out: str | os.PathLike, views=None, 
     written = skipped = labelled = 0
     short: list[int] = []
     with locks.hold(store.root, "import"):  # two imports into one store would race on its episodes
-        _check_same_source(store, source, id_prefix)
-        for i in range(len(src)):
-            if episodes is not None and src.episode_index(i) not in episodes:
-                continue
+        _check_same_source(store, source, id_prefix, {src.episode_index(i) for i in chosen})
+        for i in chosen:
             ep = src.episode(i)
             eid = f"{id_prefix}lerobot{ep.episode_index:06d}"
             if eid in store:
@@ -568,21 +608,30 @@ def import_lerobot(root: str | os.PathLike, out: str | os.PathLike, views=None, 
             "success_labels": labelled}  # of the episodes written: those whose meta holds next.success
 
 
-def _check_same_source(store, source: str, prefix: str = "") -> None:
+def _check_same_source(store, source: str, prefix: str, indices: set[int]) -> None:
     """Importing dataset B into a store made from dataset A under the same id prefix would skip B's episodes as
-    "already there" (their ids are episode indices) and keep A's: refused, naming both."""
+    "already there" (their ids are episode indices) and keep A's; importing A again under another prefix would hold
+    its episodes twice. Both refused, naming the store's source and prefix: duplicates are found by what was
+    imported (source and episode_index), not by their names."""
     from sc3_jax import atomic
 
-    mine = re.compile(re.escape(prefix) + r"lerobot\d+")
+    held = []  # (id prefix, LeRobot root, episode_index, id) of every imported episode of the store
     for eid in store.episode_ids():
-        if not mine.fullmatch(eid):
-            continue
-        meta = atomic.read_json(store.root / eid / "meta.json", "restore it (the episode's metadata)")
-        if meta.get("source") == "lerobot" and meta.get("lerobot_root") not in (None, source):
-            raise LeRobotError(store.root, f"holds episodes imported from {meta['lerobot_root']}, not from {source}"
+        m = re.fullmatch(r"(.*)lerobot(\d+)", eid)
+        if m is not None:
+            meta = atomic.read_json(store.root / eid / "meta.json", "restore it (the episode's metadata)")
+            if meta.get("source") == "lerobot":
+                held.append((m[1], meta.get("lerobot_root"), meta.get("episode_index"), eid))
+    for pre, came, _, _ in held:
+        if pre == prefix and came not in (None, source):
+            raise LeRobotError(store.root, f"holds episodes imported from {came}, not from {source}"
                                            f"{' under this prefix' if prefix else ''}: import into another --out or "
                                            "under another --id-prefix")
-        return  # one episode tells: every import under one prefix is from its one dataset
+    for pre, came, index, eid in held:
+        if pre != prefix and came == source and index in indices:
+            raise LeRobotError(store.root, f"holds episode {index} of {source} already, as {eid} (id prefix "
+                                           f"{pre!r}): importing it again under {prefix!r} would give it twice; "
+                                           f"resume with --id-prefix {pre!r}")
 
 
 def _resize(frames: np.ndarray, size: tuple[int, int]) -> np.ndarray:

@@ -28,6 +28,7 @@ import numpy as np
 
 from sc3_jax import atomic
 from sc3_jax.errors import UserError
+from sc3_jax.validate import same_files
 
 POLICY_FIELD = "policy"  # meta.json: the name of the policy that ran the episode
 LABELS_FIELD = "labels"  # meta.json: {criterion: bool}
@@ -44,6 +45,11 @@ class RealEpisode:
 
 def read(sources: tuple[str, ...] | list[str]) -> list[RealEpisode]:
     """Every real episode of ``sources`` (see the module docstring), in order."""
+    given = [split_spec(spec)[1] for spec in sources]
+    for spellings in same_files(p for p in given if Path(p).exists()).values():
+        if len(spellings) > 1:  # one file under two spellings (relative, absolute, a link) would count twice
+            raise UserError(f"--real: {' and '.join(map(repr, spellings))} are one file, given twice: drop the "
+                            "duplicate")
     out = []
     for spec in sources:
         name, path = split_spec(spec)
@@ -143,10 +149,14 @@ def lerobot_success(root: Path) -> dict[int, bool]:
 
 
 def _from_csv(path: Path, name: str | None) -> list[RealEpisode]:
-    with open(path, newline="", encoding="utf-8-sig") as fh:  # -sig: a byte-order mark is not part of a name
-        reader = csv.reader(fh)
-        header = [h.strip() for h in next(reader, [])]  # "policy, success" as written by hand
-        rows = [(line, dict(zip(header, r))) for line, r in enumerate(reader, start=2) if any(c.strip() for c in r)]
+    try:
+        with open(path, newline="", encoding="utf-8-sig") as fh:  # -sig: a byte-order mark is not part of a name
+            reader = csv.reader(fh)
+            header = [h.strip() for h in next(reader, [])]  # "policy, success" as written by hand
+            rows = [(line, dict(zip(header, r))) for line, r in enumerate(reader, start=2)
+                    if any(c.strip() for c in r)]
+    except (UnicodeDecodeError, csv.Error) as e:  # a binary or damaged file
+        raise UserError(f"{path}: not a CSV of UTF-8 text ({' '.join(str(e).split())[:120]}); restore it") from None
     if not rows:
         return []
     cols = header

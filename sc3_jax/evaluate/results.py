@@ -25,7 +25,8 @@ import numpy as np
 
 from sc3_jax import atomic, locks
 from sc3_jax.errors import UserError
-from sc3_jax.safe_names import check_name, join_inside
+from sc3_jax.safe_names import ALLOWED, check_name, is_safe, join_inside
+from sc3_jax.validate import is_finite_number
 from sc3_jax.evaluate.metrics import OVERALL
 
 EVAL_MODES = ("real", "offline", "online")
@@ -113,7 +114,7 @@ class ResultsStore:
         # real_from only says where identical real rollouts were copied from (the source may move later)
         keep = lambda d: {k: v for k, v in d.items()  # noqa: E731
                           if k not in ("progress", "out", "modes", "perception_sha256", "real_from")}
-        if cfg_path.exists():
+        if cfg_path.exists() and self._holds_results():
             old = atomic.read_json(cfg_path, "restore it from a copy, or use another --out")
             # which perception weights scored the store (a store from before digests were kept: unknown, accepted)
             was, now = old.get("perception_sha256"), config.get("perception_sha256")
@@ -139,6 +140,14 @@ class ResultsStore:
         self._repair()
         atomic.write_json(cfg_path, config)
 
+    def _holds_results(self) -> bool:
+        """Whether any rollout of this store was kept (a record or its arrays): a store holding only the
+        ``sweep.json`` of a sweep that failed before its first rollout (a scorer that raised) is taken by the
+        corrected command, not refused as "a different sweep"."""
+        rollouts = self.root / "rollouts"
+        return (self.path.exists() and self.path.stat().st_size > 0) or (
+            rollouts.is_dir() and any(p.is_file() for p in rollouts.rglob("*")))
+
     def close(self) -> None:
         """Give the store's lock back (a store opened without ``lock`` holds none)."""
         if self._lock is not None:
@@ -153,9 +162,12 @@ class ResultsStore:
         """Every complete line (a line cut by a kill, or still being written by a running sweep, is left out).
         Reading never writes: a report or another sweep may read a store while its sweep runs."""
         if self.archived:
-            return atomic.read_jsonl(self.root / "results.jsonl.gz", "a rollout record", "restore the file")
-        return atomic.read_jsonl(self.path, "a rollout record", "delete that line (resuming the sweep runs its "
-                                 "rollout again) or restore the file")
+            path, fix = self.root / "results.jsonl.gz", "restore the file"
+        else:
+            path, fix = self.path, "delete that line (resuming the sweep runs its rollout again) or restore the file"
+        records = atomic.read_jsonl(path, "a rollout record", fix)
+        check_records(records, path, fix)
+        return records
 
     def _repair(self):
         """Before this store's own sweep appends to it: drop a line cut by a kill (atomic.drop_cut_line: nothing is
@@ -221,6 +233,55 @@ def check_actions(rid: str, actions, u_raw=None) -> None:
             raise UserError(f"rollout {rid}: the policy's {what} are not finite (largest finite |action| "
                             f"{a[np.isfinite(a)].max(initial=0):.3g}): fix the policy; nothing of this rollout was "
                             "written")
+
+
+# what a record's outcome fields hold; a record of one mode carries the same of them as every other of its mode
+OUTCOME_FIELDS = ("outcomes", "outcomes_by_cut", "objects", "perception", "u", "u_raw")
+OBJECT_CRITERIA = ("language", "lifting", "placing")
+
+
+def check_records(records: list[dict], path: Path, fix: str) -> None:
+    """Every record of a store as the report reads it: an outcome that is not ``true`` / ``false`` (``2``,
+    ``"yes"``, a list), a U that is not a finite number, a missing outcome, is one line naming the record, never a
+    silent rate (``success: 2`` read as 1.00 [0.00, 2.00]) or a traceback in the report."""
+    first: dict[str, dict] = {}
+    for i, r in enumerate(records, 1):
+        def bad(problem: str):
+            raise UserError(f"{path}: record {i} ({r.get('id')!r}): {problem}; {fix}")
+        if not isinstance(r.get("id"), str) or r.get("mode") not in EVAL_MODES:
+            bad(f"needs a text id and a mode of {list(EVAL_MODES)}")
+        if "policy" in r and not is_safe(r["policy"]):  # a directory of the store, a name every report prints
+            bad(f"policy name {r['policy']!r} is not one a sweep writes ({ALLOWED})")
+        for k in ("seed", "num_chunks", "stride", "length", "score_stride"):
+            if k in r and not (isinstance(r[k], int) and not isinstance(r[k], bool) and r[k] >= 0):
+                bad(f"{k} is {r[k]!r}, expected a whole number")
+        if "success" in r and not isinstance(r["success"], bool):
+            bad(f"success is {r['success']!r}, expected true or false")
+        if "outcomes" in r:
+            _check_outcomes(r["outcomes"], "outcomes", bad)
+        if "outcomes_by_cut" in r:
+            cuts = r["outcomes_by_cut"]
+            if not isinstance(cuts, dict):
+                bad(f"outcomes_by_cut is {cuts!r}, expected {{chunks kept: outcomes}}")
+            for cut, o in cuts.items():
+                _check_outcomes(o, f"outcomes_by_cut[{cut!r}]", bad)
+        for k in ("objects", "perception"):
+            if k in r and not (isinstance(r[k], list) and all(isinstance(o, dict) and all(
+                    isinstance(o.get(c, False), bool) for c in OBJECT_CRITERIA) for o in r[k])):
+                bad(f"{k} must be a list of objects whose {'/'.join(OBJECT_CRITERIA)} are true or false")
+        for k in ("u", "u_raw"):
+            if k in r and not (isinstance(r[k], list) and all(is_finite_number(x) for x in r[k])):
+                bad(f"{k} must be a list of finite numbers")
+        # one mode, one layout: a record missing an outcome (or with other criteria) would drop out of a rate
+        have = {k: sorted(r["outcomes"]) if k == "outcomes" else True for k in OUTCOME_FIELDS if k in r}
+        ref = first.setdefault(r["mode"], have)
+        if have != ref:
+            bad(f"carries {have} where the store's other {r['mode']} records carry {ref}")
+
+
+def _check_outcomes(o, what: str, bad) -> None:
+    if not (isinstance(o, dict) and o and all(isinstance(v, bool) for v in o.values())):
+        bad(f"{what} is {o!r}, expected {{criterion: true | false}}")
 
 
 def _non_finite_fields(record: dict) -> str:

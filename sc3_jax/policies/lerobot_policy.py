@@ -8,8 +8,8 @@ is ``lerobot_child.py`` (standard library, numpy, torch and lerobot only); it ta
 port, no key and no websockets package are needed there, and it dies with us. (An openpi-wire server in that
 environment would work as well, at the price of a port and a dependency; a pipe is all a local policy needs.)
 
-The child starts on the first ``infer``; ``close()`` (or exit) ends it. Its stderr goes to a log file whose last
-lines are in the error when it fails."""
+The child starts on the first ``infer``; ``close()`` (or exit) ends it. Its stderr goes to an unnamed temporary file
+(nothing is left behind) whose last line is in the error when it fails."""
 from __future__ import annotations
 
 import io
@@ -63,7 +63,8 @@ class LeRobotPolicy:
 
     # -- the child ----------------------------------------------------------------------------------------------
     def _start(self) -> None:
-        self._log = tempfile.NamedTemporaryFile("w+b", prefix="sc3-lerobot-", suffix=".log", delete=False)
+        # an unnamed file: the child's stderr, read back for errors, gone with this process (nothing left in /tmp)
+        self._log = tempfile.TemporaryFile("w+b")
         try:
             self._proc = subprocess.Popen([self.python, "-c", _RUN_CHILD, str(self.path), "--device", self.device],
                                           stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=self._log)
@@ -88,7 +89,7 @@ class LeRobotPolicy:
             said = payload.decode(errors="replace")
             hint = (f"; set {PYTHON_ENV} to the python of an environment with lerobot"
                     if said.startswith("ModuleNotFoundError") else "")
-            raise UserError(f"{self.name}: {said} (python: {self.python}{hint}; log {self._log.name})")
+            raise UserError(f"{self.name}: {' '.join(said.split())} (python: {self.python}{hint})")
         return kind, payload
 
     def _send(self, kind: bytes, payload: bytes) -> None:
@@ -100,7 +101,8 @@ class LeRobotPolicy:
 
     def _tail(self) -> str:
         self._log.flush()
-        lines = Path(self._log.name).read_text(errors="replace").strip().splitlines()
+        self._log.seek(0)
+        lines = self._log.read().decode(errors="replace").strip().splitlines()
         hint = f" (is lerobot installed for {self.python}? set {PYTHON_ENV})" if any(
             "No module named 'lerobot'" in x for x in lines) else ""
         return (lines[-1] if lines else "no output") + hint

@@ -6,13 +6,13 @@ from __future__ import annotations
 
 import hmac
 import logging
-import re
 import threading
 import time
 import traceback
 from http import HTTPStatus
 from typing import Any, Mapping
 
+import msgpack
 import numpy as np
 import websockets
 import websockets.exceptions
@@ -22,6 +22,7 @@ from websockets.frames import CloseCode
 from sc3_jax.policies import msgpack_numpy
 from sc3_jax.policies.base import HostPolicy, JaxPolicy, as_host
 from sc3_jax.policies.openpi_mappings import ObsMapping, get_mapping
+from sc3_jax.validate import mask_paths
 
 __all__ = ["PolicyServer", "serve", "serve_until_interrupted", "MAX_MESSAGE_BYTES", "API_KEY_ENV"]
 
@@ -35,9 +36,42 @@ class ShapeError(ValueError):
     """An observation whose keys or array shapes differ from the first one this server took."""
 
 
+MAX_VALUES = 1 << 16  # plain msgpack values (list items, map entries) one decoded message may hold; arrays are bytes
+MAX_CONNECTIONS = 8  # open connections at once: with max_queue=2, memory stays near 3 x max_size per connection
+
+
+def decode(msg: bytes, budget: int = MAX_VALUES) -> Any:
+    """A message as ``msgpack_numpy.unpackb`` decodes it, refused (ValueError) once it holds more than ``budget``
+    plain values: an image sent as nested lists would otherwise decode to tens of bytes of Python objects per byte
+    sent, past any message-size bound. Counted while decoding, so the refusal comes before the memory is taken."""
+    left = [budget]
+
+    def spend(n: int) -> None:
+        left[0] -= n
+        if left[0] < 0:
+            raise ValueError(f"the observation holds more than {budget} list items or map entries: send arrays as "
+                             "numpy arrays (openpi's msgpack_numpy)")
+
+    def as_list(items):
+        spend(len(items))
+        return items
+
+    def as_map(obj):
+        spend(len(obj))
+        return msgpack_numpy.unpack_array(obj)
+    return msgpack.unpackb(msg, object_hook=as_map, list_hook=as_list, max_array_len=budget, max_map_len=budget)
+
+
+def _list_shape(v: list) -> tuple:
+    """The nested lengths of a list (an image sent as lists of lists), "ragged" where they differ."""
+    inner = {_list_shape(x) if isinstance(x, list) else () for x in v}
+    return (len(v), *inner.pop()) if len(inner) == 1 else (len(v), "ragged")
+
+
 def signature(obs: Mapping, prefix: str = "") -> dict[str, tuple]:
-    """Key -> (shape, dtype) of every array of a (nested) observation; other values (a prompt, sent or not) are free.
-    Two observations with one signature run one compiled program."""
+    """Key -> (shape, dtype) of every array of a (nested) observation, whatever container carried it (a numpy array
+    or nested lists); other values (a prompt, sent or not) are free. Two observations with one signature run one
+    compiled program."""
     out: dict[str, tuple] = {}
     for k, v in obs.items():
         key = f"{prefix}{k}"
@@ -45,13 +79,15 @@ def signature(obs: Mapping, prefix: str = "") -> dict[str, tuple]:
             out.update(signature(v, key + "/"))
         elif isinstance(v, np.ndarray):
             out[key] = (tuple(v.shape), v.dtype.str)
+        elif isinstance(v, list):
+            out[key] = (_list_shape(v), "list")
     return out
 
 
 def one_line(e: BaseException) -> str:
-    """What a client is told of an error: its type and first line, no server path (the traceback stays in the log)."""
-    first = (str(e).strip().splitlines() or [""])[0]
-    first = re.sub(r"(?:/[^\s'\":,()\[\]]+){2,}", "<path>", first)[:300]
+    """What a client is told of an error: its type and first line, every path masked (``validate.mask_paths``: rooted,
+    ``./``, ``../``, ``~`` and relative file names), so the server's layout stays in its log with the traceback."""
+    first = mask_paths((str(e).strip().splitlines() or [""])[0])[:300]
     return f"{type(e).__name__}: {first}" if first else type(e).__name__
 
 
@@ -68,15 +104,18 @@ class PolicyServer:
     connections). ``port=0`` binds a free port (see ``.port``). Use ``start()`` for a background thread and
     ``shutdown()`` to stop, or ``serve_forever()`` to block.
 
-    Safe to expose: it binds 127.0.0.1 unless told otherwise; a message over ``max_message_bytes`` closes its
-    connection (1009) before it is read; the first observation fixes the keys and array shapes (one compiled
-    program), and another is refused; an error reaches the client as one line without paths, the traceback only the
-    server's log.
+    Safe to expose: it binds 127.0.0.1 unless told otherwise; at most ``max_connections`` are served at once (a
+    further one gets 503); a message over ``max_message_bytes`` closes its connection (1009) before it is read, and
+    one of more than ``MAX_VALUES`` plain values (an image as nested lists) is refused while it is decoded; the first
+    observation fixes the keys and array shapes, whatever container carried them (one compiled program), and
+    another is refused; an error reaches the client as one line without paths, the traceback only the server's
+    log.
     """
 
     def __init__(self, policy: JaxPolicy | HostPolicy, host: str = "127.0.0.1", port: int = 8000,
                  metadata: Mapping[str, Any] | None = None, mapping: ObsMapping | str | None = None,
-                 api_key: str | None = None, max_message_bytes: int = MAX_MESSAGE_BYTES):
+                 api_key: str | None = None, max_message_bytes: int = MAX_MESSAGE_BYTES,
+                 max_connections: int = MAX_CONNECTIONS):
         self.policy = as_host(policy) if isinstance(policy, JaxPolicy) else policy
         if not callable(getattr(self.policy, "infer", None)):
             raise TypeError(f"{type(policy).__name__} is neither a JaxPolicy nor a HostPolicy (no .infer)")
@@ -97,6 +136,9 @@ class PolicyServer:
         self._serving = False
         self._stopped = False
         self.signature: dict[str, tuple] | None = None  # of the first observation taken
+        self.max_connections = int(max_connections)
+        self._open = 0  # connections being served (a further one is answered 503 before its upgrade)
+        self._open_lock = threading.Lock()
         # max_queue: at most a few messages buffered per connection, so memory stays near max_size per client
         self._server = websockets.sync.server.serve(self._handler, host, port, compression=None,
                                                     max_size=int(max_message_bytes), max_queue=2,
@@ -105,7 +147,14 @@ class PolicyServer:
 
     @property
     def url(self) -> str:
+        """Where a client on this machine connects (a wildcard address is reached at loopback)."""
         host = "127.0.0.1" if self.host in ("0.0.0.0", "::") else self.host
+        return f"ws://{host}:{self.port}"
+
+    @property
+    def listening(self) -> str:
+        """The address the server listens on, as bound (``0.0.0.0``: every interface)."""
+        host = f"[{self.host}]" if ":" in self.host else self.host
         return f"ws://{host}:{self.port}"
 
     def _process_request(self, connection: Any, request: Any) -> Any:
@@ -114,6 +163,9 @@ class PolicyServer:
         if self.api_key and not hmac.compare_digest(request.headers.get("Authorization") or "",
                                                     f"Api-Key {self.api_key}"):
             return connection.respond(HTTPStatus.UNAUTHORIZED, "missing or wrong Authorization: Api-Key header\n")
+        if self._open >= self.max_connections:  # the common case, before the upgrade; _handler decides
+            return connection.respond(HTTPStatus.SERVICE_UNAVAILABLE,
+                                      f"this server takes {self.max_connections} connections at once\n")
         return None
 
     def _infer(self, obs: Any) -> dict:
@@ -138,6 +190,19 @@ class PolicyServer:
         return {"actions": actions}
 
     def _handler(self, ws: websockets.sync.server.ServerConnection) -> None:
+        with self._open_lock:  # counted where a connection is served, so none is counted that never was
+            full = self._open >= self.max_connections
+            self._open += not full
+        if full:
+            ws.close(CloseCode.TRY_AGAIN_LATER, f"this server takes {self.max_connections} connections at once")
+            return
+        try:
+            self._serve(ws)
+        finally:
+            with self._open_lock:
+                self._open -= 1
+
+    def _serve(self, ws: websockets.sync.server.ServerConnection) -> None:
         try:
             ws.send(msgpack_numpy.packb(self.metadata))
         except websockets.exceptions.ConnectionClosed:
@@ -152,7 +217,7 @@ class PolicyServer:
             try:
                 if isinstance(msg, str):
                     raise TypeError("expected a binary msgpack frame, got a text frame")
-                obs = msgpack_numpy.unpackb(msg)
+                obs = decode(msg)
                 t0 = time.monotonic()
                 result = self._infer(obs)
                 timing = {"infer_ms": (time.monotonic() - t0) * 1000.0}
