@@ -245,3 +245,13 @@ def test_a_store_without_real_rollouts_gets_no_report_and_its_sweep_keeps_them(t
     out = capsys.readouterr().out
     assert f"rollouts: {root}; no report:" in out and not (root / "report" / "report.md").exists()
     assert len(ResultsStore(root).records()) == len(online_only)
+
+
+def test_the_closing_line_says_worse_when_an_interval_excludes_0_on_the_wrong_side():
+    """The archived SO-101 sweep: MMRV difference [+0.052, +0.349] is worse than the guess, not indistinguishable."""
+    from sc3_jax.evaluate.report_episodes import against_floor as verdict
+
+    worse = verdict({"pearson": {"lo": -0.9, "hi": 0.5}, "mmrv": {"lo": 0.052, "hi": 0.349}})
+    assert "worse than a policy-blind guess on MMRV" in worse and "better" not in worse
+    assert "include 0" in verdict({"pearson": {"lo": -0.1, "hi": 0.5}, "mmrv": {"lo": -0.1, "hi": 0.2}})
+    assert verdict({"pearson": {"lo": 0.1, "hi": 0.5}, "mmrv": {"lo": -0.3, "hi": -0.1}}).endswith("on r and MMRV")

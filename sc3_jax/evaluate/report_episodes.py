@@ -299,14 +299,26 @@ def summary(t: dict) -> list[str]:
                      f"difference to it: r {ci(vs.get('pearson'))}, MMRV {ci(vs.get('mmrv'))}"
                      + (f"; real vs real (split-half ceiling): r {ci(f['ceiling']['pearson'])}" if "ceiling" in f
                         else ""))
-        better = [k for k, ok in (("r", (vs.get("pearson") or {}).get("lo", math.nan) > 0),
-                                  ("MMRV", (vs.get("mmrv") or {}).get("hi", math.nan) < 0)) if ok]
-        lines.append(f"the world model ranks these policies better than a policy-blind guess on {' and '.join(better)}"
-                     if better else "not distinguishable from a policy-blind guess at this many conditions and real "
-                     "episodes (the paired differences' intervals include 0)")
+        lines.append(against_floor(vs))
     elif not r:
         lines.append("no real outcomes given (--real): the ranking is the world model's alone, unvalidated")
     return lines + t["warnings"]
+
+
+def against_floor(vs: dict) -> str:
+    """The closing line on the paired differences to the policy-blind guess (r: higher is better; MMRV: lower):
+    better where an interval excludes 0 on the good side, worse where it excludes 0 on the bad side."""
+    r, m = vs.get("pearson") or {}, vs.get("mmrv") or {}
+    better = [k for k, ok in (("r", r.get("lo", math.nan) > 0), ("MMRV", m.get("hi", math.nan) < 0)) if ok]
+    worse = [k for k, ok in (("r", r.get("hi", math.nan) < 0), ("MMRV", m.get("lo", math.nan) > 0)) if ok]
+    said = []
+    if better:
+        said.append(f"the world model ranks these policies better than a policy-blind guess on {' and '.join(better)}")
+    if worse:
+        said.append(f"{'and' if better else 'the world model ranks these policies'} worse than a policy-blind guess "
+                    f"on {' and '.join(worse)} (its interval excludes 0 on the wrong side)")
+    return "; ".join(said) if said else ("not distinguishable from a policy-blind guess at this many conditions and "
+                                         "real episodes (the paired differences' intervals include 0)")
 
 
 METHOD = ("Each policy acts inside the world model from held-out episodes' first frames and states (closed loop, "
