@@ -1,6 +1,6 @@
 """Train-step MFU and closed-loop rollout chunk time on whatever backend is present.
 
-    python bench/accelerator.py [--repeats 3] [--depth 4] [--size auto|tiny|mid]
+    python bench/accelerator.py [--repeats 3] [--depth 4] [--size auto|tiny|mid] [--compare]
 
 * Train step: on a GPU / TPU a mid-size model (dim 1024, 16 layers, ~250M parameters, bf16, 5,764 tokens per
   sample, memory-efficient attention ("fused": cuDNN where it applies, else blockwise), remat "dots"); on a CPU a
@@ -12,7 +12,9 @@
   sampling of l' frames, inverse-dynamics sampling of their actions, policy) of the ``paper`` config (3 views,
   480x640, K = 4, l' = 24, S = 10 Euler steps, context caching) at reduced depth (``--depth``, random weights);
   the time scaled to the full 32 layers is printed next to the paper's 2.3 s per chunk on one GB200. On a CPU the
-  chunk keeps the paper's proportions at a tiny size (64x64 frames, dim 64, 1 layer).
+  chunk keeps the paper's proportions at a tiny size (64x64 frames, dim 64, 1 layer). ``--compare`` also times,
+  interleaved in the same process, the chunk as before issue 59 (the inverse sampler recomputing the context's
+  keys/values instead of reusing the forward sampler's; bench/chunk_account.py counts both).
 
 Last line: ``accelerator <device>: train_mfu=<x> chunk_s=<y>`` (chunk_s as measured, at the reduced size)."""
 from __future__ import annotations
@@ -20,12 +22,13 @@ from __future__ import annotations
 import argparse
 import math
 import time
+from unittest import mock
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from sc3_jax import plan, rollout, sharding, train
+from sc3_jax import flow, plan, rollout, sharding, train
 from sc3_jax.config import MeshConfig, load_config, replace
 from sc3_jax.data.norm_stats import NormStats
 from sc3_jax.model import dit
@@ -53,8 +56,9 @@ def matmul_flops_per_s(n: int, dtype, repeats: int) -> float:
     return 2 * n ** 3 / _best(lambda: f(a, b), repeats)
 
 
-def _best(fn, repeats: int) -> float:
-    jax.block_until_ready(fn())  # compile + warm up
+def _best(fn, repeats: int, warm: bool = True) -> float:
+    if warm:
+        jax.block_until_ready(fn())  # compile + warm up
     best = math.inf
     for _ in range(repeats):
         t0 = time.perf_counter()
@@ -104,11 +108,29 @@ def chunk_config(size: str, depth: int):
     return replace(paper, model=dict(depth=depth, attention_impl="fused"), mesh=MeshConfig(1, 1, 1))
 
 
-def chunk_seconds(cfg, repeats: int) -> float:
-    """Wall time of one closed-loop chunk of one episode (Rollout.run with num_chunks=1)."""
+def chunk_seconds(cfg, repeats: int, compare: bool = False):
+    """Wall time of one closed-loop chunk of one episode (Rollout.run with num_chunks=1). ``compare``: (today's,
+    before issue 59's) best times, their runs interleaved; the latter traced with the context's keys/values not
+    shared between the two samplers (``flow.shares_context`` False: each sampler computes its own, as before)."""
     mesh = sharding.make_mesh(cfg.mesh, jax.devices()[:1])
     stats = NormStats(np.zeros(7, np.float32), np.full(7, 0.01, np.float32))
     ro = rollout.Rollout(cfg, stats, mesh=mesh, num_chunks=1)
+    run = _chunk_runner(cfg, ro)
+    if not compare:
+        return _best(run, repeats)
+    jax.block_until_ready(run())  # traced and compiled before the old program replaces the cached one
+    rollout._compiled.cache_clear()
+    old = _chunk_runner(cfg, rollout.Rollout(cfg, stats, mesh=mesh, num_chunks=1))
+    with mock.patch.object(flow, "shares_context", lambda *a: False):
+        jax.block_until_ready(old())
+    best = [math.inf, math.inf]
+    for _ in range(repeats):
+        for i, fn in enumerate((run, old)):
+            best[i] = min(best[i], _best(fn, 1, warm=False))
+    return tuple(best)
+
+
+def _chunk_runner(cfg, ro):
     tok = make_tokenizer(cfg.model)
     params = dit.init_params(cfg.model, tok.token_dim, jax.random.key(0), tok.grid(cfg.data.image_size))
     V, K, (H, W) = len(cfg.data.views), cfg.data.context_frames, cfg.data.image_size
@@ -117,13 +139,14 @@ def chunk_seconds(cfg, repeats: int) -> float:
                                     np.zeros((1, 7), np.float32), np.zeros(1, np.int32))
     policy = simple.linear_policy(jax.random.key(2), V, chunk=cfg.rollout.policy_chunk)
     keys = rollout.episode_keys(0, 1)
-    return _best(lambda: ro.run(params, policy, ics, keys, math.inf)["u"], repeats)
+    return lambda: ro.run(params, policy, ics, keys, math.inf)["u"]
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--depth", type=int, default=4, help="layers of the paper config for the chunk timing")
+    ap.add_argument("--compare", action="store_true", help="also time the chunk as before issue 59, interleaved")
     ap.add_argument("--size", choices=("auto", "tiny", "mid"), default="auto",
                     help="auto: mid-size on an accelerator, tiny on a CPU")
     args = ap.parse_args(argv)
@@ -152,7 +175,11 @@ def main(argv=None) -> int:
           f"{flops / sec / 1e12:.3g} TFLOP/s = MFU {mfu:.3f} of the {peak_note}", flush=True)
 
     ccfg = chunk_config(size, args.depth)
-    csec = chunk_seconds(ccfg, args.repeats)
+    csec = chunk_seconds(ccfg, args.repeats, args.compare)
+    if args.compare:
+        csec, before = csec
+        print(f"rollout chunk before issue 59 (the inverse sampler re-encoding the context), interleaved with "
+              f"today's: {before:.3f} s against {csec:.3f} s", flush=True)
     m = ccfg.model
     line = (f"rollout chunk ({size}: depth {m.depth}, dim {m.dim}, {tokenizer.tokens_per_sample(ccfg)} tokens, "
             f"K={ccfg.data.context_frames} l'={ccfg.data.future_frames}, S={ccfg.sample.steps}, FD+ID, cached "

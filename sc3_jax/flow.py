@@ -186,9 +186,33 @@ def time_grid(steps: int, fcfg: FlowConfig = FlowConfig()) -> jax.Array:
 CACHES = ("auto", "context", "video", "none")
 
 
+def _context_level(cfg: ModelConfig, batch: int, context_noise: float):
+    """The context's noise level [B] the sampler tells a context_noise model (None: the model reads none)."""
+    return jnp.full((batch,), context_noise, jnp.float32) if cfg.context_noise else None
+
+
+def shares_context(cfg: ModelConfig, context_noise: float) -> bool:
+    """Whether samplers of the same context see the same context tokens (so may share its keys/values): unless
+    each noises it with its own key (a context_noise model sampled at ``context_noise`` > 0)."""
+    return not (cfg.context_noise and context_noise > 0)
+
+
+def context_cache(params, cfg: ModelConfig, video, actions, stride, video_noisy, action_noisy, grid,
+                  prefix: str = "context", context_frames: int | None = None, pose=None, context_noise: float = 0.0,
+                  anchor_gap=None, context_kv=None):
+    """Per-layer keys/values of the clean prefix ``prefix`` of the sampler's inputs (``dit.encode_context``, every
+    noise level 0), the context as given; ``context_kv``: the context's, already computed (prefix "video": only the
+    frames behind it run). Arguments as ``sample``'s."""
+    level = _context_level(cfg, video.shape[0], context_noise)
+    clean = dit.Inputs(video, actions, jnp.zeros(video_noisy.shape), video_noisy, jnp.zeros(action_noisy.shape),
+                       action_noisy, stride, pose=pose, context_level=level, anchor_gap=anchor_gap)
+    return dit.encode_context(params, cfg, clean, grid, prefix=prefix, context_frames=context_frames,
+                              context_kv=context_kv)
+
+
 def sample(params, cfg: ModelConfig, video, actions, stride, video_noisy, action_noisy, rng, steps: int, grid,
            cache: str = "auto", fcfg: FlowConfig = FlowConfig(), context_frames: int | None = None,
-           pose=None, context_noise: float = 0.0, anchor_gap=None):
+           pose=None, context_noise: float = 0.0, anchor_gap=None, context_kv=None):
     """Euler from t = 1 to t = 0 in ``steps`` Euler steps (``time_grid``); clean tokens held fixed. Returns (video,
     actions) with the noisy positions filled in (the context frames as given, never their noised copy).
 
@@ -197,27 +221,26 @@ def sample(params, cfg: ModelConfig, video, actions, stride, video_noisy, action
     all frames clean, all actions noisy), "none" = no cache (for checks), "auto" = "context" when the model's
     context attention is causal, else "none". ``context_frames``: see ``predict``. ``pose``: see ``dit.Inputs``.
     ``context_noise``: the level the context is noised with (models trained with context noise use a small one at
-    inference, as GameNGen does). ``anchor_gap``: see ``dit.Inputs``."""
+    inference, as GameNGen does). ``anchor_gap``: see ``dit.Inputs``. ``context_kv``: the context frames' keys/values
+    already computed (``context_cache``; only where ``shares_context``), e.g. by a rollout chunk once for its forward
+    and inverse samplers: cache "context" reuses them, cache "video" computes only the other frames'."""
     if cache not in CACHES:
         raise ValueError(f"cache {cache!r}: one of {CACHES}")
     K = video.shape[2] - actions.shape[1] if context_frames is None else context_frames
-    context_level = None
+    context_level = _context_level(cfg, video.shape[0], context_noise)
     given = video
-    if cfg.context_noise:
-        context_level = jnp.full((video.shape[0],), context_noise, jnp.float32)
-        if context_noise > 0:
-            video = noise_context(video, context_level, jax.random.fold_in(rng, 7), K)
+    if context_level is not None and context_noise > 0:
+        video = noise_context(video, context_level, jax.random.fold_in(rng, 7), K)
     k_v, k_a = jax.random.split(rng)
     video = jnp.where(video_noisy[..., None, None], jax.random.normal(k_v, video.shape, video.dtype), video)
     actions = jnp.where(action_noisy[..., None], jax.random.normal(k_a, actions.shape, actions.dtype), actions)
     if cache == "auto":
         cache = "context" if cfg.context_attention == "causal" else "none"
-    context_kv = None
-    if cache != "none":
-        clean = dit.Inputs(video, actions, jnp.zeros(video_noisy.shape), video_noisy,
-                           jnp.zeros(action_noisy.shape), action_noisy, stride, pose=pose,
-                           context_level=context_level, anchor_gap=anchor_gap)
-        context_kv = dit.encode_context(params, cfg, clean, grid, prefix=cache, context_frames=context_frames)
+    if context_kv is not None and (cache == "none" or not shares_context(cfg, context_noise)):
+        raise ValueError("context_kv needs a cache and a context the sampler does not noise (shares_context)")
+    if cache == "video" or (cache == "context" and context_kv is None):
+        context_kv = context_cache(params, cfg, video, actions, stride, video_noisy, action_noisy, grid, cache,
+                                   context_frames, pose, context_noise, anchor_gap, context_kv)
 
     ts = time_grid(steps, fcfg)
 

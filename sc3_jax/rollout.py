@@ -38,7 +38,8 @@ Decisions (see docs/rollout.md for more):
   (observe -> policy on the host -> model step).
 * Context caching: with ``cfg.model.context_attention == "causal"`` the forward sampler reuses the context's
   keys/values over its S Euler steps and the inverse sampler those of every frame (each step then runs only the
-  action tokens); ``Rollout(..., cache=False)`` forces the uncached path, for checks and benchmarks.
+  action tokens); the context's are computed once for both (``flow.shares_context``: unless each noises it with its
+  own key). ``Rollout(..., cache=False)`` forces the uncached path, for checks and benchmarks.
 """
 from __future__ import annotations
 
@@ -261,17 +262,20 @@ class ChunkFns:
         video = jnp.concatenate([ctx, jnp.zeros((1, V, Tt) + ctx.shape[3:], ctx.dtype)], axis=2)
         # pose condition: the pose at the last context frame, then integrated with the commanded actions
         pose = (imagination_state.frame_poses(carry.state, model_actions, space, s.model_dt) - norm[2]) / norm[3]
-        sample = functools.partial(flow.sample, params, m, steps=s.steps, grid=self.grid, fcfg=self.flow_cfg,
-                                   context_frames=Kt, pose=pose[None] if m.pose_conditioning else None,
-                                   context_noise=s.context_noise, anchor_gap=gap)
+        conditions = dict(grid=self.grid, context_frames=Kt, pose=pose[None] if m.pose_conditioning else None,
+                          context_noise=s.context_noise, anchor_gap=gap)
+        sample = functools.partial(flow.sample, params, m, steps=s.steps, fcfg=self.flow_cfg, **conditions)
         # forward dynamics: every view's future frames from the context and the commanded actions
         vn, an = modes.fixed(modes.FD, 1, V, Kt, Tt, num_actions=T)
-        video, _ = sample(video, a[None], stride, vn, an, k_fd, cache="auto" if self.cache else "none")
+        cached = m.context_attention == "causal" and self.cache
+        # the context's keys/values, once for both samplers where both see the same context (its frames as given)
+        kv = flow.context_cache(params, m, video, a[None], stride, vn, an, **conditions) \
+            if cached and flow.shares_context(m, s.context_noise) else None
+        video, _ = sample(video, a[None], stride, vn, an, k_fd, cache="context" if cached else "none", context_kv=kv)
         # inverse dynamics: re-read the actions from the context and the predicted frames
         vn, an = modes.fixed(modes.ID, 1, V, Kt, Tt, num_actions=T)
-        id_cache = "video" if m.context_attention == "causal" and self.cache else "none"
-        _, a_hat = sample(video, jnp.zeros_like(a)[None], stride, vn, an, k_id, cache=id_cache,
-                          steps=s.inverse_steps or s.steps)
+        _, a_hat = sample(video, jnp.zeros_like(a)[None], stride, vn, an, k_id, cache="video" if cached else "none",
+                          steps=s.inverse_steps or s.steps, context_kv=kv)
         a_hat = a_hat[0]
         u = jnp.mean(jnp.linalg.norm(a[:l] - a_hat[:l], axis=-1))  # normalised units
         u_raw = jnp.mean(jnp.linalg.norm(model_actions[:l] - (a_hat[:l] * std + mean), axis=-1))

@@ -456,17 +456,29 @@ def prefix_length(inp: Inputs, P: int, prefix: str, context_frames: int | None =
 
 
 def encode_context(params, cfg: ModelConfig, inp: Inputs, grid, domain: int = 0, prefix: str = "context", *,
-                   context_frames: int | None = None, text_kv=None):
+                   context_frames: int | None = None, text_kv=None, context_kv=None):
     """Per-layer keys/values of a clean prefix (``prefix_length``), [L, B, n_prefix, Hkv, hd] each. Only valid with
     ``context_attention="causal"`` (then clean tokens never see targets, so this is exact). With a text pathway
-    the prefix tokens attend to the text, whose keys/values are not part of the result."""
+    the prefix tokens attend to the text, whose keys/values are not part of the result. ``context_kv``: the keys/values
+    of the prefix's first tokens, already computed on the same clean tokens (prefix "context", for prefix "video"):
+    only the tokens behind them run, and the result holds both."""
     if cfg.context_attention != "causal":
         raise ValueError("context caching needs context_attention='causal'")
     _, _, _, P, _, K = _layout(cfg, inp, context_frames)
     n = prefix_length(inp, P, prefix, K)
-    x, cos, sin, mask, text_kv, _ = _prepare(params, cfg, inp, grid, domain, context_frames, text_kv, stop=n)
-    _, kv = _run_layers(cfg, params, x, cos, sin, mask, text_kv)
-    return kv
+    start = 0 if context_kv is None else context_kv[0].shape[2]
+    x, cos, sin, mask, text_kv, _ = _prepare(params, cfg, inp, grid, domain, context_frames, text_kv, start, n)
+    _, kv = _run_layers(cfg, params, x, cos, sin, mask, _prefix_kv(text_kv, context_kv))
+    return kv if context_kv is None else tuple(jnp.concatenate([c.astype(k.dtype), k], axis=2)
+                                               for c, k in zip(context_kv, kv))
+
+
+def _prefix_kv(text_kv, context_kv):
+    """The keys/values in front of the tokens a pass runs: the text's, then the cached context's (either may be
+    None)."""
+    if text_kv is None or context_kv is None:
+        return context_kv if text_kv is None else text_kv
+    return tuple(jnp.concatenate([t.astype(c.dtype), c], axis=2) for t, c in zip(text_kv, context_kv))
 
 
 def apply_cached(params, cfg: ModelConfig, inp: Inputs, grid, context_kv, domain: int = 0, *,
@@ -476,9 +488,7 @@ def apply_cached(params, cfg: ModelConfig, inp: Inputs, grid, context_kv, domain
     n = context_kv[0].shape[2]
     x, cos, sin, mask, text_kv, (V, P, T, K) = _prepare(params, cfg, inp, grid, domain, context_frames, text_kv,
                                                         start=n)
-    prefix_kv = context_kv if text_kv is None else tuple(
-        jnp.concatenate([t.astype(c.dtype), c], axis=2) for t, c in zip(text_kv, context_kv))
-    h, _ = _run_layers(cfg, params, x, cos, sin, mask, prefix_kv)
+    h, _ = _run_layers(cfg, params, x, cos, sin, mask, _prefix_kv(text_kv, context_kv))
     return _finish(params, cfg, inp, h, V, T, P, domain, K)
 
 
