@@ -13,7 +13,7 @@
   480x640, K = 4, l' = 24, S = 10 Euler steps, context caching) at reduced depth (``--depth``, random weights);
   the time scaled to the full 32 layers is printed next to the paper's 2.3 s per chunk on one GB200. On a CPU the
   chunk keeps the paper's proportions at a tiny size (64x64 frames, dim 64, 1 layer). ``--compare`` also times,
-  interleaved in the same process, the chunk as before issue 59 (the inverse sampler recomputing the context's
+  interleaved in the same process, the chunk as before the context cache (the inverse sampler recomputing the context's
   keys/values instead of reusing the forward sampler's; bench/chunk_account.py counts both).
 
 Last line: ``accelerator <device>: train_mfu=<x> chunk_s=<y>`` (chunk_s as measured, at the reduced size)."""
@@ -110,7 +110,7 @@ def chunk_config(size: str, depth: int):
 
 def chunk_seconds(cfg, repeats: int, compare: bool = False):
     """Wall time of one closed-loop chunk of one episode (Rollout.run with num_chunks=1). ``compare``: (today's,
-    before issue 59's) best times, their runs interleaved; the latter traced with the context's keys/values not
+    before the context cache's) best times, their runs interleaved; the latter traced with the context's keys/values not
     shared between the two samplers (``flow.shares_context`` False: each sampler computes its own, as before)."""
     mesh = sharding.make_mesh(cfg.mesh, jax.devices()[:1])
     stats = NormStats(np.zeros(7, np.float32), np.full(7, 0.01, np.float32))
@@ -146,7 +146,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--depth", type=int, default=4, help="layers of the paper config for the chunk timing")
-    ap.add_argument("--compare", action="store_true", help="also time the chunk as before issue 59, interleaved")
+    ap.add_argument("--compare", action="store_true", help="also time the chunk without the context cache, interleaved")
     ap.add_argument("--size", choices=("auto", "tiny", "mid"), default="auto",
                     help="auto: mid-size on an accelerator, tiny on a CPU")
     args = ap.parse_args(argv)
@@ -178,7 +178,7 @@ def main(argv=None) -> int:
     csec = chunk_seconds(ccfg, args.repeats, args.compare)
     if args.compare:
         csec, before = csec
-        print(f"rollout chunk before issue 59 (the inverse sampler re-encoding the context), interleaved with "
+        print(f"rollout chunk before the context cache (the inverse sampler re-encoding the context), interleaved with "
               f"today's: {before:.3f} s against {csec:.3f} s", flush=True)
     m = ccfg.model
     line = (f"rollout chunk ({size}: depth {m.depth}, dim {m.dim}, {tokenizer.tokens_per_sample(ccfg)} tokens, "

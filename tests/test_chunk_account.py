@@ -1,6 +1,6 @@
 """The chunk account (bench/chunk_account.py, ``plan.chunk_account``) at a small size with the paper config's
 structure (3 views, K = 4, l' = 24, causal context attention, pixel patches, 10 + 10 Euler steps): the compiled FLOPs
-of one rollout chunk stay within 1.3x of the ideal count (issue 59), which the sampler without the context cache
+of one rollout chunk stay within 1.3x of the ideal count, which the sampler without the context cache
 does not."""
 import pytest
 

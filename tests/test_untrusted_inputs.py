@@ -411,7 +411,7 @@ def test_ctrl_c_in_a_sweep_ends_in_one_line_saying_how_to_resume(ic, tmp_path, c
     assert all(r["policy"] == "slow" for r in _records(out))  # whole records only (none, or a finished batch)
 
 
-# -- issue 58: damaged files, failed starts, silent results, the server's bounds -------------------------------------
+# -- damaged files, failed starts, silent results, the server's bounds -------------------------------------
 def _small_store(root: Path) -> Path:
     store = EpisodeStore(root, views=["cam"], fps=10, image_size=(4, 4), create=True,
                          action_space=ActionSpace("absolute", 2), has_pose=False)
