@@ -48,6 +48,9 @@ class ModelConfig:
     weights, for plumbing only). The pixel tokenizer reads none"""
     patch_size: int = 4
     """side of each token's square patch: in pixels for the "pixel" tokenizer, in latent cells for the learned ones"""
+    frame_tokens: int | None = None
+    """token budget per frame, every view together: `sc3 train` picks patch_size from the data's image size and view
+    count to meet it (sizing.py), so a config costs about the same on any robot. None: patch_size as given"""
     channels: int = 3
     """values per pixel the "pixel" tokenizer packs into a token (3: RGB); a converted Cosmos3 config records its
     VAE's latent channels here (the other tokenizers take theirs from their weights)"""

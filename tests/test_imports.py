@@ -146,7 +146,7 @@ def test_type_checking_imports_and_acyclic_graphs_pass(tmp_path, closing):
 # docs/architecture.md "Modules in data-flow order", lowest first: a module may import its own layer and those above
 # it in this list. Entries are module prefixes under sc3_jax; the longest one that matches places a module.
 LAYERS: list[tuple[str, tuple[str, ...]]] = [
-    ("utilities", ("errors", "atomic", "xla_cost", "safe_names", "locks")),
+    ("utilities", ("errors", "atomic", "xla_cost", "safe_names", "locks", "validate")),
     ("video", ("video",)),
     ("metrics", ("evaluate.metrics", "evaluate.permanence")),
     ("episodes", ("data",)),
@@ -167,7 +167,8 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
     ("scoring", ("evaluate.scorers", "evaluate.degrade", "evaluate.labels", "evaluate.success_detector")),
     ("diagnostics", ("evaluate.world_model", "evaluate.world_model_defaults", "evaluate.diagnose",
                      "evaluate.diagnose_video", "evaluate.diagnose_actions", "evaluate.diagnose_outcomes",
-                     "evaluate.diagnose_report", "evaluate.diagnose_table", "rollout_io", "plan", "plan_vae")),
+                     "evaluate.diagnose_report", "evaluate.diagnose_table", "evaluate.diagnose_kept", "rollout_io",
+                     "plan", "plan_vae", "sizing")),
     ("sweep", ("evaluate.worker_pool", "evaluate.ic_sweep")),
     ("report", ("evaluate.report", "evaluate.report_html", "evaluate.calibrate", "evaluate.intervals", "evaluate.bootstrap",
                 "evaluate.merged", "evaluate.curve", "evaluate.report_episodes", "evaluate.report_figures")),

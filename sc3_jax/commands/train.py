@@ -30,14 +30,22 @@ def main(argv: list[str]) -> int:
     a, cfg = parse_with_config(Args, argv, "train", lambda a: load_config(a.config))
     if a.help_config:
         tyro.cli(Config, default=cfg, args=["--help"], prog=f"sc3 train --config {a.config}")
-    from sc3_jax import train
+    import jax
+
+    from sc3_jax import sizing, train
     from sc3_jax.data.shape import explicit_fields, shape_from_dataset
 
     # views, image size and action dimension come from the dataset unless given here (then they are checked)
     # (no dataset there: train() says so, after refusing a changed config, which it checks first)
+    declared = cfg
     if (Path(cfg.data.path) / "dataset.json").is_file():
         cfg = shape_from_dataset(cfg, cfg.data.path, explicit_fields(argv))
+    _check_tokenizer(cfg)
+    cfg, note = sizing.size_from_data(cfg, declared, explicit_fields(argv))
+    if note:
+        print(note)
     cfg = _memory_plan(cfg, explicit_fields(argv))
+    print(sizing.describe(sizing.cost(cfg, jax.device_count())), flush=True)
     last = train.train(cfg)
     print(f"done: step {last.get('step')} loss {last.get('loss', float('nan')):.4f} -> {cfg.train.workdir}")
     from sc3_jax.data.episodes import EpisodeStore
@@ -49,6 +57,17 @@ def main(argv: list[str]) -> int:
 
         print(train_state.describe(*train_state.train(cfg.train.workdir, None, FitConfig(), cfg.train.progress)))
     return 0
+
+
+def _check_tokenizer(cfg) -> None:
+    """A learned-tokenizer config without its tokenizer: the one command that makes it, not a traceback."""
+    m = cfg.model
+    if m.tokenizer == "conv_ae" and not (m.tokenizer_path and (Path(m.tokenizer_path) / "ae.json").is_file()):
+        from sc3_jax.errors import UserError
+        raise UserError(
+            f"--config {cfg.name} reads frames through a trained tokenizer, and model.tokenizer_path={m.tokenizer_path}"
+            f" holds none: train it first (sc3 train-tokenizer --data {cfg.data.path} --workdir TOK), then add "
+            "--model.tokenizer-path TOK/tokenizer; or train on pixel patches with no tokenizer: --config tiny")
 
 
 MEMORY_FIELDS = (("model", "attention_impl"), ("model", "remat"), ("train", "grad_accum"))

@@ -8,7 +8,9 @@ SHORTCUTS = dict(anchor_conditioning=True, action_to_frames=True, action_reads_f
 
 def get_config(arg: str | None = None) -> Config:
     return Config(name="tiny",
-                  model=ModelConfig(patch_size=8, **SHORTCUTS),
+                  # 12 tokens a frame: 8-px patches on the synthetic data's three 16x16 views; on a lab's two
+                  # 96x128 cameras the patch grows to 32 (24 tokens a frame), not the tokens to 384 (sizing.py)
+                  model=ModelConfig(patch_size=8, frame_tokens=12, **SHORTCUTS),
                   data=DataConfig(batch_size=32),
                   # ID gets a larger share than the paper's 0.1 so every mode learns within a CPU-minutes budget
                   # (inverse dynamics sees 0.8 samples per step at batch 8 otherwise); `paper` keeps 0.8/0.1/0.1.
