@@ -234,3 +234,40 @@ def test_diagnose_table_compares_models_with_a_baseline(run, tmp_path, capsys):
     assert "baseline 'full' is not one of ['no_id']" in capsys.readouterr().err
     assert cli(["diagnose-table", str(tmp_path)]) == 2
     assert "no diagnose.json or config.json" in capsys.readouterr().err
+
+
+def test_objects_kept_are_split_into_stages_with_a_filmstrip_each(run):
+    """Every stage of the objects-kept table is there, at 1 s and 2 s (2 s episodes), and the pixel tokenizer's
+    exact round trip keeps every object pixel: 1 exactly. A filmstrip per stage lies beside --out."""
+    _, result, text = run
+    sec = result["permanence"]
+    assert [(r["stage"], r["measure"]) for r in sec["rows"]] == [
+        ("round trip", "objects"), ("one chunk", "objects"), ("open loop", "objects")]
+    for r in sec["rows"]:
+        assert set(r["times"]) == {"1 s"} or set(r["times"]) == {"1 s", "2 s"}, r
+    trip = sec["rows"][0]["times"]["1 s"]["kept"]["all views"]
+    assert trip["value"] == 1.0 and trip["lo"] == trip["hi"] == 1.0
+    assert "### Objects kept, stage by stage" in text and "| objects | round trip | 1.00 [1.00, 1.00] |" in text
+    strips = [Path(p) for p in sec["filmstrips"]]
+    assert sorted(p.name for p in strips) == ["one_chunk.png", "open_loop.png", "round_trip.png"]
+    assert all(p.is_file() and p.parent.name == "result_filmstrips" for p in strips)
+
+
+def test_a_stage_that_loses_what_the_measure_counts_reads_0(run):
+    """A measure of what moved since the last context frame: the copy-last model draws the context frame again, so
+    open loop keeps none of it (0 exactly) while the round trip keeps all of it (1): the table reads both ends."""
+    store, _, _ = run
+    wm = Path(store.root).parent / "wm"
+    # each episode's last context frame (frame 2), every view: [E, V, 1, H, W, 3]
+    ref = np.stack([np.stack([np.asarray(store.load(eid).frames[v][2]) for v in store.views])[:, None]
+                    for eid in store.episode_ids()]).astype(int)
+
+    def moved(frames):  # [V, T, H, W, 3] -> [V, T]: pixels away from both episodes' context frame, view by view
+        far = (np.abs(frames.astype(int)[None] - ref).max(-1) > 8).all(0)
+        return far.mean((-2, -1))
+    result = dg.diagnose(wm, store.root, dg.DiagnoseConfig(stages=("open_loop",), progress=False),
+                         scene={"moved": moved})
+    rows = {r["stage"]: r for r in result["permanence"]["rows"]}
+    assert rows["round trip"]["times"]["1 s"]["kept"]["all views"]["value"] == 1.0
+    assert rows["open loop"]["times"]["1 s"]["kept"]["all views"]["value"] == 0.0
+    assert rows["one chunk"]["times"] == {}  # its pass did not run

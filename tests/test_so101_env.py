@@ -32,7 +32,7 @@ class Glance:
     chunk, action_dim, state_dim = 4, 4, 14
 
     def infer(self, obs):
-        assert obs["images"].shape == (1, *SIZE, 3) and obs["images"].dtype == np.uint8
+        assert obs["images"].shape == (2, *SIZE, 3) and obs["images"].dtype == np.uint8  # workspace, wrist
         assert obs["state"].shape == (14,) and obs["state"].dtype == np.float32
         d = np.tanh(obs["images"].mean() / 50.0 - 1.5 + np.arange(3) * 0.3 - 4 * obs["state"][11:14])
         return np.repeat(np.array([[*d, 1.0]], np.float32), self.chunk, 0)
@@ -53,7 +53,9 @@ def test_a_seed_gives_the_same_first_frame_and_state(env):
     assert np.array_equal(frame, env.render())
     assert not np.allclose(first["environment_state"], other["environment_state"])  # the seed places block and goal
     assert frame.shape == (*SIZE, 3) and frame.dtype == np.uint8 and first["agent_pos"].shape == (env.state_dim,)
-    assert env.views == ("front",) and env.control_hz == 10 and env.action_dim == 4
+    assert env.views == ("workspace", "wrist") and env.control_hz == 10 and env.action_dim == 4
+    both = env.render_views()
+    assert both.shape == (2, *SIZE, 3) and np.array_equal(both[0], frame) and not np.array_equal(both[0], both[1])
     assert np.allclose(env.block_pos(), first["environment_state"][:3], atol=1e-6)
     assert np.allclose(env.goal_pos(), first["environment_state"][3:])
 
@@ -110,7 +112,8 @@ def test_collect_writes_lerobot_data_that_imports_with_no_flag_but_out(tmp_path,
     info = json.loads((out / "train" / "meta" / "info.json").read_text())
     assert info["codebase_version"] == "v3.0" and info["fps"] == 10 and info["robot_type"] == "so101"
     f = info["features"]
-    assert f["observation.images.front"]["shape"] == [48, 64, 3] and f["action"]["names"][3] == "gripper"
+    assert f["observation.images.workspace"]["shape"] == f["observation.images.wrist"]["shape"] == [48, 64, 3]
+    assert "observation.images.front" not in f and f["action"]["names"][3] == "gripper"
     assert f["observation.state"]["shape"] == [14] and f["observation.environment_state"]["shape"] == [6]
     assert f["next.success"] == {"dtype": "bool", "shape": [1], "names": ["success"]}
     summary = json.loads((out / "collect.json").read_text())
@@ -120,14 +123,14 @@ def test_collect_writes_lerobot_data_that_imports_with_no_flag_but_out(tmp_path,
     for split in ("train", "heldout"):
         assert main(["data", "import-lerobot", str(out / split), "--out", str(tmp_path / split)]) == 0
         store = EpisodeStore(tmp_path / split)
-        assert store.views == ["front"] and store.state_dim == 14 and store.action_dim == 4
+        assert store.views == ["workspace", "wrist"] and store.state_dim == 14 and store.action_dim == 4
         assert store.action_space.kind == "velocity" and store.action_space.targets == (3,)
         eids = store.episode_ids()
         labels = [json.loads((tmp_path / split / e / "meta.json").read_text())["labels"]["success"] for e in eids]
         assert labels == [e["succeeded"] for e in summary["splits"][split]["episodes"]]  # next.success: the outcome
     ep = EpisodeStore(tmp_path / "train").load("lerobot000001")
     assert ep.length == summary["splits"]["train"]["episodes"][1]["steps"]
-    assert ep.state.shape[1] == 14 and ep.frames["front"].shape[1:] == (48, 64, 3)
+    assert ep.state.shape[1] == 14 and ep.frames["workspace"].shape[1:] == ep.frames["wrist"].shape[1:] == (48, 64, 3)
     assert main(["so101", "collect", "--out", str(out), "--episodes", "1"]) == 2  # not empty: refused up front
     err = capsys.readouterr().err.strip()
     assert "\n" not in err and "not empty" in err
@@ -153,7 +156,7 @@ def test_the_scene_measure_counts_the_block_and_the_goal_marker():
 
     counts = {}
     for marker in (True, False):
-        e = So101Env((96, 128), goal_marker=marker)
+        e = So101Env((96, 128), goal_marker=marker, views=("front",))
         try:
             e.reset(3)
             if marker:
@@ -167,4 +170,52 @@ def test_the_scene_measure_counts_the_block_and_the_goal_marker():
     assert 20 <= counts[False] < counts[True] - 20 < 200  # block; block + goal disc; no arm
     floor = np.broadcast_to(frame[0, 0], (1, 1, 96, 128, 3))  # the frame's corner colour everywhere
     assert object_pixels(floor).max() == 0
-    assert benchmark_hooks("so101") == (None, object_pixels) and benchmark_hooks("none") == (None, None)
+    assert benchmark_hooks("so101")[1]["objects"] is object_pixels and benchmark_hooks("none") == (None, {})
+
+
+def test_the_lab_cameras_frame_the_arm_the_block_and_the_goal():
+    """The workspace camera shows the block and the goal larger than the simulator's room view and the arm many times
+    larger, the wrist camera shows the block when the jaws are over it, and the arm's measure counts the arm in
+    both; an unknown camera is one line."""
+    from sc3_jax.benchmarks.so101.hooks import arm_pixels, object_pixels
+
+    e = So101Env((80, 80), views=("front", "workspace", "wrist"))
+    try:
+        e.reset(20_000_005)
+        f = e.render_views()[:, None]  # [V, 1, H, W, 3]
+    finally:
+        e.close()
+    objects, arm = object_pixels(f)[:, 0], arm_pixels(f)[:, 0]
+    assert objects[1] > 1.4 * objects[0] and objects[2] > 0
+    assert arm[1] > 2 * arm[0] and arm[2] > 0
+    assert arm_pixels(np.zeros_like(f)).max() == 0
+    with pytest.raises(UserError, match="choose from"):
+        So101Env(SIZE, views=("top",))
+
+
+def test_the_pixel_scorer_says_done_for_a_placed_block_and_not_for_a_faded_one():
+    """`--scorer sc3_jax.benchmarks.so101.scorer:block_at_goal`: the clean controller's episode of seed 20000005
+    (done in the simulator) reads done; the same frames with the block painted over from a third of the way (a
+    model that lets it fade) and an arm that never moves read not done."""
+    from sc3_jax.benchmarks.so101.env import BLOCK_RGBA
+    from sc3_jax.benchmarks.so101.rollouts import HOLD
+    from sc3_jax.benchmarks.so101.scorer import block_at_goal
+    from sc3_jax.evaluate.scorers import RolloutView
+
+    e = So101Env((80, 80))
+    try:
+        placed = run_episode(e, ScriptedSo101(0.0, 0.0, 0), 20_000_005, 80)
+        still = run_episode(e, lambda env, obs: HOLD, 20_000_005, 30)
+    finally:
+        e.close()
+    assert placed.succeeded and not still.succeeded
+    view = lambda frames: RolloutView("x", np.moveaxis(frames, 1, 0))  # noqa: E731  [T, V, ...] -> [V, T, ...]
+    assert block_at_goal(view(placed.frames)) == {"success": True}
+    assert block_at_goal(view(still.frames)) == {"success": False}
+    faded = placed.frames.copy()
+    rgb = faded.astype(np.float32)
+    c = BLOCK_RGBA[:3] / BLOCK_RGBA[:3].sum()
+    block = np.linalg.norm(rgb / np.maximum(rgb.sum(-1, keepdims=True), 1) - c, axis=-1) < 0.1
+    block[: len(faded) // 3] = False
+    faded[block] = faded[0, 0, 0, 0]  # the floor's colour where the block was
+    assert block_at_goal(view(faded)) == {"success": False}

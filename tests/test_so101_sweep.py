@@ -50,7 +50,7 @@ def test_real_and_imagined_rollouts_start_from_the_same_simulator_reset(swept):
     try:
         obs = env.reset(EVAL_SEED0)
         ep = ics.load(f"seed{EVAL_SEED0}")
-        np.testing.assert_array_equal(ep.frames["front"][0], env.render())
+        np.testing.assert_array_equal(np.stack([ep.frames[v][0] for v in env.views]), env.render_views())
         np.testing.assert_allclose(ep.state[0], obs["agent_pos"], atol=1e-6)
         assert ep.length == 2
     finally:
@@ -70,7 +70,7 @@ def test_the_report_compares_the_imagined_ranking_with_the_simulator(swept):
     t = json.loads((tmp / "sweep" / "report" / "report.json").read_text())
     assert {p["policy"] for p in t["policies"]} == {"so_full", "so_shaky"}
     assert set(t["real"]["policies"]) == {"so_full", "so_shaky"} and t["real"]["episodes"] == 4
-    check = json.loads((tmp / "sweep" / "detector_check.json").read_text())
+    check = json.loads((tmp / "sweep" / "scorer_check.json").read_text())
     assert check["all"]["n"] == 4 and 0 <= check["agreement"] <= 1
 
 

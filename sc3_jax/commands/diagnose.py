@@ -3,6 +3,7 @@ checkpoint, on held-out episodes (sc3_jax/evaluate/diagnose.py, docs/world_model
 from __future__ import annotations
 
 import dataclasses
+from pathlib import Path
 from typing import Annotated, Literal
 
 import tyro
@@ -35,6 +36,9 @@ class Args:
     out: str | None = None
     """also write the result as JSON here (WORLD_MODEL/diagnose.json is where `sc3 report` and `sc3 diagnose-table`
     look)"""
+    filmstrips: str | None = None
+    """a folder for one filmstrip per stage of the objects-kept table (real above imagined, the first episode; None:
+    beside --out, in OUT_filmstrips/, or none without --out)"""
     seed: int = D.seed
     """sampler noise and the action shuffle"""
     max_seconds: float | None = D.max_seconds
@@ -50,8 +54,8 @@ class Args:
     progress: bool = D.progress
     """a progress bar on stderr (--no-progress: none, for batch logs)"""
     benchmark: Literal["bussing", "so101", "none"] = "bussing"
-    """whose measures the open-loop pass reads: the simulated bussing benchmark's (perception outcome scorer, its
-    objects' pixels), SO-101's (the block's and the goal marker's pixels; no outcome scorer), or none"""
+    """whose measures the passes read: the simulated bussing benchmark's (perception outcome scorer, its objects'
+    pixels), SO-101's (the block's and the goal marker's pixels, the arm's; no outcome scorer), or none"""
     stages: tuple[Stage, ...] = D.stages
     """the passes to run: teacher_forced (one chunk ahead, shuffled actions, inverse dynamics), counterfactual,
     open_loop (drift and outcome reproduction); the others' sections and gates read "not run". --stages open_loop:
@@ -65,7 +69,9 @@ def main(argv: list[str]) -> int:
     fields = {f.name for f in dataclasses.fields(DiagnoseConfig)}
     dc = DiagnoseConfig(**{k: v for k, v in dataclasses.asdict(a).items() if k in fields})
     scorer_for, scene = benchmark_hooks(a.benchmark)
-    result = diagnose.diagnose(a.world_model, a.data, dc, model_config=cfg, scorer_for=scorer_for, scene=scene)
+    strips = a.filmstrips or (str(Path(a.out).with_suffix("")) + "_filmstrips" if a.out else None)
+    result = diagnose.diagnose(a.world_model, a.data, dc, model_config=cfg, scorer_for=scorer_for, scene=scene,
+                               filmstrips=strips)
     print(diagnose.render_table(result))
     st = result["settings"]
     print(f"sampler: {st['sample_steps']} forward Euler steps, U re-read in {st['inverse_steps']} (`sc3 sweep`'s "
@@ -78,11 +84,11 @@ def main(argv: list[str]) -> int:
 
 
 def benchmark_hooks(name: str):
-    """(outcome scorer factory or None, scene measure or None) of the benchmark ``name`` (``--benchmark``)."""
-    if name == "bussing":
+    """(outcome scorer factory or None, scene measures by name) of the benchmark ``name`` (``--benchmark``)."""
+    if name == "bussing":  # its arm is grey like its floor: no colour tells it apart, so objects only
         from sc3_jax.benchmarks.bussing.hooks import object_pixels, perception_scorer
-        return perception_scorer, object_pixels
+        return perception_scorer, {"objects": object_pixels}
     if name == "so101":
-        from sc3_jax.benchmarks.so101.hooks import object_pixels
-        return None, object_pixels
-    return None, None
+        from sc3_jax.benchmarks.so101.hooks import arm_pixels, object_pixels
+        return None, {"objects": object_pixels, "arm": arm_pixels}
+    return None, {}

@@ -30,8 +30,11 @@ class Collect:
     """held-out episodes, written as a second dataset (episode j: simulator seed 10000000+SEED*100000+j)"""
     seed: int = 0
     """collection seed, 0-99: simulator seeds, recipes and the controllers' draws follow from it"""
-    image_size: Annotated[tuple[int, int], tyro.conf.arg(metavar="H W")] = (96, 128)
-    """front camera height and width (even)"""
+    image_size: Annotated[tuple[int, int], tyro.conf.arg(metavar="H W")] = (80, 80)
+    """every camera's height and width (even)"""
+    views: tuple[str, ...] = ("workspace", "wrist")
+    """cameras to record: workspace (arm, block and goal fill the frame), wrist (follows the gripper), front (the
+    simulator's whole-room view)"""
     max_steps: int = 150
     """steps (at 10 Hz) after which an episode that has not succeeded is cut"""
     workers: int = 1
@@ -91,11 +94,13 @@ def main(argv: list[str]) -> int:
 def _collect(a: Collect) -> int:
     from sc3_jax.benchmarks.so101.collect import collect
 
-    s = collect(a.out, a.episodes, a.heldout, a.seed, a.image_size, a.max_steps, a.workers, a.progress)
+    s = collect(a.out, a.episodes, a.heldout, a.seed, a.image_size, a.max_steps, a.workers, a.progress,
+                a.views)
     for split, d in s["splits"].items():
         recipes = ", ".join(f"{k} {v['success_rate']:.2f} of {v['n']}" for k, v in d["per_recipe"].items())
         print(f"{split}: {d['n']} episodes, {d['frames']} frames, success rate {d['success_rate']:.2f} "
-              f"({recipes}) -> {d['path']}")
+              f"({recipes}); the task's horizon: {d['horizon_seconds']} s (90% of successes + a chunk) -> "
+              f"{d['path']}")
     print(f"episode list: {a.out}/collect.json ({s['seconds']:.0f} s). Import (the action space is declared in "
           f"info.json): sc3 data import-lerobot {a.out}/train --out STORE"
           + (f"; sc3 data import-lerobot {a.out}/heldout --out HELDOUT_STORE" if "heldout" in s["splits"] else ""))

@@ -75,9 +75,10 @@ def so101(cfg: So101SweepConfig) -> int:
     md = report.render(out, out / "report", real=[str(out / sweep.REAL_FILE)])
     t = read_json(out / "report" / "report.json")
     c = read_json(out / sweep.CHECK_FILE)
+    what = f"the detector {cfg.detector}" if cfg.detector else f"the scorer {cfg.scorer}"
     print(f"SO-101: {cfg.episodes} simulator seeds per policy, real in the simulator, imagined inside "
-          f"{cfg.world_model}, scored by the detector {cfg.detector}")
-    print(f"the detector on the real episodes agrees with the simulator on {c['agreement']:.2f} of {c['all']['n']}")
+          f"{cfg.world_model}, scored by {what}")
+    print(f"{what} on the real episodes agrees with the simulator on {c['agreement']:.2f} of {c['all']['n']}")
     print("\n".join(report.closing_lines(t)))
     print(f"report: {md} (and report.html, report.json)")
     return 0

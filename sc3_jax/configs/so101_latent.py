@@ -34,8 +34,9 @@ def get_config(arg: str | None = None):
     cfg = load_config("bussing_latent")
     return replace(
         cfg, name="so101_latent",
-        model=dict(tokenizer_path="runs/so101/tokenizer/tokenizer"),
-        data=dict(path="runs/so101/train", views=("front",), image_size=(96, 128), context_frames=2,
+        # 48 tokens a frame over the views (the bussing model's budget): 4x4 latent patches on two 80x80 cameras
+        model=dict(tokenizer_path="runs/so101/tokenizer/tokenizer", num_views=2, frame_tokens=48),
+        data=dict(path="runs/so101/train", views=("workspace", "wrist"), image_size=(80, 80), context_frames=2,
                   future_frames=12, strides=(1, 1, 2)),
         train=dict(workdir="runs/so101/world_model", steps=6000),
         rollout=dict(policy_chunk=10, keep_frames=10, episode_seconds=12.0, control_hz=10.0, policy_hz=10.0))

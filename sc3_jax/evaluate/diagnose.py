@@ -15,6 +15,8 @@ store). Everything is computed first (:func:`diagnose` -> a JSON-able dict), the
   the chunk) read off the arm's image position; inverse dynamics on real frames against the mean-action floors.
 * outcomes (``diagnose_outcomes.py``): the perception scorer on the open-loop imagined rollout vs the real
   episode's physics labels, per object.
+* kept (``diagnose_kept.py``): where objects die, the benchmark's scene measures (objects, the arm) imagined over
+  real through the stages: the tokenizer's round trip, one chunk from real context, open loop; filmstrips.
 * gates (``diagnose_report.py``): each acceptance gate with value, threshold and pass/fail (``GATES``,
   docs/world_model.md).
 
@@ -43,7 +45,7 @@ from typing import Any, Literal
 import numpy as np
 
 # numpy only, all of them: the module stays cheap for report.py to import
-from sc3_jax.evaluate import diagnose_actions, diagnose_outcomes, diagnose_video, permanence
+from sc3_jax.evaluate import diagnose_actions, diagnose_kept, diagnose_outcomes, diagnose_video
 from sc3_jax.evaluate.diagnose_actions import AXES, InverseErrors, arm_centroid  # noqa: F401  (public names)
 from sc3_jax.evaluate.diagnose_report import (GATES, NOT_RUN_NOTE, gates, load_result,  # noqa: F401
                                               render_table, save_result, verdict)
@@ -130,8 +132,8 @@ class _Plan:
     calib: dict
     scorer: Any
     scorer_note: str | None
-    scene: Any  # the benchmark's scene measure (permanence.SceneMeasure) or None
-    kept_at: list  # the open-loop frame indices (0: the last context frame) permanence reads
+    kept: Any  # diagnose_kept.Kept (the benchmark's scene measures through the stages) or None
+    tokenizer: Any  # the world model's, for the round-trip stage
     id_mean: Any  # one sampler step from pure noise = the model's conditional-mean estimate
 
 
@@ -144,20 +146,20 @@ class _Sums:
     cf_rows: list = dataclasses.field(default_factory=list)
     u: list = dataclasses.field(default_factory=list)
     outcomes: list = dataclasses.field(default_factory=list)
-    kept: list = dataclasses.field(default_factory=list)  # per episode (imagined, real) amounts [V, len(kept_at)]
 
 
 def diagnose(world_model, heldout_store, config: DiagnoseConfig | None = None, *, model_config=None,
-             scorer_for=None, scene=None, **overrides) -> dict:
+             scorer_for=None, scene=None, filmstrips=None, **overrides) -> dict:
     """Every diagnostic of ``world_model`` (a path or ``(cfg, norm_stats, params)``) on the episode store
     ``heldout_store`` (path or ``EpisodeStore``); see the module docstring. ``model_config``: the world model's
     config to evaluate under (default: its own; ``sc3 diagnose`` passes the sweep's evaluation settings and the
     command line's overrides). ``scorer_for(views, image_size, weights) -> (scorer, None) | (None, why not)``: the
     benchmark's outcome scorer for the open-loop stage (``sc3 diagnose`` passes the simulated benchmark's
     ``perception_scorer``; None: no outcome reproduction); ``scene``: the benchmark's scene measure
-    (``permanence.SceneMeasure``; the simulated benchmark's ``object_pixels``), with which the open-loop stage says
-    how much of the objects the imagined rollout keeps over time (None: not measured). Returns a JSON-able dict (non-finite numbers as floats:
-    write it with :func:`save_result`)."""
+    (``permanence.SceneMeasure``, or a dict of them by name: ``{"objects": ..., "arm": ...}``), with which every
+    stage says how much of the objects the imagined frames keep over time (None: not measured); ``filmstrips``: a
+    folder for a filmstrip per stage (None: none). Returns a JSON-able dict (non-finite numbers as floats: write it
+    with :func:`save_result`)."""
     from tqdm import tqdm
 
     from sc3_jax.data.episodes import EpisodeStore
@@ -172,7 +174,8 @@ def diagnose(world_model, heldout_store, config: DiagnoseConfig | None = None, *
     cf_skip = "counterfactual" in dc.stages and (stats.action_space.kind != "delta_ee" or not store.has_pose)
     if cf_skip:
         dc = dataclasses.replace(dc, stages=tuple(s for s in dc.stages if s != "counterfactual"))
-    p = _plan(cfg, stats, params, store, ids, dc, scorer_for or diagnose_outcomes.no_scorer, scene)
+    measures = {"objects": scene} if callable(scene) else dict(scene or {})
+    p = _plan(cfg, stats, params, store, ids, dc, scorer_for or diagnose_outcomes.no_scorer, measures)
     acc = _Sums()
     bar = tqdm(total=len(p.eps), desc="diagnose", unit="episode", disable=not dc.progress)
     for g0 in range(0, len(p.eps), p.batch):  # episodes per step: one open-loop batch
@@ -182,9 +185,13 @@ def diagnose(world_model, heldout_store, config: DiagnoseConfig | None = None, *
             if stage in dc.stages:
                 bar.set_postfix_str(stage)
                 run(p, acc, g)
+        if p.kept is not None:
+            _round_trip(p, g)
         bar.update(len(g))
     bar.close()
     result = _result(p, acc, name, store, ids)
+    if p.kept is not None and filmstrips is not None:
+        result["permanence"]["filmstrips"] = p.kept.write_filmstrips(filmstrips, p.views)
     if cf_skip:
         result["counterfactual"]["note"] = (f"not run: it displaces an end-effector pose, this model's actions are "
                                             f"{stats.action_space.kind}" + ("" if store.has_pose else
@@ -217,10 +224,11 @@ def _episodes(store, cfg, n: int | None) -> list[str]:
     return ids
 
 
-def _plan(cfg, stats, params, store, ids, dc: DiagnoseConfig, scorer_for, scene) -> _Plan:
+def _plan(cfg, stats, params, store, ids, dc: DiagnoseConfig, scorer_for, measures: dict) -> _Plan:
     from sc3_jax import rollout as ro_mod
     from sc3_jax.config import replace
     from sc3_jax.evaluate.world_model import make_sampler
+    from sc3_jax.model.tokenizer import make_tokenizer
 
     views = list(cfg.data.views)
     eps = [store.load(e, mmap=True) for e in ids]
@@ -249,9 +257,9 @@ def _plan(cfg, stats, params, store, ids, dc: DiagnoseConfig, scorer_for, scene)
         horizon_steps=[int(round(h * hz)) for h in dc.horizons],
         # the camera fit reads every stride-th frame of every episode: only the counterfactual pass needs it
         calib=diagnose_actions.calibrate(eps, views, third, medians, stride, dc) if "counterfactual" in dc.stages
-        else {}, scorer=scorer, scorer_note=note, scene=scene,
-        kept_at=sorted(set(permanence.times(cfg.rollout.control_hz).values())),
-        id_mean=make_sampler(cfg, steps=1))
+        else {}, scorer=scorer, scorer_note=note,
+        kept=diagnose_kept.Kept(measures, hz, keep, len(views)) if measures else None,
+        tokenizer=make_tokenizer(cfg.model), id_mean=make_sampler(cfg, steps=1))
 
 
 def _teacher_forced(p: _Plan, acc: _Sums, group: list[int]):
@@ -272,7 +280,12 @@ def _teacher_forced(p: _Plan, acc: _Sums, group: list[int]):
         shuf = p.tf.run_offline(p.params, ics, bat.pad(np.stack(shuffled[a:b])), keys)
         acc.u += true["u"][:b - a, 0].tolist()
         for j, it in enumerate(part):
-            e = p.samples[idx[a + j]][0]
+            e, start = p.samples[idx[a + j]]
+            if p.kept is not None:  # chunk c covers open-loop steps c*l+1 ... (its first l frames: the table's)
+                c0 = start // p.stride
+                ks = p.kept.wanted(c0 + 1, c0 + p.keep)
+                at = [k - c0 - 1 for k in ks]
+                p.kept.add("one chunk", e, ks, true["frames"][j][:, at], it[2][:, at])
             diagnose_video.add_chunk(acc.tf, it[2], it[0][0][:, -1], true["frames"][j], shuf["frames"][j],
                                      p.first[e], p.medians[e], p.dc.moving_threshold)
         _inverse_dynamics(p, acc, ics, bat.pad(np.stack([it[2] for it in part])), acts, idx[a], b - a)
@@ -338,26 +351,30 @@ def _open_loop(p: _Plan, acc: _Sums, group: list[int]):
                 if hs <= len(valid) and valid[hs - 1]:
                     diagnose_video.add_horizon(acc.ol, ("drift", hi), pred[:, hs - 1], tgt[:, hs - 1], ctx_last,
                                                p.first[e], p.medians[e], p.dc.moving_threshold)
-            if p.scene is not None:  # index 0: the last context frame, then the valid (recorded) steps
-                n = int(np.asarray(valid).sum())
-                acc.kept.append(permanence.measure_pair(np.concatenate([ctx_last[:, None], tgt[:, :n]], 1),
-                                                        np.concatenate([ctx_last[:, None], pred[:, :n]], 1),
-                                                        p.scene, p.kept_at))
+            if p.kept is not None:  # step k (k >= 1) is predicted frame k - 1, as far as the episode was recorded
+                ks = p.kept.wanted(1, int(np.asarray(valid).sum()))
+                at = [k - 1 for k in ks]
+                p.kept.add("open loop", e, ks, pred[:, at], tgt[:, at])
             if p.scorer is not None:
                 acc.outcomes.append(diagnose_outcomes.outcome(p.scorer, p.eps[e], ics.frames[j], pred, tgt, valid,
                                                               p.steps_in[e]))
 
 
-def _kept_section(p: _Plan, acc: _Sums) -> dict:
-    """Objects kept over the open loop (permanence.summary over the episodes), or a note why not."""
-    if p.scene is None:
+def _round_trip(p: _Plan, group: list[int]):
+    """The round-trip stage: the episodes' real frames at the table's times through the tokenizer alone."""
+    for e in group:
+        ep = p.eps[e]
+        ks = p.kept.wanted(1, (ep.length - 1 - p.off) // p.stride)
+        if ks:
+            real = np.stack([np.asarray(ep.frames[v])[[p.off + p.stride * k for k in ks]] for v in p.views])
+            p.kept.add("round trip", e, ks, diagnose_kept.round_trip(p.tokenizer, real, p.cfg.data.image_size), real)
+
+
+def _kept_section(p: _Plan) -> dict:
+    """Objects kept stage by stage (``diagnose_kept``), or a note why not."""
+    if p.kept is None:
         return {"note": "no scene measure (a benchmark's: `sc3 diagnose --benchmark NAME` names whose)"}
-    if not acc.kept:
-        return {"note": "no open-loop rollout"}
-    at = permanence.times(p.cfg.rollout.control_hz)
-    return {"times": permanence.summary(np.stack([a for a, _ in acc.kept]), np.stack([b for _, b in acc.kept]),
-                                        {label: p.kept_at.index(k) for label, k in at.items()}, p.views,
-                                        seed=p.dc.seed)}
+    return p.kept.section(p.views, p.dc.seed)
 
 
 def _result(p: _Plan, acc: _Sums, name: str, store, ids) -> dict:
@@ -381,7 +398,7 @@ def _result(p: _Plan, acc: _Sums, name: str, store, ids) -> dict:
         "inverse_dynamics": ran("teacher_forced", acc.inverse.section),
         "outcomes": ran("open_loop", lambda: diagnose_outcomes.outcome_section(acc.outcomes, p.scorer_note,
                                                                                seed=dc.seed)),
-        "permanence": ran("open_loop", lambda: _kept_section(p, acc)),
+        "permanence": _kept_section(p),
     }
 
 

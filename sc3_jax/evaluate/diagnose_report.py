@@ -104,7 +104,7 @@ def render_table(result: dict) -> str:
             ("inverse_dynamics", "Inverse dynamics on real frames{}", _inverse_lines),
             ("outcomes", "Offline outcome reproduction (perception scorer on the open-loop rollout){}",
              _outcome_lines),
-            ("permanence", "Objects kept (open loop: the benchmark's measure of its objects, imagined over real){}",
+            ("permanence", "Objects kept, stage by stage (the benchmark's measures, imagined over real){}",
              _kept_lines)):
         sec = result.get(key)
         if sec is None:  # a diagnose.json from before the section existed
@@ -121,17 +121,11 @@ def render_table(result: dict) -> str:
 
 
 def _kept_lines(sec: dict) -> tuple[str, list[str]]:
-    if "note" in sec:
-        return "", [sec["note"]]
-    rows = sec["times"]
-    if not rows:
-        return "", ["no episode reaches 1 s of open loop"]
-    cols = list(next(iter(rows.values()))["kept"])
-    cell = lambda c: f"{_f(c['value'])} [{_f(c['lo'])}, {_f(c['hi'])}]"  # noqa: E731
-    return "", ["| time | episodes | " + " | ".join(cols) + " |", "|---" * (len(cols) + 2) + "|"] + [
-        f"| {label} | {e['rollouts']} | " + " | ".join(cell(e["kept"][c]) for c in cols) + " |"
-        for label, e in rows.items()] + ["", "1: the objects stay as in the recorded episode; toward 0: they fade "
-                                             "(95% bootstrap over episodes)."]
+    from sc3_jax.evaluate import diagnose_kept
+    if "times" in sec:  # a diagnose.json from before the stages: open loop only
+        sec = {"seconds": [float(k[:-2]) for k in sec["times"]], "closed_loop": "not measured",
+               "rows": [{"stage": "open loop", "measure": "objects", "times": sec["times"]}]}
+    return diagnose_kept.lines(sec)
 
 
 def _teacher_forced_lines(tf: dict) -> tuple[str, list[str]]:

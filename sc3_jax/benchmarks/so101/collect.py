@@ -8,7 +8,7 @@ recipe is drawn from the simulator seed, the controller's draws from (``seed``, 
 until the simulator ends it (success, or the block out of the workspace) or for ``max_steps`` (150 = 15 s); a failed
 episode usually runs them all, the controller nearly idle once its script is done.
 
-Features: ``observation.images.front`` (video), ``observation.state`` (agent_pos [14]),
+Features: ``observation.images.<view>`` (a video per camera: ``workspace`` and ``wrist`` unless told), ``observation.state`` (agent_pos [14]),
 ``observation.environment_state`` (block xyz, goal xyz [6]), ``action`` [4] (dx, dy, dz, gripper), ``next.success``
 (bool [1]); fps 10, robot_type ``so101``, one task. ``meta/info.json`` declares the action space
 (``sc3_action_space``: velocity, the gripper a position target), so ``sc3 data import-lerobot OUT/train --out STORE``
@@ -26,13 +26,13 @@ import numpy as np
 from sc3_jax import atomic
 from sc3_jax.errors import UserError
 from .controllers import MIX, RECIPES
-from .env import ACTION_NAMES, ACTION_SCALE, ENV_ID, ENV_STATE_NAMES, STATE_NAMES, import_simulator
+from .env import ACTION_NAMES, ACTION_SCALE, ENV_ID, ENV_STATE_NAMES, STATE_NAMES, VIEWS, import_simulator
 from .rollouts import MAX_STEPS, EpisodeRecord, Job, Setup, run_episodes
 
 TASK = "pick the block and place it on the goal"
 FPS = 10
 ROBOT_TYPE = "so101"
-CAMERA = "observation.images.front"
+CAMERA = "observation.images."  # + the view's name
 HELDOUT_SEED0 = 10_000_000
 RECIPE_STREAM = 101  # the recipe draw's own stream, apart from the controller's draws
 SPLITS = ("train", "heldout")
@@ -59,10 +59,10 @@ def action_space() -> dict:
     return ActionSpace("velocity", 4, tuple(ACTION_NAMES), (3,)).to_dict()
 
 
-def to_raw(r: EpisodeRecord):
+def to_raw(r: EpisodeRecord, views: tuple[str, ...]):
     from sc3_jax.data.lerobot_write import RawEpisode
 
-    return RawEpisode({CAMERA: r.frames}, r.actions, TASK, r.states,
+    return RawEpisode({CAMERA + v: r.frames[:, i] for i, v in enumerate(views)}, r.actions, TASK, r.states,
                       {"observation.environment_state": r.env_state, "next.success": r.success[:, None]})
 
 
@@ -70,8 +70,9 @@ NAMES = {"action": ACTION_NAMES, "observation.state": STATE_NAMES, "observation.
          "next.success": ["success"]}
 
 
-def collect(out: str | Path, episodes: int, heldout: int = 0, seed: int = 0, image_size: tuple[int, int] = (96, 128),
-            max_steps: int = MAX_STEPS, workers: int = 1, progress: bool = True) -> dict:
+def collect(out: str | Path, episodes: int, heldout: int = 0, seed: int = 0, image_size: tuple[int, int] = (80, 80),
+            max_steps: int = MAX_STEPS, workers: int = 1, progress: bool = True,
+            views: tuple[str, ...] = VIEWS) -> dict:
     """Write ``OUT/train`` (``episodes``) and ``OUT/heldout`` (``heldout``, if any) and ``OUT/collect.json``.
     Returns the summary written there."""
     from tqdm import tqdm
@@ -96,7 +97,8 @@ def collect(out: str | Path, episodes: int, heldout: int = 0, seed: int = 0, ima
              "heldout": [heldout_seed(seed, j) for j in range(heldout)]}
     jobs = [Job(s, recipe_of(s), controller_seed=seed) for split in SPLITS for s in seeds[split]]
     t0 = time.time()
-    records = iter(tqdm(run_episodes(jobs, Setup(tuple(image_size), max_steps), workers), total=len(jobs),
+    setup = Setup(tuple(image_size), tuple(views), max_steps)
+    records = iter(tqdm(run_episodes(jobs, setup, workers), total=len(jobs),
                         desc="so101 episodes", disable=not progress))  # one iterator, the splits take their share
     rows: dict[str, list[dict]] = {s: [] for s in SPLITS}
 
@@ -104,9 +106,9 @@ def collect(out: str | Path, episodes: int, heldout: int = 0, seed: int = 0, ima
         for i, r in enumerate(itertools.islice(records, len(seeds[split]))):
             rows[split].append({"episode_index": i, "sim_seed": r.seed, "recipe": r.source,
                                 "succeeded": r.succeeded, "steps": r.steps})
-            yield to_raw(r)
+            yield to_raw(r, tuple(views))
 
-    summary = {"env": ENV_ID, "seed": seed, "image_size": list(image_size), "max_steps": max_steps, "fps": FPS,
+    summary = {"env": ENV_ID, "seed": seed, "image_size": list(image_size), "views": list(views), "max_steps": max_steps, "fps": FPS,
                "recipes": list(MIX), "splits": {}}
     for split in SPLITS:
         if not seeds[split]:
@@ -120,12 +122,22 @@ def collect(out: str | Path, episodes: int, heldout: int = 0, seed: int = 0, ima
     return summary
 
 
+def horizon_seconds(rows: list[dict], quantile: float = 0.9, chunk_s: float = 1.0) -> float | None:
+    """The task's horizon from its episodes' success times: the ``quantile`` of the successful episodes' lengths
+    plus one policy chunk, in whole chunks (seconds at ``FPS``); None without a success. A rollout longer than the
+    task only gives a fading model time to fool a scorer; shorter would cut real successes."""
+    done = [r["steps"] for r in rows if r["succeeded"]]
+    if not done:
+        return None
+    return float(chunk_s * np.ceil((np.quantile(done, quantile) / FPS + chunk_s) / chunk_s))
+
+
 def _rates(rows: list[dict]) -> dict:
     by = collections.defaultdict(list)
     for r in rows:
         by[r["recipe"]].append(r["succeeded"])
     return {"n": len(rows), "success_rate": float(np.mean([r["succeeded"] for r in rows])),
-            "frames": int(sum(r["steps"] for r in rows)),
+            "frames": int(sum(r["steps"] for r in rows)), "horizon_seconds": horizon_seconds(rows),
             "per_recipe": {k: {"n": len(v), "success_rate": float(np.mean(v))} for k, v in sorted(by.items())}}
 
 

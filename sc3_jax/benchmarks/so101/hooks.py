@@ -1,17 +1,50 @@
-"""What the commands hand the evaluation core of the SO-101 benchmark: its scene measure (the block and the goal
-marker, the scene's only objects). numpy only: importing it needs no simulator."""
+"""What the commands hand the evaluation core of the SO-101 benchmark: its scene measures (the block and the goal
+marker, the scene's only objects; the arm) and the pixel masks they and the scorer share. numpy only: importing it
+needs no simulator.
+
+The masks go by which channel dominates a pixel's chromaticity (r, g, b over their sum), not by a distance to the
+material's colour: the goal disc renders pale and at a different chromaticity in each camera (lit from the side it
+washes toward white: (0.24, 0.42, 0.34) in the workspace view against its material's (0.13, 0.65, 0.22)), while the
+scene has one green thing (the disc), one purple one (the block: red and blue over green) and one yellow one (the
+arm: red and green over blue); the floor is blue and the servos are dark."""
 from __future__ import annotations
 
 import numpy as np
 
-from sc3_jax.benchmarks.so101.env import BLOCK_RGBA, GOAL_RGBA
-from sc3_jax.evaluate.permanence import pixels_of
+MIN_BRIGHTNESS = 60.0  # r + g + b: below it, dark pixels' chromaticity is noise
+MARGIN = 0.1  # how far the dominant channels' share must exceed the others'
+
+
+def _chroma(frames: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    x = np.asarray(frames, np.float32)
+    s = x.sum(-1)
+    return x / np.maximum(s, 1.0)[..., None], s >= MIN_BRIGHTNESS
+
+
+def goal_mask(frames: np.ndarray) -> np.ndarray:
+    """bool [..., H, W]: the goal disc's pixels (green over red and blue)."""
+    c, lit = _chroma(frames)
+    return lit & (c[..., 1] > c[..., 0] + MARGIN) & (c[..., 1] > c[..., 2] + MARGIN / 2)
+
+
+def block_mask(frames: np.ndarray) -> np.ndarray:
+    """bool [..., H, W]: the block's pixels (red and blue over green)."""
+    c, lit = _chroma(frames)
+    return lit & (c[..., 0] > c[..., 1] + MARGIN) & (c[..., 2] > c[..., 1] + MARGIN)
+
+
+def arm_mask(frames: np.ndarray) -> np.ndarray:
+    """bool [..., H, W]: the arm's yellow parts (red and green over blue; the black servos are not counted)."""
+    c, lit = _chroma(frames)
+    return lit & (c[..., 0] > c[..., 2] + 2 * MARGIN) & (c[..., 1] > c[..., 2] + 2 * MARGIN)
 
 
 def object_pixels(frames: np.ndarray) -> np.ndarray:
-    """The benchmark's scene measure (``evaluate/permanence.py``): the fraction of pixels of the block's and the goal
-    marker's colours, frames uint8 [V, T, H, W, 3] -> [V, T]. The marker renders paler than its rgba (chromaticity
-    0.18 / 0.56 / 0.26 against 0.13 / 0.65 / 0.22, at 96+ brightness): a wider tolerance and a lower floor for it (the
-    background and the arm lie ~0.4 away)."""
-    return (pixels_of(frames, BLOCK_RGBA[None, :3], min_brightness=120.0)
-            + pixels_of(frames, GOAL_RGBA[None, :3], tol=0.2, min_brightness=60.0))
+    """The benchmark's scene measure (``evaluate/permanence.py``): the fraction of the block's and the goal marker's
+    pixels, frames uint8 [V, T, H, W, 3] -> [V, T]."""
+    return (block_mask(frames) | goal_mask(frames)).mean((-2, -1))
+
+
+def arm_pixels(frames: np.ndarray) -> np.ndarray:
+    """The arm's scene measure: the fraction of its yellow parts' pixels, frames [V, T, H, W, 3] -> [V, T]."""
+    return arm_mask(frames).mean((-2, -1))

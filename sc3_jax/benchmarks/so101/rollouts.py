@@ -6,7 +6,7 @@ Per step ``t`` an episode records what was observed before action ``t`` (frame, 
 LeRobot's ``next.success``). It ends when the simulator ends it (success, or the block out of the workspace) -- the
 terminating step is recorded -- or after ``max_steps``.
 
-A policy gets ``{"images": uint8 [1, H, W, 3], "state": float32 [14] (agent_pos), "task": int32 0}`` and returns a
+A policy gets ``{"images": uint8 [V, H, W, 3] (the env's views), "state": float32 [14] (agent_pos), "task": int32 0}`` and returns a
 chunk float32 [chunk, 4] of raw actions; the first ``execute`` are applied, then it observes again. A JaxPolicy's rng
 is ``fold_in(key(0), seed)`` (split once per chunk), so an episode depends only on (policy, seed).
 
@@ -22,7 +22,7 @@ from collections.abc import Callable, Iterator
 
 import numpy as np
 
-from .env import ACTION_HIGH, ACTION_LOW, So101Env
+from .env import ACTION_HIGH, ACTION_LOW, VIEWS, So101Env
 
 MAX_STEPS = 150  # 15 s at 10 Hz: the clean controller needs ~5 s
 EXECUTE = 10  # actions of a policy's chunk applied before it observes again: 1 s
@@ -32,7 +32,7 @@ HOLD = np.array([0.0, 0.0, 0.0, 1.0], np.float32)  # stay, gripper open
 @dataclasses.dataclass
 class EpisodeRecord:
     seed: int
-    frames: np.ndarray | None  # uint8 [T, H, W, 3] (None: not recorded)
+    frames: np.ndarray | None  # uint8 [T, V, H, W, 3], the env's views (None: not recorded)
     actions: np.ndarray  # float32 [T, 4]
     states: np.ndarray  # float32 [T, 14] agent_pos
     env_state: np.ndarray  # float32 [T, 6] block xyz, goal xyz
@@ -55,7 +55,7 @@ def run_episode(env: So101Env, act_fn: Callable, seed: int, max_steps: int = MAX
     frames, actions, states, env_state, success = [], [], [], [], []
     for _ in range(max_steps):
         if record:
-            frames.append(env.render())
+            frames.append(env.render_views())
         states.append(obs["agent_pos"])
         env_state.append(obs["environment_state"])
         a = np.asarray(act_fn(env, obs), np.float32).reshape(-1)
@@ -97,7 +97,7 @@ class PolicyActor:
 
     def __call__(self, env: So101Env, obs: dict) -> np.ndarray:
         if self.chunk is None or self.k >= min(self.execute, len(self.chunk)):
-            p = {"images": env.render()[None], "state": np.asarray(obs["agent_pos"], np.float32),
+            p = {"images": env.render_views(), "state": np.asarray(obs["agent_pos"], np.float32),
                  "task": np.int32(0)}
             self.chunk, self.k = np.asarray(self.host.infer(p), np.float32), 0
             if self.chunk.ndim != 2 or self.chunk.shape[1] != env.action_dim or not len(self.chunk):
@@ -132,7 +132,8 @@ class Job:
 class Setup:
     """What every worker needs (picklable)."""
 
-    image_size: tuple[int, int] = (96, 128)
+    image_size: tuple[int, int] = (80, 80)
+    views: tuple[str, ...] = VIEWS
     max_steps: int = MAX_STEPS
     execute: int = EXECUTE
     record: bool = True
@@ -148,7 +149,7 @@ class _Runner:
     """A simulator and the resolved policies of one process."""
 
     def __init__(self, setup: Setup):
-        self.setup, self.env, self.actors = setup, So101Env(setup.image_size), {}
+        self.setup, self.env, self.actors = setup, So101Env(setup.image_size, views=setup.views), {}
 
     def __call__(self, job: Job) -> EpisodeRecord:
         s = self.setup

@@ -1,12 +1,13 @@
 """``sc3 sweep so101``: the SO-101 benchmark's protocol, one command. Policies act in the simulator and inside the
 world model from the same initial conditions; the imagined outcomes, scored by a success detector trained on the
-collected data's own labels, are compared with the simulator's (r and MMRV with intervals, against the policy-blind
+collected data's own labels or by any scorer (``--scorer``, e.g. ``sc3_jax.benchmarks.so101.scorer:block_at_goal``,
+which reads where the block and the goal are), are compared with the simulator's (r and MMRV with intervals, against the policy-blind
 floor and a split-half real-vs-real ceiling: ``report_episodes.py``).
 
     OUT/initial_conditions/   an episode store: per evaluation seed, the frame at the simulator's reset and the frame
                               after one HOLD step (the world model's two context frames) with the 14-D state
     OUT/real.csv              per policy and seed, the simulator's success (``info["succeed"]``) within the horizon
-    OUT/detector_check.json   the detector's verdict on those real episodes' frames against the simulator's
+    OUT/scorer_check.json     the scorer's verdict on those real episodes' frames against the simulator's
     OUT/results.jsonl ...     the imagined rollouts (``evaluate/ic_sweep.py``'s store), OUT/report/
 
 Initial conditions are identical: the simulator is reset at seed ``EVAL_SEED0 + i`` and stepped once with ``HOLD``;
@@ -29,7 +30,7 @@ from sc3_jax.errors import UserError
 
 EVAL_SEED0 = 20_000_000  # as `sc3 so101 zoo-eval`: neither the collection's training nor held-out seeds
 HOLD_STEPS = 1  # one step from the reset gives the world model's second context frame (and opens the gripper)
-REAL_FILE, CHECK_FILE, IC_DIR = "real.csv", "detector_check.json", "initial_conditions"
+REAL_FILE, CHECK_FILE, IC_DIR = "real.csv", "scorer_check.json", "initial_conditions"
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -39,10 +40,13 @@ class So101SweepConfig:
 
     world_model: str
     """an SO-101 world model: a `sc3 train --config so101_latent` run or its export"""
-    detector: str
-    """the success detector that scores imagined rollouts (`sc3 train-detector` on the imported collection)"""
     out: str
-    """results: initial_conditions/, real.csv, detector_check.json, results.jsonl, rollouts/, report/"""
+    """results: initial_conditions/, real.csv, scorer_check.json, results.jsonl, rollouts/, report/"""
+    detector: str | None = None
+    """the success detector that scores imagined rollouts (`sc3 train-detector` on the imported collection)"""
+    scorer: str | None = None
+    """instead of --detector, any scorer spelling (package.module:attr), e.g.
+    sc3_jax.benchmarks.so101.scorer:block_at_goal (the block at rest on the goal disc, read from the frames)"""
     policies: tuple[str, ...] = ()
     """the policies, any spelling `sc3 sweep` takes (an SO-101 zoo name, lerobot:PATH, module:attr; none: the zoo)"""
     episodes: int = 36
@@ -66,15 +70,19 @@ class So101SweepConfig:
 def run(cfg: So101SweepConfig) -> Path:
     """Every stage (see the module docstring); returns OUT."""
     from sc3_jax import checkpoint
-    from sc3_jax.evaluate import ic_sweep, success_detector
+    from sc3_jax.evaluate import ic_sweep
+    from sc3_jax.evaluate.scorers import DETECTOR_PREFIX, load_outcome_scorer
     from sc3_jax.policies.resolve import resolve
 
     from .zoo import ZOO, named_policy
 
     if cfg.episodes < 1 or cfg.batch < 1 or cfg.workers < 1:
         raise UserError(f"--episodes {cfg.episodes} --batch {cfg.batch} --workers {cfg.workers}: each at least 1")
+    if (cfg.detector is None) == (cfg.scorer is None):
+        raise UserError("name what scores the imagined rollouts: --detector DET or --scorer package.module:attr")
     out = Path(cfg.out)
-    detector = success_detector.load(cfg.detector)  # a bad path: one line before anything runs
+    spec = f"{DETECTOR_PREFIX}{cfg.detector}" if cfg.detector else cfg.scorer
+    scorer = load_outcome_scorer(spec)  # a bad path or name: one line before anything runs
     wcfg = checkpoint.read_config(cfg.world_model)
     seconds = cfg.episode_seconds or wcfg.rollout.episode_seconds
     steps = int(round(seconds * wcfg.rollout.control_hz))
@@ -86,18 +94,19 @@ def run(cfg: So101SweepConfig) -> Path:
             raise UserError(f"--policies {n}: {e}") from None
     seeds = [EVAL_SEED0 + i for i in range(cfg.episodes)]
     out.mkdir(parents=True, exist_ok=True)
-    write_conditions(out / IC_DIR, seeds, tuple(wcfg.data.image_size))
-    real_outcomes(out, names, seeds, steps, tuple(wcfg.data.image_size), detector, cfg.workers, cfg.progress)
+    views, size = tuple(wcfg.data.views), tuple(wcfg.data.image_size)  # the world model's cameras, as it saw them
+    write_conditions(out / IC_DIR, seeds, size, views)
+    real_outcomes(out, names, seeds, steps, size, views, scorer, cfg.workers, cfg.progress)
     ic_cfg = ic_sweep.ICSweepConfig(
         initial_conditions=str(out / IC_DIR), world_model=cfg.world_model, policies=tuple(names),
-        scorer=f"detector:{cfg.detector}", out=str(out), episodes=cfg.episodes, calibration_episodes=0,
+        scorer=spec, out=str(out), episodes=cfg.episodes, calibration_episodes=0,
         real=(str(out / REAL_FILE),), sample_steps=cfg.sample_steps, inverse_steps=cfg.inverse_steps,
         episode_seconds=seconds, taus=(math.inf,), batch=cfg.batch, learned_state=cfg.learned_state,
         progress=cfg.progress)
     return ic_sweep.run(ic_cfg, named=named_policy)
 
 
-def write_conditions(root: Path, seeds: list[int], image_size: tuple[int, int]) -> None:
+def write_conditions(root: Path, seeds: list[int], image_size: tuple[int, int], views: tuple[str, ...]) -> None:
     """One episode per seed (``seed<SEED>``): the reset frame and state, then those after ``HOLD_STEPS`` of HOLD."""
     from sc3_jax.data.action_space import ActionSpace
     from sc3_jax.data.episodes import Episode, EpisodeStore
@@ -106,32 +115,33 @@ def write_conditions(root: Path, seeds: list[int], image_size: tuple[int, int]) 
     from .env import ACTION_NAMES, STATE_NAMES, So101Env
     from .rollouts import HOLD
 
-    store = EpisodeStore(root, views=["front"], fps=FPS, image_size=image_size, create=True,
+    store = EpisodeStore(root, views=list(views), fps=FPS, image_size=image_size, create=True,
                          action_space=ActionSpace("velocity", 4, tuple(ACTION_NAMES), (3,)), state_dim=len(STATE_NAMES),
                          state_names=list(STATE_NAMES), has_pose=False)
     todo = [s for s in seeds if f"seed{s}" not in store]
     if not todo:
         return
-    env = So101Env(image_size)
+    env = So101Env(image_size, views=views)
     try:
         for s in todo:
             obs = env.reset(s)
-            frames, states = [env.render()], [obs["agent_pos"]]
+            frames, states = [env.render_views()], [obs["agent_pos"]]
             for _ in range(HOLD_STEPS):
                 obs, _, _ = env.step(HOLD)
-                frames.append(env.render())
+                frames.append(env.render_views())
                 states.append(obs["agent_pos"])
-            store.write(Episode(f"seed{s}", {"front": np.stack(frames)}, np.repeat(HOLD[None], len(frames), 0), None,
+            f = np.stack(frames, 1)  # [V, T, H, W, 3]
+            store.write(Episode(f"seed{s}", dict(zip(views, f)), np.repeat(HOLD[None], len(frames), 0), None,
                                 TASK, {"seed": s, "source": "so101 reset + hold"},
                                 np.stack(states).astype(np.float32)))
     finally:
         env.close()
 
 
-def real_outcomes(out: Path, names: list[str], seeds: list[int], steps: int, image_size: tuple[int, int], detector,
-                  workers: int, progress: bool) -> None:
-    """Append to OUT/real.csv (policy, episode, success) the (policy, seed) episodes it lacks, and their detector
-    verdicts to OUT/detector_check.json (per policy: agreement of the detector with the simulator)."""
+def real_outcomes(out: Path, names: list[str], seeds: list[int], steps: int, image_size: tuple[int, int],
+                  views: tuple[str, ...], scorer, workers: int, progress: bool) -> None:
+    """Append to OUT/real.csv (policy, episode, success) the (policy, seed) episodes it lacks, and the scorer's
+    verdicts on their frames to OUT/scorer_check.json (per policy: agreement of the scorer with the simulator)."""
     from tqdm import tqdm
 
     from .rollouts import Job, Setup, run_episodes
@@ -146,24 +156,24 @@ def real_outcomes(out: Path, names: list[str], seeds: list[int], steps: int, ima
     if not jobs:
         return
     check = atomic.read_json(check_path)["per_policy"] if check_path.is_file() else {}
-    setup = Setup(image_size, max_steps=steps, record=True, hold=HOLD_STEPS)
+    setup = Setup(image_size, views, max_steps=steps, record=True, hold=HOLD_STEPS)
     try:
         for job, r in zip(jobs, tqdm(run_episodes(jobs, setup, workers), total=len(jobs), desc="real rollouts",
                                      unit="episode", disable=not progress)):
-            said = _detect(detector, r.frames)
+            said = _says_done(scorer, r.frames, r.seed)
             rows.append({"policy": _name(job.policy), "episode": f"seed{job.seed}",
                          "success": str(r.succeeded).lower()})
-            c = check.setdefault(_name(job.policy), {"agree": 0, "n": 0, "sim_done": 0, "detector_done": 0})
+            c = check.setdefault(_name(job.policy), {"agree": 0, "n": 0, "sim_done": 0, "scorer_done": 0})
             c["n"], c["agree"] = c["n"] + 1, c["agree"] + (said == r.succeeded)
-            c["sim_done"], c["detector_done"] = c["sim_done"] + r.succeeded, c["detector_done"] + said
+            c["sim_done"], c["scorer_done"] = c["sim_done"] + r.succeeded, c["scorer_done"] + said
     finally:  # what finished is kept (a rerun runs the rest)
         atomic.write_text(path, "policy,episode,success\n" + "".join(
             f"{r['policy']},{r['episode']},{r['success']}\n" for r in rows))
-        total = {k: sum(c[k] for c in check.values()) for k in ("agree", "n", "sim_done", "detector_done")}
+        total = {k: sum(c[k] for c in check.values()) for k in ("agree", "n", "sim_done", "scorer_done")}
         atomic.write_json(check_path, {"per_policy": check, "all": total,
                                        "agreement": total["agree"] / max(total["n"], 1),
-                                       "what": "the success detector on the real episodes' frames (the rule it "
-                                               "scores imagined rollouts with) against the simulator's success"})
+                                       "what": "the scorer on the real episodes' frames (the rule it scores imagined "
+                                               "rollouts with) against the simulator's success"})
 
 
 def _name(spec: str) -> str:
@@ -174,7 +184,8 @@ def _name(spec: str) -> str:
     return name or body
 
 
-def _detect(detector, frames: np.ndarray) -> bool:
-    from sc3_jax.evaluate.success_detector import decide
+def _says_done(scorer, frames: np.ndarray, seed: int) -> bool:
+    """The scorer's verdict on a real episode's frames [T, V, H, W, 3] (any criterion done: the task's one)."""
+    from sc3_jax.evaluate.scorers import RolloutView
 
-    return decide(detector.probabilities(frames[None]), detector.cfg.threshold, detector.cfg.consecutive)
+    return any(scorer(RolloutView(f"seed{seed}", np.moveaxis(frames, 1, 0))).values())
