@@ -70,6 +70,11 @@ def test_the_report_compares_the_imagined_ranking_with_the_simulator(swept):
     t = json.loads((tmp / "sweep" / "report" / "report.json").read_text())
     assert {p["policy"] for p in t["policies"]} == {"so_full", "so_shaky"}
     assert set(t["real"]["policies"]) == {"so_full", "so_shaky"} and t["real"]["episodes"] == 4
+    # the closed-loop objects kept: the imagined frames against the real ones kept at the report's times
+    assert sorted(p.name for p in (tmp / "sweep" / "real_frames" / "so_full").iterdir()) == [
+        f"seed{20_000_000 + i}.npz" for i in range(2)]
+    assert set(t["permanence"]) == {"1 s", "2 s"} and all(e["rollouts"] == 4 for e in t["permanence"].values())
+    assert "Objects kept (object permanence), closed loop" in (tmp / "sweep" / "report" / "report.md").read_text()
     check = json.loads((tmp / "sweep" / "scorer_check.json").read_text())
     assert check["all"]["n"] == 4 and 0 <= check["agreement"] <= 1
 

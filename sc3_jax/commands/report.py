@@ -3,10 +3,12 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from pathlib import Path
 from typing import Annotated
 
 import tyro
 
+from sc3_jax import atomic
 from sc3_jax.commands import one_or_more, parse
 from sc3_jax.errors import UserError
 
@@ -50,15 +52,29 @@ def check_options(a: Args) -> None:
             raise UserError(f"--taus {t}: a threshold is a non-negative number (inf: never stop)")
 
 
+def scene_of(results: str):
+    """The scene measure a store's objects-kept row is read with: the benchmark its sweep named
+    (``real_frames/scene.json``, one of ``sc3 diagnose --benchmark``'s names), else the bussing benchmark's."""
+    from sc3_jax.commands.diagnose import benchmark_hooks
+
+    from sc3_jax.evaluate.report_episodes import REAL_FRAMES
+
+    saved = Path(results) / REAL_FRAMES / "scene.json"
+    name = atomic.read_json(saved).get("benchmark") if saved.is_file() else "bussing"
+    if name not in ("bussing", "so101"):  # the file is data: only a known benchmark's measure runs
+        raise UserError(f"{saved}: unknown benchmark {name!r} (known: bussing, so101)")
+    return benchmark_hooks(name)[1]["objects"]
+
+
 def main(argv: list[str]) -> int:
     a = parse(Args, argv, "report")
     if not a.results:  # tyro takes a positional tuple as zero or more; argparse asked for one at least
         raise UserError("give at least one RESULTS store")
     check_options(a)
-    from sc3_jax.benchmarks.bussing.hooks import object_pixels
     from sc3_jax.evaluate import report  # after parsing: --help and a typo need not load plotting
 
-    md = report.render(list(a.results), a.out, a.videos, a.taus, a.draws, scene=object_pixels, real=a.real)
+    md = report.render(list(a.results), a.out, a.videos, a.taus, a.draws, scene=scene_of(a.results[0]),
+                       real=a.real)
     t = json.loads((md.parent / "report.json").read_text())
     print("\n".join(report.closing_lines(t)))
     print(f"report: {md} (and report.html, report.json)")

@@ -72,7 +72,8 @@ def so101(cfg: So101SweepConfig) -> int:
 
     check_options(cfg)
     out = sweep.run(cfg)
-    md = report.render(out, out / "report", real=[str(out / sweep.REAL_FILE)])
+    from sc3_jax.benchmarks.so101.hooks import object_pixels
+    md = report.render(out, out / "report", real=[str(out / sweep.REAL_FILE)], scene=object_pixels)
     t = read_json(out / "report" / "report.json")
     c = read_json(out / sweep.CHECK_FILE)
     what = f"the detector {cfg.detector}" if cfg.detector else f"the scorer {cfg.scorer}"

@@ -77,11 +77,11 @@ def policy_order(real_records) -> list[tuple[str, str]]:
 def compute(results, taus=None, draws: int = 2000, seed: int = 0, scene=None, real=None) -> dict:
     """Every number of the report of the store(s) at ``results``, whichever sweep wrote it: a sweep of held-out
     episodes (``report_episodes.compute``; ``real``: its real-outcome sources, None: the sweep's own) or a bench
-    sweep (:func:`bench`; ``scene``: the benchmark's object measure). ``taus``: other candidate thresholds, read
+    sweep (:func:`bench`); ``scene``: the benchmark's object measure (objects kept). ``taus``: other candidate thresholds, read
     from the stored U_chunk (no new rollouts)."""
     roots = [results] if isinstance(results, (str, Path)) else list(results)
     if len(roots) == 1 and report_episodes.is_store(roots[0]):
-        return report_episodes.compute(roots[0], real, draws, seed, taus)
+        return report_episodes.compute(roots[0], real, draws, seed, taus, scene)
     if real:
         raise UserError("--real applies to a sweep of held-out episodes (sc3 sweep episodes); a bench sweep's real "
                         "rollouts are in its store")
@@ -437,13 +437,8 @@ def tables(t: dict) -> list[tuple[str, list[str], list[list[str]]]]:
                 for k, q in list(p.get("by_split", {}).items()) + [(metrics.OVERALL, p)]]
         out.append(("Offline PSNR (dB, mean over valid frames)", ["split", "rollouts"] + p["views"] + ["mean"], rows))
     if t.get("permanence"):
-        p = t["permanence"]
-        cols = list(next(iter(p.values()))["kept"])
-        out.append(("Objects kept (object permanence): the benchmark's measure of its objects in the online "
-                    "rollouts' frames over that of the real rollouts' at the same time, summed over the evaluation "
-                    "conditions whose frames the store keeps; 95% bootstrap over conditions. 1: the objects stay; "
-                    "toward 0: they fade.", ["time", "rollouts"] + cols,
-                    [[label, str(e["rollouts"])] + [ci(e["kept"][c]) for c in cols] for label, e in p.items()]))
+        out.append(report_html.kept_table(t["permanence"], "online: the online rollouts' frames over the real "
+                                                           "rollouts' from the same evaluation conditions"))
     if t.get("training_data"):
         out.append(_training_data_table(t["training_data"]))
     d = t.get("diagnose") or {}

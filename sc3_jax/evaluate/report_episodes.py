@@ -35,7 +35,7 @@ import numpy as np
 from sc3_jax import atomic
 from sc3_jax.errors import UserError
 from sc3_jax.evaluate import bootstrap, calibrate, intervals
-from sc3_jax.evaluate.report_html import ci, fmt
+from sc3_jax.evaluate.report_html import ci, fmt, kept_table
 from sc3_jax.evaluate.ic_sweep import KIND, REAL_FILE
 from sc3_jax.evaluate.results import ResultsStore
 
@@ -49,10 +49,11 @@ def is_store(results: str | Path) -> bool:
 
 
 def compute(results: str | Path, real: tuple[str, ...] | list[str] | None = None, draws: int = 2000,
-            seed: int = 0, taus=None) -> dict:
+            seed: int = 0, taus=None, scene=None) -> dict:
     """Every number of the report of the store at ``results``. ``real``: real-outcome sources (``labels.py``;
     None: those the sweep was given, ``real.json``; (): none). ``taus``: other candidate thresholds (None: the
-    sweep's)."""
+    sweep's). ``scene``: a benchmark's scene measure; with it and the real frames a sweep kept
+    (``REAL_FRAMES/POLICY/EPISODE.npz``, as ``sc3 sweep so101`` keeps them), the closed-loop objects kept."""
     from sc3_jax.evaluate import labels
 
     store = ResultsStore(results)
@@ -94,7 +95,52 @@ def compute(results: str | Path, real: tuple[str, ...] | list[str] | None = None
         out["real"] = _versus_real(labels.read(real), names, criteria, by, ev_seeds, cal_seeds, cfg["taus"], units,
                                    passes, counts, w, draws, seed, out["warnings"])
         out["real"]["sources"] = list(real)
+    if scene is not None:
+        kept = closed_loop_kept(store, [r for r in recs if r["seed"] in ev_seeds], scene, draws, seed)
+        if kept:
+            out["permanence"] = kept
     return out
+
+
+REAL_FRAMES = "real_frames"
+
+
+def closed_loop_kept(store, recs: list[dict], scene, draws: int, seed: int) -> dict | None:
+    """``permanence.summary`` of the online rollouts whose real frames the store keeps (``REAL_FRAMES``); None when
+    it keeps none. The times are the kept files' (model steps after the last context frame)."""
+    from sc3_jax.evaluate import permanence
+    from sc3_jax.safe_names import join_inside
+
+    im, re, at, views = [], [], None, None
+    for r in recs:
+        path = join_inside(store.root / REAL_FRAMES, r["policy"], f"{r['episode']}.npz")
+        if not path.is_file():
+            continue
+        with atomic.open_npz(path, f"delete it and rerun the sweep to keep it again") as z:
+            real, at = z["frames"], [int(k) for k in z["at"]]
+        imagined = store.load_arrays(r["id"])["frames"]  # [V, 1 + N*l, ...]: index 0 the last context frame
+        ok = [i for i, k in enumerate(at) if k < imagined.shape[1]]
+        a, b = np.full((real.shape[0], len(at)), np.nan), np.full((real.shape[0], len(at)), np.nan)
+        a[:, ok], b[:, ok] = scene(imagined[:, [at[i] for i in ok]]), scene(real[:, ok])
+        im.append(a)
+        re.append(b)
+        views = views or real.shape[0]
+    if not im:
+        return None
+    seconds = store.config().get("episode_seconds")
+    if not seconds:  # the model's frame rate is the rollout's frames over its horizon
+        return None
+    hz = recs[0]["frames_per_chunk"] * recs[0]["num_chunks"] / seconds
+    labels = {label: at.index(k) for label, k in permanence.times(hz).items() if k in at}
+    return permanence.summary(np.stack(im), np.stack(re), labels, _view_names(store, views), draws, seed)
+
+
+def _view_names(store, n: int) -> list[str]:
+    from sc3_jax import checkpoint
+    try:
+        return list(checkpoint.read_config(store.config()["world_model"]).data.views)[:n]
+    except (UserError, OSError, KeyError):  # the world model moved since the sweep: the figures stand without names
+        return [f"view {i}" for i in range(n)]
 
 
 def _grid(by: dict, names: list[str], seeds: list[int], criteria: list[str], pick):
@@ -252,6 +298,9 @@ def tables(t: dict) -> list[tuple[str, list[str], list[list[str]]]]:
                     ["policy", "episodes"] + r["criteria"],
                     [[p, str(v["episodes"])] + [ci(v["rates"][c]) for c in r["criteria"]]
                      for p, v in r["policies"].items()]))
+    if t.get("permanence"):
+        out.append(kept_table(t["permanence"], "closed loop: the online rollouts' frames over the real rollouts' "
+                                               "from the same conditions"))
     if r and r["faithfulness"]:
         f = r["faithfulness"]
         rows = [[ROWS[k], str(f[k]["points"]), ci(f[k]["pearson"]), ci(f[k]["mmrv"]),

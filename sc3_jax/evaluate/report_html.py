@@ -42,6 +42,16 @@ def ci(cell: dict | None, nd: int = 3) -> str:
     return f"{fmt(cell['value'], nd)} [{fmt(cell['lo'], nd)}, {fmt(cell['hi'], nd)}]"
 
 
+def kept_table(p: dict, what: str) -> tuple[str, list[str], list[list[str]]]:
+    """The "objects kept" table of a ``permanence.summary`` (both sweeps' reports): per time, every view's value."""
+    cols = list(next(iter(p.values()))["kept"])
+    return (f"Objects kept (object permanence), {what}: the benchmark's measure of its objects in the imagined "
+            "frames over that in the real ones at the same time, summed over the conditions whose frames the store "
+            "keeps; 95% bootstrap over conditions. 1: the objects stay; toward 0: they fade.",
+            ["time", "rollouts"] + cols,
+            [[label, str(e["rollouts"])] + [ci(e["kept"][c]) for c in cols] for label, e in p.items()])
+
+
 def markdown_table(title: str, header: list[str], rows: list[list[str]]) -> str:
     return (f"## {title}\n\n| " + " | ".join(header) + " |\n|" + "---|" * len(header) + "\n" +
             "".join("| " + " | ".join(r) + " |\n" for r in rows))

@@ -8,6 +8,8 @@ floor and a split-half real-vs-real ceiling: ``report_episodes.py``).
                               after one HOLD step (the world model's two context frames) with the 14-D state
     OUT/real.csv              per policy and seed, the simulator's success (``info["succeed"]``) within the horizon
     OUT/scorer_check.json     the scorer's verdict on those real episodes' frames against the simulator's
+    OUT/real_frames/          per policy and seed, the real frames at the times the report's "objects kept" row
+                              reads (evaluate/permanence.py), so that it compares them with the imagined ones
     OUT/results.jsonl ...     the imagined rollouts (``evaluate/ic_sweep.py``'s store), OUT/report/
 
 Initial conditions are identical: the simulator is reset at seed ``EVAL_SEED0 + i`` and stepped once with ``HOLD``;
@@ -31,6 +33,7 @@ from sc3_jax.errors import UserError
 EVAL_SEED0 = 20_000_000  # as `sc3 so101 zoo-eval`: neither the collection's training nor held-out seeds
 HOLD_STEPS = 1  # one step from the reset gives the world model's second context frame (and opens the gripper)
 REAL_FILE, CHECK_FILE, IC_DIR = "real.csv", "scorer_check.json", "initial_conditions"
+BENCHMARK = "so101"  # whose scene measure `sc3 report` reads the kept real frames with (REAL_FRAMES/scene.json)
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -71,6 +74,7 @@ def run(cfg: So101SweepConfig) -> Path:
     """Every stage (see the module docstring); returns OUT."""
     from sc3_jax import checkpoint
     from sc3_jax.evaluate import ic_sweep
+    from sc3_jax.evaluate.results import check_policy_names
     from sc3_jax.evaluate.scorers import DETECTOR_PREFIX, load_outcome_scorer
     from sc3_jax.policies.resolve import resolve
 
@@ -96,7 +100,9 @@ def run(cfg: So101SweepConfig) -> Path:
     out.mkdir(parents=True, exist_ok=True)
     views, size = tuple(wcfg.data.views), tuple(wcfg.data.image_size)  # the world model's cameras, as it saw them
     write_conditions(out / IC_DIR, seeds, size, views)
-    real_outcomes(out, names, seeds, steps, size, views, scorer, cfg.workers, cfg.progress)
+    check_policy_names([_name(n) for n in names])  # each a folder of real_frames/ and rollouts/
+    real_outcomes(out, names, seeds, steps, size, views, scorer, cfg.workers, cfg.progress,
+                  wcfg.rollout.control_hz)
     ic_cfg = ic_sweep.ICSweepConfig(
         initial_conditions=str(out / IC_DIR), world_model=cfg.world_model, policies=tuple(names),
         scorer=spec, out=str(out), episodes=cfg.episodes, calibration_episodes=0,
@@ -139,7 +145,7 @@ def write_conditions(root: Path, seeds: list[int], image_size: tuple[int, int], 
 
 
 def real_outcomes(out: Path, names: list[str], seeds: list[int], steps: int, image_size: tuple[int, int],
-                  views: tuple[str, ...], scorer, workers: int, progress: bool) -> None:
+                  views: tuple[str, ...], scorer, workers: int, progress: bool, hz: float = 10.0) -> None:
     """Append to OUT/real.csv (policy, episode, success) the (policy, seed) episodes it lacks, and the scorer's
     verdicts on their frames to OUT/scorer_check.json (per policy: agreement of the scorer with the simulator)."""
     from tqdm import tqdm
@@ -161,6 +167,7 @@ def real_outcomes(out: Path, names: list[str], seeds: list[int], steps: int, ima
         for job, r in zip(jobs, tqdm(run_episodes(jobs, setup, workers), total=len(jobs), desc="real rollouts",
                                      unit="episode", disable=not progress)):
             said = _says_done(scorer, r.frames, r.seed)
+            keep_real_frames(out, _name(job.policy), f"seed{job.seed}", r.frames, hz)
             rows.append({"policy": _name(job.policy), "episode": f"seed{job.seed}",
                          "success": str(r.succeeded).lower()})
             c = check.setdefault(_name(job.policy), {"agree": 0, "n": 0, "sim_done": 0, "scorer_done": 0})
@@ -174,6 +181,22 @@ def real_outcomes(out: Path, names: list[str], seeds: list[int], steps: int, ima
                                        "agreement": total["agree"] / max(total["n"], 1),
                                        "what": "the scorer on the real episodes' frames (the rule it scores imagined "
                                                "rollouts with) against the simulator's success"})
+
+
+def keep_real_frames(out: Path, policy: str, episode: str, frames: np.ndarray, hz: float) -> None:
+    """``OUT/real_frames/POLICY/EPISODE.npz``: the real episode's frames [V, n, H, W, 3] at the report's times
+    (``at``: model steps after the last context frame; past the episode's end, its last frame: the simulator ends an
+    episode on success and the scene then stays as it is)."""
+    from sc3_jax.evaluate import permanence
+    from sc3_jax.evaluate.report_episodes import REAL_FRAMES
+    from sc3_jax.safe_names import join_inside
+
+    at = np.array(sorted(set(permanence.times(hz).values())), np.int64)
+    sel = np.moveaxis(frames[np.minimum(at, len(frames) - 1)], 1, 0)
+    root = out / REAL_FRAMES
+    if not (root / "scene.json").is_file():
+        atomic.write_json(root / "scene.json", {"benchmark": BENCHMARK})
+    atomic.save_npz(join_inside(root, policy, f"{episode}.npz"), frames=sel, at=at)
 
 
 def _name(spec: str) -> str:
