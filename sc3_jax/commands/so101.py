@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
-from typing import Annotated
+from typing import Annotated, Literal
 
 import tyro
 
@@ -35,6 +35,9 @@ class Collect:
     views: tuple[str, ...] = ("workspace", "wrist")
     """cameras to record: workspace (arm, block and goal fill the frame), wrist (follows the gripper), front (the
     simulator's whole-room view)"""
+    image_dtype: Literal["video", "image"] = "video"
+    """how frames are stored: video (h264 mp4 files, needs PyAV) or image (lossless PNG inside the parquet files:
+    no PyAV, larger)"""
     max_steps: int = 150
     """steps (at 10 Hz) after which an episode that has not succeeded is cut"""
     workers: int = 1
@@ -95,7 +98,7 @@ def _collect(a: Collect) -> int:
     from sc3_jax.benchmarks.so101.collect import collect
 
     s = collect(a.out, a.episodes, a.heldout, a.seed, a.image_size, a.max_steps, a.workers, a.progress,
-                a.views)
+                a.views, a.image_dtype)
     for split, d in s["splits"].items():
         recipes = ", ".join(f"{k} {v['success_rate']:.2f} of {v['n']}" for k, v in d["per_recipe"].items())
         print(f"{split}: {d['n']} episodes, {d['frames']} frames, success rate {d['success_rate']:.2f} "

@@ -72,8 +72,9 @@ NAMES = {"action": ACTION_NAMES, "observation.state": STATE_NAMES, "observation.
 
 def collect(out: str | Path, episodes: int, heldout: int = 0, seed: int = 0, image_size: tuple[int, int] = (80, 80),
             max_steps: int = MAX_STEPS, workers: int = 1, progress: bool = True,
-            views: tuple[str, ...] = VIEWS) -> dict:
+            views: tuple[str, ...] = VIEWS, image_dtype: str = "video") -> dict:
     """Write ``OUT/train`` (``episodes``) and ``OUT/heldout`` (``heldout``, if any) and ``OUT/collect.json``.
+    ``image_dtype``: "video" (h264, PyAV) or "image" (lossless PNG in the parquet: cv2 and pyarrow, no PyAV).
     Returns the summary written there."""
     from tqdm import tqdm
 
@@ -115,7 +116,8 @@ def collect(out: str | Path, episodes: int, heldout: int = 0, seed: int = 0, ima
             continue
         info = {INFO_ACTION_SPACE: action_space(),
                 "sc3_so101": {"env": ENV_ID, "split": split, "seed": seed, "action_scale_m": ACTION_SCALE}}
-        write_lerobot(out / split, split_episodes(split), FPS, names=NAMES, robot_type=ROBOT_TYPE, info=info)
+        write_lerobot(out / split, split_episodes(split), FPS, names=NAMES, robot_type=ROBOT_TYPE, info=info,
+                      image_dtype=image_dtype)
         summary["splits"][split] = {"path": str(out / split), **_rates(rows[split]), "episodes": rows[split]}
     summary["seconds"] = round(time.time() - t0, 1)
     atomic.write_json(out / "collect.json", summary, indent=1)
