@@ -100,9 +100,9 @@ def matmul_rate(seconds: float = 0.2) -> float:
     return 2 * n ** 3 * reps / (time.perf_counter() - t0)
 
 
-# a train step runs at about this share of the machine's matmul rate (measured on the 2-core CPU for `tiny` on two
-# 96x128 views and on its own synthetic 16x16 data: 0.2-0.4; bench/first_run.py prints the estimate and the truth)
-STEP_EFFICIENCY = 0.3
+# a train step runs at about this share of the machine's matmul rate (`tiny` on two 96x128 views on the 2-core CPU:
+# 15 GFLOP a step at 5.6 steps/s against ~430 GFLOP/s of matmul, 0.2; bench/first_run.py prints estimate and truth)
+STEP_EFFICIENCY = 0.2
 
 
 def cost(cfg, num_devices: int = 1) -> dict:
