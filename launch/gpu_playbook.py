@@ -35,8 +35,8 @@ launch/README.md. With a lease lent, SO-101 first:
 
     call 1  --phase so101                      collect (~3 min), import, start the trainer, export at 8.5 min
     call 2  --phase so101 --stop-trainer       the trainer went on between the calls; the last step exported
-    then, on the CPU: sc3 sweep so101 --world-model so101_STEP --detector so101_STEP/detector (the real outcomes
-    are kept: only the imagined half runs)
+    then, on the CPU: sc3 sweep so101 --world-model so101_STEP --scorer sc3_jax.benchmarks.so101.scorer:block_at_goal
+    (the real outcomes are kept: only the imagined half runs)
 
 On the GPU image the packages it lacks travel as wheels in ``.whl/`` and MuJoCo's EGL loaders as ``.deb`` files in
 ``.gl/`` (device README); the playbook installs them once per machine (``/tmp/site``) before anything else. The

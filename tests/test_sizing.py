@@ -106,3 +106,24 @@ def test_a_latent_config_without_its_tokenizer_names_the_command_that_makes_it(t
     err = capsys.readouterr().err
     assert rc == 2 and err.count("\n") == 1 and "sc3 train-tokenizer --data" in err
     assert not (tmp_path / "w").exists()
+
+
+def test_a_resumed_run_keeps_the_size_it_started_with(tmp_path):
+    """A workdir trained before sizing existed (8-px patches, batch 32, no frame_tokens in its config.json) resumes
+    with that size, not the one the sizing rule would pick today; a fresh workdir is sized."""
+    import json
+
+    from sc3_jax.commands.train import _sized
+
+    declared = load_config("tiny")
+    shaped = dataclasses.replace(_on(declared, (96, 128), 2), train=dataclasses.replace(
+        declared.train, workdir=str(tmp_path / "old")))
+    old = dataclasses.asdict(shaped)
+    del old["model"]["frame_tokens"]
+    (tmp_path / "old").mkdir()
+    (tmp_path / "old" / "config.json").write_text(json.dumps(old))
+    kept = _sized(shaped, declared, frozenset())
+    assert (kept.model.frame_tokens, kept.model.patch_size, kept.data.batch_size) == (None, 8, 32)
+    fresh = _sized(dataclasses.replace(shaped, train=dataclasses.replace(shaped.train, workdir=str(tmp_path / "new"))),
+                   declared, frozenset())
+    assert (fresh.model.frame_tokens, fresh.model.patch_size, fresh.data.batch_size) == (12, 32, 8)

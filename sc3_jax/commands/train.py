@@ -41,9 +41,7 @@ def main(argv: list[str]) -> int:
     if (Path(cfg.data.path) / "dataset.json").is_file():
         cfg = shape_from_dataset(cfg, cfg.data.path, explicit_fields(argv))
     _check_tokenizer(cfg)
-    cfg, note = sizing.size_from_data(cfg, declared, explicit_fields(argv))
-    if note:
-        print(note)
+    cfg = _sized(cfg, declared, explicit_fields(argv))
     cfg = _memory_plan(cfg, explicit_fields(argv))
     print(sizing.describe(sizing.cost(cfg, jax.device_count())), flush=True)
     last = train.train(cfg)
@@ -70,6 +68,47 @@ def _check_tokenizer(cfg) -> None:
             "--model.tokenizer-path TOK/tokenizer; or train on pixel patches with no tokenizer: --config tiny")
 
 
+SIZED_FIELDS = (("model", "frame_tokens"), ("model", "patch_size"), ("data", "batch_size"))
+
+
+def _sized(cfg, declared, explicit):
+    """The config sized from its data (``sizing.size_from_data``), printing what changed; a resumed run keeps the
+    size its workdir was started with (the sizing reads a lowered step's FLOPs, which need not land on the same side
+    of its threshold on another machine; a run must resume with the config it started with)."""
+    from sc3_jax import sizing
+
+    old = _saved_config(cfg)
+    if old is not None:
+        return _keep(cfg, old, SIZED_FIELDS, explicit)
+    cfg, note = sizing.size_from_data(cfg, declared, explicit)
+    if note:
+        print(note)
+    return cfg
+
+
+def _saved_config(cfg) -> dict | None:
+    """The workdir's config.json (a run to resume) as a dict, or None for a fresh run."""
+    from sc3_jax import atomic
+    from sc3_jax.validate import json_object
+
+    saved = Path(cfg.train.workdir) / "config.json"
+    if not saved.is_file():
+        return None
+    return json_object(atomic.read_json(saved), str(saved), "restore it, or train into a new --train.workdir")
+
+
+def _keep(cfg, old: dict, fields, explicit):
+    """``cfg`` with ``fields`` ((section, field) pairs) as the saved run has them, unless the command line names them
+    (a field the saved run predates keeps its default)."""
+    from sc3_jax.config import replace
+
+    for sec, f in fields:
+        if f"{sec}.{f}" not in explicit:
+            section = old.get(sec) if isinstance(old.get(sec), dict) else {}
+            cfg = replace(cfg, **{sec: {f: section.get(f, getattr(type(getattr(cfg, sec))(), f))}})
+    return cfg
+
+
 MEMORY_FIELDS = (("model", "attention_impl"), ("model", "remat"), ("train", "grad_accum"))
 
 
@@ -79,17 +118,11 @@ def _memory_plan(cfg, explicit):
     the plan its workdir was started with (free memory changes between runs; its config must not)."""
     import jax
 
-    from sc3_jax import atomic, plan
-    from sc3_jax.config import replace
+    from sc3_jax import plan
 
-    saved = Path(cfg.train.workdir) / "config.json"
-    if saved.is_file():
-        old = atomic.read_json(saved)
-        keep = {(sec, f): old.get(sec, {}).get(f) for sec, f in MEMORY_FIELDS if f"{sec}.{f}" not in explicit}
-        for (sec, f), v in keep.items():
-            if v is not None:
-                cfg = replace(cfg, **{sec: {f: v}})
-        return cfg
+    old = _saved_config(cfg)
+    if old is not None:
+        return _keep(cfg, old, MEMORY_FIELDS, explicit)
     cfg, note = plan.fit_to_memory(cfg, jax.device_count(), explicit)
     if note:
         print(note)

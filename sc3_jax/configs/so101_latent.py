@@ -34,7 +34,8 @@ def get_config(arg: str | None = None):
     cfg = load_config("bussing_latent")
     return replace(
         cfg, name="so101_latent",
-        # 48 tokens a frame over the views (the bussing model's budget): 4x4 latent patches on two 80x80 cameras
+        # 48 tokens a frame wanted over the views (the bussing model's budget): 4x4 latent patches on two 80x80
+        # cameras give 50
         model=dict(tokenizer_path="runs/so101/tokenizer/tokenizer", num_views=2, frame_tokens=48),
         data=dict(path="runs/so101/train", views=("workspace", "wrist"), image_size=(80, 80), context_frames=2,
                   future_frames=12, strides=(1, 1, 2)),

@@ -112,11 +112,13 @@ def _per_chunk(times: dict, chunk_s: float) -> float | None:
 
 
 def round_trip(tokenizer, frames: np.ndarray, image_size) -> np.ndarray:
-    """Real frames uint8 [V, n, H, W, 3] encoded and decoded by the world model's tokenizer, uint8."""
+    """Real frames uint8 [V, n, H, W, 3] encoded and decoded by the world model's tokenizer, uint8. Each frame is its
+    own clip: the frames are seconds apart, and a tokenizer that compresses time (a Wan VAE) would merge them."""
     import jax.numpy as jnp
 
     from sc3_jax.model.tokenizer import to_uint8
-    return np.asarray(to_uint8(tokenizer.decode(tokenizer.encode(jnp.asarray(frames)), tuple(image_size))))
+    clips = jnp.asarray(frames)[:, :, None]  # [V, n, 1, H, W, 3]
+    return np.asarray(to_uint8(tokenizer.decode(tokenizer.encode(clips), tuple(image_size))))[:, :, 0]
 
 
 def lines(sec: dict) -> tuple[str, list[str]]:

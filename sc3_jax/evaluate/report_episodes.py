@@ -107,17 +107,17 @@ REAL_FRAMES = "real_frames"
 
 def closed_loop_kept(store, recs: list[dict], scene, draws: int, seed: int) -> dict | None:
     """``permanence.summary`` of the online rollouts whose real frames the store keeps (``REAL_FRAMES``); None when
-    it keeps none. The times are the kept files' (model steps after the last context frame)."""
+    it keeps none. The times are the kept files' (``at``: model steps after the last context frame, at ``hz``)."""
     from sc3_jax.evaluate import permanence
     from sc3_jax.safe_names import join_inside
 
-    im, re, at, views = [], [], None, None
+    im, re, at, hz, views = [], [], None, None, None
     for r in recs:
         path = join_inside(store.root / REAL_FRAMES, r["policy"], f"{r['episode']}.npz")
         if not path.is_file():
             continue
-        with atomic.open_npz(path, f"delete it and rerun the sweep to keep it again") as z:
-            real, at = z["frames"], [int(k) for k in z["at"]]
+        with atomic.open_npz(path, "delete it and rerun the sweep to keep it again") as z:
+            real, at, hz = z["frames"], [int(k) for k in z["at"]], float(z["hz"])
         imagined = store.load_arrays(r["id"])["frames"]  # [V, 1 + N*l, ...]: index 0 the last context frame
         ok = [i for i, k in enumerate(at) if k < imagined.shape[1]]
         a, b = np.full((real.shape[0], len(at)), np.nan), np.full((real.shape[0], len(at)), np.nan)
@@ -127,10 +127,6 @@ def closed_loop_kept(store, recs: list[dict], scene, draws: int, seed: int) -> d
         views = views or real.shape[0]
     if not im:
         return None
-    seconds = store.config().get("episode_seconds")
-    if not seconds:  # the model's frame rate is the rollout's frames over its horizon
-        return None
-    hz = recs[0]["frames_per_chunk"] * recs[0]["num_chunks"] / seconds
     labels = {label: at.index(k) for label, k in permanence.times(hz).items() if k in at}
     return permanence.summary(np.stack(im), np.stack(re), labels, _view_names(store, views), draws, seed)
 

@@ -237,7 +237,6 @@ def check_actions(rid: str, actions, u_raw=None) -> None:
 
 # what a record's outcome fields hold; a record of one mode carries the same of them as every other of its mode
 OUTCOME_FIELDS = ("outcomes", "outcomes_by_cut", "objects", "perception", "u", "u_raw")
-OBJECT_CRITERIA = ("language", "lifting", "placing")
 
 
 def check_records(records: list[dict], path: Path, fix: str) -> None:
@@ -266,9 +265,10 @@ def check_records(records: list[dict], path: Path, fix: str) -> None:
             for cut, o in cuts.items():
                 _check_outcomes(o, f"outcomes_by_cut[{cut!r}]", bad)
         for k in ("objects", "perception"):
+            # an object is names (strings) and criteria (true / false), whichever the benchmark's criteria are
             if k in r and not (isinstance(r[k], list) and all(isinstance(o, dict) and all(
-                    isinstance(o.get(c, False), bool) for c in OBJECT_CRITERIA) for o in r[k])):
-                bad(f"{k} must be a list of objects whose {'/'.join(OBJECT_CRITERIA)} are true or false")
+                    isinstance(v, (bool, str)) for v in o.values()) for o in r[k])):
+                bad(f"{k} must be a list of objects whose criteria are true or false")
         for k in ("u", "u_raw"):
             if k in r and not (isinstance(r[k], list) and all(is_finite_number(x) for x in r[k])):
                 bad(f"{k} must be a list of finite numbers")

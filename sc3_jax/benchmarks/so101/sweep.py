@@ -196,7 +196,7 @@ def keep_real_frames(out: Path, policy: str, episode: str, frames: np.ndarray, h
     root = out / REAL_FRAMES
     if not (root / "scene.json").is_file():
         atomic.write_json(root / "scene.json", {"benchmark": BENCHMARK})
-    atomic.save_npz(join_inside(root, policy, f"{episode}.npz"), frames=sel, at=at)
+    atomic.save_npz(join_inside(root, policy, f"{episode}.npz"), frames=sel, at=at, hz=np.float64(hz))
 
 
 def _name(spec: str) -> str:
