@@ -1,16 +1,18 @@
-"""The SO-101 benchmark's world model (sc3_jax/benchmarks/so101, docs/so101.md): ``bussing_latent``'s recipe on one
-96 x 128 camera at the arm's 10 Hz, trained from the collected LeRobot data like any lab's.
+"""The SO-101 benchmark's world model (sc3_jax/benchmarks/so101, docs/so101.md): ``bussing_latent``'s recipe on the
+two cameras a lab mounts (``workspace`` from the side, ``wrist`` on the gripper; 80 x 80) at the arm's 10 Hz, trained
+from the collected LeRobot data like any lab's.
 
-96 x 128 frames -> a conv autoencoder's 24 x 32 x 16 latents -> 4 x 4 patches: 48 tokens a frame, as many as the
-bussing model's three 64 x 64 views. The model predicts l' = 12 frames and a rollout keeps l = 10, as the simulator
-executes the zoo's 10-action chunks; the 2 frames past a chunk are predicted with its last action held and
-discarded (``rollout.fill_chunk``). The store records the 14-D joint state, so ``sc3 train`` trains the learned
-state after the world model (``state_head.py``): policies inside the model read the robot's own state.
+80 x 80 frames -> a conv autoencoder's 20 x 20 x 16 latents -> 4 x 4 patches: 25 tokens a view, 50 a frame, as many
+as the one 96 x 128 room view had (``model.frame_tokens`` 48: sizing.py picks the patch). The model predicts l' = 12
+frames and a rollout keeps l = 10, as the simulator executes the zoo's 10-action chunks; the 2 frames past a chunk
+are predicted with its last action held and discarded (``rollout.fill_chunk``). Rollouts last the task's 10 s. The
+store records the 14-D joint state, so ``sc3 train`` trains the learned state after the world model
+(``state_head.py``): policies inside the model read the robot's own state.
 
-From nothing, on the 2-core machine (each step resumes what exists; the tokenizer needs no --views: it trains on
-the store's one camera):
+From nothing, on the 2-core machine (each step resumes what exists but the collection; the tokenizer trains on the
+store's two cameras):
 
-    sc3 so101 collect --out ~/sc3-runs/so101/data --episodes 300 --heldout 40 --workers 2
+    sc3 so101 collect --out ~/sc3-runs/so101/data --episodes 150 --heldout 24 --max-steps 100 --workers 2
     sc3 data import-lerobot ~/sc3-runs/so101/data/train --out ~/sc3-runs/so101/train
     sc3 data import-lerobot ~/sc3-runs/so101/data/heldout --out ~/sc3-runs/so101/heldout
     sc3 train-tokenizer --data ~/sc3-runs/so101/train --heldout ~/sc3-runs/so101/heldout \
@@ -18,14 +20,15 @@ the store's one camera):
         --ae.out-width 24 --ae.blocks 1 --ae.latent-channels 16
     sc3 train --config so101_latent --model.tokenizer-path ~/sc3-runs/so101/tokenizer/tokenizer \
         --data.path ~/sc3-runs/so101/train --train.workdir ~/sc3-runs/so101/world_model
-    sc3 train-detector ~/sc3-runs/so101/train --out ~/sc3-runs/so101/detector
-    sc3 sweep so101 --world-model ~/sc3-runs/so101/world_model --detector ~/sc3-runs/so101/detector \
-        --out ~/sc3-runs/so101/sweep
+    sc3 diagnose ~/sc3-runs/so101/world_model --data ~/sc3-runs/so101/heldout --benchmark so101 --out DIAG.json
+    sc3 sweep so101 --world-model ~/sc3-runs/so101/world_model \
+        --scorer sc3_jax.benchmarks.so101.scorer:block_at_goal --out ~/sc3-runs/so101/sweep
 
-Measured (2026-11-28, docs/results.md "SO-101: the sweep"): the tokenizer at step 1000 of 1500 reconstructs
-held-out frames at 38.5 dB (moving pixels 28.4 dB against 9.4 for the static frame); a world-model step costs ~3 s
-on the 2 cores alone, 5-8 s beside other work; at step 2,200 (1 h 41 min from 1,076) the sweep of 9 policies x 36
-seeds gives r -0.05, MMRV 0.315 against the floor's 0.201: the arm is still a blur (more steps, on a GPU).
+Measured (2026-11-28, docs/results.md "SO-101 with a lab's cameras"): collection 15 min (2 workers beside other
+work), the tokenizer 18 min (held-out moving pixels 29.3 dB workspace, 33.4 dB wrist, against 8.3 / 10.9 for the
+static frame); a world-model step ~2.5 s on the 2 cores alone (155 GFLOP). Expected: at the CPU's few thousand
+steps the imagined world still fades (the first camera's model kept 0.35 of the objects at 4 s after 2,200 steps);
+the GPU playbook's SO-101 phase trains it on.
 """
 from sc3_jax.config import load_config, replace
 
