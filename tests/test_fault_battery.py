@@ -89,6 +89,7 @@ def attack(pristine: Path, damage, argv) -> str:
         damage(root)
         out = Path(tmp) / "out"
         before = snapshot(Path(tmp))
+        leaks = _ours_in_temp()
         err, said = io.StringIO(), io.StringIO()
         with contextlib.redirect_stderr(err), contextlib.redirect_stdout(said):
             try:
@@ -102,7 +103,14 @@ def attack(pristine: Path, damage, argv) -> str:
         assert len(lines) == 1 and "Traceback" not in err.getvalue(), err.getvalue()[-3000:]
         after = {k: v for k, v in snapshot(Path(tmp)).items() if not k.startswith("out/")}
         assert after == before, f"changed outside OUT: {sorted(set(after.items()) ^ set(before.items()))[:3]}"
+        assert _ours_in_temp() <= leaks, f"left in the system temp folder: {sorted(_ours_in_temp() - leaks)}"
         return lines[0]
+
+
+def _ours_in_temp() -> set[str]:
+    """The product's own names in the system temp folder (a failed `lerobot:` start once left sc3-lerobot-*.log
+    there); other tests' temporaries (tmp*, pytest-*) come and go beside a parallel run, so only ours count."""
+    return {p.name for p in Path(tempfile.gettempdir()).glob("sc3*")}
 
 
 # -- the faults ---------------------------------------------------------------------------------------------------
