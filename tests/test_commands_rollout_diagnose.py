@@ -130,8 +130,8 @@ def test_a_world_model_without_a_config_is_a_one_line_error(command, tmp_path, c
     ("diagnose", ["wm", "--data", "h", "--episodes", "4", "--cf-starts", "1", "--out", "r.json", "--seed", "1",
                   "--max-seconds", "4", "--batch", "2", "--moving-threshold", "0.1", "--horizons", "0.8", "2",
                   "--perception", "p.npz", "--no-progress"],
-     dict(world_model="wm", data="h", episodes=4, cf_starts=1, out="r.json", seed=1, max_seconds=4.0, batch=2,
-          moving_threshold=0.1, horizons=(0.8, 2.0), perception="p.npz", progress=False, benchmark="bussing",
+     dict(world_model="wm", data="h", episodes=4, cf_starts=1, out="r.json", filmstrips=None, seed=1,
+          max_seconds=4.0, batch=2, moving_threshold=0.1, horizons=(0.8, 2.0), perception="p.npz", progress=False, benchmark="bussing",
           stages=("teacher_forced", "counterfactual", "open_loop"))),
 ])
 def test_the_spellings_from_before_still_parse(command, argv, expected):
