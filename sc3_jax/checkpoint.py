@@ -29,7 +29,7 @@ from sc3_jax.errors import UserError
 from sc3_jax.model import dit
 from sc3_jax.model.shapes import check_shapes
 from sc3_jax.model.tokenizer import token_geometry
-from sc3_jax.validate import is_finite_number, json_object, numeric
+from sc3_jax.validate import first_line, is_finite_number, json_object, numeric
 
 
 # ================================================================================================================
@@ -114,13 +114,9 @@ def load_params(path: str | Path, cfg: Config, step: int | None = None, sharding
         out = ocp.PyTreeCheckpointer().restore(item, args=ocp.args.PyTreeRestore(
             item=target, restore_args=ocp.checkpoint_utils.construct_restore_args(target), partial_restore=True))
     except Exception as e:  # noqa: BLE001  (tensorstore raises a bare Exception for a checkpoint cut short)
-        raise UserError(f"{item}: not a whole checkpoint of this config's model ({_first_line(e)}); restore it, or "
+        raise UserError(f"{item}: not a whole checkpoint of this config's model ({first_line(e)}); restore it, or "
                         "give another --step / model") from None
     return out["params"] if in_state else out
-
-
-def _first_line(e: BaseException) -> str:
-    return " ".join((str(e).strip().splitlines() or [type(e).__name__])[0].split())[:200]
 
 
 def load_init_from(cfg: Config, shardings=None) -> dict:

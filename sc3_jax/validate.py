@@ -24,7 +24,7 @@ def load_npy(path: str | os.PathLike, fix: str, mmap: bool = False) -> np.ndarra
     except (ValueError, OSError, EOFError, pickle.UnpicklingError) as e:
         if isinstance(e, OSError) and e.errno is not None:
             raise  # a file that cannot be opened: the command layer says so
-        raise UserError(f"{path}: not a whole .npy array ({_first_line(e)}); {fix}") from None
+        raise UserError(f"{path}: not a whole .npy array ({first_line(e)}); {fix}") from None
 
 
 def numeric(x: np.ndarray, where: str, fix: str) -> np.ndarray:
@@ -101,8 +101,16 @@ def check_host_memory(cfg, device_bytes: float = 0.0) -> None:
                         "or --data.image-size")
 
 
-def _first_line(e: BaseException) -> str:
-    return (str(e).strip().splitlines() or [type(e).__name__])[0][:200]
+def first_line(e: BaseException) -> str:
+    """An exception's first line, spaces collapsed, at most 200 characters: what a one-line error quotes of it."""
+    return " ".join((str(e).strip().splitlines() or [type(e).__name__])[0].split())[:200]
+
+
+def taus(values) -> None:
+    """Early-termination thresholds: each a non-negative number (inf: never stop), else one line."""
+    for t in values or ():
+        if math.isnan(t) or t < 0:
+            raise UserError(f"--taus {t}: a threshold is a non-negative number (inf: never stop)")
 
 
 def mask_paths(text: str) -> str:
@@ -111,5 +119,5 @@ def mask_paths(text: str) -> str:
     is not a path and stays."""
     word = r"[^\s'\"`,;()\[\]{}<>]+"
     rooted = rf"(?<![\w./])(?:~|\.\.?)?/(?!/){word}"  # not the // of a URL
-    relative = rf"(?<![\w/.~-])[\w.-]+(?:/[\w.-]+)*/[\w-]+\.[A-Za-z]\w{{0,5}}\b"
+    relative = r"(?<![\w/.~-])[\w.-]+(?:/[\w.-]+)*/[\w-]+\.[A-Za-z]\w{0,5}\b"
     return re.sub(rf"{rooted}|{relative}", "<path>", text)

@@ -40,16 +40,12 @@ MAX_DRAWS = 100_000  # a paired bootstrap's intervals settle long before; 2e8 dr
 
 def check_options(a: Args) -> None:
     """Each numeric option within what the report can use, in one line (``--draws 0`` was a traceback)."""
-    import math
+    from sc3_jax import validate
 
-    from sc3_jax.validate import in_range
-
-    in_range("--draws", a.draws, 10, MAX_DRAWS, "paired bootstrap draws")
+    validate.in_range("--draws", a.draws, 10, MAX_DRAWS, "paired bootstrap draws")
     if a.videos is not None:
-        in_range("--videos", a.videos, 0, 1000, "side-by-side videos")
-    for t in a.taus or ():
-        if math.isnan(t) or t < 0:
-            raise UserError(f"--taus {t}: a threshold is a non-negative number (inf: never stop)")
+        validate.in_range("--videos", a.videos, 0, 1000, "side-by-side videos")
+    validate.taus(a.taus)
 
 
 def scene_of(results: str):

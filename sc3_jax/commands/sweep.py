@@ -29,17 +29,13 @@ BOUNDS = {"episodes": (1, 100_000, "initial conditions per policy"),
 
 def check_options(cfg) -> None:
     """``cfg``'s numeric options within ``BOUNDS`` and its taus non-negative (inf: never stop)."""
-    import math
-
-    from sc3_jax.validate import in_range
+    from sc3_jax import validate
 
     for name, (low, high, what) in BOUNDS.items():
         value = getattr(cfg, name, None)
         if value is not None:
-            in_range(f"--{name.replace('_', '-')}", value, low, high, what)
-    for t in getattr(cfg, "taus", None) or ():
-        if math.isnan(t) or t < 0:
-            raise UserError(f"--taus {t}: a threshold is a non-negative number (inf: never stop)")
+            validate.in_range(f"--{name.replace('_', '-')}", value, low, high, what)
+    validate.taus(getattr(cfg, "taus", None))
 
 
 def bench(cfg: SweepConfig) -> int:
