@@ -48,7 +48,14 @@ def size_from_data(cfg, declared, explicit=frozenset()) -> tuple:
         return cfg, None
     notes = []
     if "model.patch_size" not in explicit:
-        patch = fit_patch(tuple(cfg.data.image_size), len(cfg.data.views), m.frame_tokens, _downsample(m))
+        size, views, down = tuple(cfg.data.image_size), len(cfg.data.views), _downsample(m)
+        patch = fit_patch(size, views, m.frame_tokens, down)
+        tokens = views * (size[0] // down // patch) * (size[1] // down // patch)
+        if tokens > 8 * m.frame_tokens:  # sides with few common divisors (97 x 128): no patch comes near the budget
+            raise UserError(f"data.image_size {size[0]}x{size[1]} tiles only into {tokens} tokens a frame near "
+                            f"model.frame_tokens={m.frame_tokens} (patch {patch}): import the data at a size whose "
+                            f"sides share divisors (sc3 data import-lerobot --image-size H W, e.g. multiples of 16), "
+                            "or name --model.patch-size")
         if patch != m.patch_size:
             notes.append(f"patch {m.patch_size} -> {patch} ({m.frame_tokens} tokens a frame wanted)")
         cfg = dataclasses.replace(cfg, model=dataclasses.replace(m, patch_size=patch))

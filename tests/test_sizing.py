@@ -127,3 +127,12 @@ def test_a_resumed_run_keeps_the_size_it_started_with(tmp_path):
     fresh = _sized(dataclasses.replace(shaped, train=dataclasses.replace(shaped.train, workdir=str(tmp_path / "new"))),
                    declared, frozenset())
     assert (fresh.model.frame_tokens, fresh.model.patch_size, fresh.data.batch_size) == (12, 32, 8)
+
+
+def test_an_image_size_no_patch_can_fit_is_one_line_naming_the_fix():
+    """97 x 128 has no common divisor but 1: thousands of 1-pixel tokens a frame would be a silent cost."""
+    from sc3_jax.errors import UserError
+
+    declared = load_config("tiny")
+    with pytest.raises(UserError, match="--image-size H W"):
+        sizing.size_from_data(_on(declared, (97, 128), 2), declared)
