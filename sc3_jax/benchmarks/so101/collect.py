@@ -26,7 +26,8 @@ import numpy as np
 from sc3_jax import atomic
 from sc3_jax.errors import UserError
 from .controllers import MIX, RECIPES
-from .env import ACTION_NAMES, ACTION_SCALE, ENV_ID, ENV_STATE_NAMES, STATE_NAMES, VIEWS, import_simulator
+from .env import (ACTION_NAMES, ACTION_SCALE, ENV_ID, ENV_STATE_NAMES, STATE_NAMES, VIEWS, check_views,
+                  import_simulator)
 from .rollouts import MAX_STEPS, EpisodeRecord, Job, Setup, run_episodes
 
 TASK = "pick the block and place it on the goal"
@@ -93,6 +94,7 @@ def collect(out: str | Path, episodes: int, heldout: int = 0, seed: int = 0, ima
     if max_steps < 2 or any(s % 2 for s in image_size):
         raise UserError(f"--max-steps {max_steps} --image-size {image_size[0]} {image_size[1]}: at least 2 steps, "
                         "even image sizes (the videos are yuv420p)")
+    check_views(views)  # a camera we do not render: one line now, before --out is made
     import_simulator()  # a missing extra: one line now, not from a worker
     seeds = {"train": [episode_seed(seed, i) for i in range(episodes)],
              "heldout": [heldout_seed(seed, j) for j in range(heldout)]}

@@ -58,6 +58,12 @@ def import_simulator():
     return gymnasium, mujoco, GymRenderingSpec, PLACE_SUCCESS_DISTANCE
 
 
+def check_views(views) -> None:
+    """One line for a camera the benchmark does not render (before any simulator or worker starts)."""
+    if not views or any(v not in CAMERAS and v != "front" for v in views):
+        raise UserError(f"SO-101 views {list(views)}: choose from {['front', *CAMERAS]}")
+
+
 class So101Env:
     """One SO-101 table. ``reset(seed)`` then ``step(action)``; ``render_views()`` is every camera of ``views``
     (``render()`` the first), cached until the next step (a policy and the recorder may both ask for a step's
@@ -68,9 +74,7 @@ class So101Env:
 
     def __init__(self, image_size: tuple[int, int] = (80, 80), goal_marker: bool = True,
                  views: tuple[str, ...] = VIEWS):
-        unknown = [v for v in views if v not in CAMERAS and v != "front"]
-        if not views or unknown:
-            raise UserError(f"SO-101 views {list(views)}: choose from {['front', *CAMERAS]}")
+        check_views(views)
         gym, mujoco, spec, self._success_radius = import_simulator()
         self._mujoco = mujoco
         self.views = tuple(views)
