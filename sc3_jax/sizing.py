@@ -60,10 +60,9 @@ def size_from_data(cfg, declared, explicit=frozenset()) -> tuple:
             notes.append(f"patch {m.patch_size} -> {patch} ({m.frame_tokens} tokens a frame wanted)")
         cfg = dataclasses.replace(cfg, model=dataclasses.replace(m, patch_size=patch))
     if "data.batch_size" not in explicit:
-        from sc3_jax import plan
-        budget = plan.train_step_flops(declared)
+        budget = step_flops(declared)
         batch = cfg.data.batch_size
-        per_sample = plan.train_step_flops(cfg) / batch  # a step's FLOPs grow with the batch, sample by sample
+        per_sample = step_flops(cfg) / batch  # a step's FLOPs grow with the batch, sample by sample
         while batch % 2 == 0 and batch > 1 and per_sample * batch > MAX_COST * budget:
             batch //= 2
         if batch != cfg.data.batch_size:
@@ -112,6 +111,18 @@ def matmul_rate(seconds: float = 0.2) -> float:
 STEP_EFFICIENCY = 0.2
 
 
+def step_flops(cfg) -> float:
+    """A train step's FLOPs from the lowered step at one and two layers, extrapolated per layer to the config's depth:
+    every layer costs the same, and lowering a deep model unrolled (what XLA's count needs) takes minutes at every
+    `sc3 train` start."""
+    from sc3_jax import plan
+
+    at = {d: plan.train_step_flops(dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, depth=d)))
+          for d in sorted({1, min(2, cfg.model.depth)})}
+    per_layer = at[2] - at[1] if 2 in at else 0.0
+    return at[1] + per_layer * (cfg.model.depth - 1)
+
+
 def cost(cfg, num_devices: int = 1) -> dict:
     """What one train step of ``cfg`` costs: tokens per frame and per sample, GFLOPs (the lowered step), the
     estimated seconds here, and the estimated memory (train state + activations, ``plan``)."""
@@ -121,7 +132,7 @@ def cost(cfg, num_devices: int = 1) -> dict:
     rows, cols = tokenizer.make_tokenizer(cfg.model).grid(tuple(cfg.data.image_size))
     names = sharding.mesh_axes(cfg.mesh)
     mesh_cfg = dataclasses.replace(cfg.mesh, **dict(zip(names, sharding.mesh_shape(cfg.mesh, num_devices))))
-    flops = plan.train_step_flops(cfg)
+    flops = step_flops(cfg)
     memory = sum(plan.state_bytes(cfg, mesh_cfg).values()) + plan.activation_estimate(cfg, mesh_cfg)
     return {"views": len(cfg.data.views), "frame_tokens": len(cfg.data.views) * rows * cols,
             "sample_tokens": tokenizer.tokens_per_sample(cfg), "batch": cfg.data.batch_size,
