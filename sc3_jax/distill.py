@@ -19,9 +19,11 @@ from sc3_jax.model.shapes import check_shapes
 RUN_FIELDS = ("dtype", "param_dtype", "remat", "scan_layers", "attention_impl", "attention_block", "tokenizer_path")
 
 
-def teacher_config(cfg: Config) -> Config | None:
+def teacher_config(cfg: Config, check_model: bool = True) -> Config | None:
     """The config of ``cfg.flow.distill_teacher`` (None when distillation is off), checked: its model config must
-    be the student's (up to ``RUN_FIELDS``); the student must start from saved params and must not self-force.
+    be the student's (up to ``RUN_FIELDS``; ``check_model=False``: not checked, for a FLOP count that lowers the
+    student at another depth, ``sizing.step_flops``); the student must start from saved params and must not
+    self-force.
     The teacher runs with the student's model config but its own compute dtype and its own time grid -- as it is
     sampled when evaluated."""
     f = cfg.flow
@@ -41,7 +43,7 @@ def teacher_config(cfg: Config) -> Config | None:
     except FileNotFoundError as e:
         raise UserError(str(e)) from None
     have, want = dataclasses.asdict(teacher.model), dataclasses.asdict(cfg.model)
-    for k in want:
+    for k in want if check_model else ():
         if k not in RUN_FIELDS and json.dumps(have.get(k)) != json.dumps(want[k]):
             raise UserError(f"flow.distill_teacher {f.distill_teacher}: its model.{k} is {have.get(k)!r}, this run's "
                             f"{want[k]!r}: distil into the teacher's own model config (train with its config, or set "

@@ -159,9 +159,12 @@ def _counting_cfg(cfg):
                    mesh=MeshConfig(1, 1, 1))
 
 
-def train_step_flops(cfg, compiled: bool = False) -> float:
+def train_step_flops(cfg, compiled: bool = False, check_teacher: bool = True) -> float:
     """Global FLOPs of one train step: bench/train_step.py's count (``compiled=True``) or the lowered module's.
-    With a Wan VAE tokenizer, the DiT's step on the VAE's tokens (the VAE's encode: ``vae_costs``)."""
+    With a Wan VAE tokenizer, the DiT's step on the VAE's tokens (the VAE's encode: ``vae_costs``). A distilled
+    step counts its teacher's passes with the teacher's params as shapes (never read); ``check_teacher=False``
+    skips the check that the teacher's model config is the student's (``sizing.step_flops`` lowers at one and two
+    layers)."""
     import jax
 
     from sc3_jax import sharding, train
@@ -169,8 +172,11 @@ def train_step_flops(cfg, compiled: bool = False) -> float:
     c = _counting_cfg(cfg)
     mesh = sharding.make_mesh(c.mesh, jax.devices()[:1])
     with shape_only_vae(c):  # a Wan VAE's encode is not in this count (vae_costs)
-        step, _ = train.compile_train_step(c, mesh)
         abstract = jax.eval_shape(lambda: train.init_state(c))
+        if c.flow.distill_teacher:
+            step = sharding.bind_mesh(jax.jit(train.make_train_step(c, check_teacher)), mesh)
+            return xla_cost.flops(step.lower(abstract, train.batch_shapes(c), abstract["params"]), compiled)
+        step, _ = train.compile_train_step(c, mesh)
         return xla_cost.flops(step.lower(abstract, train.batch_shapes(c)), compiled)
 
 

@@ -116,8 +116,11 @@ def step_flops(cfg) -> float:
     every layer costs the same, and lowering a deep model unrolled (what XLA's count needs) takes minutes at every
     `sc3 train` start."""
     from sc3_jax import plan
+    from sc3_jax.distill import teacher_config
 
-    at = {d: plan.train_step_flops(dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, depth=d)))
+    teacher_config(cfg)  # a distillation teacher of another model is refused here, at the config's own depth
+    at = {d: plan.train_step_flops(dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, depth=d)),
+                                   check_teacher=False)
           for d in sorted({1, min(2, cfg.model.depth)})}
     per_layer = at[2] - at[1] if 2 in at else 0.0
     return at[1] + per_layer * (cfg.model.depth - 1)

@@ -100,7 +100,7 @@ def window_data(cfg: Config):
     return dataclasses.replace(cfg.data, future_frames=cfg.data.future_frames + shift) if shift else cfg.data
 
 
-def make_train_step(cfg: Config):
+def make_train_step(cfg: Config, check_teacher: bool = True):
     """One optimizer step. dtype policy (as MaxText's weight_dtype/dtype): params, gradients and Adam moments are
     float32 -- the master weights -- and ``model.dtype`` (e.g. bfloat16) is the compute dtype every matmul casts
     its weights and activations to; norms' variances, attention softmax and the loss stay float32."""
@@ -119,7 +119,7 @@ def make_train_step(cfg: Config):
     opt = make_optimizer(cfg)
     K_tok = context_token_frames(cfg)
     shift = self_forcing_shift(cfg)
-    teacher_cfg = teacher_config(cfg)
+    teacher_cfg = teacher_config(cfg, check_teacher)
     if cfg.data.anchor and (K_tok is not None or teacher_cfg is not None):
         raise UserError("data.anchor needs one token frame per frame (tokenizer 'pixel' or 'conv_ae') and is not "
                         "wired into distillation yet: set data.anchor False")
