@@ -252,6 +252,22 @@ class FlowConfig:
     distill_steps: int = 2
     """the teacher's Euler steps for the video targets (the student takes 1); actions (inverse dynamics, which
     the sweep re-reads in 1 step) keep the teacher's 1-step read. Read only with distill_teacher"""
+    from_present: float = 0.0
+    """flow from the present: a noisy future frame's flow starts not from pure noise eps but from anchor +
+    from_present * eps, the anchor its view's last context frame (where that frame is clean): x_t = (1 - t) x +
+    t (anchor + from_present * eps), in training (flow.loss) and in the sampler (flow.sample: rollouts,
+    self-forcing, distillation). Unchanged content (a static block, the goal) then needs no drawing from noise, so
+    small objects are not lost. Actions keep pure noise. Part of what the model learned: rollouts read it from the
+    model's config. 0: off (pure noise)"""
+    per_frame_t: bool = False
+    """diffusion forcing: in training each future frame (all its views, and its action) draws its own noise level
+    (logit-normal, as t_logit_mean) instead of one per sample, so the model learns futures whose frames are
+    unequally noisy; sampling is unchanged (one level for all noisy tokens). One action per future token frame
+    only (not the time-compressed Cosmos3 layout). False: off (one level per sample)"""
+
+    def __post_init__(self):
+        if not 0.0 <= self.from_present < float("inf"):
+            raise ValueError(f"flow.from_present must be a finite number >= 0 (0: off), got {self.from_present!r}")
 
 
 @dataclasses.dataclass(frozen=True)

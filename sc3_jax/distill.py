@@ -22,8 +22,8 @@ RUN_FIELDS = ("dtype", "param_dtype", "remat", "scan_layers", "attention_impl", 
 def teacher_config(cfg: Config, check_model: bool = True) -> Config | None:
     """The config of ``cfg.flow.distill_teacher`` (None when distillation is off), checked: its model config must
     be the student's (up to ``RUN_FIELDS``; ``check_model=False``: not checked, for a FLOP count that lowers the
-    student at another depth, ``sizing.step_flops``); the student must start from saved params and must not
-    self-force.
+    student at another depth, ``sizing.step_flops``), and so must its flow.from_present (the source both sample
+    from); the student must start from saved params and must not self-force.
     The teacher runs with the student's model config but its own compute dtype and its own time grid -- as it is
     sampled when evaluated."""
     f = cfg.flow
@@ -48,6 +48,10 @@ def teacher_config(cfg: Config, check_model: bool = True) -> Config | None:
             raise UserError(f"flow.distill_teacher {f.distill_teacher}: its model.{k} is {have.get(k)!r}, this run's "
                             f"{want[k]!r}: distil into the teacher's own model config (train with its config, or set "
                             f"--model.{k.replace('_', '-')})")
+    if teacher.flow.from_present != f.from_present:  # teacher and student sample from one source (distill_loss)
+        raise UserError(f"flow.distill_teacher {f.distill_teacher}: its flow.from_present is "
+                        f"{teacher.flow.from_present}, this run's {f.from_present}: set --flow.from-present "
+                        f"{teacher.flow.from_present}")
     return dataclasses.replace(teacher, model=dataclasses.replace(cfg.model, dtype=teacher.model.dtype))
 
 

@@ -2,6 +2,12 @@
 
     x_t = (1 - t) x + t eps,   target velocity v = eps - x,   t = 1 pure noise, t = 0 clean.
 
+Two training-recipe levers (``FlowConfig``, both off by default):
+  * ``from_present`` = sigma > 0: a noisy future video token's source is anchor + sigma eps instead of eps (the
+    anchor: its view's last context frame, where that frame is clean; ``flow_source``), so
+    x_t = (1 - t) x + t (anchor + sigma eps) and v = anchor + sigma eps - x, in the loss and in the sampler alike.
+  * ``per_frame_t``: in training each future frame (its views and its action) draws its own t (diffusion forcing).
+
 The network's raw output is read in one of two ways (``ModelConfig.prediction``):
   * "velocity": the output is v directly (Cosmos3 checkpoints).
   * "residual": the output is the clean target minus an anchor (the last context frame of the same view for
@@ -21,14 +27,41 @@ from sc3_jax.model import dit
 
 def noise_inputs(video, actions, stride, video_noisy, action_noisy, t, eps_video, eps_actions, pose=None,
                  context_level=None, anchor_gap=None):
-    """Noised model inputs. ``t`` [B] is the sample's noise level, applied to its noisy tokens only."""
-    tv = jnp.where(video_noisy, t[:, None, None], 0.0)
-    ta = jnp.where(action_noisy, t[:, None], 0.0)
+    """Noised model inputs. ``t`` [B] is the sample's noise level, applied to its noisy tokens only; or [B, T] (one
+    per future frame, ``FlowConfig.per_frame_t``): future frame i (every view) and action i get ``t[:, i]`` (one
+    action per future token frame). ``eps_video``: the flow's source (pure noise, or ``flow_source``'s)."""
+    if t.ndim == 1:
+        tv = jnp.where(video_noisy, t[:, None, None], 0.0)
+        ta = jnp.where(action_noisy, t[:, None], 0.0)
+    else:
+        F, T = video.shape[2], actions.shape[1]
+        if t.shape[1] != T or T > F:
+            raise ValueError(f"per-frame noise levels {t.shape} need one action per future token frame (video "
+                             f"{video.shape[:3]}, actions {actions.shape[:2]})")
+        frame_t = jnp.concatenate([jnp.zeros((t.shape[0], F - T), t.dtype), t], axis=1)  # [B, F], context: 0
+        tv = jnp.where(video_noisy, frame_t[:, None, :], 0.0)
+        ta = jnp.where(action_noisy, t, 0.0)
     xv = jnp.where(video_noisy[..., None, None], (1 - tv[..., None, None]) * video + tv[..., None, None] * eps_video,
                    video)
     xa = jnp.where(action_noisy[..., None], (1 - ta[..., None]) * actions + ta[..., None] * eps_actions, actions)
     return dit.Inputs(xv, xa, tv, video_noisy, ta, action_noisy, stride, pose=pose, context_level=context_level,
                       anchor_gap=anchor_gap)
+
+
+def flow_source(video, video_noisy, eps, context_frames: int, from_present: float):
+    """The flow's source x_1 for the video tokens: ``eps`` (pure noise) when ``from_present`` is 0 (returned as
+    is), else anchor + from_present * eps for the future frames (token frames >= ``context_frames``) of every view
+    whose last context frame -- the anchor, ``video[:, :, K - 1]`` as given (the model's residual anchor) -- is
+    clean (not ``video_noisy``); eps elsewhere. Only the noisy tokens read it."""
+    if not from_present:
+        return eps
+    K = context_frames
+    if K < 1:
+        raise ValueError(f"flow.from_present needs a context frame to flow from (context frames {K})")
+    anchor = video[:, :, K - 1:K]  # [B, V, 1, P, D]
+    future = jnp.arange(video.shape[2]) >= K  # [F]
+    use = future[None, None, :] & ~video_noisy[:, :, K - 1:K]  # [B, V, F]
+    return jnp.where(use[..., None, None], anchor + from_present * eps, eps)
 
 
 def noise_context(video, level, key, context_frames: int):
@@ -72,9 +105,10 @@ def masked_loss(pred_v, pred_a, target_v, target_a, video_noisy_future, action_n
     return jnp.mean(per_sample), per_sample
 
 
-def draw_t(rng, batch: int, fcfg: FlowConfig) -> jax.Array:
-    """Per-sample noise levels, logit-normal, kept inside (0, 1)."""
-    t = jax.nn.sigmoid(fcfg.t_logit_mean + fcfg.t_logit_std * jax.random.normal(rng, (batch,)))
+def draw_t(rng, batch: int, fcfg: FlowConfig, frames: int | None = None) -> jax.Array:
+    """Per-sample noise levels [batch] (or per future frame [batch, frames]), logit-normal, kept inside (0, 1)."""
+    shape = (batch,) if frames is None else (batch, frames)
+    t = jax.nn.sigmoid(fcfg.t_logit_mean + fcfg.t_logit_std * jax.random.normal(rng, shape))
     return jnp.clip(t, 1e-3, 1.0)
 
 
@@ -89,11 +123,12 @@ def self_forced_window(params, cfg: ModelConfig, video, actions, stride, rng, gr
     (rollout.keep_frames), the rollout's next chunk -- whose context is what a rollout would feed it: the last K of
     [real context, the model's prediction of the first ``shift`` future frames], and whose poses are integrated
     through the first chunk's actions, as a rollout's are. That prediction is one forward pass of the whole batch
-    (static shapes; selected with ``jnp.where``): one Euler step from pure noise (``sample``, steps=1: the
-    conditional-mean estimate x0 = eps - v), forward dynamics from the real context, held constant for autodiff
-    (training learns from it, never through it). Later frames are real, so the loss targets stay real frames.
-    With ``anchor_gap`` [B] (data.anchor) token frame 0 is the episode's first frame: it stays frame 0 of both
-    windows, and a picked window's gap grows by shift x stride data frames, as a rollout's does chunk by chunk.
+    (static shapes; selected with ``jnp.where``): one Euler step from the flow's source (``sample``, steps=1: the
+    conditional-mean estimate x0 = x_1 - v; x_1 pure noise unless ``fcfg.from_present``), forward dynamics from
+    the real context, held constant for autodiff (training learns from it, never through it). Later frames are
+    real, so the loss targets stay real frames. With ``anchor_gap`` [B] (data.anchor) token frame 0 is the
+    episode's first frame: it stays frame 0 of both windows, and a picked window's gap grows by shift x stride data
+    frames, as a rollout's does chunk by chunk.
     Returns (video, actions, pose, anchor_gap, picked)."""
     B = video.shape[0]
     A = 0 if anchor_gap is None else 1  # the anchor's token frame, in front of the context
@@ -126,7 +161,9 @@ def loss(params, cfg: ModelConfig, video, actions, stride, rng, probs, grid, fcf
     With ``fcfg.self_forcing > 0`` the inputs are windows extended by ``self_forcing_shift`` frames, cut to the
     training windows by ``self_forced_window`` (its picks among forward-dynamics samples) before anything else.
     With ``fcfg.context_noise_max > 0`` the context frames are noised (``noise_context``) next; the targets stay the
-    clean frames. ``anchor_gap``: see ``dit.Inputs`` (data.anchor: token frame 0 is the episode's first frame)."""
+    clean frames. ``anchor_gap``: see ``dit.Inputs`` (data.anchor: token frame 0 is the episode's first frame).
+    ``fcfg.from_present``: the future video flows from the (context-noised) last context frame plus scaled noise
+    (``flow_source``); ``fcfg.per_frame_t``: each future frame and its action draw their own noise level."""
     k_mode, k_t, k_ev, k_ea = jax.random.split(rng, 4)
     picked = None
     if fcfg.self_forcing > 0:
@@ -149,14 +186,21 @@ def loss(params, cfg: ModelConfig, video, actions, stride, rng, probs, grid, fcf
         video = noise_context(video, context_level, k_cn, K)
     mode, kept = modes_lib.draw(k_mode, B, V, probs)
     video_noisy, action_noisy = modes_lib.masks(mode, kept, V, K, F - K, T)
-    t = draw_t(k_t, B, fcfg)
+    if fcfg.per_frame_t:
+        if F - K != T:
+            raise ValueError(f"flow.per_frame_t needs one action per future token frame ({F - K} future token "
+                             f"frames, {T} actions)")
+        t = draw_t(k_t, B, fcfg, T)
+    else:
+        t = draw_t(k_t, B, fcfg)
     eps_v = jax.random.normal(k_ev, video.shape, video.dtype)
     eps_a = jax.random.normal(k_ea, actions.shape, actions.dtype)
-    inp = noise_inputs(video, actions, stride, video_noisy, action_noisy, t, eps_v, eps_a, pose, context_level,
+    src_v = flow_source(video, video_noisy, eps_v, K, fcfg.from_present)
+    inp = noise_inputs(video, actions, stride, video_noisy, action_noisy, t, src_v, eps_a, pose, context_level,
                        anchor_gap)
     (v_v, v_a), (x0_v, x0_a) = predict(params, cfg, inp, grid, context_frames=context_frames)
     if cfg.prediction == "velocity":
-        preds, targets = (v_v, v_a), (eps_v[:, :, K:] - clean[:, :, K:], eps_a - actions)
+        preds, targets = (v_v, v_a), (src_v[:, :, K:] - clean[:, :, K:], eps_a - actions)
     else:
         preds, targets = (x0_v, x0_a), (clean[:, :, K:], actions)
     total, per_sample = masked_loss(*preds, *targets, video_noisy[:, :, K:], action_noisy,
@@ -214,7 +258,9 @@ def sample(params, cfg: ModelConfig, video, actions, stride, video_noisy, action
            cache: str = "auto", fcfg: FlowConfig = FlowConfig(), context_frames: int | None = None,
            pose=None, context_noise: float = 0.0, anchor_gap=None, context_kv=None):
     """Euler from t = 1 to t = 0 in ``steps`` Euler steps (``time_grid``); clean tokens held fixed. Returns (video,
-    actions) with the noisy positions filled in (the context frames as given, never their noised copy).
+    actions) with the noisy positions filled in (the context frames as given, never their noised copy). The noisy
+    tokens start at the flow's source: pure noise, or with ``fcfg.from_present`` the noisy future video at the last
+    context frame (as the model sees it: context-noised where ``context_noise``) plus scaled noise (``flow_source``).
 
     ``cache``: which clean prefix's keys/values are computed once and reused by every Euler step (exact only with
     ``context_attention="causal"``): "context" = the context frames, "video" = every frame (only for inverse mode:
@@ -232,7 +278,8 @@ def sample(params, cfg: ModelConfig, video, actions, stride, video_noisy, action
     if context_level is not None and context_noise > 0:
         video = noise_context(video, context_level, jax.random.fold_in(rng, 7), K)
     k_v, k_a = jax.random.split(rng)
-    video = jnp.where(video_noisy[..., None, None], jax.random.normal(k_v, video.shape, video.dtype), video)
+    source = flow_source(video, video_noisy, jax.random.normal(k_v, video.shape, video.dtype), K, fcfg.from_present)
+    video = jnp.where(video_noisy[..., None, None], source, video)
     actions = jnp.where(action_noisy[..., None], jax.random.normal(k_a, actions.shape, actions.dtype), actions)
     if cache == "auto":
         cache = "context" if cfg.context_attention == "causal" else "none"
@@ -273,11 +320,15 @@ def distill_loss(params, teacher_params, cfg: ModelConfig, video, actions, strid
     sweep re-reads actions with (``SweepConfig.inverse_steps``), so U_chunk -- and the tau calibrated on it -- keep
     the teacher's meaning. With residual prediction the student's one step is its clean estimate x0_hat, so the
     loss is on the flow loss's scale. ``teacher_cfg`` / ``teacher_fcfg``: the teacher's model (its compute dtype)
-    and its time grid (default: the student's). Metrics: the loss, per mode, and ``loss_teacher_1step`` /
-    ``loss_forward_teacher_1step``: the same loss for the teacher's own 1-step sample, where the student starts (a
-    student below it samples closer to the teacher's ``distill_steps`` steps than the teacher does in one)."""
+    and its time grid (default: the student's); both must flow from the same source (``from_present``). Metrics:
+    the loss, per mode, and ``loss_teacher_1step`` / ``loss_forward_teacher_1step``: the same loss for the
+    teacher's own 1-step sample, where the student starts (a student below it samples closer to the teacher's
+    ``distill_steps`` steps than the teacher does in one)."""
     teacher_cfg = cfg if teacher_cfg is None else teacher_cfg
     teacher_fcfg = fcfg if teacher_fcfg is None else teacher_fcfg
+    if teacher_fcfg.from_present != fcfg.from_present:
+        raise ValueError(f"flow.from_present: the teacher's {teacher_fcfg.from_present} and the student's "
+                         f"{fcfg.from_present} differ; both must sample from the same source")
     B, V, F = video.shape[:3]
     T = actions.shape[1]
     K = F - T if context_frames is None else context_frames
