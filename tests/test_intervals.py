@@ -10,6 +10,7 @@ import pytest
 from sc3_jax.evaluate import bootstrap, calibrate, degrade, intervals, metrics, report
 from sc3_jax.benchmarks.bussing import sweep
 from sc3_jax.evaluate.results import ResultsStore, seed_blocks
+from sc3_jax.stats import correlation, interval, rank_violation, resample
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -23,25 +24,25 @@ def test_bootstrap_hand_computed_case():
     real = np.array([[[1, 1, 1], [1, 0, 0]], [[1, 0, 0], [0, 0, 0]]], float)  # [P, n, C] cumulative passes
     ev = np.array([[[1, 1, 1], [1, 0, 0]], [[1, 0, 0], [1, 0, 0]]], float)
     counts = np.ones((2, 2))
-    w = bootstrap.counts_of(np.array([[0, 0], [0, 1], [1, 0], [1, 1]]), 2)
+    w = resample.counts_of(np.array([[0, 0], [0, 1], [1, 0], [1, 1]]), 2)
     np.testing.assert_array_equal(w, [[2, 0], [1, 1], [1, 1], [0, 2]])
     re_r, ev_r = bootstrap.rates(real, counts, w), bootstrap.rates(ev, counts, w)
     np.testing.assert_allclose(re_r[1], [[1, .5, .5], [.5, 0, 0]])
     np.testing.assert_allclose(ev_r[3], [[1, 0, 0], [1, 0, 0]])
     s, r = ev_r.reshape(4, -1), re_r.reshape(4, -1)
     # draw (2, 0): identical vectors; (1, 1): sum xy = 0.75, sxx = 1, syy = 17/24; (0, 2): r = (2/3) / sqrt(10/9)
-    np.testing.assert_allclose(bootstrap.pearson(s, r), [1.0, 0.75 / np.sqrt(17 / 24), 0.75 / np.sqrt(17 / 24),
-                                                         2 / np.sqrt(10)])
+    np.testing.assert_allclose(correlation.pearson(s, r), [1.0, 0.75 / np.sqrt(17 / 24), 0.75 / np.sqrt(17 / 24),
+                                                           2 / np.sqrt(10)])
     # MMRV: (1, 1): A-language (ev tie with B-language, real 1 > 0.5) violated by 0.5 -> 0.5 / 6; (0, 2): by 1 -> 1/6
-    np.testing.assert_allclose(bootstrap.mmrv(s, r), [0.0, 0.5 / 6, 0.5 / 6, 1 / 6])
+    np.testing.assert_allclose(rank_violation.mmrv(s, r), [0.0, 0.5 / 6, 0.5 / 6, 1 / 6])
     for b in range(4):  # and the scalar definitions agree
-        assert bootstrap.pearson(s[b], r[b]) == pytest.approx(metrics.pearson(s[b], r[b]))
-        assert bootstrap.mmrv(s[b], r[b]) == pytest.approx(metrics.mmrv(s[b], r[b]))
-    assert np.isnan(bootstrap.pearson(np.ones(3), np.arange(3.0)))  # a constant side, as metrics.pearson
-    iv = bootstrap.interval(np.r_[np.arange(101.0), np.nan])
+        assert correlation.pearson(s[b], r[b]) == pytest.approx(metrics.pearson(s[b], r[b]))
+        assert rank_violation.mmrv(s[b], r[b]) == pytest.approx(metrics.mmrv(s[b], r[b]))
+    assert np.isnan(correlation.pearson(np.ones(3), np.arange(3.0)))  # a constant side, as metrics.pearson
+    iv = interval.percentile(np.r_[np.arange(101.0), np.nan])
     assert (iv["lo"], iv["hi"], iv["nan_draws"]) == (pytest.approx(2.5), pytest.approx(97.5), 1)
-    w = bootstrap.multiplicities(7, 100, seed=3)
-    assert w.shape == (100, 7) and np.all(w.sum(1) == 7) and np.array_equal(w, bootstrap.multiplicities(7, 100, 3))
+    w = resample.multiplicities(7, 100, seed=3)
+    assert w.shape == (100, 7) and np.all(w.sum(1) == 7) and np.array_equal(w, resample.multiplicities(7, 100, 3))
 
 
 def test_evaluator_rows_match_a_slow_reference_loop():
@@ -59,7 +60,7 @@ def test_evaluator_rows_match_a_slow_reference_loop():
     seeds = list(range(n))
     rows = intervals.evaluator_rows(intervals.grid(real, pols, seeds), {"online": intervals.grid(ev, pols, seeds)},
                                     split_of, draws, seed=5)
-    w = bootstrap.multiplicities(n, draws, 5)
+    w = resample.multiplicities(n, draws, 5)
     splits = ("in_distribution", "overall")
     slow, minus_floor = {"pearson": [], "mmrv": []}, {(s, m): [] for s in splits for m in ("pearson", "mmrv")}
     for b in range(draws):

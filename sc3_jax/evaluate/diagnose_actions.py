@@ -16,6 +16,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from sc3_jax.stats import correlation
+
 if TYPE_CHECKING:
     from sc3_jax.evaluate.diagnose import DiagnoseConfig
 
@@ -131,9 +133,9 @@ def cf_section(rows, calib, views, third, dc: DiagnoseConfig) -> dict:
 
 
 def _corr(a, b) -> float:
-    if len(a) < 3 or np.std(a) == 0 or np.std(b) == 0:
-        return math.nan
-    return float(np.corrcoef(a, b)[0, 1])
+    """Pearson r of imagined against commanded displacements (``stats.correlation.pearson``: nan when either is
+    constant); nan below 3 pairs, where r is +-1 or undefined whatever the model does."""
+    return math.nan if len(a) < 3 else float(correlation.pearson(a, b))
 
 
 # -- inverse dynamics -----------------------------------------------------------------------------------------------

@@ -9,6 +9,8 @@ import math
 
 import numpy as np
 
+from sc3_jax.stats import resample
+
 BOOTSTRAP_DRAWS = 2000
 # objects with physics labels an outcome set needs to be read per category (issue 34's size): at 0.75 the binomial
 # 95% half-width is ~0.07 with 150 objects (more once episodes' correlation counts), ~0.11 with 60: a set of a few
@@ -96,9 +98,8 @@ def physics_reproduction(rows, seed: int = 0, draws: int = BOOTSTRAP_DRAWS) -> d
     category = lambda o: outcome_category({c: o[c] for c in CRITERIA})  # noqa: E731  (sim spells "no failure")
     pairs = [[(a, b) for a, b in zip(r["imagined"], r["physics"], strict=True)] for r in rows]  # per episode
     E = len(rows)
-    rng = np.random.default_rng(seed)
     # weights[d, e]: how often resampling d draws episode e (E draws with replacement)
-    weights = rng.multinomial(E, np.full(E, 1.0 / E), size=draws) if E >= 2 else None
+    weights = resample.multinomial_multiplicities(E, draws, seed) if E >= 2 else None
 
     def stat(hit, keep=lambda im, ph: True) -> dict:
         """Fraction of the kept (imagined, physics) objects where ``hit``, with its interval."""

@@ -1,4 +1,5 @@
-"""Faithfulness of every evaluator row, each r and MMRV with a paired bootstrap 95% interval (``bootstrap.py``).
+"""Faithfulness of every evaluator row, each r and MMRV with a paired bootstrap 95% interval (``bootstrap.py``; the
+statistics, the floor and the split-half ceiling are ``sc3_jax.stats``').
 
 Rows (evaluators), each compared with a *reference* -- the real rollouts scored by physics (end to end) or by the
 perception scorer (the same instrument that scores the imagined rollouts, the paper's protocol of one set of
@@ -23,13 +24,15 @@ real set is resampled independently (its seeds are other initial conditions).
 from __future__ import annotations
 
 import math
-import warnings
 
 import numpy as np
 
 from sc3_jax.errors import UserError
 from sc3_jax.evaluate import bootstrap, metrics
 from sc3_jax.evaluate.results import SPLIT_ORDER
+from sc3_jax.stats import correlation, floor, interval, rank_violation, resample, split_half
+
+STATISTICS = (("pearson", correlation.pearson), ("mmrv", rank_violation.mmrv))  # each row's, in table order
 
 
 def grid(recs: dict, policies: list[str], seeds: list[int], outcomes=lambda r: r["objects"]):
@@ -69,13 +72,10 @@ def compare(ev_point, re_point, ev_draws, re_draws, split_of: list[str], point_f
             if pts[0].shape[1] < 2:
                 continue
             cell = {"n": int(pts[0].shape[1])}
-            for name, fn in (("pearson", bootstrap.pearson), ("mmrv", bootstrap.mmrv)):
+            for name, fn in STATISTICS:
                 draws = fn(pts[2], pts[3])
-                if point_from_draws:
-                    point = float(np.median(draws[~np.isnan(draws)])) if (~np.isnan(draws)).any() else np.nan
-                else:
-                    point = float(fn(pts[0], pts[1])[0])
-                cell[name] = bootstrap.summary(point, draws)
+                point = split_half.point(draws) if point_from_draws else float(fn(pts[0], pts[1])[0])
+                cell[name] = interval.summary(point, draws)
             if c is None:
                 out["splits"][split] = cell
             else:
@@ -93,9 +93,9 @@ def difference(a_point, b_point, re_point, a_draws, b_draws, re_draws, split_of:
         pts = [_points(x, split_of, split) for x in (a_point, b_point, re_point, a_draws, b_draws, re_draws)]
         if pts[0].shape[1] < 2:
             continue
-        out[split] = {name: bootstrap.summary(float(fn(pts[0], pts[2])[0] - fn(pts[1], pts[2])[0]),
-                                              fn(pts[3], pts[5]) - fn(pts[4], pts[5]))
-                      for name, fn in (("pearson", bootstrap.pearson), ("mmrv", bootstrap.mmrv))}
+        out[split] = {name: interval.summary(float(fn(pts[0], pts[2])[0] - fn(pts[1], pts[2])[0]),
+                                             fn(pts[3], pts[5]) - fn(pts[4], pts[5]))
+                      for name, fn in STATISTICS}
     return out
 
 
@@ -106,8 +106,8 @@ def versus_floor(ev_point, re_point, ev_draws, re_draws, split_of: list[str]) ->
     bound") ignores that both come from the same real rollouts; the paired difference does not, so it is the
     sharper test of "better than a guess". The floor is this comparison's: from the reference rates of the cases the
     evaluator is compared on (the floor row's own when nothing is missing)."""
-    return difference(ev_point, policy_blind(re_point, split_of), re_point, ev_draws, policy_blind(re_draws, split_of),
-                      re_draws, split_of)
+    return difference(ev_point, floor.policy_blind(re_point, split_of), re_point, ev_draws,
+                      floor.policy_blind(re_draws, split_of), re_draws, split_of)
 
 
 def versus(reference, a, b, split_of: list[str], draws: int, seed: int) -> dict:
@@ -115,35 +115,10 @@ def versus(reference, a, b, split_of: list[str], draws: int, seed: int) -> dict:
     real set), each (passes, counts) on the reference's seeds: a case missing on any of the three sides is left out
     of all three, and one resample per draw serves all (the multiplicities of :func:`evaluator_rows`)."""
     both = (reference[1] > 0) & (a[1] > 0) & (b[1] > 0)
-    w, one = bootstrap.multiplicities(both.shape[1], draws, seed), np.ones((1, both.shape[1]))
+    w, one = resample.multiplicities(both.shape[1], draws, seed), np.ones((1, both.shape[1]))
     masked = [(p * both[..., None], c * both) for p, c in (a, b, reference)]
     return difference(*[bootstrap.rates(p, c, one) for p, c in masked],
                       *[bootstrap.rates(p, c, w) for p, c in masked], split_of)
-
-
-def policy_blind(rates: np.ndarray, split_of: list[str]) -> np.ndarray:
-    """[B, P, C] -> every policy gets its split's mean rate per criterion."""
-    out = np.empty_like(rates)
-    with warnings.catch_warnings():  # a split with no rollout in a draw (a partial sweep) is nan, said elsewhere
-        warnings.simplefilter("ignore", RuntimeWarning)
-        for s in set(split_of):
-            ps = [p for p, x in enumerate(split_of) if x == s]
-            out[:, ps] = np.nanmean(rates[:, ps], axis=1, keepdims=True)
-    return out
-
-
-def split_half(passes, counts, draws: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
-    """Rates [B, P, C] of the two halves of a random split of the n conditions, one split per draw."""
-    n = counts.shape[1]
-    if n < 2:
-        raise UserError("the split-half noise ceiling needs at least 2 evaluation conditions per policy; sweep "
-                        "more (--episodes) or a second real set (--ceiling-episodes)")
-    order = np.argsort(np.random.default_rng(seed).random((draws, n)), axis=1)
-    a = np.zeros((draws, n))
-    np.put_along_axis(a, order[:, :n // 2], 1.0, axis=1)
-    b = np.zeros((draws, n))
-    np.put_along_axis(b, order[:, n // 2:2 * (n // 2)], 1.0, axis=1)  # equal halves (one left out when n is odd)
-    return bootstrap.rates(passes, counts, a), bootstrap.rates(passes, counts, b)
 
 
 def evaluator_rows(reference, evaluators: dict, split_of: list[str], draws: int, seed: int,
@@ -155,7 +130,7 @@ def evaluator_rows(reference, evaluators: dict, split_of: list[str], draws: int,
     by the same instrument, or None (split-half); extra_vs_reference: more rows compared like evaluators."""
     rp, rc = reference
     n = rc.shape[1]
-    w = bootstrap.multiplicities(n, draws, seed)
+    w = resample.multiplicities(n, draws, seed)
     one = np.ones((1, n))
     rows = {}
     for name, (ep, ec) in {**evaluators, **(extra_vs_reference or {})}.items():
@@ -169,16 +144,19 @@ def evaluator_rows(reference, evaluators: dict, split_of: list[str], draws: int,
         rows[name] = compare(*rates, split_of)
         rows[name]["vs_floor"] = versus_floor(*rates, split_of)
     re_point, re_draws = bootstrap.rates(rp, rc, one), bootstrap.rates(rp, rc, w)
-    rows["policy_blind"] = compare(policy_blind(re_point, split_of), re_point, policy_blind(re_draws, split_of),
-                                   re_draws, split_of)
+    rows["policy_blind"] = compare(floor.policy_blind(re_point, split_of), re_point,
+                                   floor.policy_blind(re_draws, split_of), re_draws, split_of)
     if ceiling is not None:
         cp, cc = ceiling
-        w2 = bootstrap.multiplicities(cc.shape[1], draws, seed + 1)
+        w2 = resample.multiplicities(cc.shape[1], draws, seed + 1)
         rows["ceiling"] = compare(bootstrap.rates(cp, cc, np.ones((1, cc.shape[1]))), re_point,
                                   bootstrap.rates(cp, cc, w2), re_draws, split_of)
         rows["ceiling"]["method"] = f"second real set, {cc.shape[1]} conditions per policy"
     else:
-        a, b = split_half(rp, rc, draws, seed + 2)
+        if n < 2:
+            raise UserError("the split-half noise ceiling needs at least 2 evaluation conditions per policy; sweep "
+                            "more (--episodes) or a second real set (--ceiling-episodes)")
+        a, b = (bootstrap.rates(rp, rc, h) for h in split_half.condition_halves(n, draws, seed + 2))
         rows["ceiling"] = compare(a[:1], b[:1], a, b, split_of, point_from_draws=True)
         rows["ceiling"]["method"] = f"split-half: {n // 2} vs {n // 2} evaluation conditions (conservative)"
     return rows
@@ -202,8 +180,8 @@ def ranking(names, criteria, primary, point, draws, counts) -> list[dict]:
     for p in order:
         lo, hi = np.percentile(ranks[:, p], [2.5, 97.5])
         out.append({"policy": names[p], "rank": int(1 + (key > key[p]).sum()),
-                    "rollouts": int(counts[p].sum()), "score": bootstrap.summary(float(point_score[p]), sdraws[:, p]),
+                    "rollouts": int(counts[p].sum()), "score": interval.summary(float(point_score[p]), sdraws[:, p]),
                     "rank_interval": [int(lo), int(math.ceil(hi))], "p_best": float(np.mean(ranks[:, p] == 1)),
-                    "rates": {c: bootstrap.summary(float(point[0, p, k]), draws[:, p, k])
+                    "rates": {c: interval.summary(float(point[0, p, k]), draws[:, p, k])
                               for k, c in enumerate(criteria)}})
     return out

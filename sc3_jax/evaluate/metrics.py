@@ -7,6 +7,9 @@ Definitions follow SIMPLER (Li et al. 2024, "Evaluating Real-World Robot Manipul
 * Pearson r = sum(x*y) / sqrt(sum(x^2) * sum(y^2)) with x = S - mean(S), y = R - mean(R).
 * MMRV = (1/N) * sum_i max_j |R_i - R_j| * 1[(S_i > S_j) != (R_i > R_j)]   (empty max = 0, strict ``>``).
 
+Both formulas live in ``sc3_jax/stats/`` (one definition for a point and for a batch of bootstrap draws); here they
+take checked per-split vectors.
+
 Criteria per object are ordered and cumulative: language following -> lifting -> placing. An object passes
 criterion ``c`` only if it passes ``c`` *and every criterion before it* (an object that was never lifted has not
 been placed, whatever a scorer says about placing). The outcome category of an object is its first violated
@@ -21,6 +24,8 @@ from collections.abc import Hashable, Iterable, Mapping, Sequence
 from typing import Any
 
 import numpy as np
+
+from sc3_jax.stats import correlation, rank_violation
 
 CRITERIA: tuple[str, ...] = ("language", "lifting", "placing")
 CATEGORIES: tuple[str, ...] = ("language", "lifting", "placing", "no_failure")
@@ -59,59 +64,24 @@ def _paired_vectors(evaluator: Any, real: Any) -> tuple[np.ndarray, np.ndarray]:
 
 
 def pearson(evaluator: Sequence[float] | np.ndarray, real: Sequence[float] | np.ndarray) -> float:
-    """Pearson correlation between the evaluator's and the real success rates (symmetric in its arguments).
-
-    ``r = sum(x*y) / sqrt(sum(x^2) * sum(y^2))`` with ``x = evaluator - mean(evaluator)``,
-    ``y = real - mean(real)``; the result is clipped to [-1, 1] against rounding.
-
-    Degenerate case: if either vector is constant (all its values exactly equal), r is 0/0 and this returns
-    ``nan`` — without a numpy warning. Rationale: a constant vector carries no ranking, so no correlation value is
-    true. 0 would claim "unrelated", which is wrong when both are constant (perfect agreement) and flattering
-    when the evaluator is blind (constant) to real differences; 1 or -1 would be invented. ``nan`` keeps a results
-    table honest and poisons any average it enters, so nobody reports it by accident. MMRV stays defined in this
-    case and is the number to look at (a constant evaluator against varying real rates gets a large MMRV).
+    """Pearson r between the evaluator's and the real success rates: ``stats.correlation.pearson`` (the formula,
+    and ``nan`` for a constant vector, are documented there) on two checked vectors.
 
     Raises ValueError for different lengths, fewer than 2 points, non-finite or non-numeric values, or non-1-D
     input.
     """
-    s, r = _paired_vectors(evaluator, real)
-    if np.all(s == s[0]) or np.all(r == r[0]):
-        return float("nan")
-    x = s - s.mean()
-    y = r - r.mean()
-    sxx = float(np.sum(x * x))
-    syy = float(np.sum(y * y))
-    if sxx == 0.0 or syy == 0.0:  # not constant but the deviations underflowed: still undefined
-        return float("nan")
-    value = float(np.sum(x * y)) / (math.sqrt(sxx) * math.sqrt(syy))
-    return float(min(1.0, max(-1.0, value)))
+    return float(correlation.pearson(*_paired_vectors(evaluator, real)))
 
 
 def mmrv(evaluator: Sequence[float] | np.ndarray, real: Sequence[float] | np.ndarray) -> float:
-    """Mean Maximum Rank Violation of the evaluator's ranking against the real one (lower is better, >= 0).
-
-    ``MMRV = (1/N) * sum_i max_j |real_i - real_j| * 1[(evaluator_i > evaluator_j) != (real_i > real_j)]``,
-    max over all j (j = i never violates; an empty max is 0).
-
-    NOT symmetric: the *size* of a violation always comes from ``real``, and ``>`` is strict, so
-      * evaluator ties with different real values are violations (at the point whose real value is larger:
-        the evaluator failed to rank a real gap), sized by that real gap;
-      * real ties with different evaluator values are violations of size 0 (they cost nothing);
-      * constant evaluator: MMRV = mean(real - min(real)) (every point above the real minimum is violated by
-        the gap to it); constant real: MMRV = 0 whatever the evaluator says; both constant: 0.
-    Perfect (strictly order-preserving, ties matching) ranking gives 0. The result is at most max(real) -
-    min(real), so for success rates in [0, 1] it lies in [0, 1].
+    """Mean Maximum Rank Violation of the evaluator's ranking against the real one (lower is better, >= 0):
+    ``stats.rank_violation.mmrv`` (the formula, and why it is not symmetric, are documented there) on two checked
+    vectors.
 
     Raises ValueError for different lengths, fewer than 2 points, non-finite or non-numeric values, or non-1-D
     input.
     """
-    s, r = _paired_vectors(evaluator, real)
-    s_gt = s[:, None] > s[None, :]
-    r_gt = r[:, None] > r[None, :]
-    violation = s_gt != r_gt
-    size = np.abs(r[:, None] - r[None, :])
-    worst = np.max(np.where(violation, size, 0.0), axis=1)
-    return float(np.mean(worst))
+    return float(rank_violation.mmrv(*_paired_vectors(evaluator, real)))
 
 
 # --------------------------------------------------------------------------------------------------------------

@@ -21,6 +21,8 @@ from collections.abc import Callable, Iterable
 
 import numpy as np
 
+from sc3_jax.stats import resample
+
 SECONDS = (1.0, 2.0, 4.0, 6.0, 12.0)  # the times the report and diagnose read
 SceneMeasure = Callable[[np.ndarray], np.ndarray]  # frames uint8 [V, T, H, W, 3] -> amount of object [V, T]
 
@@ -49,7 +51,8 @@ def summary(im: np.ndarray, re: np.ndarray, times: dict[str, int], views: list[s
     index. Per label: {"rollouts", "kept": {"all views" and each view: {"value", "lo", "hi"}}} (95%
     bootstrap over rollouts); a time no rollout reaches is left out."""
     im, re = np.asarray(im, float), np.asarray(re, float)
-    idx = np.random.default_rng(seed).integers(0, len(im), (draws, len(im))) if len(im) else np.zeros((0, 0), int)
+    # each draw as a row of rollout indices: kept is recomputed (nan-aware) on the rollouts it picked
+    idx = resample.indices(len(im), draws, seed) if len(im) else np.zeros((0, 0), int)
     out = {}
     for label, k in times.items():
         if k >= im.shape[2]:

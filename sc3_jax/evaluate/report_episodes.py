@@ -11,15 +11,15 @@ recomputed in every draw (``rank_interval``, and ``p_best``: the share of draws 
 
 Against real outcomes (points: policy x criterion, the criteria both sides report), each with a 95% interval:
 
-    online        imagined rates (tau = inf) vs real rates: Pearson r, MMRV (``bootstrap.pearson`` / ``mmrv``)
+    online        imagined rates (tau = inf) vs real rates: Pearson r, MMRV (``stats.correlation``, ``rank_violation``)
     online_tau    the same rollouts cut at tau*, chosen on the held-out calibration conditions (highest r against
                   the real rates, ``calibrate.choose_tau``). The real set is one set here (no simulator to draw a
                   second one from), so tau* was chosen against the same real rates it is scored on: read the row as
                   optimistic by the choice among the candidates
-    policy_blind  the floor: every policy gets the mean real rate per criterion (``intervals.policy_blind``); with a
+    policy_blind  the floor: every policy gets the mean real rate per criterion (``stats.floor.policy_blind``); with a
                   single criterion it is constant, so its r is undefined (nan) and only its MMRV reads
-    ceiling       split-half of the real episodes (each policy's own, at random, one split per draw): how well the
-                  real set agrees with itself at half its size (conservative)
+    ceiling       split-half of the real episodes (each policy's own, at random, one split per draw,
+                  ``stats.split_half``): how well the real set agrees with itself at half its size (conservative)
 
 Draws resample the imagined conditions (paired across policies) and, independently, each policy's real episodes
 (real episodes are other starts, one set per policy). ``vs_floor``: evaluator minus floor on the same draws
@@ -38,6 +38,7 @@ from sc3_jax.evaluate import bootstrap, calibrate, intervals
 from sc3_jax.evaluate.report_html import ci, fmt, kept_table
 from sc3_jax.evaluate.ic_sweep import KIND, REAL_FILE
 from sc3_jax.evaluate.results import ResultsStore
+from sc3_jax.stats import floor, interval, resample, split_half
 
 ALL = ["all"]  # one "split": intervals' helpers pool every policy under metrics.OVERALL
 
@@ -75,7 +76,7 @@ def compute(results: str | Path, real: tuple[str, ...] | list[str] | None = None
     ev_seeds, cal_seeds = list(range(cfg["seed0"], cfg["seed0"] + n)), list(range(c0, c0 + cfg["calibration_episodes"]))
     units = cfg["tau_units"]
     primary = "success" if "success" in criteria else None
-    w = bootstrap.multiplicities(n, draws, seed)
+    w = resample.multiplicities(n, draws, seed)
     passes, counts = _grid(by, names, ev_seeds, criteria, lambda r: r["outcomes"])
     point, dr = bootstrap.rates(passes, counts, np.ones((1, n))), bootstrap.rates(passes, counts, w)
     out: dict = {"kind": KIND, "config": cfg, "read_from": str(store.root), "criteria": criteria,
@@ -159,7 +160,7 @@ def _real_rates(eps, names: list[str], criteria: list[str], draws: int, seed: in
     point, dr, per = np.zeros((1, len(names), len(criteria))), np.zeros((draws, len(names), len(criteria))), []
     for p, name in enumerate(names):
         x = np.array([[e.outcomes[c] for c in criteria] for e in eps if e.policy == name], float)  # [m, C]
-        wp = bootstrap.multiplicities(len(x), draws, seed + 1 + p)
+        wp = resample.multiplicities(len(x), draws, seed + 1 + p)
         point[0, p], dr[:, p] = x.mean(0), wp @ x / wp.sum(1, keepdims=True)
         per.append(x)
     return point, dr, per
@@ -169,20 +170,8 @@ def _faith(ev_point, re_point, ev_draws, re_draws) -> dict:
     """r and MMRV over every (policy, criterion) point, with intervals."""
     flat = [x.reshape(len(x), -1) for x in (ev_point, re_point, ev_draws, re_draws)]
     return {"points": int(flat[0].shape[1]),
-            **{k: bootstrap.summary(float(fn(flat[0], flat[1])[0]), fn(flat[2], flat[3]))
-               for k, fn in (("pearson", bootstrap.pearson), ("mmrv", bootstrap.mmrv))}}
-
-
-def _split_half(per: list[np.ndarray], draws: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
-    """Rates [B, P, C] of two random halves of each policy's real episodes, one split per draw."""
-    rng = np.random.default_rng(seed)
-    a, b = (np.zeros((draws, len(per), per[0].shape[1])) for _ in range(2))
-    for p, x in enumerate(per):
-        h = len(x) // 2
-        for d in range(draws):
-            i = rng.permutation(len(x))
-            a[d, p], b[d, p] = x[i[:h]].mean(0), x[i[h:2 * h]].mean(0)
-    return a, b
+            **{k: interval.summary(float(fn(flat[0], flat[1])[0]), fn(flat[2], flat[3]))
+               for k, fn in intervals.STATISTICS}}
 
 
 def _versus_real(eps, names, criteria, by, ev_seeds, cal_seeds, taus, units, passes, counts, w, draws, seed,
@@ -206,7 +195,7 @@ def _versus_real(eps, names, criteria, by, ev_seeds, cal_seeds, taus, units, pas
     rp, rd, per = _real_rates(eps, matched, shared, draws, seed)
     for p, name in enumerate(matched):
         out["policies"][name] = {"episodes": len(per[p]),
-                                 "rates": {c: bootstrap.summary(float(rp[0, p, k]), rd[:, p, k])
+                                 "rates": {c: interval.summary(float(rp[0, p, k]), rd[:, p, k])
                                            for k, c in enumerate(shared)}}
     if len(matched) < 2:
         warnings.append(f"real outcomes for {len(matched)} policy only: r and MMRV compare policies, give at least 2")
@@ -224,7 +213,7 @@ def _versus_real(eps, names, criteria, by, ev_seeds, cal_seeds, taus, units, pas
         if math.isfinite(tau):  # tau* = inf: the online row itself
             evaluators["online_tau"] = sub(*_grid(by, names, ev_seeds, criteria,
                                                   lambda r: r["outcomes_by_cut"][str(calibrate.cut(r, tau, units))]))
-    floor_p, floor_d = intervals.policy_blind(rp, ALL * len(matched)), intervals.policy_blind(rd, ALL * len(matched))
+    floor_p, floor_d = floor.policy_blind(rp, ALL * len(matched)), floor.policy_blind(rd, ALL * len(matched))
     rows = {}
     for name, (ps, cs) in evaluators.items():
         ep, ed = bootstrap.rates(ps, cs, np.ones((1, n))), bootstrap.rates(ps, cs, w)
@@ -236,12 +225,10 @@ def _versus_real(eps, names, criteria, by, ev_seeds, cal_seeds, taus, units, pas
                                                      rd[..., k:k + 1]) for k, c in enumerate(shared)}
     rows["policy_blind"] = _faith(floor_p, rp, floor_d, rd)
     if min(len(x) for x in per) >= 2:
-        a, b = _split_half(per, draws, seed + 2)
+        a, b = split_half.group_half_means(per, draws, seed + 2)  # rates [B, P, C] of each policy's halves
         ceil = _faith(a[:1], b[:1], a, b)
-        for k in ("pearson", "mmrv"):  # one split has no full-sample value: the median of the splits
-            d = bootstrap.pearson if k == "pearson" else bootstrap.mmrv
-            v = d(a.reshape(draws, -1), b.reshape(draws, -1))
-            ceil[k]["value"] = float(np.nanmedian(v)) if (~np.isnan(v)).any() else math.nan
+        for k, fn in intervals.STATISTICS:  # one split has no full-sample value: the median of the splits
+            ceil[k]["value"] = split_half.point(fn(a.reshape(draws, -1), b.reshape(draws, -1)))
         ceil["method"] = f"split-half of each policy's real episodes ({min(len(x) for x in per) // 2}+ per half)"
         rows["ceiling"] = ceil
     out["faithfulness"] = rows
@@ -263,10 +250,8 @@ def _tau_table(by, matched, cal_seeds, shared, taus, units, rp) -> list[dict]:
         table.append({"tau": str(tau), "cases": int(cs.sum()),
                       "termination_rate": float(np.mean(cut_early)) if cut_early else math.nan,
                       "faithfulness": {"overall": {
-                          "pearson": float(bootstrap.pearson(ev.reshape(1, -1), rp.reshape(1, -1))[0]) if ok
-                          else math.nan,
-                          "mmrv": float(bootstrap.mmrv(ev.reshape(1, -1), rp.reshape(1, -1))[0]) if ok
-                          else math.nan}}})
+                          k: float(fn(ev.reshape(1, -1), rp.reshape(1, -1))[0]) if ok else math.nan
+                          for k, fn in intervals.STATISTICS}}})
     return table
 
 
