@@ -3,7 +3,19 @@ subsample, l' = 24 predicted / l = 16 kept frames, policy chunk 25, AdamW 1e-4 /
 2,000 warm-up steps then cosine to 24,000 steps, global batch 512, modes (0.8, 0.1, 0.1), pseudo-actions p = 0.5.
 
 It uses 32x32 pixel patches (15 x 20 tokens per frame), not the Wan VAE (``model.tokenizer='wan2.2'``, see
-docs/wan_vae.md); `sc3 plan` / `jax.eval_shape` report its size without allocating it."""
+docs/wan_vae.md); `sc3 plan` / `jax.eval_shape` report its size without allocating it.
+
+    sc3 plan --config paper --mesh data=4,fsdp=8 --device gb200 --no-chunk       # anywhere: nothing is allocated
+    sc3 train --config paper --mesh.data 1 --mesh.fsdp 8 --data STORE --train.workdir CKPT    # one 8-GPU node
+    python launch/multihost.py ... -- train --config paper --data STORE ...      # several hosts: launch/README.md
+
+Measured (docs/plan.md, "Paper scale ... next to the paper"): 2,030,756,871 parameters, 25,224 tokens a sample,
+5.4e17 FLOPs a step: 16.9 s a step at MFU 0.4, 4.69 days for the 24,000 steps on 32 GB200 (the paper: 7.9 s and 2.2
+days, on Wan latents); as configured it does not fit (1,736 GB of activations a device, estimated), and fits with
+`--model.attention-impl fused --model.remat none --train.grad-accum 16` (117 GB of 186). One closed-loop chunk at 4
+of its 32 layers: 4.05 s on one H200, 32.4 s scaled to full depth against the paper's 2.3 s on one GB200
+(docs/results.md, "GPU lease of 2026-11-28"). Never trained here: no faithfulness measured; `sc3 plan`'s verdict
+line is the check."""
 from sc3_jax.config import Config, DataConfig, MeshConfig, ModelConfig, RolloutConfig, TrainConfig
 
 

@@ -13,14 +13,14 @@ From nothing, on the 2-core machine (each step resumes what exists but the colle
 store's two cameras):
 
     sc3 so101 collect --out ~/sc3-runs/so101/data --episodes 150 --heldout 24 --max-steps 100 --workers 2
-    sc3 data import-lerobot ~/sc3-runs/so101/data/train --out ~/sc3-runs/so101/train
-    sc3 data import-lerobot ~/sc3-runs/so101/data/heldout --out ~/sc3-runs/so101/heldout
+    sc3 data import-lerobot --data ~/sc3-runs/so101/data/train --out ~/sc3-runs/so101/train
+    sc3 data import-lerobot --data ~/sc3-runs/so101/data/heldout --out ~/sc3-runs/so101/heldout
     sc3 train-tokenizer --data ~/sc3-runs/so101/train --heldout ~/sc3-runs/so101/heldout \
-        --workdir ~/sc3-runs/so101/tokenizer --steps 1500 --batch-size 16 --ae.width 96 --ae.mid-width 48 \
+        --workdir ~/sc3-runs/so101/tokenizer --steps 1500 --batch 16 --ae.width 96 --ae.mid-width 48 \
         --ae.out-width 24 --ae.blocks 1 --ae.latent-channels 16
     sc3 train --config so101_latent --model.tokenizer-path ~/sc3-runs/so101/tokenizer/tokenizer \
-        --data.path ~/sc3-runs/so101/train --train.workdir ~/sc3-runs/so101/world_model
-    sc3 diagnose ~/sc3-runs/so101/world_model --data ~/sc3-runs/so101/heldout --benchmark so101 --out DIAG.json
+        --data ~/sc3-runs/so101/train --train.workdir ~/sc3-runs/so101/world_model
+    sc3 diagnose --world-model ~/sc3-runs/so101/world_model --data ~/sc3-runs/so101/heldout --benchmark so101 --out DIAG.json
     sc3 sweep so101 --world-model ~/sc3-runs/so101/world_model \
         --scorer sc3_jax.benchmarks.so101.scorer:block_at_goal --out ~/sc3-runs/so101/sweep
 
