@@ -1,7 +1,7 @@
 """A lab's first world model, timed: a two-camera 240x320 LeRobot dataset (synthetic frames, 4-D delta actions, a
 14-D state, 10 fps, like a recorded SO-101 one) imported at 96x128, then `sc3 train` on it two ways, in one run:
 the default path (`tiny`, its patch and batch sized from the data: sizing.py) and `tiny` before sizing (8-pixel
-patches and batch 32 whatever the image: `--model.patch-size 8 --data.batch-size 32`).
+patches and batch 32 whatever the image: `--model.patch-size 8 --batch 32`).
 
     python bench/first_run.py [--steps 30] [--old-steps 4] [--workdir DIR]
 
@@ -50,7 +50,7 @@ def train(store: Path, workdir: Path, steps: int, extra: list[str]) -> dict:
     """`sc3 train` in a child process, from nothing (a run of an earlier bench is removed): its printed cost line,
     steps/s of the last logged window, peak RSS."""
     shutil.rmtree(workdir, ignore_errors=True)
-    cmd = [sys.executable, "-m", "sc3_jax.cli", "train", "--data.path", str(store), "--train.workdir", str(workdir),
+    cmd = [sys.executable, "-m", "sc3_jax.cli", "train", "--data", str(store), "--train.workdir", str(workdir),
            "--train.steps", str(steps), "--train.log-every", str(max(1, steps // 3)), "--train.no-progress", *extra]
     t0 = time.time()
     p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
@@ -77,13 +77,13 @@ def main() -> None:
     if not store.exists():
         t0 = time.time()
         make_dataset(lerobot)
-        subprocess.run([sys.executable, "-m", "sc3_jax.cli", "data", "import-lerobot", str(lerobot), "--out",
+        subprocess.run([sys.executable, "-m", "sc3_jax.cli", "data", "import-lerobot", "--data", str(lerobot), "--out",
                         str(store), "--image-size", "96", "128"], check=True, stdout=subprocess.DEVNULL)
         print(f"dataset: 18 episodes, two 240x320 cameras, imported at 96x128 ({time.time() - t0:.0f} s)")
     runs = {"default": train(store, root / "default", a.steps, [])}
     if a.old_steps:
         runs["tiny_before"] = train(store, root / "tiny_before", a.old_steps,
-                                    ["--model.patch-size", "8", "--data.batch-size", "32"])
+                                    ["--model.patch-size", "8", "--batch", "32"])
     for name, r in runs.items():
         print(f"  {name}: {r['cost_line']}")
     for name, r in runs.items():

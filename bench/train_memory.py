@@ -4,7 +4,7 @@
                                  [--max-seconds 300]
 
 For each (views, attention kernel): a store of 3 random episodes of that many cameras at ``--size`` is written, then
-``sc3 train --config CONFIG --data.path STORE --train.steps STEPS`` runs in a fresh process (its peak resident set:
+``sc3 train --config CONFIG --data STORE --train.steps STEPS`` runs in a fresh process (its peak resident set:
 the kernel's VmHWM) with the kernel given as ``--model.attention-impl``, killed after ``--max-seconds`` (the steps
 done by then count); steps/s is the median
 over the logged steps after the first (compilation). A config that ``sc3 train`` refuses before compiling (it would
@@ -46,7 +46,7 @@ def store(root: Path, views: int, size: tuple[int, int]) -> Path:
 def measure(config: str, data: Path, workdir: Path, steps: int, impl: str, seconds: float):
     """(peak resident GB, median steps/s) of one training run in its own process, stopped after ``seconds`` (the
     peak is the kernel's high-water mark of its resident set, VmHWM, read until it ends); None when it was refused."""
-    cmd = [sys.executable, "-m", "sc3_jax.cli", "train", "--config", config, "--data.path", str(data),
+    cmd = [sys.executable, "-m", "sc3_jax.cli", "train", "--config", config, "--data", str(data),
            "--train.workdir", str(workdir), "--train.steps", str(steps), "--train.log-every", "1",
            "--train.ckpt-every", str(steps), "--train.no-progress", "--train.no-tensorboard",
            "--model.attention-impl", impl]

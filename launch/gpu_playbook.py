@@ -312,7 +312,7 @@ def phase_data(ctx: Ctx) -> dict:
                      "--no-progress"] + ([] if seconds is None else ["--seconds", f"{seconds:.0f}"])
     # MuJoCo and the controller's small jitted functions run on the CPU: 16 processes must not each take the GPU
     rc = call(cmd, ctx.log("data"), None if seconds is None else ctx.left() - 15, {"JAX_PLATFORMS": "cpu"})
-    stats = subprocess.run(ctx.sc3 + ["sim", "demos-stats", "--store", str(store)], cwd=ROOT, capture_output=True,
+    stats = subprocess.run(ctx.sc3 + ["sim", "demos-stats", "--data", str(store)], cwd=ROOT, capture_output=True,
                            text=True, env={**os.environ, "JAX_PLATFORMS": "cpu"})
     (ctx.out / "data_stats.txt").write_text(stats.stdout + stats.stderr)
     try:  # its JSON head ships inside every export: `sc3 report` shows what the model was trained on
@@ -353,19 +353,19 @@ def _trainer_cmd(ctx: Ctx, steps: int, job: str = "train") -> list[str]:
     if job == "so101":
         src = so101_from(a)
         config = str(_so101_config(ctx, src))
-        opts = {"data.path": ctx.run / "so101_data" / "train", "train.init-from": src, "data.batch-size": 64,
+        opts = {"data": ctx.run / "so101_data" / "train", "train.init-from": src, "batch": 64,
                 "data.read-threads": 12}
         if (src / "tokenizer").is_dir():  # config.json names it relative to the export
             opts["model.tokenizer-path"] = src / "tokenizer"
     else:
         config = "bussing_latent_gpu"
-        opts = {"data.path": ctx.run / "mixture", "train.init-from": SHIPPED, "train.lr": a.lr}
+        opts = {"data": ctx.run / "mixture", "train.init-from": SHIPPED, "train.lr": a.lr}
     opts.update({"train.workdir": ctx.run / job, "train.steps": steps, "train.ckpt-every": 100,
                  "train.keep-checkpoints": 3})
     if job == "distill":
         opts.update({"flow.distill-teacher": SHIPPED, "train.lr": a.distill_lr, "train.warmup-steps": 100})
     if a.dry_run:  # float32 on the CPU, a checkpoint per step, nothing in the background
-        opts.update({"data.batch-size": 2, "data.read-threads": 1, "model.dtype": "float32",
+        opts.update({"batch": 2, "data.read-threads": 1, "model.dtype": "float32",
                      "train.warmup-steps": 1, "train.ckpt-every": 1, "train.log-every": 1})
     flags = ["--train.no-progress"] + (["--train.no-async-checkpointing", "--train.no-tensorboard"] if a.dry_run
                                        else [])
@@ -460,8 +460,8 @@ def _so101_data(ctx: Ctx, src: Path) -> dict:
         rc = call(cmd, log, None if a.dry_run else ctx.left() - 30, env)
     for split in ("train", "heldout") if rc == 0 else ():
         done = D / f".{split}_imported"
-        if not done.exists() and call(ctx.sc3 + ["data", "import-lerobot", str(raw / split), "--out", str(D / split)],
-                                      log, None if a.dry_run else ctx.left() - 30, env) == 0:
+        importing = ["data", "import-lerobot", "--data", str(raw / split), "--out", str(D / split)]
+        if not done.exists() and call(ctx.sc3 + importing, log, None if a.dry_run else ctx.left() - 30, env) == 0:
             done.touch()  # the import is resumable, but a later call need not read the dataset again
     tail(log, ctx.out / "so101_data.log")
     res = {"rc": rc, "exports": ["so101_data.log"]}

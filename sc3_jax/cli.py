@@ -61,7 +61,9 @@ def usage() -> str:
         lines += textwrap.wrap(f"{name:<{width}}{text}", 116, initial_indent="  ", subsequent_indent=" " * (width + 2),
                                break_on_hyphens=False)
     return "\n".join(lines + ["", "`sc3 <command> --help` for the arguments of each; a config's fields as "
-                                  "--SECTION.FIELD VALUE", "wherever a command takes a config or a world model."])
+                                  "--SECTION.FIELD VALUE", "wherever a command takes a config or a world model. One "
+                                  "spelling in every command: --world-model DIR, --data DIR", "(a store), --batch N, "
+                                  "--sample-steps N (sc3_jax/commands/flags.py)."])
 
 
 def main(argv: list[str] | None = None) -> int:

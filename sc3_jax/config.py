@@ -1,4 +1,4 @@
-"""Frozen dataclass configs. Named experiment configs live in ``sc3_jax/configs/<name>.py`` (each defines ``get_config()``);
+"""Frozen dataclass configs. Named experiment configs live in ``configs/<name>.py`` (each defines ``get_config()``);
 any field can be overridden from the command line (``sc3 train --config tiny --train.steps 100``)."""
 from __future__ import annotations
 
@@ -365,7 +365,7 @@ class RolloutConfig:
     """termination threshold: a rollout stops at the first chunk whose U_chunk exceeds tau (in tau_units). None:
     follow the world model's action space (rollout.resolve_tau): 0.02 for the benchmark's delta_ee actions (the
     paper's value, in their raw units), no early termination (inf) for any other (14-D joint radians, say), whose
-    units 0.02 does not fit: calibrate one on held-out conditions (`sc3 sweep episodes --initial-conditions STORE --taus
+    units 0.02 does not fit: calibrate one on held-out conditions (`sc3 sweep episodes --data STORE --taus
     ...`, in the dataset's raw units) and pass it"""
     tau_units: str = "raw"
     """U_chunk's units, the one convention of `sc3 rollout`, `sc3 sweep` and the report: "raw" (metres / radians /
@@ -376,7 +376,7 @@ class RolloutConfig:
 @dataclasses.dataclass(frozen=True)
 class Config:
     """A world-model experiment: every setting of training, sampling and rollouts. Named configs live in
-    sc3_jax/configs/NAME.py; any field can be overridden as --SECTION.FIELD VALUE."""
+    configs/NAME.py; any field can be overridden as --SECTION.FIELD VALUE."""
 
     name: str = "tiny"
     """the config's name: a label (config.json, `sc3 demo`, `sc3 plan`, diagnostics); changes nothing else"""
@@ -399,8 +399,19 @@ class Config:
 
 
 def configs_dir() -> Path:
-    """The named configs: inside the package, so that a wheel or ``pip install .`` carries them."""
-    return Path(__file__).resolve().parent / "configs"
+    """The named configs: the checkout's top-level ``configs/``, installed as the package ``sc3_jax.configs``
+    (pyproject's package-dir). A wheel (``pip install .``) holds them at ``sc3_jax/configs/``; an editable install's
+    finder maps the name to the checkout's ``configs/``; a checkout on the path with no install (``PYTHONPATH=.``)
+    has no such package, and its ``configs/`` is the folder beside ``sc3_jax/``."""
+    try:
+        spec = importlib.util.find_spec("sc3_jax.configs")  # locates it, runs nothing
+    except ImportError:
+        spec = None
+    locations = spec.submodule_search_locations if spec is not None else None
+    for location in locations or ():
+        if Path(location).is_dir():  # (an editable finder carried to another machine may name a missing folder)
+            return Path(location).resolve()
+    return Path(__file__).resolve().parent.parent / "configs"
 
 
 def available_configs() -> list[str]:
@@ -408,8 +419,8 @@ def available_configs() -> list[str]:
 
 
 def load_config(name_or_path: str) -> Config:
-    """``name_or_path`` is a file path or the name of a file in ``sc3_jax/configs/``, optionally followed by ``:ARG``
-    (passed to its ``get_config(arg)``, e.g. ``ablation_no_id:tiny``)."""
+    """``name_or_path`` is a file path or the name of a file in ``configs/`` (``configs_dir()``), optionally followed
+    by ``:ARG`` (passed to its ``get_config(arg)``, e.g. ``ablation_no_id:tiny``)."""
     name_or_path, _, arg = name_or_path.partition(":")
     path = Path(name_or_path)
     if not path.suffix:

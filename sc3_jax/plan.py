@@ -1,6 +1,6 @@
 """``sc3 plan``: what a config costs on a mesh of accelerators, without allocating the model.
 
-    sc3 plan --config paper --mesh data=4,fsdp=8 --device gb200 [--mfu 0.4] [--compile] [--data.batch-size 256]
+    sc3 plan --config paper --mesh data=4,fsdp=8 --device gb200 [--mfu 0.4] [--compile] [--batch 256]
 
 Everything starts from abstract shapes (``jax.eval_shape``): nothing of the model is allocated, so a 2B-parameter
 config plans on a laptop in seconds.
@@ -24,7 +24,7 @@ config plans on a laptop in seconds.
   remat and the fewest micro-batches whose estimate fits (``fitting_plan``), with its own step FLOPs.
 * Times: FLOPs / (devices x peak x MFU). Peaks are approximate vendor dense-BF16 figures per chip (``DEVICES``).
 * Shape: views, image size, window, action (= imagined state) dimension and tokenizer all come from the config (a
-  store's dataset.json, through ``data.shape.shape_from_dataset``, in ``sc3 plan --data.path``); ``check_shape``
+  store's dataset.json, through ``data.shape.shape_from_dataset``, in ``sc3 plan --data``); ``check_shape``
   refuses, in one line naming the field, a shape the model cannot take, before anything is traced.
 * Wan VAE tokenizers: never allocated; their share is counted apart (``plan_vae.py``).
 """
@@ -64,9 +64,16 @@ def parse_mesh(text: str):
     return MeshConfig(**sizes)
 
 
+OWN_OPTION = {"data.path": "--data", "data.batch_size": "--batch"}  # config field -> its option in sc3 train / plan
+
+
 def config_flag(key: str, value) -> str:
     """The command-line option that sets config field ``key`` ("section.field") to ``value``, as every command
-    spells config overrides (``commands.parse_with_config``): ``--model.attention-impl ring``."""
+    spells config overrides (``commands.parse_with_config``): ``--model.attention-impl ring``; the two fields with an
+    option of their own in sc3 train and sc3 plan by it (``commands/flags.py`` CONFIG_FIELDS, a test ties the two):
+    ``--batch 64``."""
+    if key in OWN_OPTION:
+        return f"{OWN_OPTION[key]} {value}"
     section, _, field = key.partition(".")
     name = field.replace("_", "-")
     if isinstance(value, bool):
@@ -138,7 +145,7 @@ def check_shape(cfg, chunk: bool = True, action_space=None, data_fps: float = 20
 
 def default_action_space(cfg):
     """The action space the planner assumes without a store: the simulated benchmark's delta_ee for 7-D actions,
-    absolute targets otherwise (e.g. 14 ALOHA joint targets). Costs do not depend on it; ``sc3 plan --data.path``
+    absolute targets otherwise (e.g. 14 ALOHA joint targets). Costs do not depend on it; ``sc3 plan --data``
     uses the store's declaration."""
     from sc3_jax.data.action_space import DELTA_EE, ActionSpace
 
@@ -257,7 +264,7 @@ def chunk_flops(cfg, action_space=None, data_fps: float = 20.0) -> dict[str, flo
                                                                             "model step"))
     S, S_id = cfg.sample.steps, cfg.sample.inverse_steps or cfg.sample.steps
     return {"total": first + (S - 1) * fd + (S_id - 1) * idm, "first_step": first, "per_step": fd + idm,
-            "steps": S}
+            "steps": S, "inverse_steps": S_id}
 
 
 CHUNK_PARTS = ("tokenizer encode", "context encoding", "forward step", "inverse encoding", "inverse step",
@@ -514,7 +521,7 @@ def fit_to_memory(cfg, num_devices: int, fixed=frozenset()):
             f"has {free / 1e9:.1f} GB ({what})")
     fit = fitting_plan(cfg, mesh_cfg, "cpu" if jax.local_devices()[0].platform == "cpu" else "gpu", free - state)
     if fit is None:
-        raise UserError(f"{need}: nothing fits at this batch; lower --data.batch-size, --data.image-size or the "
+        raise UserError(f"{need}: nothing fits at this batch; lower --batch, --data.image-size or the "
                         "model's width")
     changed = {k for k, old, new in (("model.attention_impl", cfg.model.attention_impl, fit["attention_impl"]),
                                      ("model.remat", cfg.model.remat, fit["remat"]),
@@ -584,7 +591,7 @@ def plan(cfg, mesh_cfg, device: str, mfu: float = 0.4, compile: bool = False, ch
     sizes = _sizes(mesh_cfg)
     n = math.prod(sizes.values())
     if cfg.data.batch_size % (sizes["data"] * sizes["fsdp"]):
-        raise UserError(f"--data.batch-size: global batch {cfg.data.batch_size} does not divide over data x fsdp = "
+        raise UserError(f"--batch: global batch {cfg.data.batch_size} does not divide over data x fsdp = "
                         f"{sizes['data'] * sizes['fsdp']} of --mesh; change either")
     if action_space is not None and action_space.dim != cfg.model.action_dim:
         raise UserError(f"model.action_dim={cfg.model.action_dim}, but the action space is {action_space.dim}-D "
@@ -645,6 +652,7 @@ def plan(cfg, mesh_cfg, device: str, mfu: float = 0.4, compile: bool = False, ch
     if chunk:
         c = chunk_flops(cfg, action_space, data_fps)
         out["chunk_model_flops"], out["chunk_steps"] = c["total"], c["steps"]
+        out["chunk_inverse_steps"] = c["inverse_steps"]
         out["chunk_flops"] = c["total"] + (out["vae"]["chunk_encode_flops"] + out["vae"]["chunk_decode_flops"]
                                            if vae else 0.0)
         out["chunk_predict"] = cfg.data.future_frames
@@ -710,8 +718,10 @@ def format_plan(p: dict) -> str:
         split = "" if not p["vae"] else (
             f" = DiT {p['chunk_model_flops']:.3g} + VAE encode {p['vae']['chunk_encode_flops']:.3g} (the context) + "
             f"decode {p['vae']['chunk_decode_flops']:.3g} (every token frame)")
-        lines.append(f"rollout chunk (1 episode, {p['chunk_predict']} frames, FD + ID sampling, {p['chunk_steps']} "
-                     f"Euler steps each): {p['chunk_flops']:.4g} FLOPs{split} (lowered XLA cost analysis)")
+        steps = (f"{p['chunk_steps']} Euler steps each" if p["chunk_inverse_steps"] == p["chunk_steps"] else
+                 f"{p['chunk_steps']} + {p['chunk_inverse_steps']} Euler steps (--sample-steps, --inverse-steps)")
+        lines.append(f"rollout chunk (1 episode, {p['chunk_predict']} frames, FD + ID sampling, {steps}): "
+                     f"{p['chunk_flops']:.4g} FLOPs{split} (lowered XLA cost analysis)")
         lines.append(f"  at MFU {p['mfu']:.2f} on one {p['device']}: {p['chunk_seconds']:.3g} s/chunk")
     lines += [f"note: {n}" for n in p["notes"]]
     lines.append(verdict(p))

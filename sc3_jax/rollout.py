@@ -158,7 +158,7 @@ def resolve_tau(tau: float | None, action_space: ActionSpace) -> float:
     """``rollout.tau`` as a rollout of a world model acting in ``action_space`` uses it: as given, or where None
     (the default) ``BENCHMARK_TAU`` for the benchmark's delta_ee actions and inf (no early termination) for any other
     action space, whose units (joint radians, ...) that value means nothing in until a tau is calibrated on held-out
-    conditions in the dataset's own units (``sc3 sweep episodes --initial-conditions STORE --taus ...``)."""
+    conditions in the dataset's own units (``sc3 sweep episodes --data STORE --taus ...``)."""
     if tau is not None:
         return float(tau)
     return BENCHMARK_TAU if action_space.kind == "delta_ee" else math.inf

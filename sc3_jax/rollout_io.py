@@ -119,7 +119,7 @@ def offline(cfg, stats, params, store, ids, fps: float, spec, start: int, task: 
     from sc3_jax.evaluate.metrics import psnr_by_view
 
     if store is None:
-        raise UserError("--offline replays recorded actions: give an episode store as --initial-conditions")
+        raise UserError("--offline replays recorded actions: give an episode store as --data")
     eps = [store.load(e) for e in ids]
     n_off = min(min(rollout.max_offline_chunks(ep.length, spec, start) for ep in eps), spec.num_chunks)
     if n_off < 1:
@@ -205,7 +205,7 @@ def check_horizon(spec, episode_seconds: float, episodes: int) -> None:
     if avail is not None and frames > avail / 2:
         raise UserError(f"--rollout.episode-seconds {episode_seconds:g}: {episodes} episodes' frames need about "
                         f"{frames / 1e9:.1f} GB, this machine has {avail / 1e9:.1f} GB available; give fewer seconds "
-                        "or a smaller --batch-size")
+                        "or a smaller --batch")
 
 
 def check_result(result: dict, policy: str) -> None:

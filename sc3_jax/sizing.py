@@ -148,5 +148,5 @@ def describe(c: dict) -> str:
     return (f"cost: {c['frame_tokens']} tokens a frame over {c['views']} view(s) (patch {c['patch_size']}), "
             f"{c['sample_tokens']} a sample, batch {c['batch']}: {c['gflops']:.1f} GFLOP a step, about "
             f"{c['seconds']:.2g} s a step here and {c['memory_gb']:.1f} GB (estimates)\n"
-            "  to cut it: --model.frame-tokens N (fewer tokens a frame), --data.batch-size N, --data.views V ... "
+            "  to cut it: --model.frame-tokens N (fewer tokens a frame), --batch N, --data.views V ... "
             "(fewer cameras), --data.future-frames N")

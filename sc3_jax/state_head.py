@@ -201,7 +201,7 @@ def load(model_dir: str | Path) -> dict | None:
     path = Path(model_dir) / FILE
     if not path.exists():
         return None
-    with atomic.open_npz(path, "train it again: sc3 train-state WORLD_MODEL") as z:
+    with atomic.open_npz(path, "train it again: sc3 train-state --world-model WORLD_MODEL") as z:
         return {k: jnp.asarray(z[k]) for k in z.files if k != "meta"}
 
 

@@ -305,7 +305,7 @@ def prepare_data(cfg: Config):
         store = EpisodeStore(cfg.data.path)
     except FileNotFoundError as e:
         raise FileNotFoundError(f"{e}. Make a dataset first (`sc3 demo` writes synthetic episodes, `sc3 sim demos "
-                                f"--out DIR` simulator demonstrations) and pass --data.path DIR") from None
+                                f"--out DIR` simulator demonstrations) and pass --data DIR") from None
     stats_path = workdir / "norm_stats.json"
     src_stats = Path(cfg.train.init_from) / "norm_stats.json" if cfg.train.init_from else None
     if stats_path.exists():

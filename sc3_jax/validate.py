@@ -96,7 +96,7 @@ def check_host_memory(cfg, device_bytes: float = 0.0) -> None:
     need = host_batch_bytes(cfg) + device_bytes
     if need > avail:
         most = max(1, int(cfg.data.batch_size * avail / need))
-        raise UserError(f"--data.batch-size {cfg.data.batch_size}: its host-side batches need about {need / 1e9:.1f} "
+        raise UserError(f"--batch {cfg.data.batch_size}: its host-side batches need about {need / 1e9:.1f} "
                         f"GB, this machine has {avail / 1e9:.1f} GB available; lower it (at most about {most} here) "
                         "or --data.image-size")
 

@@ -12,15 +12,15 @@ sc3 sim demos --out $D --episodes 80 --seed 11 --grasp-noise 0.04
 sc3 sim demos --out $D --episodes 60 --seed 12 --action-noise 0.012
 sc3 sim demos --out $D --episodes 50 --seed 13 --release-noise 0.08
 sc3 sim demos --out $D --episodes 50 --seed 14 --wrong-destination-prob 0.4
-# the world model (sc3_jax/configs/bussing_sim.py); resumes from its latest checkpoint
-sc3 train --config bussing_sim --data.path $D --train.workdir $R/train --train.no-progress
+# the world model (configs/bussing_sim.py); resumes from its latest checkpoint
+sc3 train --config bussing_sim --data $D --train.workdir $R/train --train.no-progress
 # the perception scorer: the same demos + 300 expert episodes of both tasks + 140 zoo-policy episodes on training
 # seeds (a measuring instrument may see reverse bussing and the policies' behaviours; never the evaluation seeds)
-sc3 train-perception --store $D $R/scorer_data $R/scorer_zoo --generate 300 --generate-policies 140 \
+sc3 train-perception --data $D $R/scorer_data $R/scorer_zoo --generate 300 --generate-policies 140 \
     --steps 3000 --out $R/perception.npz
 # fine-tuned on 208 episodes of the current 13-policy zoo (seeds 7,000,000+), augmented with colour drift and patch
 # noise (the shipped weights: docs/sweep.md#scorers names the exact stores they were fine-tuned on)
-sc3 train-perception --store $R/scorer_data $R/scorer_zoo $R/scorer_zoo2 --generate-policies 208 \
+sc3 train-perception --data $R/scorer_data $R/scorer_zoo $R/scorer_zoo2 --generate-policies 208 \
     --policy-seed 70 --init $R/perception.npz --steps 3000 --lr 5e-4 --out $R/perception_ft.npz
 # small copies to commit (params as float16)
 python -c "from sc3_jax import checkpoint; checkpoint.export('$R/train', 'sc3_jax/evaluate/shipped/bussing_sim')"

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The accelerator run of the benchmark's world model (sc3_jax/configs/bussing_latent_gpu.py) on one GPU machine with 16
+# The accelerator run of the benchmark's world model (configs/bussing_latent_gpu.py) on one GPU machine with 16
 # cores, in phases that each fit one device call (docs/world_model.md#accelerator-run):
 #   bash scripts/gpu_world_model.sh data  RUN SECONDS   demos from 16 MuJoCo processes for SECONDS (EGL rendering)
 #   bash scripts/gpu_world_model.sh train RUN           start training in the background (own session: survives
@@ -48,7 +48,7 @@ data)
   ;;
 train)
   shift 2
-  setsid nohup python3 -m sc3_jax.cli train --config $CONFIG --data.path $D --train.workdir $W "$@" \
+  setsid nohup python3 -m sc3_jax.cli train --config $CONFIG --data $D --train.workdir $W "$@" \
     > $W.log 2>&1 < /dev/null &
   echo "trainer pid $!"
   ;;

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Rebuild the latent world model of the simulated benchmark (sc3_jax/configs/bussing_latent.py) from nothing. Resumable:
+# Rebuild the latent world model of the simulated benchmark (configs/bussing_latent.py) from nothing. Resumable:
 # every step skips or resumes what exists. Wall times measured on the 2-core CPU machine in docs/world_model.md.
 #   bash scripts/world_model.sh [RUNS_DIR] [EXTRA sc3 train ARGS...]
 set -euo pipefail
@@ -24,7 +24,7 @@ H=$R/heldout
 sc3 train-tokenizer --data $D --heldout $H --workdir $R/tokenizer --steps 2200 --ae.width 96 --ae.mid-width 48 \
   --ae.out-width 24 --ae.blocks 1 --ae.latent-channels 16 --no-progress
 # the world model on cached latents (the cache is built on the first run, in $R/latent_train/latents)
-sc3 train --config bussing_latent --model.tokenizer-path $R/tokenizer/tokenizer --data.path $D \
+sc3 train --config bussing_latent --model.tokenizer-path $R/tokenizer/tokenizer --data $D \
   --train.workdir $R/latent_train --train.no-progress "$@"
 # gate it on the held-out episodes
-sc3 diagnose $R/latent_train --data $H --out $R/latent_train/diagnose.json --sample.steps 8 --sample.inverse-steps 8
+sc3 diagnose --world-model $R/latent_train --data $H --out $R/latent_train/diagnose.json --sample-steps 8 --inverse-steps 8

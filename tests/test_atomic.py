@@ -107,8 +107,8 @@ def test_train_refuses_a_changed_config_before_writing(tmp_path, capsys):
     workdir.mkdir()
     atomic.write_json(workdir / "config.json", dataclasses.asdict(cfg))
     before = snapshot(workdir)
-    rc = main(["train", "--config", "tiny", "--train.workdir", str(workdir), "--data.batch-size", "16",
-               "--train.lr", "0.5", "--data.path", str(tmp_path / "none")])
+    rc = main(["train", "--config", "tiny", "--train.workdir", str(workdir), "--batch", "16",
+               "--train.lr", "0.5", "--data", str(tmp_path / "none")])
     err = capsys.readouterr().err
     assert rc == 2 and err.startswith("sc3 train: error: ") and err.count("\n") == 1, err
     assert "data.batch_size 32 -> 16" in err and "train.lr" in err and "--train.workdir" in err

@@ -4,7 +4,7 @@ from sc3_jax.cli import main
 
 
 def test_train_without_data_is_a_clear_error(tmp_path, capsys):
-    rc = main(["train", "--config", "tiny", "--data.path", str(tmp_path / "none"),
+    rc = main(["train", "--config", "tiny", "--data", str(tmp_path / "none"),
                "--train.workdir", str(tmp_path / "w")])
     err = capsys.readouterr().err
     assert rc == 2 and "no dataset.json" in err and "sc3 demo" in err
@@ -34,8 +34,10 @@ def test_a_sweep_names_its_job_and_the_old_spelling_says_the_new_one(capsys):
     assert main(["sweep", "--out", "x", "--episodes", "3"]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "`sc3 sweep bench --out x --episodes 3`" in err
-    assert main(["sweep", "--initial-conditions", "ic", "--out", "y"]) == 2
-    assert "`sc3 sweep episodes --initial-conditions ic --out y`" in capsys.readouterr().err
+    assert main(["sweep", "--data", "ic", "--out", "y"]) == 2
+    assert "`sc3 sweep episodes --data ic --out y`" in capsys.readouterr().err
+    assert main(["sweep", "--initial-conditions", "ic", "--out", "y"]) == 2  # and the store's spelling before --data
+    assert "`sc3 sweep episodes --data ic --out y`" in capsys.readouterr().err
     with pytest.raises(SystemExit):  # a usage error, as every command's: its required options are named
         main(["sweep", "episodes", "--out", "y"])
-    assert "--initial-conditions" in capsys.readouterr().err
+    assert "--data" in capsys.readouterr().err

@@ -42,22 +42,22 @@ def test_data_lists_its_subcommands_and_refuses_others(capsys):
 
 
 @pytest.mark.parametrize("where, argv, expected", [
-    ("data import-lerobot", ["root", "--out", "o", "--views", "left=cam_high", "wrist", "--wrist", "wrist", "--fps",
-                             "10", "--image-size", "48", "64", "--action-key", "act", "--pose-key", "pose",
+    ("data import-lerobot", ["--data", "root", "--out", "o", "--views", "left=cam_high", "wrist", "--wrist", "wrist",
+                             "--fps", "10", "--image-size", "48", "64", "--action-key", "act", "--pose-key", "pose",
                              "--allow-missing-pose"],
-     dict(root="root", out="o", views=("left=cam_high", "wrist"), wrist=("wrist",), fps=10.0, image_size=(48, 64),
+     dict(data="root", out="o", views=("left=cam_high", "wrist"), wrist=("wrist",), fps=10.0, image_size=(48, 64),
           action_key="act", pose_key="pose", allow_missing_pose=True, action_space=None, action_names=None,
           action_targets=None, state_key="auto", episodes=None, id_prefix="")),
-    ("data import-lerobot", ["root", "--out", "o"],
-     dict(root="root", out="o", views=None, wrist=None, fps=None, image_size=None, action_key="action",
+    ("data import-lerobot", ["--data", "root", "--out", "o"],
+     dict(data="root", out="o", views=None, wrist=None, fps=None, image_size=None, action_key="action",
           pose_key="observation.state", allow_missing_pose=False, action_space=None, action_names=None,
           action_targets=None, state_key="auto", episodes=None, id_prefix="")),
-    ("data export-lerobot", ["s", "--out", "o", "--version", "v2.1", "--codec", "av1", "--crf", "30", "--images",
+    ("data export-lerobot", ["--data", "s", "--out", "o", "--version", "v2.1", "--codec", "av1", "--crf", "30", "--images",
                              "image", "--views", "left", "right", "--overwrite"],
-     dict(store="s", out="o", version="v2.1", codec="av1", crf=30, images="image", views=("left", "right"),
+     dict(data="s", out="o", version="v2.1", codec="av1", crf=30, images="image", views=("left", "right"),
           overwrite=True)),
-    ("data export-lerobot", ["s", "--out", "o"],
-     dict(store="s", out="o", version="v3.0", codec="h264", crf=None, images="video", views=None, overwrite=False)),
+    ("data export-lerobot", ["--data", "s", "--out", "o"],
+     dict(data="s", out="o", version="v3.0", codec="h264", crf=None, images="video", views=None, overwrite=False)),
     ("serve-policy", ["--policy", "zero", "--host", "127.0.0.1", "--port", "0", "--family", "libero",
                       "--image-size", "48", "64", "--num-views", "2", "--task-prompt", "3=wipe it", "--task-prompt",
                       "4=stack", "--default-task", "1", "--api-key-file", "k", "--max-message-mb", "2", "--log-level",
@@ -71,9 +71,9 @@ def test_data_lists_its_subcommands_and_refuses_others(capsys):
     ("convert", ["--from", "diffusers", "src", "--to", "out", "--dtype", "bfloat16"],
      dict(src_kind="diffusers", src="src", to="out", dtype="bfloat16")),
     ("convert", ["src", "--from", "sc3", "--to", "out"], dict(src_kind="sc3", src="src", to="out", dtype="float32")),
-    ("demo", ["--out", "o", "--config", "small", "--steps", "5", "--episodes", "3"],
-     dict(out="o", config="small", steps=5, episodes=3)),
-    ("demo", [], dict(out="runs/demo", config="tiny", steps=None, episodes=200)),
+    ("demo", ["--out", "o", "--config", "small", "--steps", "5", "--episodes", "3", "--batch", "4"],
+     dict(out="o", config="small", steps=5, episodes=3, batch=4)),
+    ("demo", [], dict(out="runs/demo", config="tiny", steps=None, episodes=200, batch=None)),
 ])
 def test_the_spellings_from_before_still_parse(where, argv, expected):
     assert dataclasses.asdict(parse(TARGETS[where], argv, where)) == expected
@@ -92,15 +92,15 @@ def test_choices_are_the_librarys():
 
 
 def test_demo_takes_config_overrides_over_its_own_paths(tmp_path):
-    a, cfg = parse_with_config(demo.Args, ["--out", str(tmp_path), "--steps", "7", "--data.batch-size", "4"], "demo",
+    a, cfg = parse_with_config(demo.Args, ["--out", str(tmp_path), "--steps", "7", "--batch", "4"], "demo",
                                demo._config)
     assert (cfg.data.path, cfg.train.workdir) == (str(tmp_path / "episodes"), str(tmp_path / "train"))
     assert (cfg.train.steps, cfg.data.batch_size, a.episodes) == (7, 4, 200)
 
 
 @pytest.mark.parametrize("argv", [
-    ["data", "import-lerobot", "{tmp}/none", "--out", "{tmp}/o"],  # not a LeRobot dataset
-    ["data", "export-lerobot", "{tmp}/none", "--out", "{tmp}/o"],  # not an episode store
+    ["data", "import-lerobot", "--data", "{tmp}/none", "--out", "{tmp}/o"],  # not a LeRobot dataset
+    ["data", "export-lerobot", "--data", "{tmp}/none", "--out", "{tmp}/o"],  # not an episode store
     ["convert", "--from", "sc3", "{tmp}/none", "--to", "{tmp}/o"],  # no model there
     ["serve-policy", "--policy", "zero", "--log-level", "LOUD", "--port", "0"],
     ["serve-policy", "--policy", "zero", "--family", "libero", "--task-prompt", "wipe it", "--port", "0"],
@@ -114,7 +114,7 @@ def test_bad_input_is_rc_2_with_one_line(argv, tmp_path, capsys):
     assert not (tmp_path / "o").exists()
 
 
-@pytest.mark.parametrize("argv", [["data", "export-lerobot", "s", "--out", "o", "--codec", "vp9"],
+@pytest.mark.parametrize("argv", [["data", "export-lerobot", "--data", "s", "--out", "o", "--codec", "vp9"],
                                   ["convert", "--from", "torch", "s", "--to", "o"], ["convert", "s"],
                                   ["demo", "--stepz", "3"], ["serve-policy"]])
 def test_usage_errors_exit_2(argv, capsys):
@@ -131,13 +131,13 @@ def test_export_then_import_say_what_they_wrote(tmp_path, capsys):
 
     src = synthetic.generate(tmp_path / "s", 2, length=12, image_size=(16, 16), progress=False)
     frames = sum(src.load(e).length for e in src.episode_ids())
-    assert data.main(["export-lerobot", str(tmp_path / "s"), "--out", str(tmp_path / "lr"), "--views", "left",
+    assert data.main(["export-lerobot", "--data", str(tmp_path / "s"), "--out", str(tmp_path / "lr"), "--views", "left",
                       "wrist"]) == 0
     out = capsys.readouterr().out.strip().splitlines()[-1]
     assert out.startswith(f"exported 2 episodes, {frames} frames") and str(tmp_path / "lr") in out
     assert f"views left, wrist as observation.images.VIEW, actions (delta_ee {src.action_dim}-D) as action" in out
 
-    assert data.main(["import-lerobot", str(tmp_path / "lr"), "--out", str(tmp_path / "back"), "--views",
+    assert data.main(["import-lerobot", "--data", str(tmp_path / "lr"), "--out", str(tmp_path / "back"), "--views",
                       "l=observation.images.left", "wrist"]) == 0
     lines = capsys.readouterr().out.strip().splitlines()
     back = EpisodeStore(tmp_path / "back")
@@ -145,7 +145,7 @@ def test_export_then_import_say_what_they_wrote(tmp_path, capsys):
     assert lines[-2] == (f"imported 2 episodes (0 already there) from {tmp_path / 'lr'}; {tmp_path / 'back'} now "
                          f"holds 2 episodes, {frames} frames of views l, wrist at {src.fps} fps, 16x16, actions delta_ee "
                          f"{back.action_dim}-D")
-    assert lines[-1] == f"train on it: sc3 train --config NAME --data.path {tmp_path / 'back'}"
+    assert lines[-1] == f"train on it: sc3 train --config NAME --data {tmp_path / 'back'}"
 
 
 def test_serve_policy_prints_its_address_and_metadata(monkeypatch, capsys):

@@ -164,8 +164,8 @@ def test_the_help_check_catches_a_docstring_under_the_wrong_flag():
     ("rescore", ["r", "--perception", "p.npz", "--state-reader", "s.npz", "--no-progress"],
      dict(results="r", perception="p.npz", state_reader="s.npz", progress=False)),
     ("rescore", ["r"], dict(results="r", perception=None, state_reader=None, progress=True)),
-    ("diagnose-table", ["m1", "m2", "--baseline", "m1", "--out", "t.md"],
-     dict(models=("m1", "m2"), baseline="m1", out="t.md")),
+    ("diagnose-table", ["--world-model", "m1", "m2", "--baseline", "m1", "--out", "t.md"],
+     dict(world_model=("m1", "m2"), baseline="m1", out="t.md")),
     ("configs", [], {}),
 ])
 def test_the_spellings_from_before_still_parse(command, argv, expected):

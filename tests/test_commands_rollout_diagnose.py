@@ -23,15 +23,14 @@ COMMANDS = {"rollout": rollout_cmd, "diagnose": diagnose_cmd}
 
 def _required(command: str, wm) -> list[str]:
     if command == "rollout":
-        return ["--checkpoint", str(wm), "--policy", "zero", "--initial-conditions", "ics.npz", "--out", "o"]
-    return [str(wm), "--data", "heldout"]
+        return ["--world-model", str(wm), "--policy", "zero", "--data", "ics.npz", "--out", "o"]
+    return ["--world-model", str(wm), "--data", "heldout"]
 
 
 def _config(command: str, wm, *overrides: str):
     """The config the command would evaluate the world model under (parsing only: nothing runs)."""
     mod = COMMANDS[command]
-    return parse_evaluated(mod.Args, _required(command, wm) + list(overrides), command,
-                          "checkpoint" if command == "rollout" else "world_model")[1]
+    return parse_evaluated(mod.Args, _required(command, wm) + list(overrides), command)[1]
 
 
 @pytest.fixture(scope="module")
@@ -91,17 +90,21 @@ def test_rollout_diagnose_and_sweep_sample_a_world_model_alike(wm, tmp_path, mon
 
 
 @pytest.mark.parametrize("command", sorted(COMMANDS))
-def test_a_dotted_override_reaches_the_config(command, wm):
-    cfg = _config(command, wm, "--sample.steps", "8", "--rollout.tau", "0.05", "--rollout.episode-seconds", "6")
+def test_the_sampler_steps_and_a_dotted_override_reach_the_config(command, wm):
+    cfg = _config(command, wm, "--sample-steps", "8", "--rollout.tau", "0.05", "--rollout.episode-seconds", "6")
     assert (cfg.sample.steps, cfg.rollout.tau, cfg.rollout.episode_seconds) == (8, 0.05, 6.0)
     assert cfg.sample.inverse_steps == SweepConfig().inverse_steps  # what was not overridden keeps the sampler's
-    assert _config(command, wm, "--sample.inverse-steps", "None").sample.inverse_steps is None  # the model's own
+    from sc3_jax import checkpoint
+    own = checkpoint.read_config(wm).sample
+    cfg = _config(command, wm, "--sample-steps", "None", "--inverse-steps", "None")  # the model's own
+    assert (cfg.sample.steps, cfg.sample.inverse_steps) == (own.steps, own.inverse_steps)
 
 
 @pytest.mark.parametrize("command", sorted(COMMANDS))
-@pytest.mark.parametrize("bad", [["--rollout.no-such-field", "1"], ["--sample-steps", "8"], ["--num-chunks", "3"]])
+@pytest.mark.parametrize("bad", [["--rollout.no-such-field", "1"], ["--sample.steps", "8"], ["--num-chunks", "3"]])
 def test_an_unknown_option_is_a_usage_error(command, bad, wm, capsys):
-    """An unknown config field, and the spellings that became --SECTION.FIELD overrides, are refused by name."""
+    """An unknown config field, a spelling that became a --SECTION.FIELD override, and a config field that became an
+    option of its own (--sample.steps: --sample-steps), are refused by name."""
     try:
         rc = main([command, *_required(command, wm), *bad])
     except SystemExit as e:  # tyro's usage error
@@ -117,24 +120,25 @@ def test_a_world_model_without_a_config_is_a_one_line_error(command, tmp_path, c
 
 
 @pytest.mark.parametrize("command, argv, expected", [
-    ("rollout", ["--checkpoint", "wm", "--policy", "zero", "--initial-conditions", "ics", "--out", "o"],
-     dict(checkpoint="wm", policy="zero", initial_conditions="ics", out="o", step=None, family="native",
-          episodes=None, start=0, task=0, batch_size=None, data_fps=None, seed=0, offline=False, perception=None,
-          learned_state=True, video=True, progress=True)),
-    ("rollout", ["--checkpoint", "wm", "--policy", "ws://h:1", "--initial-conditions", "ics", "--out", "o",
+    ("rollout", ["--world-model", "wm", "--policy", "zero", "--data", "ics", "--out", "o"],
+     dict(sample_steps=2, inverse_steps=1, world_model="wm", policy="zero", data="ics", out="o", step=None,
+          family="native", episodes=None, start=0, task=0, batch=None, data_fps=None, seed=0, offline=False,
+          perception=None, learned_state=True, video=True, progress=True)),
+    ("rollout", ["--world-model", "wm", "--policy", "ws://h:1", "--data", "ics", "--out", "o",
                  "--step", "5", "--family", "libero", "--episodes", "2", "--start", "1", "--task", "1",
-                 "--batch-size", "1", "--data-fps", "10", "--seed", "3", "--offline", "--no-video", "--no-progress"],
-     dict(checkpoint="wm", policy="ws://h:1", initial_conditions="ics", out="o", step=5, family="libero",
-          episodes=2, start=1, task=1, batch_size=1, data_fps=10.0, seed=3, offline=True, perception=None,
-          learned_state=True, video=False, progress=False)),
-    ("diagnose", ["wm", "--data", "h", "--episodes", "4", "--cf-starts", "1", "--out", "r.json", "--seed", "1",
-                  "--max-seconds", "4", "--batch", "2", "--moving-threshold", "0.1", "--horizons", "0.8", "2",
-                  "--perception", "p.npz", "--no-progress"],
-     dict(world_model="wm", data="h", episodes=4, cf_starts=1, out="r.json", filmstrips=None, seed=1,
-          max_seconds=4.0, batch=2, moving_threshold=0.1, horizons=(0.8, 2.0), perception="p.npz", progress=False, benchmark="bussing",
+                 "--batch", "1", "--data-fps", "10", "--seed", "3", "--offline", "--no-video", "--no-progress"],
+     dict(sample_steps=2, inverse_steps=1, world_model="wm", policy="ws://h:1", data="ics", out="o", step=5,
+          family="libero", episodes=2, start=1, task=1, batch=1, data_fps=10.0, seed=3, offline=True,
+          perception=None, learned_state=True, video=False, progress=False)),
+    ("diagnose", ["--world-model", "wm", "--data", "h", "--episodes", "4", "--cf-starts", "1", "--out", "r.json",
+                  "--seed", "1", "--max-seconds", "4", "--batch", "2", "--moving-threshold", "0.1", "--horizons", "0.8",
+                  "2", "--perception", "p.npz", "--no-progress", "--sample-steps", "8"],
+     dict(sample_steps=8, inverse_steps=1, world_model="wm", data="h", episodes=4, cf_starts=1, out="r.json",
+          filmstrips=None, seed=1, max_seconds=4.0, batch=2, moving_threshold=0.1, horizons=(0.8, 2.0),
+          perception="p.npz", progress=False, benchmark="bussing",
           stages=("teacher_forced", "counterfactual", "open_loop"))),
 ])
-def test_the_spellings_from_before_still_parse(command, argv, expected):
+def test_the_options_parse_into_their_fields(command, argv, expected):
     assert dataclasses.asdict(parse(COMMANDS[command].Args, argv, command)) == expected
 
 

@@ -46,8 +46,8 @@ def test_a_missing_or_unknown_subcommand_is_rc_2_with_the_list(argv, capsys):
                action_noise=0.012, image_size=(32, 48), control_hz=10, n_objects=2, policy="bus_bc_full",
                allow_swap_all=True)),
     (["demos", "--out", "d"], sim.Demos(out="d")),
-    (["demos-stats", "--store", "a", "b"], sim.DemosStats(("a", "b"))),
-    (["demos-stats", "--store", "a", "--zoo-real", "None"], sim.DemosStats(("a",), None)),
+    (["demos-stats", "--data", "a", "b"], sim.DemosStats(("a", "b"))),
+    (["demos-stats", "--data", "a", "--zoo-real", "None"], sim.DemosStats(("a",), None)),
     (["mixture", "--out", "m", "--episodes", "5", "--seed", "41", "--recipe", "clean", "--workers", "16", "--seconds",
       "120", "--image-size", "32", "48", "--control-hz", "10", "--n-objects", "2", "--shard", "1/4", "--no-progress"],
      sim.Mixture(out="m", episodes=5, seed=41, recipe="clean", workers=16, seconds=120.0, image_size=(32, 48),
@@ -113,7 +113,7 @@ def test_demos_writes_the_store_and_explains_its_fractions(tmp_path, capsys):
     for crit, meaning in [("language", "never brought into the wrong container"), ("lifting", "gripper raised"),
                           ("placing", "inside their instructed container")]:
         assert re.search(rf"{crit}\s+{s['success'][crit]:.2f}\s+share of objects.*{meaning}", tail)
-    assert sim.main(["demos-stats", "--store", str(store)]) == 0
+    assert sim.main(["demos-stats", "--data", str(store)]) == 0
     out = capsys.readouterr().out
     assert f"1 episodes (3 objects) in {store}" in out and "all_objects_swapped: 0 episodes" in out
 
@@ -154,7 +154,7 @@ def test_mixture_writes_and_demos_stats_sets_it_beside_the_zoo(tmp_path, capsys)
     s = json.loads(out[:out.index("\n}\n") + 2])
     assert s["written"] == 2 and sum(s["sources"].values()) == 2
     assert f"wrote 2 episodes of the failure_rich mixture to the episode store {store}" in out
-    assert sim.main(["demos-stats", "--store", str(store)]) == 0
+    assert sim.main(["demos-stats", "--data", str(store)]) == 0
     out = capsys.readouterr().out
     assert "2 episodes (6 objects)" in out and all(f"  {k}: " in out for k in CATEGORIES)
     # the data's rows, then the zoo's real ones from the archived 72-condition sweep
@@ -162,15 +162,15 @@ def test_mixture_writes_and_demos_stats_sets_it_beside_the_zoo(tmp_path, capsys)
     assert re.search(r"^  bus_confused\s+72\s+216\s+0\.84\s+0\.41\s+0\.41\s", out, re.M)
     assert re.search(r"^  in distribution \(bussing\)\s+504\s+1512\s", out, re.M)
     assert "keeps the reverse split out of distribution" in out
-    assert sim.main(["demos-stats", "--store", str(store), "--zoo-real", "None"]) == 0
+    assert sim.main(["demos-stats", "--data", str(store), "--zoo-real", "None"]) == 0
     assert "bus_confused" not in capsys.readouterr().out
 
 
 @pytest.mark.parametrize("argv, message", [
     (["mixture", "--out", "OUT", "--shard", "4/4"], "--shard 4/4: write I/N"),
     (["mixture", "--out", "OUT", "--seed", "100"], "seed 100: keep below 100"),
-    (["demos-stats", "--store", "OUT", "--zoo-real", "/nonexistent"], "--zoo-real"),
-    (["demos-stats", "--store", "/nonexistent"], "--store /nonexistent: no such directory"),
+    (["demos-stats", "--data", "OUT", "--zoo-real", "/nonexistent"], "--zoo-real"),
+    (["demos-stats", "--data", "/nonexistent"], "--data /nonexistent: no such directory"),
 ])
 def test_mixture_and_stats_refuse_bad_options_in_one_line(argv, message, tmp_path):
     from sc3_jax.errors import UserError

@@ -56,13 +56,13 @@ def test_help_gives_every_option_its_own_docstring(command, capsys, monkeypatch)
      dict(data="D", heldout="H", workdir="W", steps=2200, views=("left", "wrist"), progress=False, export_only=True,
           ae=dict(latent_channels=16, downsample=4, width=96, mid_width=48, out_width=24, blocks=1))),
     # docs/sweep.md
-    ("train-perception", ["--store", "a", "b", "c", "--keypoints", "64", "--widths", "32", "64", "64", "--hidden",
+    ("train-perception", ["--data", "a", "b", "c", "--keypoints", "64", "--widths", "32", "64", "64", "--hidden",
                           "384", "--pos-weight", "2", "--steps", "3000", "--lr", "1e-3", "--out", "o.npz"],
-     dict(store=("a", "b", "c"), keypoints=64, widths=(32, 64, 64), hidden=384, pos_weight=2.0, steps=3000,
+     dict(data=("a", "b", "c"), keypoints=64, widths=(32, 64, 64), hidden=384, pos_weight=2.0, steps=3000,
           lr=1e-3, out="o.npz", validate=())),
-    ("train-perception", ["--store", "a", "b", "--generate-policies", "208", "--policy-seed", "70", "--init", "w.npz",
+    ("train-perception", ["--data", "a", "b", "--generate-policies", "208", "--policy-seed", "70", "--init", "w.npz",
                           "--generate", "300", "--max-episodes", "9", "--stride", "3", "--batch", "32", "--seed", "1"],
-     dict(store=("a", "b"), generate_policies=208, policy_seed=70, init="w.npz", generate=300, max_episodes=9,
+     dict(data=("a", "b"), generate_policies=208, policy_seed=70, init="w.npz", generate=300, max_episodes=9,
           stride=3, batch=32, seed=1)),
     ("train-perception", ["--validate", "r1", "r2", "--init", "w.npz"], dict(validate=("r1", "r2"), init="w.npz")),
 ])
@@ -82,7 +82,7 @@ def test_plan_config_overrides_reach_the_config(monkeypatch, capsys):
     from sc3_jax.config import MeshConfig
     monkeypatch.setattr(plan, "plan", fake_plan)
     monkeypatch.setattr(plan, "format_plan", lambda p: "verdict: stub")
-    assert main(["plan", "--config", "tiny", "--mesh", "data=2,fsdp=4", "--data.batch-size", "64",
+    assert main(["plan", "--config", "tiny", "--mesh", "data=2,fsdp=4", "--batch", "64",
                  "--model.attention-impl", "blockwise", "--device", "v5p", "--no-chunk"]) == 0
     cfg = seen["cfg"]
     assert (cfg.name, cfg.data.batch_size, cfg.model.attention_impl) == ("tiny", 64, "blockwise")
@@ -93,11 +93,11 @@ def test_plan_config_overrides_reach_the_config(monkeypatch, capsys):
 def test_plan_help_config_lists_the_config_fields(capsys, monkeypatch):
     monkeypatch.setenv("COLUMNS", "120")
     text = _help_text(["plan", "--config", "tiny", "--help-config"], capsys)
-    assert "--model.attention-impl" in text and "--data.batch-size" in text
+    assert "--model.attention-impl" in text and "--data.batch-size" in text  # listed; given, it is refused for --batch
 
 
 @pytest.mark.parametrize("argv, message", [
-    (["plan", "--set", "data.batch_size=64"], "--set is gone: write --data.batch-size 64"),
+    (["plan", "--set", "data.batch_size=64"], "--set is gone: write --batch 64"),
     (["plan", "--set=model.attention_impl=ring"], "write --model.attention-impl ring"),
     (["plan", "--set", "data.image_size=[8, 8]"], "write --data.image-size 8 8"),
     (["plan", "--mesh.context", "4"], "--mesh AXIS=SIZE"),
@@ -105,8 +105,8 @@ def test_plan_help_config_lists_the_config_fields(capsys, monkeypatch):
     (["plan", "--config", "no_such_config"], "no config 'no_such_config'"),
     (["plan", "--mesh", "data=3"], "global batch 32 does not divide over data x fsdp = 3"),
     (["plan", "--mfu", "2"], "--mfu must be in (0, 1]"),
-    (["train-perception"], "--store"),
-    (["train-perception", "--store", "a", "--generate", "5"], "at least two"),
+    (["train-perception"], "--data"),
+    (["train-perception", "--data", "a", "--generate", "5"], "at least two"),
 ])
 def test_bad_input_is_one_line_and_status_2(argv, message, capsys):
     assert _rc(argv) == 2

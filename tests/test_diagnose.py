@@ -83,7 +83,8 @@ def run(tmp_path_factory):
     wm = _copy_last_model(root)
     out = io.StringIO()
     with contextlib.redirect_stdout(out):
-        rc = cli(["diagnose", str(wm), "--data", str(store.root), "--out", str(root / "result.json"), "--no-progress"])
+        rc = cli(["diagnose", "--world-model", str(wm), "--data", str(store.root), "--out", str(root / "result.json"),
+                  "--no-progress"])
     assert rc == 0
     return store, dg.load_result(root / "result.json"), out.getvalue()
 
@@ -223,16 +224,16 @@ def test_diagnose_table_compares_models_with_a_baseline(run, tmp_path, capsys):
         (tmp_path / name / "diagnose.json").write_text(json.dumps(res))
         (tmp_path / name / "config.json").write_text(json.dumps(c))
     out = tmp_path / "table.md"
-    assert cli(["diagnose-table", str(tmp_path / "full/export"), str(tmp_path / "no_id"), "--baseline", "full",
-                "--out", str(out)]) == 0
+    assert cli(["diagnose-table", "--world-model", str(tmp_path / "full/export"), str(tmp_path / "no_id"),
+                "--baseline", "full", "--out", str(out)]) == 0
     lines = out.read_text().splitlines()
     assert lines[2].startswith("| **full** | 0.00 | ") and lines[3].startswith("| no_id | 0.00 (+0.00) | ")
     cells = lines[3].split(" | ")
     assert "2.00 (+2.00)" in cells and "2.00" in cells and "not trained" in cells  # wrist; drift (no base); ID
     # bad input: an unknown baseline, a directory without diagnose.json; nothing written
-    assert cli(["diagnose-table", str(tmp_path / "no_id"), "--baseline", "full"]) == 2
+    assert cli(["diagnose-table", "--world-model", str(tmp_path / "no_id"), "--baseline", "full"]) == 2
     assert "baseline 'full' is not one of ['no_id']" in capsys.readouterr().err
-    assert cli(["diagnose-table", str(tmp_path)]) == 2
+    assert cli(["diagnose-table", "--world-model", str(tmp_path)]) == 2
     assert "no diagnose.json or config.json" in capsys.readouterr().err
 
 

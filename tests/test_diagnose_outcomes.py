@@ -105,7 +105,7 @@ def open_loop_run(tmp_path_factory):
     wm = _copy_last_model(root)
     out = io.StringIO()
     with contextlib.redirect_stdout(out):
-        rc = cli(["diagnose", str(wm), "--data", str(store.root), "--stages", "open_loop", "--out",
+        rc = cli(["diagnose", "--world-model", str(wm), "--data", str(store.root), "--stages", "open_loop", "--out",
                   str(wm / "diagnose.json"), "--no-progress"])
     assert rc == 0
     return wm, dg.load_result(wm / "diagnose.json"), out.getvalue()
@@ -146,7 +146,7 @@ def test_open_loop_stage_runs_only_drift_and_outcomes(open_loop_run):
 def test_a_stage_not_named_is_a_usage_error(open_loop_run, capsys):
     wm, result, _ = open_loop_run
     with pytest.raises(SystemExit) as e:  # tyro's usage error, naming the choices
-        cli(["diagnose", str(wm), "--data", result["data"], "--stages", "closed_loop"])
+        cli(["diagnose", "--world-model", str(wm), "--data", result["data"], "--stages", "closed_loop"])
     assert e.value.code == 2 and "closed_loop" in capsys.readouterr().err
     with pytest.raises(UserError, match="name one or more of teacher_forced counterfactual open_loop"):
         dg.diagnose(wm, result["data"], stages=())
@@ -164,7 +164,7 @@ def test_diagnose_table_reads_a_diagnose_json_with_skipped_stages(open_loop_run,
     d = tmp_path / "open_loop"
     shutil.copytree(wm, d)
     out = tmp_path / "table.md"
-    assert cli(["diagnose-table", str(d), "--out", str(out)]) == 0
+    assert cli(["diagnose-table", "--world-model", str(d), "--out", str(out)]) == 0
     row = out.read_text().splitlines()[2].split(" | ")
     assert row[0] == "| open_loop" and row.count("n/a") >= 5  # the teacher-forced / counterfactual / ID columns
     assert json.loads((d / "diagnose.json").read_text())["outcomes"]["physics_reproduction"]["n_objects"] == 6

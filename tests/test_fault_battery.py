@@ -175,7 +175,7 @@ def retype_json(rel: str, keys: list[str], data, wrong=WRONG, optional=()):
 
 # the commands that read each kind (OUT is theirs to write)
 def export(root, out):
-    return ["data", "export-lerobot", str(root / "store"), "--out", str(out / "lr")]
+    return ["data", "export-lerobot", "--data", str(root / "store"), "--out", str(out / "lr")]
 
 
 def report(root, out):
@@ -183,18 +183,18 @@ def report(root, out):
 
 
 def rollout(root, out, model="wm"):
-    return ["rollout", "--checkpoint", str(root / model), "--policy", "zero", "--initial-conditions",
+    return ["rollout", "--world-model", str(root / model), "--policy", "zero", "--data",
             str(root / "no_such_store"), "--out", str(out / "r"), "--no-video", "--no-progress"]
 
 
 def sweep_real(root, out):
-    return ["sweep", "episodes", "--initial-conditions", str(root / "store"), "--world-model", str(root / "wm"),
+    return ["sweep", "episodes", "--data", str(root / "store"), "--world-model", str(root / "wm"),
             "--policies", "z=zero", "--scorer", "test_fault_battery:score", "--real", str(root / "real.csv"),
             "--out", str(out / "sweep"), "--no-progress"]
 
 
 def import_lerobot(root, out):
-    return ["data", "import-lerobot", str(root / "lerobot"), "--out", str(out / "store"), "--action-space",
+    return ["data", "import-lerobot", "--data", str(root / "lerobot"), "--out", str(out / "store"), "--action-space",
             "absolute"]
 
 

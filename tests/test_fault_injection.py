@@ -261,7 +261,7 @@ TOK_STEPS = 60
 
 def tokenizer_cmd(root: Path, name: str) -> list[str]:
     return CLI + ["train-tokenizer", "--data", str(root / "episodes"), "--workdir", str(root / name),
-                  "--steps", str(TOK_STEPS), "--batch-size", "8", "--lr", "3e-3", "--warmup-steps", "5",
+                  "--steps", str(TOK_STEPS), "--batch", "8", "--lr", "3e-3", "--warmup-steps", "5",
                   "--ckpt-every", "5", "--no-progress", "--ae.latent-channels", "4", "--ae.width", "16",
                   "--ae.mid-width", "8", "--ae.out-width", "8", "--ae.blocks", "1"]
 

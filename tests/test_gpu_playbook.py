@@ -78,10 +78,10 @@ def test_so101_trains_the_cpu_export_in_its_own_config_at_batch_64(tmp_path):
     steps, batch = pb._train_target(ctx, "so101")
     assert (steps, batch) == (4000, 64)
     cmd = pb._trainer_cmd(ctx, steps, "so101")
-    opt = {k: cmd[cmd.index(k) + 1] for k in ("--train.init-from", "--data.batch-size", "--data.path",
+    opt = {k: cmd[cmd.index(k) + 1] for k in ("--train.init-from", "--batch", "--data",
                                                 "--train.workdir")}
-    assert opt == {"--train.init-from": str(start), "--data.batch-size": "64",
-                   "--data.path": str(tmp_path / "so101_data" / "train"), "--train.workdir": str(tmp_path / "so101")}
+    assert opt == {"--train.init-from": str(start), "--batch": "64",
+                   "--data": str(tmp_path / "so101_data" / "train"), "--train.workdir": str(tmp_path / "so101")}
     assert "--train.lr" not in cmd  # the start's own schedule: it is far from trained
     from sc3_jax.config import load_config
     assert load_config(cmd[cmd.index("--config") + 1]).model.dim == 32  # the start's config, not so101_latent's

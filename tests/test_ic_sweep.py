@@ -1,4 +1,4 @@
-"""Evaluation without a simulator: `sc3 sweep episodes --initial-conditions` ranks
+"""Evaluation without a simulator: `sc3 sweep episodes --data` ranks
 policies inside a world model from held-out episodes of the tiny bimanual 14-D robot of test_any_robot.py -- two
 `module:attr` host policies and one served over a real websocket by an openpi-style ALOHA server (`--family aloha`:
 4 CHW cameras, 14-D state) -- scored by a `module:attr` scorer, resumably, and compares the ranking with real
@@ -103,8 +103,8 @@ def _real_store(root):
 
 
 def _sweep(ic, run, out, *extra, policies=("hold", "half", "reach"), scorer="test_ic_sweep:score"):
-    """`sc3 sweep episodes --initial-conditions`; a policy NAME is test_ic_sweep:NAME, a NAME=SPEC is given as is."""
-    return main(["sweep", "episodes", "--initial-conditions", str(ic), "--world-model", str(run), "--policies",
+    """`sc3 sweep episodes --data`; a policy NAME is test_ic_sweep:NAME, a NAME=SPEC is given as is."""
+    return main(["sweep", "episodes", "--data", str(ic), "--world-model", str(run), "--policies",
                  *[p if "=" in p else f"{p}=test_ic_sweep:{p}" for p in policies], "--scorer", scorer,
                  "--episodes", "2", "--calibration-episodes", "2", "--batch", "2", "--episode-seconds", "0.6", "--taus", "inf", "0.5",
                  "--out", str(out), "--no-progress", *extra])
@@ -311,8 +311,8 @@ def test_sc3_rollout_of_a_module_attr_policy(swept, tmp_path, capsys):
     chunks of 3 frames; the policy drove it (each chunk's target = the observed state + 0.3). tau is left at its
     default, which for joint targets is no early stop (0.02 rad would stop every rollout at its first chunk)."""
     ic, run, _, _, _ = swept
-    assert main(["rollout", "--checkpoint", str(run), "--policy", "test_ic_sweep:reach", "--initial-conditions",
-                 str(ic), "--out", str(tmp_path / "ro"), "--episodes", "2", "--batch-size", "2",
+    assert main(["rollout", "--world-model", str(run), "--policy", "test_ic_sweep:reach", "--data",
+                 str(ic), "--out", str(tmp_path / "ro"), "--episodes", "2", "--batch", "2",
                  "--rollout.episode-seconds", "0.6", "--no-progress"]) == 0
     with np.load(tmp_path / "ro" / "rollout.npz") as z:
         assert z["frames"].shape == (2, 4, 6, H, W, 3) and z["actions"].shape == z["states"].shape == (2, 6, A)
@@ -330,8 +330,8 @@ def test_sc3_rollout_of_a_served_aloha_policy(swept, aloha, tmp_path):
     """`sc3 rollout --family aloha` sends what the sweep sends: each episode's own prompt, the cameras by name."""
     ic, run, _, _, _ = swept
     before = len(aloha.policy.requests)
-    assert main(["rollout", "--checkpoint", str(run), "--policy", aloha.url, "--family", "aloha",
-                 "--initial-conditions", str(ic), "--out", str(tmp_path / "ro"), "--episodes", "1",
+    assert main(["rollout", "--world-model", str(run), "--policy", aloha.url, "--family", "aloha",
+                 "--data", str(ic), "--out", str(tmp_path / "ro"), "--episodes", "1",
                  "--rollout.episode-seconds", "0.3", "--no-progress"]) == 0
     got = aloha.policy.requests[before:]
     assert len(got) == 1 and got[0]["prompt"] == "fold the towel" and tuple(got[0]["images"]) == ALOHA_CAMERAS

@@ -79,7 +79,7 @@ def _free_port() -> int:
 
 
 TINY = ["--config", "tiny", "--model.dim", "32", "--model.depth", "1", "--model.num-heads", "2",
-        "--model.num-kv-heads", "1", "--model.mlp-dim", "64", "--data.image-size", "8", "8", "--data.batch-size", "8",
+        "--model.num-kv-heads", "1", "--model.mlp-dim", "64", "--data.image-size", "8", "8", "--batch", "8",
         "--train.steps", "3", "--train.log-every", "1", "--train.ckpt-every", "100", "--train.no-tensorboard",
         "--train.no-progress"]
 
@@ -99,7 +99,7 @@ def test_slurm_two_processes_train_and_checkpoint(tmp_path):
                    SLURM_JOB_ID="777", SLURM_STEP_NODELIST="localhost", SLURM_NODELIST="localhost",
                    SLURM_TASKS_PER_NODE="2", SC3_COORDINATOR_PORT=str(port))
         cmd = ["timeout", "240", sys.executable, str(ROOT / "launch" / "multihost.py"), "--init-timeout", "60",
-               "--heartbeat-timeout", "20", "--", "train", *TINY, "--data.path", str(data),
+               "--heartbeat-timeout", "20", "--", "train", *TINY, "--data", str(data),
                "--train.workdir", str(workdir)]
         procs.append(subprocess.Popen(cmd, env=env, cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                                       text=True))

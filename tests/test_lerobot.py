@@ -235,7 +235,7 @@ def test_sim_export_import_roundtrip(tmp_path):
     from sc3_jax.benchmarks.bussing.demos import generate_demos
 
     generate_demos(tmp_path / "demos", 2, seed=0, image_size=(64, 64), progress=False)
-    assert main(["data", "export-lerobot", str(tmp_path / "demos"), "--out", str(tmp_path / "lr")]) == 0
+    assert main(["data", "export-lerobot", "--data", str(tmp_path / "demos"), "--out", str(tmp_path / "lr")]) == 0
     root = tmp_path / "lr"
     info = json.loads((root / "meta" / "info.json").read_text())
     src = EpisodeStore(tmp_path / "demos")
@@ -252,7 +252,7 @@ def test_sim_export_import_roundtrip(tmp_path):
     np.testing.assert_allclose(stats["action"]["std"], actions.std(0), atol=1e-6)
     assert np.shape(stats["observation.images.left"]["mean"]) == (3, 1, 1)
 
-    assert main(["data", "import-lerobot", str(root), "--out", str(tmp_path / "back")]) == 0
+    assert main(["data", "import-lerobot", "--data", str(root), "--out", str(tmp_path / "back")]) == 0
     back = EpisodeStore(tmp_path / "back")
     assert back.views == src.views and back.fps == src.fps and len(back) == 2
     for a, b in zip(eps, (back.load(e) for e in back.episode_ids()), strict=True):
@@ -263,7 +263,7 @@ def test_sim_export_import_roundtrip(tmp_path):
             assert np.abs(a.frames[v].astype(float) - b.frames[v]).mean() < MAX_MAE, v
     # importing again skips what is there; a bad root is a clean error, not a traceback
     assert import_lerobot(root, tmp_path / "back")["skipped"] == 2
-    assert main(["data", "import-lerobot", str(tmp_path / "nothing"), "--out", str(tmp_path / "x")]) == 2
+    assert main(["data", "import-lerobot", "--data", str(tmp_path / "nothing"), "--out", str(tmp_path / "x")]) == 2
 
 
 def test_import_needs_a_7d_pose(datasets, tmp_path):
@@ -357,9 +357,9 @@ def test_episodes_split_one_dataset_into_a_training_and_a_held_out_store(dataset
 
     root = datasets("v3.0")
     common = ["--image-size", "16", "24", "--allow-missing-pose"]
-    assert main(["data", "import-lerobot", str(root), "--out", str(tmp_path / "train"), "--episodes", "0:1",
+    assert main(["data", "import-lerobot", "--data", str(root), "--out", str(tmp_path / "train"), "--episodes", "0:1",
                  *common]) == 0
-    assert main(["data", "import-lerobot", str(root), "--out", str(tmp_path / "held"), "--episodes", "1:",
+    assert main(["data", "import-lerobot", "--data", str(root), "--out", str(tmp_path / "held"), "--episodes", "1:",
                  *common]) == 0
     train, held = EpisodeStore(tmp_path / "train"), EpisodeStore(tmp_path / "held")
     assert train.episode_ids() == ["lerobot000000"] and held.episode_ids() == ["lerobot000001", "lerobot000002"]
@@ -370,5 +370,5 @@ def test_episodes_split_one_dataset_into_a_training_and_a_held_out_store(dataset
     assert written["written"] == 2
     assert trained_on(both, both.episode_ids(), str(train.root)) == 1  # episode 0 of the same dataset
     assert trained_on(held, held.episode_ids(), str(tmp_path / "elsewhere")) is None  # not here to compare
-    assert main(["data", "import-lerobot", str(root), "--out", str(tmp_path / "x"), "--episodes", "1-3"]) == 2
+    assert main(["data", "import-lerobot", "--data", str(root), "--out", str(tmp_path / "x"), "--episodes", "1-3"]) == 2
     assert "--episodes '1-3'" in capsys.readouterr().err

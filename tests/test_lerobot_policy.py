@@ -80,8 +80,8 @@ def test_a_lerobot_act_trained_here_acts_inside_a_world_model(bimanual, tmp_path
     monkeypatch.setenv(PYTHON_ENV, py)
     tmp, store = bimanual[0], bimanual[4]
     out = tmp_path / "ro"
-    assert main(["rollout", "--checkpoint", str(tmp / "run"), "--policy", f"act=lerobot:{pm}", "--initial-conditions",
-                 str(store.root), "--out", str(out), "--episodes", "2", "--batch-size", "2",
+    assert main(["rollout", "--world-model", str(tmp / "run"), "--policy", f"act=lerobot:{pm}", "--data",
+                 str(store.root), "--out", str(out), "--episodes", "2", "--batch", "2",
                  "--rollout.episode-seconds", "0.6", "--no-progress"]) == 0
     with np.load(out / "rollout.npz") as z:
         actions, frames, states = z["actions"], z["frames"], z["states"]

@@ -13,6 +13,7 @@ from sc3_jax import plan, plan_vae, sharding, train, xla_cost
 from sc3_jax.cli import main
 from sc3_jax.commands import parse_with_config
 from sc3_jax.commands.plan import Args as PlanArgs
+from sc3_jax.commands.plan import config_of as plan_config
 from sc3_jax.config import MeshConfig, load_config, replace
 from sc3_jax.errors import UserError
 
@@ -58,8 +59,8 @@ def test_parse_mesh_and_config_flags():
     # the overrides the plan suggests are options the command parses, into the fields they name
     flags = [plan.config_flag("data.batch_size", 16), plan.config_flag("model.attention_impl", "ring"),
              plan.config_flag("data.image_size", (8, 8)), plan.config_flag("model.scan_layers", False)]
-    assert flags[:2] == ["--data.batch-size 16", "--model.attention-impl ring"]
-    _, cfg = parse_with_config(PlanArgs, " ".join(flags).split(), "plan", lambda a: load_config(a.config))
+    assert flags[:2] == ["--batch 16", "--model.attention-impl ring"]
+    _, cfg = parse_with_config(PlanArgs, " ".join(flags).split(), "plan", plan_config)
     assert (cfg.data.batch_size, cfg.model.attention_impl, cfg.data.image_size, cfg.model.scan_layers) == (
         16, "ring", (8, 8), False)
 
@@ -148,7 +149,7 @@ WAN = ["--model.tokenizer", "wan2.2", "--model.layout", "cosmos3", "--model.patc
 
 
 def _cfg(argv):
-    return parse_with_config(PlanArgs, argv, "plan", lambda a: load_config(a.config))[1]
+    return parse_with_config(PlanArgs, argv, "plan", plan_config)[1]
 
 
 def test_plan_any_robot_pixel_tokens():
@@ -218,22 +219,22 @@ def test_vae_scan_counted_once(tmp_path):
 
 
 def test_plan_shape_from_store(tmp_path, capsys):
-    """--data.path STORE: views, image size and action dimension from its dataset.json (as sc3 train), the store's
+    """--data STORE: views, image size and action dimension from its dataset.json (as sc3 train), the store's
     action space in the rollout chunk; a command-line field the store contradicts is a one-line error naming it."""
     from sc3_jax.data.action_space import ActionSpace
     from sc3_jax.data.episodes import EpisodeStore
 
     EpisodeStore(tmp_path, views=["top", "low", "left", "right"], fps=50, image_size=(24, 40), create=True,
                  action_space=ActionSpace("absolute", 14), state_dim=14, has_pose=False)
-    assert main(["plan", "--config", "tiny", "--data.path", str(tmp_path)]) == 0
+    assert main(["plan", "--config", "tiny", "--data", str(tmp_path)]) == 0
     out = capsys.readouterr().out
     assert "4 views (top low left right) at 24x40" in out and "4 actions of 14-D absolute" in out
     assert f"tokens: {4 * 6 * 15 + 4:,} per sample" in out
-    assert main(["plan", "--config", "tiny", "--data.path", str(tmp_path), "--model.action-dim", "7"]) == 2
+    assert main(["plan", "--config", "tiny", "--data", str(tmp_path), "--model.action-dim", "7"]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "model.action_dim=7" in err and "14-D" in err
-    assert main(["plan", "--config", "tiny", "--data.path", str(tmp_path / "nothing")]) == 2
-    assert "--data.path" in capsys.readouterr().err
+    assert main(["plan", "--config", "tiny", "--data", str(tmp_path / "nothing")]) == 2
+    assert f"--data {tmp_path / 'nothing'}: no dataset.json" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("argv,field", [
@@ -254,7 +255,7 @@ def test_bad_shape_is_one_line_error(argv, field, capsys):
 
 
 def test_aloha_wan_config_shape():
-    """sc3_jax/configs/aloha_wan.py: 4 views at 480x640 on Wan2.2 latents, 14-D actions: 15 x 20 tokens per token frame,
+    """configs/aloha_wan.py: 4 views at 480x640 on Wan2.2 latents, 14-D actions: 15 x 20 tokens per token frame,
     2 + 6 token frames per view, 24 actions -> 9,624 tokens; refused shapes would fail here first."""
     cfg = load_config("aloha_wan")
     plan.check_shape(cfg)

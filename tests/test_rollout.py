@@ -318,7 +318,7 @@ def test_cli_writes_arrays_and_videos(tmp_path, setup, capsys):
     (tmp_path / "run" / "config.json").write_text(json.dumps(dataclasses.asdict(cfg)))
     assert config_from_dict(json.loads((tmp_path / "run" / "config.json").read_text())) == cfg
     # N chunks of l = 3 frames at 10 Hz: 0.9 s (what --num-chunks N said before the config's own fields)
-    rc = main(["rollout", "--checkpoint", str(tmp_path / "run"), "--policy", "linear", "--initial-conditions",
+    rc = main(["rollout", "--world-model", str(tmp_path / "run"), "--policy", "linear", "--data",
                str(tmp_path / "eps"), "--out", str(tmp_path / "out"), "--rollout.episode-seconds", "0.9",
                "--rollout.tau", "inf", "--offline", "--no-progress"])
     assert rc == 0

@@ -91,7 +91,7 @@ def test_train_prints_its_cost_before_it_compiles(tmp_path, capsys, monkeypatch)
         raise SystemExit("stopped before compiling")
     monkeypatch.setattr(train, "train", refuse)
     with pytest.raises(SystemExit, match="before compiling"):
-        main(["train", "--data.path", str(store), "--train.workdir", str(tmp_path / "w")])
+        main(["train", "--data", str(store), "--train.workdir", str(tmp_path / "w")])
     out = capsys.readouterr().out
     line = next(x for x in out.splitlines() if x.startswith("cost:"))
     assert "12 tokens a frame over 3 view(s) (patch 8)" in line and "GFLOP" in line and "GB" in line
@@ -101,7 +101,7 @@ def test_train_prints_its_cost_before_it_compiles(tmp_path, capsys, monkeypatch)
 def test_a_latent_config_without_its_tokenizer_names_the_command_that_makes_it(tmp_path, capsys):
     store = tmp_path / "s"
     synthetic.generate(store, 1, length=12, progress=False)
-    rc = main(["train", "--config", "so101_latent", "--data.path", str(store), "--model.tokenizer-path",
+    rc = main(["train", "--config", "so101_latent", "--data", str(store), "--model.tokenizer-path",
                str(tmp_path / "none"), "--train.workdir", str(tmp_path / "w")])
     err = capsys.readouterr().err
     assert rc == 2 and err.count("\n") == 1 and "sc3 train-tokenizer --data" in err

@@ -121,7 +121,7 @@ def test_collect_writes_lerobot_data_that_imports_with_no_flag_but_out(tmp_path,
     assert [e["sim_seed"] for e in summary["splits"]["heldout"]["episodes"]] == [10_000_000]
     assert any(e["succeeded"] for e in summary["splits"]["train"]["episodes"])  # seed 1's clean controller, 45 steps
     for split in ("train", "heldout"):
-        assert main(["data", "import-lerobot", str(out / split), "--out", str(tmp_path / split)]) == 0
+        assert main(["data", "import-lerobot", "--data", str(out / split), "--out", str(tmp_path / split)]) == 0
         store = EpisodeStore(tmp_path / split)
         assert store.views == ["workspace", "wrist"] and store.state_dim == 14 and store.action_dim == 4
         assert store.action_space.kind == "velocity" and store.action_space.targets == (3,)

@@ -27,10 +27,10 @@ def swept(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("so101")
     assert main(["so101", "collect", "--out", str(tmp / "data"), "--episodes", "8", "--heldout", "0",
                  "--image-size", *SIZE, "--max-steps", "70", "--no-progress"]) == 0
-    assert main(["data", "import-lerobot", str(tmp / "data" / "train"), "--out", str(tmp / "store")]) == 0
-    assert main(["train", "--config", "tiny", "--data.path", str(tmp / "store"), "--train.workdir", str(tmp / "run"),
+    assert main(["data", "import-lerobot", "--data", str(tmp / "data" / "train"), "--out", str(tmp / "store")]) == 0
+    assert main(["train", "--config", "tiny", "--data", str(tmp / "store"), "--train.workdir", str(tmp / "run"),
                  "--train.steps", "2", "--train.ckpt-every", "2", "--train.no-progress", *TINY]) == 0
-    assert main(["train-detector", str(tmp / "store"), "--out", str(tmp / "det"), "--steps", "20",
+    assert main(["train-detector", "--data", str(tmp / "store"), "--out", str(tmp / "det"), "--steps", "20",
                  "--no-progress"]) == 0
     argv = ["sweep", "so101", "--world-model", str(tmp / "run"), "--detector", str(tmp / "det"), "--out",
             str(tmp / "sweep"), "--episodes", "2", "--policies", "so_full", "so_shaky", "--batch", "2",

@@ -98,13 +98,14 @@ def lab(tmp_path_factory):
     write_lerobot(tmp / "lerobot", eps, FPS, version="v3.0", names={"action": ["dx", "dy", "dz", "gripper"],
                                                                    "observation.state": NAMES},
                   robot_type="so101_follower")
-    importing = ["data", "import-lerobot", str(tmp / "lerobot"), "--action-space", "velocity", "--action-targets", "3"]
+    importing = ["data", "import-lerobot", "--data", str(tmp / "lerobot"), "--action-space", "velocity",
+                 "--action-targets", "3"]
     assert main(importing + ["--out", str(tmp / "train"), "--episodes", "0:9"]) == 0
     assert main(importing + ["--out", str(tmp / "heldout"), "--episodes", "9:"]) == 0
     small = ["--model.dim", "32", "--model.depth", "1", "--model.num-heads", "2", "--model.num-kv-heads", "1",
-             "--model.mlp-dim", "64", "--data.batch-size", "8", "--train.steps", "2", "--train.no-progress",
+             "--model.mlp-dim", "64", "--batch", "8", "--train.steps", "2", "--train.no-progress",
              "--train.no-tensorboard", "--rollout.policy-chunk", "8"]  # widths and budget: not mode or shape flags
-    assert main(["train", "--config", "tiny", "--data.path", str(tmp / "train"), "--train.workdir", str(tmp / "run"),
+    assert main(["train", "--config", "tiny", "--data", str(tmp / "train"), "--train.workdir", str(tmp / "run"),
                  *small]) == 0
     with open(tmp / "real.csv", "w", newline="") as f:
         w = csv.writer(f)
@@ -115,7 +116,7 @@ def lab(tmp_path_factory):
 
 
 def _sweep(tmp, out, *extra, policies=("still", "slow", "fast")):
-    return main(["sweep", "episodes", "--initial-conditions", str(tmp / "heldout"), "--world-model", str(tmp / "run"),
+    return main(["sweep", "episodes", "--data", str(tmp / "heldout"), "--world-model", str(tmp / "run"),
                  "--policies", *[f"{p}=test_so101_workflow:{p}" for p in policies],
                  "--scorer", "test_so101_workflow:near_goal", "--real", str(tmp / "real.csv"), "--episodes", "3",
                  "--calibration-episodes", "0", "--batch", "3", "--episode-seconds", "1.8", "--out", str(out),

@@ -37,7 +37,7 @@ def test_decide_needs_consecutive_frames_above_the_threshold():
 
 def test_the_detector_learns_the_labels_and_scores_rollouts(tmp_path, capsys):
     st = _store(tmp_path / "store")
-    assert main(["train-detector", str(st.root), "--out", str(tmp_path / "det"), "--steps", "150",
+    assert main(["train-detector", "--data", str(st.root), "--out", str(tmp_path / "det"), "--steps", "150",
                  "--no-progress"]) == 0
     out = capsys.readouterr().out
     assert "held out (2 episodes)" in out and "--scorer detector:" in out
@@ -51,7 +51,7 @@ def test_the_detector_learns_the_labels_and_scores_rollouts(tmp_path, capsys):
 
 def test_a_store_without_labels_or_a_missing_detector_is_one_line(tmp_path, capsys):
     st = _store(tmp_path / "store", n=4, labels=False)
-    assert main(["train-detector", str(st.root), "--out", str(tmp_path / "det"), "--steps", "2",
+    assert main(["train-detector", "--data", str(st.root), "--out", str(tmp_path / "det"), "--steps", "2",
                  "--no-progress"]) == 2
     err = capsys.readouterr().err.strip()
     assert "no episode has a boolean labels.success" in err and "\n" not in err

@@ -86,7 +86,7 @@ def ctrl_c_reaches_children():
 
 
 def _sweep_args(ic, run, out, *policies: str) -> list[str]:
-    return ["sweep", "episodes", "--initial-conditions", str(ic), "--world-model", str(run), "--policies", *policies,
+    return ["sweep", "episodes", "--data", str(ic), "--world-model", str(run), "--policies", *policies,
             "--scorer", "test_untrusted_inputs:score", "--episodes", "2", "--calibration-episodes", "0", "--batch", "2",
             "--episode-seconds", "0.6", "--out", str(out), "--no-progress"]
 
@@ -117,8 +117,8 @@ def test_a_lerobot_camera_key_that_climbs_out_writes_nothing_anywhere(tmp_path, 
     info["features"]["observation.images.../../../x"] = info["features"].pop("observation.images.cam")
     (src / "meta" / "info.json").write_text(json.dumps(info))
     before = snapshot(tmp_path)
-    assert main(["data", "import-lerobot", str(src), "--out", str(tmp_path / "out" / "store"), "--action-space",
-                 "absolute"]) == 2
+    assert main(["data", "import-lerobot", "--data", str(src), "--out", str(tmp_path / "out" / "store"),
+                 "--action-space", "absolute"]) == 2
     err = one_line(capsys, "data")
     assert "'../../../x'" in err and "--views NAME=" in err
     assert snapshot(tmp_path) == before  # no store, no .npy beside it or above it
@@ -158,25 +158,25 @@ def test_a_foreign_dataset_and_one_frame_episodes_are_said(tmp_path, capsys):
     a = _tiny_lerobot(tmp_path / "a", lengths=(3, 1, 3))
     b = _tiny_lerobot(tmp_path / "b")
     out = tmp_path / "store"
-    assert main(["data", "import-lerobot", str(a), "--out", str(out), "--action-space", "absolute"]) == 0
+    assert main(["data", "import-lerobot", "--data", str(a), "--out", str(out), "--action-space", "absolute"]) == 0
     said = capsys.readouterr().out
     assert "skipped 1 episodes of fewer than 2 frames (LeRobot episode_index 1)" in said
     assert EpisodeStore(out).episode_ids() == ["lerobot000000", "lerobot000002"]
     before = snapshot(out)
-    assert main(["data", "import-lerobot", str(b), "--out", str(out), "--action-space", "absolute"]) == 2
+    assert main(["data", "import-lerobot", "--data", str(b), "--out", str(out), "--action-space", "absolute"]) == 2
     assert f"holds episodes imported from {a.resolve()}, not from {b.resolve()}" in one_line(capsys, "data")
     assert snapshot(out) == before
     # a second recording session goes in under a prefix of its own; the same prefix again is refused
-    assert main(["data", "import-lerobot", str(b), "--out", str(out), "--action-space", "absolute",
+    assert main(["data", "import-lerobot", "--data", str(b), "--out", str(out), "--action-space", "absolute",
                  "--id-prefix", "s2_"]) == 0
     capsys.readouterr()
     assert EpisodeStore(out).episode_ids() == ["lerobot000000", "lerobot000002", "s2_lerobot000000",
                                               "s2_lerobot000001"]
     before = snapshot(out)
-    assert main(["data", "import-lerobot", str(a), "--out", str(out), "--action-space", "absolute",
+    assert main(["data", "import-lerobot", "--data", str(a), "--out", str(out), "--action-space", "absolute",
                  "--id-prefix", "s2_"]) == 2
     assert "under this prefix" in one_line(capsys, "data") and snapshot(out) == before
-    assert main(["data", "import-lerobot", str(a), "--out", str(out), "--action-space", "absolute",
+    assert main(["data", "import-lerobot", "--data", str(a), "--out", str(out), "--action-space", "absolute",
                  "--id-prefix", "../x"]) == 2
     assert "'../x'" in one_line(capsys, "data") and snapshot(out) == before
 
@@ -333,7 +333,7 @@ def test_a_second_trainer_on_one_workdir_is_refused(bimanual, tmp_path, capsys):
     workdir = tmp_path / "run"
     with locks.hold(workdir, "training run"):
         before = snapshot(workdir)
-        assert main(["train", "--config", "tiny", "--data.path", cfg.data.path, "--train.workdir", str(workdir),
+        assert main(["train", "--config", "tiny", "--data", cfg.data.path, "--train.workdir", str(workdir),
                      "--train.steps", "1"]) == 2
         assert f"in use by another training run (pid {os.getpid()} on" in one_line(capsys, "train")
         assert snapshot(workdir) == before
@@ -427,7 +427,7 @@ def test_a_truncated_store_is_one_line_in_train_and_leaves_no_run(tmp_path, caps
     store = _small_store(tmp_path / "store")
     frames = store / "e1" / "frames" / "cam.npy"
     frames.write_bytes(frames.read_bytes()[:-7])
-    assert main(["train", "--config", "tiny", "--data.path", str(store), "--train.workdir", str(tmp_path / "run"),
+    assert main(["train", "--config", "tiny", "--data", str(store), "--train.workdir", str(tmp_path / "run"),
                  "--train.steps", "1"]) == 2
     err = one_line(capsys, "train")
     assert "e1/frames/cam.npy: not a whole .npy array" in err and "mmap length" in err
@@ -452,7 +452,7 @@ def test_a_batch_the_machine_cannot_hold_is_refused_before_anything_is_written(t
 
     cfg = config.replace(config.load_config("tiny"), data=dict(batch_size=10**9, path=str(tmp_path / "none")),
                          train=dict(workdir=str(tmp_path / "run")))
-    with pytest.raises(UserError, match=r"--data.batch-size 1000000000: its host-side batches need about .* GB "
+    with pytest.raises(UserError, match=r"--batch 1000000000: its host-side batches need about .* GB "
                                         r"available; lower it"):
         train.train(cfg)
     assert not (tmp_path / "run").exists()
@@ -512,16 +512,16 @@ def test_an_empty_episode_selection_and_a_dataset_under_two_prefixes_are_refused
     src = _tiny_lerobot(tmp_path / "src", lengths=(3, 3))
     out = tmp_path / "store"
     for sel in ("5:9", "9", "1:0", "-1", "", "-2:"):
-        assert main(["data", "import-lerobot", str(src), "--out", str(out), "--action-space", "absolute",
+        assert main(["data", "import-lerobot", "--data", str(src), "--out", str(out), "--action-space", "absolute",
                      "--episodes", sel]) == 2, sel
         assert "--episodes" in one_line(capsys, "data") and not out.exists()
-    assert main(["data", "import-lerobot", str(src), "--out", str(out), "--action-space", "absolute"]) == 0
+    assert main(["data", "import-lerobot", "--data", str(src), "--out", str(out), "--action-space", "absolute"]) == 0
     capsys.readouterr()
     before = snapshot(out)
-    assert main(["data", "import-lerobot", str(src), "--out", str(out), "--action-space", "absolute",
+    assert main(["data", "import-lerobot", "--data", str(src), "--out", str(out), "--action-space", "absolute",
                  "--id-prefix", "again_"]) == 2
     assert "holds episode 0 of" in one_line(capsys, "data") and snapshot(out) == before
-    assert main(["data", "import-lerobot", str(src), "--out", str(out), "--action-space", "absolute",
+    assert main(["data", "import-lerobot", "--data", str(src), "--out", str(out), "--action-space", "absolute",
                  "--id-prefix", "b_", "--episodes", "5:"]) == 2  # past the end: nothing to import
     capsys.readouterr()
 
@@ -542,7 +542,7 @@ def test_a_lerobot_info_json_naming_files_outside_or_unknown_placeholders_is_one
     info = json.loads((src / "meta" / "info.json").read_text())
     (src / "meta" / "info.json").write_text(json.dumps({**info, "data_path": template}))
     before = snapshot(tmp_path)
-    assert main(["data", "import-lerobot", str(src), "--out", str(tmp_path / "out"), "--action-space",
+    assert main(["data", "import-lerobot", "--data", str(src), "--out", str(tmp_path / "out"), "--action-space",
                  "absolute"]) == 2
     err = one_line(capsys, "data")
     assert "data_path" in err and ("outside the dataset" in err or "does not fill in" in err)

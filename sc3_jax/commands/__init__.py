@@ -5,7 +5,9 @@ keep functions, not ``main()``s.
 
 Every command that builds or loads a world model takes its config's fields the same way: ``--SECTION.FIELD VALUE``
 (``sc3 train --help`` lists them all), applied over the named config or the loaded world model's config
-(``parse_with_config``)."""
+(``parse_with_config``). The options every command shares have one spelling each (``--world-model``, ``--data``,
+``--batch``, ``--sample-steps``: ``flags.py``); ``parse`` and ``parse_with_config`` refuse the spellings before
+them in one line, for every command."""
 from __future__ import annotations
 
 import sys
@@ -14,24 +16,29 @@ from typing import TypeVar
 
 import tyro
 
+from sc3_jax.commands.flags import refuse_old_spellings
+
 T = TypeVar("T")
 
 CONFIG_OVERRIDES = ("World-model config: any --SECTION.FIELD VALUE of `sc3 train --help` overrides the model's own "
-                    "config, e.g. --sample.steps 8 --rollout.tau 0.05.")
+                    "config, e.g. --rollout.tau 0.05 --rollout.episode-seconds 6.")
 
 
 def parse(args: type[T], argv: list[str], command: str) -> T:
     """``argv`` as ``args``; positionals are named after their field (``RESULTS``, not ``STR``), as they were before
-    the commands moved from argparse."""
+    the commands moved from argparse. The spellings before the shared options' (``flags.OLD``) are refused first."""
+    refuse_old_spellings(command, argv, args)
     return tyro.cli(args, args=argv, prog=f"sc3 {command}", config=(tyro.conf.PositionalMetavarFromFieldName,))
 
 
 def parse_with_config(args: type[T], argv: list[str], command: str, base: Callable[[T], object]):
     """(``args``, Config): the command's own options, then every ``--SECTION.FIELD VALUE`` left over applied to
     ``base(parsed args)`` (the named config, or the config of the world model the command loads). One spelling of
-    config overrides for every command; an unknown option is refused by the second parse, naming it."""
+    config overrides for every command; an unknown option is refused by the second parse, naming it, and a spelling
+    from before the shared options' (``flags.OLD``: ``--data.path`` is ``--data``) before either."""
     from sc3_jax.config import Config
 
+    refuse_old_spellings(command, argv, args)
     a, rest = tyro.cli(args, args=argv, prog=f"sc3 {command}", return_unknown_args=True,
                        config=(tyro.conf.PositionalMetavarFromFieldName,))
     cfg = base(a)
@@ -40,23 +47,23 @@ def parse_with_config(args: type[T], argv: list[str], command: str, base: Callab
     return a, cfg
 
 
-def parse_evaluated(args: type[T], argv: list[str], command: str, world_model: str):
-    """``parse_with_config`` for a command that samples a saved world model (its path: the parsed options' field
-    ``world_model``): its config under the evaluation sampler's defaults (``world_model_defaults.Sampler``, as the
-    sweeps sample), then the ``--SECTION.FIELD`` overrides; a distilled student sampled off its one step is warned
-    about."""
+def parse_evaluated(args: type[T], argv: list[str], command: str):
+    """``parse_with_config`` for a command that samples a saved world model (``--world-model``; ``args`` inherits
+    ``world_model_defaults.SamplerSteps``): its config under the evaluation sampler (``--sample-steps`` and
+    ``--inverse-steps``, whose defaults are the sweeps'), then the ``--SECTION.FIELD`` overrides; a distilled student
+    sampled off its one step is warned about."""
     from sc3_jax import checkpoint
-    from sc3_jax.evaluate.world_model_defaults import evaluation_config, warn_if_student_off_its_step
+    from sc3_jax.evaluate.world_model_defaults import Sampler, evaluation_config, warn_if_student_off_its_step
 
-    a, cfg = parse_with_config(args, argv, command,
-                               lambda a: evaluation_config(checkpoint.read_config(getattr(a, world_model))))
+    a, cfg = parse_with_config(args, argv, command, lambda a: evaluation_config(
+        checkpoint.read_config(a.world_model), Sampler(sample_steps=a.sample_steps, inverse_steps=a.inverse_steps)))
     warn_if_student_off_its_step(cfg)
     return a, cfg
 
 
 def one_or_more(name: str):
-    """For a positional ``tuple[str, ...]``: tyro parses it as zero or more values, shown optional; this shows it as
-    argparse's ``nargs="+"`` did (the command itself refuses an empty one)."""
+    """For a ``tuple[str, ...]`` that needs a value at least (a positional, or an option without a default): shows it
+    as argparse's ``nargs="+"`` did (the command itself refuses an empty one)."""
     return tyro.conf.arg(metavar=f"{name} [{name} ...]", help_behavior_hint="(required)")
 
 

@@ -1,8 +1,8 @@
 """``sc3 data SUBCOMMAND ...``: convert between LeRobot datasets and our episode store (docs/lerobot.md).
 
-    sc3 data import-lerobot ROOT --out DIR [--views VIEW[=KEY] ...] [--wrist VIEW ...] [--fps N]
+    sc3 data import-lerobot --data ROOT --out DIR [--views VIEW[=KEY] ...] [--wrist VIEW ...] [--fps N]
                             [--image-size H W] [--action-key KEY] [--pose-key KEY] [--allow-missing-pose]
-    sc3 data export-lerobot STORE --out DIR [--version v3.0|v2.1] [--codec h264|av1] [--crf N]
+    sc3 data export-lerobot --data STORE --out DIR [--version v3.0|v2.1] [--codec h264|av1] [--crf N]
                             [--images video|image] [--views VIEW ...] [--overwrite]
 
 ``--views left=observation.images.cam_high`` names a camera key as one of our views; a bare ``cam_high`` keeps its
@@ -26,7 +26,7 @@ SUMMARY = "LeRobot datasets to and from our episode store"  # the line `sc3 --he
 class ImportLerobot:
     """LeRobot dataset (v2.x / v3.0) -> our episode store; resumable (episodes already in --out are skipped)."""
 
-    root: tyro.conf.Positional[str]
+    data: str
     """the LeRobot dataset's directory (holding meta/info.json)"""
     out: str
     """episode store to write (created if missing)"""
@@ -69,7 +69,7 @@ class ExportLerobot:
     """Our episode store -> LeRobot dataset (actions -> action, the state (else ee_pose) -> observation.state,
     prompt -> task; the action space in info.json)."""
 
-    store: tyro.conf.Positional[str]
+    data: str
     """the episode store to export (a directory holding dataset.json)"""
     out: str
     """LeRobot dataset directory to write"""
@@ -137,7 +137,7 @@ def _import(a: ImportLerobot) -> int:
     from sc3_jax.data.episodes import EpisodeStore
     from sc3_jax.data.lerobot import import_lerobot
 
-    s = import_lerobot(a.root, a.out, views=views_map(a.views), wrist_views=list(a.wrist) if a.wrist else None,
+    s = import_lerobot(a.data, a.out, views=views_map(a.views), wrist_views=list(a.wrist) if a.wrist else None,
                        fps=a.fps, image_size=a.image_size, action_key=a.action_key, pose_key=a.pose_key,
                        allow_missing_pose=a.allow_missing_pose, progress=True, action_space=a.action_space,
                        action_names=list(a.action_names) if a.action_names else None,
@@ -145,13 +145,13 @@ def _import(a: ImportLerobot) -> int:
                        episodes=episode_selection(a.episodes), id_prefix=a.id_prefix,
                        **({} if a.state_key == "auto" else {"state_key": None if a.state_key == "none" else a.state_key}))
     store = EpisodeStore(s["out"])
-    print(f"imported {s['written']} episodes ({s['skipped']} already there) from {a.root}; {s['out']} now holds "
+    print(f"imported {s['written']} episodes ({s['skipped']} already there) from {a.data}; {s['out']} now holds "
           f"{len(store)} episodes, {_frames(store)} frames of views {', '.join(store.views)} at {s['fps']} fps, "
           f"{store.image_size[0]}x{store.image_size[1]}, actions {store.action_space.kind} {store.action_dim}-D")
     if s["too_short"]:
         print(f"skipped {len(s['too_short'])} episodes of fewer than 2 frames (LeRobot episode_index "
               f"{', '.join(map(str, s['too_short'][:10]))}{' ...' if len(s['too_short']) > 10 else ''})")
-    print(f"train on it: sc3 train --config NAME --data.path {s['out']}")
+    print(f"train on it: sc3 train --config NAME --data {s['out']}")
     return 0
 
 
@@ -159,11 +159,11 @@ def _export(a: ExportLerobot) -> int:
     from sc3_jax.data.episodes import EpisodeStore
     from sc3_jax.data.lerobot_write import export_store
 
-    store = EpisodeStore(a.store)
+    store = EpisodeStore(a.data)
     s = export_store(store, a.out, version=a.version, codec=a.codec, image_dtype=a.images, crf=a.crf,
                      views=list(a.views) if a.views else None, overwrite=a.overwrite)
     how = f"{a.codec} mp4s" if a.images == "video" else "PNGs in parquet"
-    print(f"exported {s['episodes']} episodes, {s['frames']} frames, {s['tasks']} distinct task prompts from {a.store} "
+    print(f"exported {s['episodes']} episodes, {s['frames']} frames, {s['tasks']} distinct task prompts from {a.data} "
           f"-> {s['out']} (LeRobot {a.version}, {how}): views {', '.join(a.views or store.views)} as observation.images.VIEW, "
           f"actions ({store.action_space.kind} {store.action_dim}-D) as action, "
           + ("state as observation.state" + (", ee_pose as observation.ee_pose" if store.has_pose else "")

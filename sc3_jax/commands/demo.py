@@ -6,6 +6,7 @@ import dataclasses
 from pathlib import Path
 
 from sc3_jax.commands import parse_with_config
+from sc3_jax.commands.flags import onto_config
 
 SUMMARY = "generate synthetic multi-view data, train the tiny model, say how far it got"  # the line `sc3 --help` shows
 
@@ -15,7 +16,7 @@ class Args:
     """Generate the synthetic multi-view environment's episodes, train the tiny config on them, then check forward
     dynamics, action use, inverse dynamics and inpainting on held-out episodes against the baseline each must beat:
     a PASS / FAIL per check. Resumes if interrupted (rerun the same command). Any --SECTION.FIELD VALUE of `sc3 train
-    --help` overrides the config, e.g. --train.batch-size 16."""
+    --help-config` overrides the config, e.g. --train.lr 1e-3."""
 
     out: str = "runs/demo"
     """where the episodes, the training run (checkpoints) and demo_metrics.json go"""
@@ -25,6 +26,8 @@ class Args:
     """training steps (None: the config's train.steps)"""
     episodes: int = 200
     """synthetic training episodes (16 more are held out)"""
+    batch: int | None = None
+    """global batch (the config's data.batch_size; None: the config's)"""
 
 
 def _config(a: Args):
@@ -32,7 +35,7 @@ def _config(a: Args):
 
     base = load_config(a.config)
     out = Path(a.out)
-    return replace(base, data=dict(path=str(out / "episodes")),
+    return replace(onto_config(base, str(out / "episodes"), a.batch),
                    train=dict(workdir=str(out / "train"), steps=a.steps or base.train.steps))
 
 

@@ -1,15 +1,14 @@
-"""``sc3 diagnose WORLD_MODEL --data HELDOUT_STORE [--SECTION.FIELD VALUE ...]``: the checks that gate a world-model
-checkpoint, on held-out episodes (sc3_jax/evaluate/diagnose.py, docs/world_model.md#diagnostics)."""
+"""``sc3 diagnose --world-model WM --data HELDOUT_STORE [--SECTION.FIELD VALUE ...]``: the checks that gate a
+world-model checkpoint, on held-out episodes (sc3_jax/evaluate/diagnose.py, docs/world_model.md#diagnostics)."""
 from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
-from typing import Annotated, Literal
-
-import tyro
+from typing import Literal
 
 from sc3_jax.commands import parse_evaluated
 from sc3_jax.evaluate.diagnose import DiagnoseConfig, Stage
+from sc3_jax.evaluate.world_model_defaults import SamplerSteps
 
 SUMMARY = "the checks that gate a world-model checkpoint, on held-out episodes"  # the line `sc3 --help` shows
 
@@ -17,15 +16,14 @@ D = DiagnoseConfig()  # the library's defaults, one home
 
 
 @dataclasses.dataclass(frozen=True)
-class Args:
+class Args(SamplerSteps):
     """Diagnostics that gate a world-model checkpoint on held-out episodes: PSNR against copy-last / temporal-median
     baselines, drift, true vs shuffled and counterfactual actions, inverse dynamics, offline outcome reproduction,
-    then the gates' verdicts. Sampled as `sc3 sweep` samples (sc3_jax/evaluate/world_model_defaults.py); every field
-    of the world model's config is an option: --SECTION.FIELD VALUE, e.g. --sample.steps 8 (the list: `sc3 train
-    --help`)."""
+    then the gates' verdicts. Sampled as `sc3 sweep` samples (sc3_jax/evaluate/world_model_defaults.py;
+    --sample-steps None: the model's own); every field of the world model's config is an option: --SECTION.FIELD
+    VALUE, e.g. --rollout.episode-seconds 6 (the list: `sc3 train --help`)."""
 
-    # metavar: tyro would hyphenate it (WORLD-MODEL)
-    world_model: Annotated[tyro.conf.Positional[str], tyro.conf.arg(metavar="WORLD_MODEL")]
+    world_model: str
     """a `sc3 train` workdir or an exported world model"""
     data: str
     """held-out episode store"""
@@ -34,8 +32,8 @@ class Args:
     cf_starts: int = D.cf_starts
     """counterfactual starts per episode"""
     out: str | None = None
-    """also write the result as JSON here (WORLD_MODEL/diagnose.json is where `sc3 report` and `sc3 diagnose-table`
-    look)"""
+    """also write the result as JSON here (WM/diagnose.json, in --world-model WM, is where `sc3 report` and `sc3
+    diagnose-table` look)"""
     filmstrips: str | None = None
     """a folder for one filmstrip per stage of the objects-kept table (real above imagined, the first episode; None:
     beside --out, in OUT_filmstrips/, or none without --out)"""
@@ -63,7 +61,7 @@ class Args:
 
 
 def main(argv: list[str]) -> int:
-    a, cfg = parse_evaluated(Args, argv, "diagnose", "world_model")
+    a, cfg = parse_evaluated(Args, argv, "diagnose")
     from sc3_jax.evaluate import diagnose
 
     fields = {f.name for f in dataclasses.fields(DiagnoseConfig)}
@@ -75,7 +73,7 @@ def main(argv: list[str]) -> int:
     print(diagnose.render_table(result))
     st = result["settings"]
     print(f"sampler: {st['sample_steps']} forward Euler steps, U re-read in {st['inverse_steps']} (`sc3 sweep`'s "
-          "unless --sample.steps / --sample.inverse-steps say otherwise); what each gate means: "
+          "unless --sample-steps / --inverse-steps say otherwise); what each gate means: "
           "docs/world_model.md#diagnostics")
     print("\n".join(diagnose.verdict(result)))
     if a.out:

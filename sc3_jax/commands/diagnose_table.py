@@ -1,11 +1,9 @@
-"""``sc3 diagnose-table DIR ... [--baseline NAME]``: several models' ``sc3 diagnose`` results side by side
+"""``sc3 diagnose-table --world-model DIR ... [--baseline NAME]``: several models' ``sc3 diagnose`` results side by side
 (sc3_jax/evaluate/diagnose_table.py)."""
 from __future__ import annotations
 
 import dataclasses
 from typing import Annotated
-
-import tyro
 
 from sc3_jax.commands import one_or_more, parse
 from sc3_jax.errors import UserError
@@ -18,7 +16,7 @@ class Args:
     """Several world models' `sc3 diagnose` results side by side: the offline half of an ablation table (the full
     recipe and its ablations trained at one budget)."""
 
-    models: Annotated[tyro.conf.Positional[tuple[str, ...]], one_or_more("MODELS")]
+    world_model: Annotated[tuple[str, ...], one_or_more("DIR")]
     """world-model dirs, each holding diagnose.json and config.json"""
     baseline: str | None = None
     """label of the row every other row is compared with"""
@@ -28,13 +26,13 @@ class Args:
 
 def main(argv: list[str]) -> int:
     a = parse(Args, argv, "diagnose-table")
-    if not a.models:  # tyro takes a positional tuple as zero or more; argparse asked for one at least
+    if not a.world_model:  # tyro takes a positional tuple as zero or more; argparse asked for one at least
         raise UserError("give at least one world-model directory")
     from sc3_jax import atomic
     from sc3_jax.evaluate import diagnose_table
 
     rows = {}
-    for m in a.models:
+    for m in a.world_model:
         label, row = diagnose_table.load(m)
         if label in rows:
             raise UserError(f"two models are labelled {label!r}; give each its own directory name")

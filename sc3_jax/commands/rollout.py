@@ -1,4 +1,4 @@
-"""``sc3 rollout --checkpoint WM --policy P --initial-conditions IC --out DIR [--SECTION.FIELD VALUE ...]``:
+"""``sc3 rollout --world-model WM --policy P --data IC --out DIR [--SECTION.FIELD VALUE ...]``:
 closed-loop (and optionally offline) rollouts of a policy inside a trained world model -> arrays, videos and a
 summary (sc3_jax/rollout_io.py, docs/rollout.md).
 
@@ -11,28 +11,29 @@ import dataclasses
 from pathlib import Path
 
 from sc3_jax.commands import parse_evaluated
+from sc3_jax.evaluate.world_model_defaults import SamplerSteps
 
 SUMMARY = "closed-loop and offline rollouts of a policy inside a world model"  # the line `sc3 --help` shows
 
 
 @dataclasses.dataclass(frozen=True)
-class Args:
+class Args(SamplerSteps):
     """Closed-loop rollouts of a policy inside a trained world model, sampled as `sc3 sweep` samples it (its sampler
-    steps, horizon and U units: sc3_jax/evaluate/world_model_defaults.py). Every field of the world model's config is
-    an option: --SECTION.FIELD VALUE, e.g. --rollout.tau 0.05 --rollout.episode-seconds 6 --sample.steps 8 (the list:
-    `sc3 train --help`)."""
+    steps, horizon and U units: sc3_jax/evaluate/world_model_defaults.py; --sample-steps None: the model's own). Every
+    field of the world model's config is an option: --SECTION.FIELD VALUE, e.g. --rollout.tau 0.05
+    --rollout.episode-seconds 6 (the list: `sc3 train --help`)."""
 
-    checkpoint: str
+    world_model: str
     """a saved world model: a `sc3 train` workdir or an exported one (config.json, norm_stats.json, checkpoints/ or
     params.npz)"""
     policy: str
     """a zoo name | zero | random | linear (built-in JAX policies) | ws://HOST:PORT (an openpi policy server, see
     --family) | package.module:attr (a JaxPolicy / HostPolicy or a zero-argument factory of one): every spelling of
     policies/resolve.py"""
-    initial_conditions: str
-    """an episode store (its first K frames at the rollout stride from --start, and the pose at the last of them) or
-    an .npz with frames uint8 [B, V, K, H, W, 3], state float32 [B, A] (A: the model's action dimension) and
-    optionally task int32 [B]"""
+    data: str
+    """initial conditions: an episode store (its first K frames at the rollout stride from --start, and the pose at
+    the last of them) or an .npz with frames uint8 [B, V, K, H, W, 3], state float32 [B, A] (A: the model's action
+    dimension) and optionally task int32 [B]"""
     out: str
     """output directory: rollout.npz, summary.json, the videos (and offline.npz)"""
     step: int | None = None
@@ -46,7 +47,7 @@ class Args:
     """first frame of the initial context in each stored episode"""
     task: int = 0
     """task id given to the policy (episode stores carry none; a mapped ws:// policy gets the episodes' prompts)"""
-    batch_size: int | None = None
+    batch: int | None = None
     """episodes per jitted call (None: all at once)"""
     data_fps: float | None = None
     """frame rate the model was trained at (None: the store's fps, else 20)"""
@@ -66,7 +67,7 @@ class Args:
 
 
 def main(argv: list[str]) -> int:
-    a, cfg = parse_evaluated(Args, argv, "rollout", "checkpoint")
+    a, cfg = parse_evaluated(Args, argv, "rollout")
     import numpy as np
 
     from sc3_jax import atomic, checkpoint, rollout, rollout_io, state_head
@@ -75,16 +76,15 @@ def main(argv: list[str]) -> int:
     from sc3_jax.policies.resolve import resolve
 
     rollout_io.check_seconds(cfg.rollout.episode_seconds)
-    stats = checkpoint.read_norm_stats(a.checkpoint)
-    params = checkpoint.load_params(a.checkpoint, cfg, a.step)
-    fps = rollout_io.data_fps(a.initial_conditions, a.data_fps)
-    ro = rollout.Rollout(cfg, stats, data_fps=fps, head=state_head.load(a.checkpoint) if a.learned_state else None)
-    ids, ics, store = rollout_io.load_initial_conditions(a.initial_conditions, cfg, ro.spec, a.episodes, a.start,
-                                                         a.task)
+    stats = checkpoint.read_norm_stats(a.world_model)
+    params = checkpoint.load_params(a.world_model, cfg, a.step)
+    fps = rollout_io.data_fps(a.data, a.data_fps)
+    ro = rollout.Rollout(cfg, stats, data_fps=fps, head=state_head.load(a.world_model) if a.learned_state else None)
+    ids, ics, store = rollout_io.load_initial_conditions(a.data, cfg, ro.spec, a.episodes, a.start, a.task)
     family = a.family
     if store is not None and get_mapping(a.family) is not None:
         # an openpi server reads each episode's own instruction (not the bussing table by --task), and its
-        # cameras by the model's view names where it has them (as `sc3 sweep episodes --initial-conditions` sends them)
+        # cameras by the model's view names where it has them (as `sc3 sweep episodes --data` sends them)
         prompts = [atomic.read_json(store.root / e / "meta.json").get("prompt", "") for e in ids]
         table = list(dict.fromkeys(prompts))
         ics = ics._replace(task=np.asarray([table.index(p) for p in prompts], np.int32))
@@ -92,7 +92,7 @@ def main(argv: list[str]) -> int:
     policy = resolve(a.policy, cfg.rollout.policy_chunk, family, action_space=stats.action_space, named=named_policy,
                      num_views=len(cfg.data.views)).policy
     n, s, tau = len(ids), ro.spec, ro.tau
-    size = a.batch_size or n
+    size = a.batch or n
     rollout_io.check_horizon(s, cfg.rollout.episode_seconds, min(size, n))
     out = Path(a.out)
     keys = np.asarray(rollout.episode_keys(a.seed, n))

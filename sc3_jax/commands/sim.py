@@ -2,7 +2,7 @@
 
     sc3 sim demos --out DIR --episodes N [--seed S] [knobs] [--policy NAME]   expert / zoo demonstrations
     sc3 sim mixture --out DIR --episodes N [--recipe failure_rich] [--workers 16]   failure-rich world-model data
-    sc3 sim demos-stats --store DIR [DIR ...] [--zoo-real STORE]              what demo stores hold, vs the zoo
+    sc3 sim demos-stats --data DIR [DIR ...] [--zoo-real STORE]               what demo stores hold, vs the zoo
     sc3 sim eval --policy NAME --task bussing|reverse --episodes 36 [--out DIR]
     sc3 sim zoo-train [--workdir /tmp/sc3_zoo] [--runs clean small reverse]   the zoo's demos and weights
     sc3 sim zoo-eval --out DIR [--episodes 36] [--policies NAME ...]          every zoo policy, the table
@@ -90,7 +90,7 @@ class Mixture(Scene):
 class DemosStats:
     """What demo stores hold: tasks, sources, per-object outcomes against the zoo's real ones (meta.json only)."""
 
-    store: tuple[str, ...]
+    data: tuple[str, ...]
     """episode stores (`sc3 sim demos|mixture --out` directories), counted together"""
     zoo_real: str | None = "docs/stores/sweep72_gpu"
     """a sweep results store whose real rollouts give the zoo's measured outcome mix to compare with (relative
@@ -201,7 +201,7 @@ def _demos(a: Demos) -> int:
     print(json.dumps(res, indent=1, default=str))
     source = f"zoo policy {a.policy}" if a.policy else "scripted expert"
     print(f"\nwrote {res['written']} {source} episodes to the episode store {res['out']} "
-          f"({res['skipped']} already there, skipped); `sc3 sim demos-stats --store {res['out']}` counts the store")
+          f"({res['skipped']} already there, skipped); `sc3 sim demos-stats --data {res['out']}` counts the store")
     if res["success"]:
         s = res["success"]
         print(f"outcomes of the {s['n_objects']} objects of the episodes written now:")
@@ -231,7 +231,7 @@ def _mixture(a: Mixture) -> int:
             r = rates(c)
             print(f"  {src:14s} {res['sources'].get(src, res['written']):5d} ep  "
                   + " / ".join(f"{r[k]:.2f}" for k in CATEGORIES) + f"  {SOURCES.get(src, 'all sources')}")
-    print(f"`sc3 sim demos-stats --store {res['out']}` puts the whole store next to the zoo's real outcome mix")
+    print(f"`sc3 sim demos-stats --data {res['out']}` puts the whole store next to the zoo's real outcome mix")
     return 0
 
 
@@ -258,12 +258,12 @@ def _demos_stats(a: DemosStats) -> int:
     from sc3_jax.benchmarks.bussing.demos import store_contents
     from sc3_jax.benchmarks.bussing.mixture import CATEGORIES, CATEGORY_MEANING, rates, store_outcomes, zoo_real_outcomes
 
-    if not a.store:
-        raise UserError("--store: give at least one episode store")
-    if missing := [s for s in a.store if not Path(s).is_dir()]:
-        raise UserError(f"--store {missing[0]}: no such directory (an `sc3 sim demos|mixture --out` store)")
-    res = store_contents(*a.store)
-    mix = store_outcomes(*a.store)
+    if not a.data:
+        raise UserError("--data: give at least one episode store")
+    if missing := [s for s in a.data if not Path(s).is_dir()]:
+        raise UserError(f"--data {missing[0]}: no such directory (an `sc3 sim demos|mixture --out` store)")
+    res = store_contents(*a.data)
+    mix = store_outcomes(*a.data)
     zoo = None
     if a.zoo_real is not None:
         try:
@@ -271,7 +271,7 @@ def _demos_stats(a: DemosStats) -> int:
         except FileNotFoundError as e:
             raise UserError(f"--zoo-real: {e} (give a sweep results store, or None for no comparison)") from None
     print(json.dumps({**res, "outcomes": mix, "zoo_real": zoo}, indent=1, default=str))
-    print(f"\n{res['episodes']} episodes ({res['objects']} objects) in {', '.join(a.store)}:\n"
+    print(f"\n{res['episodes']} episodes ({res['objects']} objects) in {', '.join(a.data)}:\n"
           "  tasks: episodes per task id\n"
           "  sources: episodes per generator (a mixture's data-collection source, expert failure knobs, 'clean "
           "expert', or the zoo policy recorded)\n"

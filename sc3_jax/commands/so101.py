@@ -105,8 +105,9 @@ def _collect(a: Collect) -> int:
               f"({recipes}); the task's horizon: {d['horizon_seconds']} s (90% of successes + a chunk) -> "
               f"{d['path']}")
     print(f"episode list: {a.out}/collect.json ({s['seconds']:.0f} s). Import (the action space is declared in "
-          f"info.json): sc3 data import-lerobot {a.out}/train --out STORE"
-          + (f"; sc3 data import-lerobot {a.out}/heldout --out HELDOUT_STORE" if "heldout" in s["splits"] else ""))
+          f"info.json): sc3 data import-lerobot --data {a.out}/train --out STORE"
+          + (f"; sc3 data import-lerobot --data {a.out}/heldout --out HELDOUT_STORE" if "heldout" in s["splits"]
+             else ""))
     return 0
 
 

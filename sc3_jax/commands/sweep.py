@@ -10,6 +10,7 @@ import json
 from sc3_jax.benchmarks.bussing.sweep import SweepConfig
 from sc3_jax.benchmarks.so101.sweep import So101SweepConfig
 from sc3_jax.commands import run_group
+from sc3_jax.commands.flags import respell
 from sc3_jax.errors import UserError
 from sc3_jax.evaluate.ic_sweep import ICSweepConfig
 
@@ -103,7 +104,8 @@ def episodes(cfg: ICSweepConfig) -> int:
 
 def main(argv: list[str]) -> int:
     if argv and argv[0].startswith("-") and argv[0] not in ("-h", "--help"):  # the spelling before the subcommands
-        job = "episodes" if any(a.startswith("--initial-conditions") for a in argv) else "bench"
+        argv = respell(argv)  # and the options' spellings before the one set (commands/flags.py)
+        job = "episodes" if any(a.split("=")[0] == "--data" for a in argv) else "bench"
         raise UserError(f"name the sweep: `sc3 sweep {job} {' '.join(argv)}` (bench: the simulated benchmark; "
                         "episodes: held-out episodes of any robot)")
     return run_group("sweep", "Policies x initial conditions inside the world model, then the report "

@@ -1,10 +1,12 @@
-"""``sc3 train --config NAME [--SECTION.FIELD VALUE ...]``: train (or resume) a world model."""
+"""``sc3 train --config NAME [--data STORE] [--batch N] [--SECTION.FIELD VALUE ...]``: train (or resume) a world
+model."""
 from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
 
 from sc3_jax.commands import parse_with_config
+from sc3_jax.commands.flags import explicit_fields, onto_config
 
 SUMMARY = "train (or resume) a world model from a named config or a config file"  # the line `sc3 --help` shows
 
@@ -12,12 +14,17 @@ SUMMARY = "train (or resume) a world model from a named config or a config file"
 @dataclasses.dataclass(frozen=True)
 class Args:
     """Train a world model, or resume it exactly (rerun the same command). The model's views, image size and action
-    dimension are read from the dataset (--data.path: its dataset.json) unless given. Every field of the config is
-    an option: --SECTION.FIELD VALUE, e.g. --train.steps 100 --data.batch-size 16 --train.workdir runs/mine (the
-    list: `sc3 train --config NAME --help-config`)."""
+    dimension are read from the dataset (--data: its dataset.json) unless given. Every other field of the config is
+    an option: --SECTION.FIELD VALUE, e.g. --train.steps 100 --train.workdir runs/mine (the list: `sc3 train --config
+    NAME --help-config`)."""
 
     config: str = "tiny"
     """a named config (`sc3 configs`) or a config file, optionally NAME:ARG (passed to its get_config)"""
+    data: str | None = None
+    """the episode store to train on (the config's data.path; None: the config's)"""
+    batch: int | None = None
+    """global batch, summed over processes and devices (the config's data.batch_size; None: the config's, sized
+    from the data)"""
     help_config: bool = False
     """list every --SECTION.FIELD option of the config, with its value in NAME, and exit"""
 
@@ -25,15 +32,15 @@ class Args:
 def main(argv: list[str]) -> int:
     import tyro
 
-    from sc3_jax.config import Config, load_config
+    from sc3_jax.config import Config
 
-    a, cfg = parse_with_config(Args, argv, "train", lambda a: load_config(a.config))
+    a, cfg = parse_with_config(Args, argv, "train", config_of)
     if a.help_config:
         tyro.cli(Config, default=cfg, args=["--help"], prog=f"sc3 train --config {a.config}")
     import jax
 
     from sc3_jax import sizing, train
-    from sc3_jax.data.shape import explicit_fields, shape_from_dataset
+    from sc3_jax.data.shape import shape_from_dataset
 
     # views, image size and action dimension come from the dataset unless given here (then they are checked)
     # (no dataset there: train() says so, after refusing a changed config, which it checks first)
@@ -55,6 +62,13 @@ def main(argv: list[str]) -> int:
 
         print(train_state.describe(*train_state.train(cfg.train.workdir, None, FitConfig(), cfg.train.progress)))
     return 0
+
+
+def config_of(a: Args):
+    """The named config with --data and --batch set (before the --SECTION.FIELD overrides)."""
+    from sc3_jax.config import load_config
+
+    return onto_config(load_config(a.config), a.data, a.batch)
 
 
 def _check_tokenizer(cfg) -> None:

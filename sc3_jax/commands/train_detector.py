@@ -1,10 +1,8 @@
-"""``sc3 train-detector STORE --out DIR``: a success detector learnt from a lab's own labelled episodes
+"""``sc3 train-detector --data STORE --out DIR``: a success detector learnt from a lab's own labelled episodes
 (``sc3_jax/evaluate/success_detector.py``), to score imagined rollouts: ``sc3 sweep episodes --scorer detector:DIR``."""
 from __future__ import annotations
 
 import dataclasses
-
-import tyro
 
 from sc3_jax.commands import parse
 from sc3_jax.evaluate.success_detector import DetectorConfig
@@ -17,8 +15,8 @@ class Args(DetectorConfig):
     """Train a success detector on an episode store whose episodes carry a boolean label (`sc3 data import-lerobot`
     keeps LeRobot's next.success as labels.success); the last tenth of the episodes measure it."""
 
-    store: tyro.conf.Positional[str]
-    """an episode store of the robot, with labels (e.g. `sc3 data import-lerobot DATASET --out STORE`)"""
+    data: str
+    """an episode store of the robot, with labels (e.g. `sc3 data import-lerobot --data DATASET --out STORE`)"""
     out: str
     """where detector.npz and detector.json go"""
     progress: bool = True
@@ -30,7 +28,7 @@ def main(argv: list[str]) -> int:
 
     a = parse(Args, argv, "train-detector")
     cfg = DetectorConfig(**{f.name: getattr(a, f.name) for f in dataclasses.fields(DetectorConfig)})
-    info = success_detector.train(a.store, a.out, cfg, a.progress)
+    info = success_detector.train(a.data, a.out, cfg, a.progress)
     t, h = info["train"], info["heldout"]
     print(f"detector: {a.out} ({t['frames']} frames of {t['episodes']} episodes, {t['done_frames']} done)")
     if h:

@@ -1,4 +1,4 @@
-"""``sc3 train-perception --store STORE ... [--out WEIGHTS]`` | ``--validate RESULTS ... --init WEIGHTS``: train the
+"""``sc3 train-perception --data STORE ... [--out WEIGHTS]`` | ``--validate RESULTS ... --init WEIGHTS``: train the
 perception scorer on simulator frames labelled by physics, or check weights against physics on a sweep's real
 rollouts (``sc3_jax/benchmarks/bussing/perception_train.py``)."""
 from __future__ import annotations
@@ -21,12 +21,12 @@ class Args:
     labels per head; or, with --validate, re-score a sweep's real rollouts with the weights and report their
     agreement with physics per criterion, clean and degraded (docs/sweep.md#scorers)."""
 
-    store: Annotated[tuple[str, ...], tyro.conf.arg(metavar="STORE [STORE ...]")] = ()
+    data: Annotated[tuple[str, ...], tyro.conf.arg(metavar="STORE [STORE ...]")] = ()
     """episode stores with meta['object_pos'] (`sc3 sim demos`); required to train"""
     generate: int = 0
-    """first write this many expert episodes (both tasks) to the second-to-last --store"""
+    """first write this many expert episodes (both tasks) to the second-to-last --data store"""
     generate_policies: int = 0
-    """and this many zoo-policy episodes (training seeds) to the last --store"""
+    """and this many zoo-policy episodes (training seeds) to the last --data store"""
     policy_seed: int = 60
     """seed block of the zoo-policy episodes (simulator seeds policy_seed x 100,000 + i)"""
     init: str | None = None
@@ -51,7 +51,7 @@ class Args:
     stride: int = 2
     """train on every stride-th frame of each episode"""
     max_episodes: int | None = None
-    """train on at most this many episodes (None: all of every --store)"""
+    """train on at most this many episodes (None: all of every --data store)"""
     seed: int = 0
     """initialisation, held-out split and batch seed"""
     validate: Annotated[tuple[str, ...], tyro.conf.arg(metavar="RESULTS [RESULTS ...]")] = ()
@@ -63,11 +63,11 @@ def main(argv: list[str]) -> int:
     a = parse(Args, argv, "train-perception")
     if a.validate:
         return _validate(a)
-    if not a.store:
-        raise UserError("--store: give the episode stores to train on (or --validate RESULTS ... to check weights)")
-    if a.generate and len(a.store) < 2:
-        raise UserError("--generate writes to the second-to-last --store (the last takes --generate-policies): give "
-                        "at least two")
+    if not a.data:
+        raise UserError("--data: give the episode stores to train on (or --validate RESULTS ... to check weights)")
+    if a.generate and len(a.data) < 2:
+        raise UserError("--generate writes to the second-to-last --data store (the last takes --generate-policies): "
+                        "give at least two")
     import time
 
     from sc3_jax.benchmarks.bussing import perception
@@ -76,16 +76,16 @@ def main(argv: list[str]) -> int:
     out = a.out or str(perception.DEFAULT_WEIGHTS)
     t0 = time.time()
     if a.generate:
-        pt.generate_scorer_data(a.store[-2], a.generate)
+        pt.generate_scorer_data(a.data[-2], a.generate)
     if a.generate_policies:
-        pt.generate_scorer_data(a.store[-1], a.generate_policies, seed=a.policy_seed, policies=True)
-    data = pt.load_training_data(a.store, a.stride, a.max_episodes)
+        pt.generate_scorer_data(a.data[-1], a.generate_policies, seed=a.policy_seed, policies=True)
+    data = pt.load_training_data(a.data, a.stride, a.max_episodes)
     init = perception.load(a.init) if a.init else None
     arch = {"n_kp": a.keypoints or perception.N_KP, "widths": tuple(a.widths or perception.WIDTHS),
             "hidden": a.hidden or perception.HIDDEN}
     params, metrics = pt.train(data, a.steps, a.batch, lr=a.lr, seed=a.seed, init=init, arch=arch,
                                pos_weight=a.pos_weight)
-    metrics.update(seconds=round(time.time() - t0, 1), store=list(a.store), stride=a.stride, init=a.init, lr=a.lr,
+    metrics.update(seconds=round(time.time() - t0, 1), store=list(a.data), stride=a.stride, init=a.init, lr=a.lr,
                    batch=a.batch, pos_weight=a.pos_weight)
     perception.save(out, params, metrics)
     print("\n".join(training_summary(out, metrics, perception.PREDICATES)))

@@ -1,12 +1,10 @@
-"""``sc3 train-state WORLD_MODEL [--data STORE] [--steps N ...]``: the learned robot state of a world model
+"""``sc3 train-state --world-model WM [--data STORE] [--steps N ...]``: the learned robot state of a world model
 (``sc3_jax/state_head.py``): what the robot's sensors would read inside its imagined rollouts, for the policies
 that act there. ``sc3 train`` runs it after training on a store that records a state; run it for a world model
 trained before, or on more data of the same robot."""
 from __future__ import annotations
 
 import dataclasses
-
-import tyro
 
 from sc3_jax.commands import parse
 from sc3_jax.state_head import FitConfig
@@ -17,9 +15,9 @@ SUMMARY = "train the learned robot state a world model hands its policies"  # th
 @dataclasses.dataclass(frozen=True, kw_only=True)
 class Args(FitConfig):
     """Train the learned robot state of a saved world model on the episodes of its robot (holding out a tenth of
-    them for the figures) and save it as WORLD_MODEL/state_head.npz."""
+    them for the figures) and save it as WM/state_head.npz (--world-model WM)."""
 
-    world_model: tyro.conf.Positional[str]
+    world_model: str
     """a `sc3 train` workdir or an exported world model"""
     data: str | None = None
     """an episode store of the same robot that records its state (None: the world model's data.path)"""

@@ -3,6 +3,9 @@ tokenizer (conv autoencoder, ``sc3_jax/tokenizer_train.py``)."""
 from __future__ import annotations
 
 import dataclasses
+from typing import Annotated
+
+import tyro
 
 from sc3_jax.commands import parse
 from sc3_jax.tokenizer_config import AEConfig, TokenizerTrainConfig
@@ -15,6 +18,10 @@ class Args(TokenizerTrainConfig):
     """Train (or resume: rerun the same command) the convolutional autoencoder on single-view frames of an episode
     store, then write WORKDIR/tokenizer (the directory model.tokenizer_path points at) and, with --heldout, its
     reconstruction PSNR on held-out episodes against a static baseline (WORKDIR/tokenizer/eval.json)."""
+
+    # the field TokenizerTrainConfig names batch_size, spelt as every command spells a batch (commands/flags.py)
+    batch_size: Annotated[int, tyro.conf.arg(name="batch")] = TokenizerTrainConfig.batch_size
+    """single-view images per step"""
 
     ae: AEConfig = AEConfig()
     """the autoencoder's architecture"""

@@ -1,5 +1,5 @@
-"""Several world models' ``sc3 diagnose`` results side by side (``sc3 diagnose-table DIR ... --baseline NAME``):
-the offline half of an ablation table: the full recipe and its ablations trained at one budget (scripts/ablations.sh
+"""Several world models' ``sc3 diagnose`` results side by side (``sc3 diagnose-table --world-model DIR ... --baseline
+NAME``): the offline half of an ablation table: the full recipe and its ablations trained at one budget (scripts/ablations.sh
 says which; the table cannot tell how long a model was trained), at a budget where the closed loop of every variant
 would still read as a guess (docs/results.md#training-ablations-at-an-equal-budget).
 
@@ -74,8 +74,8 @@ def load(path: str | Path) -> tuple[str, dict]:
     path = Path(path).expanduser()
     missing = [f for f in ("diagnose.json", "config.json") if not (path / f).exists()]
     if missing:
-        raise FileNotFoundError(f"{path}: no {' or '.join(missing)} (run `sc3 diagnose {path} --data HELDOUT "
-                                f"--out {path}/diagnose.json` on a trained or exported world model)")
+        raise FileNotFoundError(f"{path}: no {' or '.join(missing)} (run `sc3 diagnose --world-model {path} --data "
+                                f"HELDOUT --out {path}/diagnose.json` on a trained or exported world model)")
     # load_result: the file spells non-finite numbers as strings ("nan": a gate --stages skipped)
     return label_of(path), summary(load_result(path / "diagnose.json"),
                                    atomic.read_json(path / "config.json", "restore it, or export the model again"))

@@ -1,6 +1,6 @@
 """Evaluation without a simulator (issue 33 item 3): rank policies inside a world model from held-out episodes.
 
-    sc3 sweep episodes --initial-conditions HELDOUT --world-model RUN --policies a=pkg.mod:attr b=ws://HOST:PORT \
+    sc3 sweep episodes --data HELDOUT --world-model RUN --policies a=pkg.mod:attr b=ws://HOST:PORT \
               [--family aloha] --scorer pkg.mod:score [--real REAL] --out DIR
 
 Each held-out episode of HELDOUT is one initial condition (its first K frames at the rollout stride from --start, and
@@ -40,8 +40,10 @@ import json
 import math
 import time
 from pathlib import Path
+from typing import Annotated
 
 import numpy as np
+import tyro
 
 from sc3_jax import atomic
 from sc3_jax.errors import UserError
@@ -58,10 +60,11 @@ class ICSweepConfig(Sampler):
     compared with real outcomes; no simulator. Resumable (rerun the same command); ends with OUT/report/report.md.
     Every field is an option of `sc3 sweep episodes`."""
 
-    initial_conditions: str
-    """an episode store of held-out episodes (or an .npz, as `sc3 rollout` reads): each is one initial condition
-    (its first frames and robot state); the first --episodes are ranked, the next --calibration-episodes choose tau
-    (against --real only)"""
+    # the field keeps its name (sweep.json stores it); the option is the one spelling of a store (commands/flags.py)
+    initial_conditions: Annotated[str, tyro.conf.arg(name="data")]
+    """initial conditions: an episode store of held-out episodes (or an .npz, as `sc3 rollout` reads): each is one
+    initial condition (its first frames and robot state); the first --episodes are ranked, the next
+    --calibration-episodes choose tau (against --real only)"""
     world_model: str
     """a training run dir (checkpoints/) or an exported dir (params.npz)"""
     policies: tuple[str, ...]
@@ -246,7 +249,7 @@ def run(cfg: ICSweepConfig, named=None) -> Path:
     want = cfg.episodes + cfg.calibration_episodes
     ids, ics, store = rollout_io.load_initial_conditions(cfg.initial_conditions, wcfg, s, want, cfg.start, cfg.task)
     if len(ids) < want:
-        raise UserError(f"--initial-conditions {cfg.initial_conditions}: {len(ids)} episodes, the sweep needs "
+        raise UserError(f"--data {cfg.initial_conditions}: {len(ids)} episodes, the sweep needs "
                         f"--episodes {cfg.episodes} + --calibration-episodes {cfg.calibration_episodes} = {want}: "
                         "lower them or give more held-out episodes")
     seen = trained_on(store, ids, wcfg.data.path) if store else None

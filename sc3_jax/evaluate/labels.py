@@ -1,4 +1,4 @@
-"""Real outcomes of the evaluated policies, for ``sc3 sweep episodes --initial-conditions ... --real SOURCE``: per real episode,
+"""Real outcomes of the evaluated policies, for ``sc3 sweep episodes --data ... --real SOURCE``: per real episode,
 the policy that ran it and ``{criterion: bool}``. They are the reference the imagined ranking is compared with
 (``report_episodes.py``); nothing here is rolled out.
 

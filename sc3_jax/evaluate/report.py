@@ -30,18 +30,20 @@ from sc3_jax.evaluate.calibrate import object_rows as _object_rows
 from sc3_jax.evaluate.merged import open_store
 from sc3_jax.evaluate.results import EVAL_MODES, SPLIT_ORDER, ResultsStore, paired_frames, seed_blocks
 from sc3_jax.safe_names import file_name
+from sc3_jax.stats import interval, resample
+from sc3_jax.stats.floor import policy_blind
 
 
 def _policy_blind(real_rates: dict) -> dict:
     """An evaluator that knows each criterion's *average* real success rate in a split but nothing about the
     policies: every policy gets the same rates. Pooling criteria gives it a high r (language is easy for everyone,
     placing hard), which is the floor a world model's r has to be read against. The rule is
-    ``intervals.policy_blind``'s (one definition); this is its point estimate on ``{split: {(policy, c): rate}}``."""
+    ``stats.floor.policy_blind``'s (one definition); this is its point estimate on ``{split: {(policy, c): rate}}``."""
     out = {}
     for s, r in real_rates.items():
         ps, cs = list(dict.fromkeys(p for p, _ in r)), list(dict.fromkeys(c for _, c in r))
         grid = np.array([[[r.get((p, c), np.nan) for c in cs] for p in ps]])  # [1, P, C]; nan: not measured
-        floor = intervals.policy_blind(grid, [s] * len(ps))[0]
+        floor = policy_blind(grid, [s] * len(ps))[0]
         out[s] = {(p, c): float(floor[ps.index(p), cs.index(c)]) for (p, c) in r}
     return out
 
@@ -198,7 +200,7 @@ def _ranking(by, policies, seeds, draws, seed) -> dict:
     mode = next((m for m in ("online", "offline") if by["evaluation", m]), None)
     if mode is None:
         return {}
-    w, one = bootstrap.multiplicities(len(seeds), draws, seed), np.ones((1, len(seeds)))
+    w, one = resample.multiplicities(len(seeds), draws, seed), np.ones((1, len(seeds)))
     crit = list(metrics.CRITERIA)
     out = {}
     for split in dict.fromkeys(s for _, s in policies):
@@ -209,7 +211,7 @@ def _ranking(by, policies, seeds, draws, seed) -> dict:
         real_point, real_draws = bootstrap.rates(rp, rc, one), bootstrap.rates(rp, rc, w)
         for row in rows:
             p = names.index(row["policy"])
-            row["real"] = {c: bootstrap.summary(float(real_point[0, p, k]), real_draws[:, p, k])
+            row["real"] = {c: interval.summary(float(real_point[0, p, k]), real_draws[:, p, k])
                            for k, c in enumerate(crit)}
         out[split] = {"mode": mode, "ranked_by": RANKED_BY, "policies": rows}
     return out
@@ -286,7 +288,7 @@ def _views(world_model: str, n: int) -> list[str]:
 
 
 def _diagnose_gates(world_model: str) -> dict:
-    """The world model's checkpoint gates, from the ``diagnose.json`` that ``sc3 diagnose WM --out WM/diagnose.json``
+    """The world model's checkpoint gates, from the ``diagnose.json`` that ``sc3 diagnose --world-model WM --out WM/diagnose.json``
     writes next to it (held-out episodes, not the sweep's rollouts): a sweep of a model that fails them says so."""
     from sc3_jax.evaluate import diagnose
     path = Path(world_model) / "diagnose.json"
@@ -450,7 +452,7 @@ def tables(t: dict) -> list[tuple[str, list[str], list[list[str]]]]:
                       {True: "PASS", False: "FAIL"}.get(g["pass"], "not run")] for g in d["gates"]]))
     elif d:
         out.append(("World-model checkpoint gates", ["gate", "value", "threshold", "pass"],
-                    [["not diagnosed: run `sc3 diagnose WORLD_MODEL --data HELDOUT --out WORLD_MODEL/diagnose.json`",
+                    [["not diagnosed: run `sc3 diagnose --world-model WORLD_MODEL --data HELDOUT --out WORLD_MODEL/diagnose.json`",
                       "-", "-", "-"]]))
     a = t["scorer_agreement"]
     out.append(("Perception scorer vs physics. Agreement per criterion on clean frames of every real rollout of the "

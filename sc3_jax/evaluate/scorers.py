@@ -70,7 +70,7 @@ def agreement(scored: list[list[dict]], truth: list[list[dict]]) -> dict[str, fl
 
 
 # ================================================================================================================
-# Any robot's scorer: ``--scorer module:attr`` (``sc3 sweep episodes --initial-conditions``, docs/your_robot.md)
+# Any robot's scorer: ``--scorer module:attr`` (``sc3 sweep episodes --data``, docs/your_robot.md)
 # ================================================================================================================
 class OutcomeScorer(Protocol):
     """The contract of a ``--scorer module:attr``: called with one :class:`RolloutView` -- ``frames`` uint8 [V, T, H,

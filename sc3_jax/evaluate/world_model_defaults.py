@@ -1,7 +1,9 @@
 """How a world model is sampled when it is evaluated, in one place: ``Sampler``'s fields are options of both sweeps
-(``sc3 sweep bench`` / ``sc3 sweep episodes``, which inherit them) and ``sc3 rollout`` / ``sc3 diagnose`` start from
-its defaults (then ``--sample.steps`` and the other config fields may override them), so a tau or a U read in one
-command is read alike in the others. Why 2 forward steps and 1 inverse step: docs/sweep.md#sampler-steps."""
+(``sc3 sweep bench`` / ``sc3 sweep episodes``, which inherit them), and its steps (``SamplerSteps``: ``--sample-steps``,
+``--inverse-steps``) those of ``sc3 sweep so101``, ``sc3 rollout``, ``sc3 diagnose`` and ``sc3 plan`` too, so a tau or a
+U read in one command is read alike in the others. The defaults are the evaluation protocol's, not a saved model's
+own ``sample.steps`` (None samples in those): why 2 forward steps and 1 inverse step, docs/sweep.md#sampler-steps;
+the one set of option spellings, sc3_jax/commands/flags.py."""
 from __future__ import annotations
 
 import dataclasses
@@ -10,14 +12,20 @@ import warnings
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
-class Sampler:
-    """The evaluation sampler (None / 0: the world model's own setting)."""
+class SamplerSteps:
+    """The evaluation sampler's Euler steps (None / 0: the world model's own setting): the one default of
+    ``--sample-steps`` and ``--inverse-steps`` in every command that has them."""
 
     sample_steps: int | None = 2
-    """forward-dynamics Euler steps per chunk (None: the world model's sample.steps)"""
+    """forward-dynamics Euler steps per chunk (None: the world model's own sample.steps)"""
     inverse_steps: int | None = 1
-    """Euler steps of the inverse-dynamics re-read that yields U_chunk (None: the world model's
+    """Euler steps of the inverse-dynamics re-read that yields U_chunk (None: the world model's own
     sample.inverse_steps); it never changes the frames or the outcomes"""
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class Sampler(SamplerSteps):
+    """The evaluation sampler (None / 0: the world model's own setting)."""
     episode_seconds: float | None = None
     """imagined horizon (None: the world model's rollout.episode_seconds)"""
     taus: tuple[float, ...] = (math.inf,)
@@ -48,4 +56,4 @@ def warn_if_student_off_its_step(cfg) -> None:
     if cfg.flow.distill_teacher and cfg.sample.steps != 1:
         warnings.warn(f"this world model is a 1-step student of {cfg.flow.distill_teacher} (flow.distill_teacher), "
                       f"sampled here in {cfg.sample.steps} forward steps; it was trained for 1 (sc3 sweep "
-                      "--sample-steps 1, sc3 rollout / diagnose --sample.steps 1)", stacklevel=2)
+                      "/ rollout / diagnose --sample-steps 1)", stacklevel=2)

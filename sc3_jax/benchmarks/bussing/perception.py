@@ -133,7 +133,7 @@ def load(path: str | Path = DEFAULT_WEIGHTS) -> dict:
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"perception weights {path} not found; train them with "
-                                f"`sc3 train-perception --store DEMOS --out {path}`")
+                                f"`sc3 train-perception --data DEMOS --out {path}`")
     with atomic.open_npz(path, _FIX) as z:
         params: dict = {}
         for k in z.files:

@@ -11,10 +11,10 @@ The shipped weights (``perception.DEFAULT_WEIGHTS``): a wider network (``--keypo
 384 --pos-weight 2``) fine-tuned on five stores, commands in docs/sweep.md#the-shipped-scorer. The previous ones, in
 two stages:
 
-1. ``sc3 train-perception --store runs/bussing/demos runs/bussing/scorer_data
+1. ``sc3 train-perception --data runs/bussing/demos runs/bussing/scorer_data
    runs/bussing/scorer_zoo --generate 300 --generate-policies 140 --steps 3000 --out runs/bussing/perception.npz``
    (``scripts/bussing_sim.sh``);
-2. after the zoo changed, warm-started on episodes of the new zoo: ``... --store runs/bussing/scorer_data
+2. after the zoo changed, warm-started on episodes of the new zoo: ``... --data runs/bussing/scorer_data
    runs/bussing/scorer_zoo runs/bussing/scorer_zoo2 --generate-policies 208 --policy-seed 70 --init
    runs/bussing/perception.npz --steps 3000 --lr 5e-4``.
 

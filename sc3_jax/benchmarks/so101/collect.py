@@ -11,8 +11,8 @@ episode usually runs them all, the controller nearly idle once its script is don
 Features: ``observation.images.<view>`` (a video per camera: ``workspace`` and ``wrist`` unless told), ``observation.state`` (agent_pos [14]),
 ``observation.environment_state`` (block xyz, goal xyz [6]), ``action`` [4] (dx, dy, dz, gripper), ``next.success``
 (bool [1]); fps 10, robot_type ``so101``, one task. ``meta/info.json`` declares the action space
-(``sc3_action_space``: velocity, the gripper a position target), so ``sc3 data import-lerobot OUT/train --out STORE``
-needs no other flag. ``OUT/collect.json`` lists every episode's seed, recipe, outcome and length.
+(``sc3_action_space``: velocity, the gripper a position target), so ``sc3 data import-lerobot --data OUT/train --out
+STORE`` needs no other flag. ``OUT/collect.json`` lists every episode's seed, recipe, outcome and length.
 """
 from __future__ import annotations
 

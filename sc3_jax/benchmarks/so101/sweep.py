@@ -29,6 +29,7 @@ import numpy as np
 
 from sc3_jax import atomic
 from sc3_jax.errors import UserError
+from sc3_jax.evaluate.world_model_defaults import SamplerSteps
 
 EVAL_SEED0 = 20_000_000  # as `sc3 so101 zoo-eval`: neither the collection's training nor held-out seeds
 HOLD_STEPS = 1  # one step from the reset gives the world model's second context frame (and opens the gripper)
@@ -37,9 +38,10 @@ BENCHMARK = "so101"  # whose scene measure `sc3 report` reads the kept real fram
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
-class So101SweepConfig:
+class So101SweepConfig(SamplerSteps):
     """The SO-101 policies in the simulator and inside the world model from the same seeds, then the report
-    (docs/so101.md). Resumable: rerun the same command."""
+    (docs/so101.md). Resumable: rerun the same command. Sampled as every sweep samples (--sample-steps,
+    --inverse-steps: sc3_jax/evaluate/world_model_defaults.py)."""
 
     world_model: str
     """an SO-101 world model: a `sc3 train --config so101_latent` run or its export"""
@@ -56,10 +58,6 @@ class So101SweepConfig:
     """initial conditions (simulator seeds 20000000+i) per policy"""
     episode_seconds: float | None = None
     """horizon of both rollouts (None: the world model's rollout.episode_seconds)"""
-    sample_steps: int | None = 2
-    """forward-dynamics Euler steps per chunk (None: the world model's)"""
-    inverse_steps: int | None = 1
-    """Euler steps of the inverse-dynamics re-read (U_chunk)"""
     batch: int = 6
     """initial conditions per world-model call"""
     workers: int = 1
