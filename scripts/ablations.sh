@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The paper's training ablations at an equal budget on the CPU (issue 16): the full recipe (configs/bussing_latent.py)
+# The paper's training ablations at an equal budget on the CPU: the full recipe (configs/bussing_latent.py)
 # and its four ablations, each trained from scratch for STEPS steps (the same schedule squeezed into STEPS: warm-up,
 # then cosine decay to 0 at STEPS) on the demos, tokenizer and latent cache of scripts/world_model.sh, exported and
 # gated by `sc3 diagnose` on its held-out episodes. Resumable: a finished variant is skipped, a stopped one resumes

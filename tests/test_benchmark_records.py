@@ -1,4 +1,4 @@
-"""The simulated benchmark's records do not move when the library generalises (issue 33: "README command 1 writes
+"""The simulated benchmark's records do not move when the library generalises ("README command 1 writes
 records identical to today's"): a small `sc3 sweep bench` (real and online, evaluation, calibration and ceiling blocks,
 the shipped world model and scorer) gives exactly the records and rollout arrays that the code before actions and
 state became data (commit b64205e) wrote. tests/golden/benchmark_sweep.json was made by that commit:

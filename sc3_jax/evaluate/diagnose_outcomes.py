@@ -12,7 +12,7 @@ import numpy as np
 from sc3_jax.stats import resample
 
 BOOTSTRAP_DRAWS = 2000
-# objects with physics labels an outcome set needs to be read per category (issue 34's size): at 0.75 the binomial
+# objects with physics labels an outcome set needs to be read per category (the gate's outcome set): at 0.75 the binomial
 # 95% half-width is ~0.07 with 150 objects (more once episodes' correlation counts), ~0.11 with 60: a set of a few
 # dozen objects cannot tell a model at 0.67 from one at the 0.75 gate
 MIN_OBJECTS = 150

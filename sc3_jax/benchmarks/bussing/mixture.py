@@ -1,5 +1,5 @@
 """Failure-rich world-model data: rollouts of *data-collection* policies, mixed with the scripted expert's clean
-demonstrations (issue 34).
+demonstrations.
 
 A world model learns what its data shows. The clean expert never misses a grasp, never drops an object and never
 carries one to the other container, so a model trained on it imagines success where the evaluated policies fail.
