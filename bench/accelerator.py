@@ -30,11 +30,14 @@ import numpy as np
 
 from sc3_jax import flow, plan, rollout, sharding, train
 from sc3_jax.config import MeshConfig, load_config, replace
+from sc3_jax.data.action_space import DELTA_EE
 from sc3_jax.data.norm_stats import NormStats
 from sc3_jax.model import dit
 from sc3_jax.model import tokenizer
 from sc3_jax.model.tokenizer import make_tokenizer
 from sc3_jax.policies import simple
+
+PAPER_FPS = 20.0  # the paper config's data (the bussing benchmark's episodes): the rollout's frame stride
 
 PAPER_SECONDS_PER_CHUNK = 2.3  # one GB200 (paper)
 KINDS = {"h100": "h100", "h200": "h200", "gb200": "gb200", "b200": "gb200", "v5p": "v5p"}  # device_kind -> DEVICES
@@ -113,14 +116,15 @@ def chunk_seconds(cfg, repeats: int, compare: bool = False):
     before the context cache's) best times, their runs interleaved; the latter traced with the context's keys/values not
     shared between the two samplers (``flow.shares_context`` False: each sampler computes its own, as before)."""
     mesh = sharding.make_mesh(cfg.mesh, jax.devices()[:1])
-    stats = NormStats(np.zeros(7, np.float32), np.full(7, 0.01, np.float32))
-    ro = rollout.Rollout(cfg, stats, mesh=mesh, num_chunks=1)
+    # the paper config's robot: the bussing benchmark's 7-D delta_ee actions at 20 fps
+    stats = NormStats(np.zeros(7, np.float32), np.full(7, 0.01, np.float32), action_space=DELTA_EE)
+    ro = rollout.Rollout(cfg, stats, mesh=mesh, data_fps=PAPER_FPS, num_chunks=1)
     run = _chunk_runner(cfg, ro)
     if not compare:
         return _best(run, repeats)
     jax.block_until_ready(run())  # traced and compiled before the old program replaces the cached one
     rollout._compiled.cache_clear()
-    old = _chunk_runner(cfg, rollout.Rollout(cfg, stats, mesh=mesh, num_chunks=1))
+    old = _chunk_runner(cfg, rollout.Rollout(cfg, stats, mesh=mesh, data_fps=PAPER_FPS, num_chunks=1))
     with mock.patch.object(flow, "shares_context", lambda *a: False):
         jax.block_until_ready(old())
     best = [math.inf, math.inf]

@@ -44,11 +44,16 @@ def main(argv=None) -> int:
     ap.add_argument("--uncached", action="store_true", help="also account the sampler without the context cache")
     args = ap.parse_args(argv)
     cfg = load_config(args.config)
+    # the paper config's robot (the bussing benchmark's 7-D delta_ee actions at 20 fps) where the config does not
+    # record its data's; the count depends on neither
+    from sc3_jax.data.action_space import DELTA_EE
+    robot = {"action_space": DELTA_EE if cfg.model.action_dim == DELTA_EE.dim else None,
+             "data_fps": cfg.data.fps or 20.0}
     m, d = cfg.model, cfg.data
     out = {}
     for cache in (True, False) if args.uncached else (True,):
         t0 = time.perf_counter()
-        a = out[cache] = plan.chunk_account(cfg, tuple(args.depths), cache)
+        a = out[cache] = plan.chunk_account(cfg, tuple(args.depths), cache, **robot)
         counted = (f"compiled at depth {a['counted_depths'][0]}" if len(a["counted_depths"]) == 1 else
                    f"compiled at depths {a['counted_depths'][0]} and {a['counted_depths'][1]}, extrapolated "
                    f"linearly per layer to {a['depth']}")

@@ -50,6 +50,7 @@ def main(argv=None) -> None:
     from sc3_jax.benchmarks.bussing.zoo import load_policy
 
     cfg, stats, params = checkpoint.load(str(SHIPPED_WORLD_MODEL))
+    robot = checkpoint.read_robot(SHIPPED_WORLD_MODEL, cfg)  # its data's frame rate, as every command reads it
     cfg = replace(cfg, rollout=dict(episode_seconds=12.0))
     reader = perception.state_reader(perception.load(str(SHIPPED_WORLD_MODEL / STATE_READER_FILE)))
     policy = load_policy(a.policy)
@@ -60,7 +61,7 @@ def main(argv=None) -> None:
 
     def rollout_at(steps: int, inverse: int):
         c = replace(cfg, sample=dict(steps=steps, inverse_steps=inverse))
-        return rollout.Rollout(c, stats, state_reader=reader)
+        return rollout.Rollout(c, stats, data_fps=robot.fps, state_reader=reader)
 
     ro = rollout_at(8, 2)
     s, fns = ro.spec, ro.chunk_fns

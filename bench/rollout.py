@@ -22,11 +22,14 @@ import numpy as np
 
 from sc3_jax import rollout
 from sc3_jax.config import MeshConfig, load_config, replace
+from sc3_jax.data.action_space import DELTA_EE
 from sc3_jax.data.norm_stats import NormStats
 from sc3_jax.model import dit
 from sc3_jax.model.tokenizer import make_tokenizer
 from sc3_jax.policies import simple
 from sc3_jax.policies.base import as_host
+
+PAPER_FPS = 20.0  # the paper config's data (the bussing benchmark's episodes): the rollout's frame stride
 
 PAPER_SECONDS_PER_CHUNK = 2.3  # one GB200 (paper)
 GB200_BF16_DENSE = 2.5e15  # FLOP/s, one Blackwell GPU of a GB200, dense BF16 (vendor figure; assumption)
@@ -65,8 +68,9 @@ def chunk_flops(cfg, cached: bool, latent_frames: tuple[int, int] | None = None)
 def _setup(cfg, num_chunks, batch, cache=True):
     mesh = jax.make_mesh((1, 1, 1), ("data", "fsdp", "tensor"), axis_types=(jax.sharding.AxisType.Auto,) * 3,
                          devices=jax.devices()[:1])
-    stats = NormStats(np.zeros(7, np.float32), np.full(7, 0.01, np.float32))
-    ro = rollout.Rollout(cfg, stats, mesh=mesh, num_chunks=num_chunks, cache=cache)
+    # the paper config's robot: the bussing benchmark's 7-D delta_ee actions at 20 fps
+    stats = NormStats(np.zeros(7, np.float32), np.full(7, 0.01, np.float32), action_space=DELTA_EE)
+    ro = rollout.Rollout(cfg, stats, mesh=mesh, data_fps=PAPER_FPS, num_chunks=num_chunks, cache=cache)
     tok = make_tokenizer(cfg.model)
     params = dit.init_params(cfg.model, tok.token_dim, jax.random.key(0), tok.grid(cfg.data.image_size))
     params = jax.tree.map(lambda x: x + 0.02 * jax.random.normal(jax.random.key(1), x.shape), params)

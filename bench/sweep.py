@@ -69,9 +69,10 @@ def online_cost(fd: int, inv: int, chunks: int, batch: int, barrier=None) -> flo
     from sc3_jax.benchmarks.bussing.zoo import load_policy
     cfg, stats, params = checkpoint.load(str(SHIPPED_WORLD_MODEL))
     cfg = replace(cfg, sample=dict(steps=fd, inverse_steps=inv), rollout=dict(episode_seconds=12.0))
-    full_chunks = rollout.make_spec(cfg).num_chunks
+    fps = checkpoint.read_robot(SHIPPED_WORLD_MODEL, cfg).fps  # its data's frame rate, as the sweep reads it
+    full_chunks = rollout.make_spec(cfg, fps, action_space=stats.action_space).num_chunks
     reader = perception.state_reader(perception.load(str(SHIPPED_WORLD_MODEL / STATE_READER_FILE)))
-    ro = rollout.Rollout(cfg, stats, state_reader=reader, num_chunks=chunks)
+    ro = rollout.Rollout(cfg, stats, data_fps=fps, state_reader=reader, num_chunks=chunks)
     env = make_env((64, 64))
     obs = [initial_observation(env, 10_000_000 + i, "bussing") for i in range(batch)]
     env.close()

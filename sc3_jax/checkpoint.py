@@ -8,8 +8,17 @@ Three kinds of directory hold one, and every reader here takes any of them:
     a ``sc3 convert`` output  config.json, params/ (orbax, params only)
 
 :func:`load` gives (config, stats, params); :func:`save` / :func:`export` write the exported form (small enough to
-commit, e.g. ``sc3_jax/evaluate/shipped/bussing_sim``). Training's own checkpoints (optimizer state and data
-position, for resuming) are written by ``train.py``; this module only reads their params.
+commit, e.g. ``sc3_jax/evaluate/shipped/bussing_sim``).
+
+A saved model records its robot's facts, and :func:`read_robot` is the one reader of them (rollouts, sweeps,
+diagnostics and plans take them from there, never from a default): the data's frame rate (config.json
+``data.fps``) and recorded state size (``data.state_dim``), its views (``data.views``) -- all three filled from the
+dataset's dataset.json by ``sc3 train`` (``data/shape.py``) -- and its action space, kind and dimension
+(norm_stats.json ``action_space``). A model saved before config.json recorded fps / state_dim reads them from the
+store it was trained on (``data.path``) where that is still there, else names the missing field.
+
+Training's own checkpoints (optimizer state and data position, for resuming) are written by ``train.py``; this
+module only reads their params.
 """
 from __future__ import annotations
 
@@ -24,6 +33,7 @@ import orbax.checkpoint as ocp
 
 from sc3_jax import atomic
 from sc3_jax.config import Config, config_from_dict
+from sc3_jax.data.action_space import ActionSpace
 from sc3_jax.data.norm_stats import NormStats
 from sc3_jax.errors import UserError
 from sc3_jax.model import dit
@@ -60,6 +70,54 @@ def read_config(path: str | Path, what: str = "") -> Config:
     if tp and not Path(tp).is_absolute() and (path / tp).exists():  # a tokenizer shipped inside the model dir
         cfg = dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, tokenizer_path=str((path / tp).absolute())))
     return cfg
+
+
+@dataclasses.dataclass(frozen=True)
+class Robot:
+    """A saved world model's robot facts (:func:`read_robot`)."""
+
+    fps: float  # the frame rate of the data it was trained on
+    action_space: ActionSpace  # what its actions mean (kind, dimension)
+    views: tuple[str, ...]  # its cameras, in the model's view order
+    state_dim: int  # the size of the robot state its data records (0: none)
+
+    @property
+    def action_dim(self) -> int:
+        return self.action_space.dim
+
+
+def read_robot(path: str | Path, cfg: Config | None = None) -> Robot:
+    """The robot facts of the saved model at ``path`` (any kind :func:`load` reads; ``cfg``: its config, where
+    already read): config.json's ``data.fps`` / ``data.views`` / ``data.state_dim``, norm_stats.json's action space
+    (a ``sc3 convert`` output, which has none: the model's dimension as absolute targets, naming no robot). A fact
+    config.json predates is read from the store the model was trained on (``data.path``'s dataset.json), else a
+    one-line UserError names the field to add."""
+    path = Path(path)
+    cfg = read_config(path) if cfg is None else cfg
+    d = cfg.data
+    if (path / "norm_stats.json").exists():
+        space = read_norm_stats(path).action_space
+    else:
+        space = ActionSpace("absolute", cfg.model.action_dim)
+    fps, state_dim = d.fps, d.state_dim
+    if fps is None or state_dim is None:
+        meta = Path(d.path) / "dataset.json"
+        info = atomic.read_json(meta, "restore it (the episode store's metadata)") if meta.is_file() else None
+        if fps is None:
+            if not (isinstance(info, dict) and is_finite_number(info.get("fps")) and info["fps"] > 0):
+                raise UserError(f"{path}/config.json: no data.fps (saved before models recorded their data's frame "
+                                f"rate) and its training data {d.path} is not here to read it from: add \"fps\": N "
+                                "(the episodes' frame rate) to the \"data\" section of config.json")
+            fps = info["fps"]
+        if state_dim is None:
+            st = info.get("state") if isinstance(info, dict) else None
+            state_dim = int(st["dim"]) if isinstance(st, dict) and isinstance(st.get("dim"), int) else 0
+    return Robot(float(fps), space, tuple(d.views), int(state_dim))
+
+
+def with_robot(cfg: Config, robot: Robot) -> Config:
+    """``cfg`` with ``robot``'s frame rate and state size recorded (what :func:`save` writes to config.json)."""
+    return dataclasses.replace(cfg, data=dataclasses.replace(cfg.data, fps=robot.fps, state_dim=robot.state_dim))
 
 
 def check_config_types(cfg, default, where: str, fix: str, prefix: str = "") -> None:
@@ -200,6 +258,10 @@ def export(workdir: str | Path, out: str | Path, dtype=np.float16) -> Path:
     """Write a run's latest params (as ``dtype``), config and norm stats to ``out`` -- small enough to commit -- and
     its learned robot state (``state_head.npz``) where it has one."""
     cfg, stats, params = load(workdir)
+    try:  # a run whose config.json predates its robot facts: recorded from its store while that is here
+        cfg = with_robot(cfg, read_robot(workdir, cfg))
+    except UserError:
+        pass  # not here either: exported as it is (read_robot then names the field to add)
     out = save(out, cfg, stats, params, dtype)
     head = Path(workdir) / "state_head.npz"
     if head.exists():

@@ -187,7 +187,14 @@ class DataConfig:
     """the episode dataset to train on (the format of sc3_jax/data/episodes.py: `sc3 demo`, `sc3 sim demos`,
     `sc3 data import-lerobot` write it)"""
     views: tuple[str, ...] = ("left", "right", "wrist")
-    """camera views read from the dataset, in the model's view order"""
+    """camera views read from the dataset, in the model's view order (`sc3 train` takes them from the dataset's
+    dataset.json unless given; this default is the synthetic demo data's, which data-less configs size from)"""
+    fps: float | None = None
+    """the data's frame rate (None: not known yet). `sc3 train` fills it from the dataset's dataset.json, so a saved
+    model's config.json records the frame rate it was trained at (checkpoint.read_robot)"""
+    state_dim: int | None = None
+    """the size of the robot state the data records (0: none; None: not known yet). `sc3 train` fills it from the
+    dataset's dataset.json"""
     image_size: tuple[int, int] = (16, 16)
     """(height, width) of the frames; must match the dataset's"""
     context_frames: int = 2
@@ -363,10 +370,10 @@ class RolloutConfig:
     is composed into one model-rate action (as the data pipeline composes recorded actions for strided windows)"""
     tau: float | None = None
     """termination threshold: a rollout stops at the first chunk whose U_chunk exceeds tau (in tau_units). None:
-    follow the world model's action space (rollout.resolve_tau): 0.02 for the benchmark's delta_ee actions (the
-    paper's value, in their raw units), no early termination (inf) for any other (14-D joint radians, say), whose
-    units 0.02 does not fit: calibrate one on held-out conditions (`sc3 sweep episodes --data STORE --taus
-    ...`, in the dataset's raw units) and pass it"""
+    no early termination (inf; rollout.resolve_tau). tau is in the action space's raw units, so it belongs to a
+    benchmark or a calibration, never to the core: the bussing benchmark's is the paper's 0.02
+    (benchmarks/bussing/hooks.py BENCHMARK_TAU, which its configs set); for another robot calibrate one on held-out
+    conditions (`sc3 sweep episodes --data STORE --taus ...`, in the dataset's raw units) and pass it"""
     tau_units: str = "raw"
     """U_chunk's units, the one convention of `sc3 rollout`, `sc3 sweep` and the report: "raw" (metres / radians /
     gripper metres, the paper's units for tau = 0.02) or "normalised" (per-dimension unit variance, the model's

@@ -20,7 +20,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from sc3_jax.data.action_space import DELTA_EE, ActionSpace
+from sc3_jax.data.action_space import ActionSpace
 
 
 def _skew(v):
@@ -62,7 +62,7 @@ def matrix_to_rotvec(m):
     return v * scale[..., None]
 
 
-def step(state, action, space: ActionSpace = DELTA_EE, dt: float = 1.0):
+def step(state, action, space: ActionSpace, dt: float = 1.0):
     """One commanded raw action [A] applied to the state [A] (``dt``: its seconds, for velocities)."""
     if space.kind == "absolute":
         return action.astype(state.dtype)
@@ -77,7 +77,7 @@ def _targets(x, action, space: ActionSpace):
     return x.at[..., list(space.targets)].set(action[..., list(space.targets)]) if space.targets else x
 
 
-def compose(actions, ratio: int, space: ActionSpace = DELTA_EE):
+def compose(actions, ratio: int, space: ActionSpace):
     """Raw actions [n * ratio, A] -> [n, A], each group of ``ratio`` consecutive actions as one action, the jnp twin
     of ``ActionSpace.compose`` (delta_ee: translations summed, rotations chained with later ones on the left, the
     last gripper target; absolute: the last target; velocity: the mean)."""
@@ -95,7 +95,7 @@ def compose(actions, ratio: int, space: ActionSpace = DELTA_EE):
     return jnp.concatenate([g[..., :3].sum(1), matrix_to_rotvec(m), g[:, -1, 6:7]], -1).astype(actions.dtype)
 
 
-def integrate(state, actions, space: ActionSpace = DELTA_EE, dt: float = 1.0):
+def integrate(state, actions, space: ActionSpace, dt: float = 1.0):
     """States after each of ``actions`` [n, A]: returns (final state [A], states [n, A])."""
 
     def body(s, a):
@@ -105,7 +105,7 @@ def integrate(state, actions, space: ActionSpace = DELTA_EE, dt: float = 1.0):
     return jax.lax.scan(body, state, actions)
 
 
-def frame_poses(state, actions, space: ActionSpace = DELTA_EE, dt: float = 1.0):
+def frame_poses(state, actions, space: ActionSpace, dt: float = 1.0):
     """The pose condition of a chunk (``ModelConfig.pose_conditioning``): ``state`` [A] (the imagined state at the
     last context frame) and the states after each of ``actions`` [n, A] (model-rate actions, one per predicted
     frame, ``dt`` seconds each) -> [n + 1, A]. The data pipeline computes the same from recorded windows

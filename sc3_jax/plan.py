@@ -86,10 +86,11 @@ def config_flag(key: str, value) -> str:
 # ----------------------------------------------------------------------------------------------------------------
 # Shape: what the config says the robot and its cameras are, checked before anything is traced
 # ----------------------------------------------------------------------------------------------------------------
-def check_shape(cfg, chunk: bool = True, action_space=None, data_fps: float = 20.0) -> None:
+def check_shape(cfg, chunk: bool = True, *, action_space, data_fps: float | None) -> None:
     """One-line UserError naming the field when the model cannot take the config's shape (views, image size,
     window, action dimension, tokenizer); the library would otherwise fail deep inside a trace. ``chunk``: also the
-    rollout's window (rollout.keep_frames, rollout.policy_chunk)."""
+    rollout's window (rollout.keep_frames, rollout.policy_chunk). ``action_space`` / ``data_fps``: the robot's
+    (a store's or a saved model's; None where a config is planned without its data: ``cost_robot``)."""
     d, m = cfg.data, cfg.model
     V = len(d.views)
     if V < 1:
@@ -137,20 +138,22 @@ def check_shape(cfg, chunk: bool = True, action_space=None, data_fps: float = 20
         from sc3_jax import rollout
 
         try:  # its messages name the rollout field (rollout.keep_frames=..., rollout.policy_chunk=...)
-            rollout.make_spec(cfg, data_fps, num_chunks=1,
-                              action_space=default_action_space(cfg) if action_space is None else action_space)
+            fps, space = cost_robot(cfg, action_space, data_fps)
+            rollout.make_spec(cfg, fps, num_chunks=1, action_space=space)
         except ValueError as e:
             raise UserError(f"{e} (or plan without the rollout chunk: --no-chunk)") from None
 
 
-def default_action_space(cfg):
-    """The action space the planner assumes without a store: the simulated benchmark's delta_ee for 7-D actions,
-    absolute targets otherwise (e.g. 14 ALOHA joint targets). Costs do not depend on it; ``sc3 plan --data``
-    uses the store's declaration."""
-    from sc3_jax.data.action_space import DELTA_EE, ActionSpace
+def cost_robot(cfg, action_space, data_fps: float | None):
+    """(data_fps, action_space) as ``rollout.make_spec`` takes them, for costing a chunk: the robot's where
+    known (a store's, ``sc3 plan --data``, or the config's ``data.fps``); where not, stand-ins that name no robot --
+    absolute targets of the model's dimension and one data frame per rollout frame (stride 1) -- since a chunk's
+    cost depends on neither the action kind nor the frame stride."""
+    from sc3_jax.data.action_space import ActionSpace
 
-    A = cfg.model.action_dim
-    return DELTA_EE if A == DELTA_EE.dim else ActionSpace("absolute", A)
+    space = ActionSpace("absolute", cfg.model.action_dim) if action_space is None else action_space
+    fps = cfg.rollout.control_hz if data_fps is None else data_fps
+    return fps, space
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -187,7 +190,7 @@ def train_step_flops(cfg, compiled: bool = False, check_teacher: bool = True) ->
         return xla_cost.flops(step.lower(abstract, train.batch_shapes(c)), compiled)
 
 
-def chunk_programs(cfg, action_space=None, data_fps: float = 20.0, cache: bool = True, policy=None) -> dict:
+def chunk_programs(cfg, *, action_space, data_fps: float | None, cache: bool = True, policy=None) -> dict:
     """One rollout chunk of one episode as separately traced programs (``jax.stages.Traced``; abstract inputs, so
     nothing is allocated), each run by the rollout as it is written (``rollout.ChunkFns.model_step``):
 
@@ -207,8 +210,8 @@ def chunk_programs(cfg, action_space=None, data_fps: float = 20.0, cache: bool =
     from sc3_jax.policies import simple
 
     m = cfg.model
-    space = default_action_space(cfg) if action_space is None else action_space
-    spec = rollout.make_spec(cfg, data_fps, num_chunks=1, action_space=space)
+    fps, space = cost_robot(cfg, action_space, data_fps)
+    spec = rollout.make_spec(cfg, fps, num_chunks=1, action_space=space)
     st = rollout.ChunkFns(m, cfg.flow, dataclasses.replace(spec, steps=1, inverse_steps=1), cache)
     sds = jax.ShapeDtypeStruct
     params = jax.eval_shape(lambda: dit.init_params(m, st.tok.token_dim, jax.random.key(0), st.grid))
@@ -252,14 +255,14 @@ def chunk_programs(cfg, action_space=None, data_fps: float = 20.0, cache: bool =
     return progs
 
 
-def chunk_flops(cfg, action_space=None, data_fps: float = 20.0) -> dict[str, float]:
+def chunk_flops(cfg, *, action_space, data_fps: float | None) -> dict[str, float]:
     """FLOPs of one rollout chunk of one episode: {"total", "first_step" (everything with S = 1: caches, one FD and
     one ID Euler step, decode), "per_step" (one FD + one ID network evaluation), "steps"}. The DiT's only with a Wan
     VAE tokenizer (``shape_only_vae``; ``vae_costs`` has the VAE's). ``action_space``: the model's
-    (``default_action_space`` when None); the imagined state and the pose condition have its dimension."""
+    (None: ``cost_robot``'s stand-in); the imagined state and the pose condition have its dimension."""
     c = _counting_cfg(cfg)
     with shape_only_vae(c):
-        progs = chunk_programs(c, action_space, data_fps)
+        progs = chunk_programs(c, action_space=action_space, data_fps=data_fps)
         fd, idm, first = (xla_cost.flops(progs[k].lower(), False) for k in ("forward step", "inverse step",
                                                                             "model step"))
     S, S_id = cfg.sample.steps, cfg.sample.inverse_steps or cfg.sample.steps
@@ -271,7 +274,7 @@ CHUNK_PARTS = ("tokenizer encode", "context encoding", "forward step", "inverse 
                "tokenizer decode", "policy")
 
 
-def chunk_ideal_flops(cfg, action_space=None, data_fps: float = 20.0) -> dict[str, float]:
+def chunk_ideal_flops(cfg, *, action_space, data_fps: float | None) -> dict[str, float]:
     """The matmul FLOPs one chunk of one episode needs, per part of ``chunk_programs``: every clean token's
     keys/values computed once (the context's and forward mode's clean actions in "context encoding", the predicted
     frames' as clean tokens in "inverse encoding", none twice), each Euler step running only its noisy tokens
@@ -282,8 +285,8 @@ def chunk_ideal_flops(cfg, action_space=None, data_fps: float = 20.0) -> dict[st
     from sc3_jax.model.tokenizer import make_tokenizer, window_tokens
 
     m = cfg.model
-    space = default_action_space(cfg) if action_space is None else action_space
-    spec = rollout.make_spec(cfg, data_fps, num_chunks=1, action_space=space)
+    fps, space = cost_robot(cfg, action_space, data_fps)
+    spec = rollout.make_spec(cfg, fps, num_chunks=1, action_space=space)
     tok = make_tokenizer(m)
     Kt, Tt = window_tokens(tok, spec.context, spec.predict)
     P, token_dim = math.prod(tok.grid(spec.image_size)), tok.token_dim
@@ -305,8 +308,8 @@ def chunk_ideal_flops(cfg, action_space=None, data_fps: float = 20.0) -> dict[st
             "tokenizer encode": 0.0, "tokenizer decode": 0.0}
 
 
-def chunk_account(cfg, depths: tuple[int, int] = (2, 3), cache: bool = True, action_space=None,
-                  data_fps: float = 20.0) -> dict:
+def chunk_account(cfg, depths: tuple[int, int] = (2, 3), cache: bool = True, *, action_space,
+                  data_fps: float | None) -> dict:
     """Compiled FLOPs and bytes accessed (XLA's cost analysis) and the compiled temp memory of every part of one
     rollout chunk of one episode (``chunk_programs``, the layers unrolled, dense attention: the count must see
     every layer and every score), beside the ideal FLOPs (``chunk_ideal_flops``). Parts are compiled at the
@@ -326,7 +329,7 @@ def chunk_account(cfg, depths: tuple[int, int] = (2, 3), cache: bool = True, act
         out = {}
         cd = replace(c, model=dict(depth=depth))
         with shape_only_vae(cd):
-            progs = chunk_programs(cd, action_space, data_fps, cache)
+            progs = chunk_programs(cd, action_space=action_space, data_fps=data_fps, cache=cache)
         for name, traced in progs.items():
             compiled = traced.lower().compile()
             ca = compiled.cost_analysis()
@@ -343,7 +346,7 @@ def chunk_account(cfg, depths: tuple[int, int] = (2, 3), cache: bool = True, act
         cost = {k: tuple(a + (L - d1) * (b - a) / (d2 - d1) for a, b in zip(lo[k], hi[k])) for k in lo}
         cost = {k: (*v[:2], hi[k][2]) for k, v in cost.items()}  # temp memory: as compiled at the larger depth
     with shape_only_vae(c):
-        ideal = chunk_ideal_flops(c, action_space, data_fps)
+        ideal = chunk_ideal_flops(c, action_space=action_space, data_fps=data_fps)
     S, S_id = cfg.sample.steps, cfg.sample.inverse_steps or cfg.sample.steps
     runs = {"forward step": S, "inverse step": S_id}
     if cfg.model.tokenizer != "pixel":  # a learned tokenizer: encoding the context and decoding the kept frames is
@@ -557,7 +560,7 @@ def shape_of(cfg, action_space=None) -> dict:
     from sc3_jax.model.tokenizer import make_tokenizer, window_tokens
 
     d, m = cfg.data, cfg.model
-    space = default_action_space(cfg) if action_space is None else action_space
+    space = cost_robot(cfg, action_space, None)[1]
     with shape_only_vae(cfg):
         tok = make_tokenizer(m)
         rows, cols = tok.grid(d.image_size)
@@ -568,16 +571,16 @@ def shape_of(cfg, action_space=None) -> dict:
             "grid": [rows, cols], "token_dim": token_dim, "tokenizer": m.tokenizer, "patch_size": m.patch_size,
             "time_compression": tok.time_compression,
             "spatial_ratio": vae_config(m).spatial_ratio if m.tokenizer in WAN else None,
-            "action_dim": m.action_dim, "action_kind": space.kind,
+            "action_dim": m.action_dim, "action_kind": None if action_space is None else space.kind,
             # the imagined state lives in the action's space (data/action_space.py): the pose condition and the
             # state a policy observes in a rollout have the action's dimension
             "state_dim": space.dim}
 
 
 def plan(cfg, mesh_cfg, device: str, mfu: float = 0.4, compile: bool = False, chunk: bool = True,
-         action_space=None, data_fps: float = 20.0) -> dict:
+         *, action_space, data_fps: float | None) -> dict:
     """The plan of ``cfg`` on ``mesh_cfg`` x ``device`` (see the module docstring). ``action_space``: the model's
-    (a store's declaration; None: ``default_action_space``); ``data_fps``: its data's frame rate (the rollout's
+    (a store's declaration; None: ``cost_robot``'s stand-in); ``data_fps``: its data's frame rate (the rollout's
     frame stride)."""
     import jax
 
@@ -596,7 +599,7 @@ def plan(cfg, mesh_cfg, device: str, mfu: float = 0.4, compile: bool = False, ch
     if action_space is not None and action_space.dim != cfg.model.action_dim:
         raise UserError(f"model.action_dim={cfg.model.action_dim}, but the action space is {action_space.dim}-D "
                         f"{action_space.kind}")
-    check_shape(cfg, chunk, action_space, data_fps)
+    check_shape(cfg, chunk, action_space=action_space, data_fps=data_fps)
     from sc3_jax import checkpoint
     from sc3_jax.model import tokenizer
 
@@ -650,7 +653,7 @@ def plan(cfg, mesh_cfg, device: str, mfu: float = 0.4, compile: bool = False, ch
                       "chunk_decode_flops": views * vae["video_decode_flops"]}
         out["vae"]["step_encode_seconds"] = out["vae"]["step_encode_flops"] / (n * peak * mfu)
     if chunk:
-        c = chunk_flops(cfg, action_space, data_fps)
+        c = chunk_flops(cfg, action_space=action_space, data_fps=data_fps)
         out["chunk_model_flops"], out["chunk_steps"] = c["total"], c["steps"]
         out["chunk_inverse_steps"] = c["inverse_steps"]
         out["chunk_flops"] = c["total"] + (out["vae"]["chunk_encode_flops"] + out["vae"]["chunk_decode_flops"]
@@ -741,9 +744,10 @@ def format_shape(sh: dict) -> str:
         window = f"window {sh['context_frames']} + {sh['future_frames']} frames"
         how = f"{sh['tokenizer']} tokenizer, patch {sh['patch_size']}"
     state = " (end-effector pose)" if sh["action_kind"] == "delta_ee" else ""
+    kind = sh["action_kind"] or "(kind: the data's, --data)"
     return (f"shape: {len(sh['views'])} views ({' '.join(sh['views'])}) at {H}x{W}; {window} of {rows} x {cols} = "
             f"{rows * cols:,} tokens ({how}; token dim {sh['token_dim']}); {sh['future_frames']} actions of "
-            f"{sh['action_dim']}-D {sh['action_kind']}, imagined state {sh['state_dim']}-D{state}")
+            f"{sh['action_dim']}-D {kind}, imagined state {sh['state_dim']}-D{state}")
 
 
 def _fit_flags(fit: dict) -> str:

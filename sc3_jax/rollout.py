@@ -22,8 +22,11 @@ Decisions (see docs/rollout.md for more):
   ``evaluate.results.terminated_at`` -- identical, up to the termination chunk, to a run with that tau.
 * U is the mean over the l kept steps of the L2 norm over the A action dimensions, in ``cfg.rollout.tau_units``:
   "raw" (the paper's units, in which its tau = 0.02 is set; the default) or "normalised" (per-dimension unit
-  variance). Both are emitted (``u_raw``, ``u``); the one in tau_units decides termination. tau's default
-  (``rollout.tau`` None, :func:`resolve_tau`) follows the action space: 0.02 for delta_ee, none (inf) for others.
+  variance). Both are emitted (``u_raw``, ``u``); the one in tau_units decides termination. tau comes from the
+  caller or the saved config (``rollout.tau``; None: :func:`resolve_tau`, no early termination): its value is in an
+  action space's raw units, a benchmark's to set (the bussing benchmark's paper value: benchmarks/bussing/hooks.py).
+* Robot facts (the data's frame rate, the action space, the views) come from the saved model
+  (``checkpoint.read_robot``), never from a default here: ``Rollout`` / :func:`make_spec` require them.
 * Frames advance at ``control_hz``: the model runs with frame stride ``round(data_fps / control_hz)`` (20 Hz data,
   10 Hz control -> 2) and one policy action per predicted frame.
 * Actions and state: in the action space the world model was trained in (``NormStats.action_space``, from its
@@ -55,7 +58,7 @@ import numpy as np
 
 from sc3_jax import flow, imagination_state, modes, sharding, state_head
 from sc3_jax.config import Config, MeshConfig
-from sc3_jax.data.action_space import DELTA_EE, ActionSpace
+from sc3_jax.data.action_space import ActionSpace
 from sc3_jax.errors import UserError
 from sc3_jax.model import dit
 from sc3_jax.model.tokenizer import make_tokenizer, to_uint8, to_unit, window_tokens
@@ -76,12 +79,12 @@ class RolloutSpec:
     num_chunks: int
     stride: int
     steps: int  # Euler steps per forward-dynamics sampler call (sample.steps)
+    action_space: ActionSpace  # what the actions mean (compose, imagined state, holding still): the model's
+    data_fps: float  # the frame rate of the data the model was trained on (checkpoint.read_robot)
     ratio: int = 1  # raw policy actions per model-rate action (policy_hz / control_hz)
     context_noise: float = 0.0  # noise level on the context at inference (models trained with context noise)
     tau_units: str = "raw"  # the units U_chunk is compared with tau in (RolloutConfig.tau_units)
     inverse_steps: int | None = None  # Euler steps of the inverse-dynamics re-read (None: steps)
-    action_space: ActionSpace = DELTA_EE  # what the actions mean (compose, imagined state, holding still)
-    data_fps: float = 20.0  # the frame rate of the data the model was trained on
     state_dim: int = 0  # the learned robot state's size (state_head.py); 0: policies see the imagined commands
     anchor: int = 0  # 1: the first observation kept in front of every chunk's context (data.anchor)
 
@@ -120,12 +123,13 @@ class RolloutSpec:
         return self.num_chunks * self.keep
 
 
-def make_spec(cfg: Config, data_fps: float = 20.0, num_chunks: int | None = None,
-              action_space: ActionSpace | None = None, state_dim: int = 0) -> RolloutSpec:
-    """``action_space``: the world model's (``NormStats.action_space``); None: the simulated benchmark's delta_ee.
-    ``state_dim``: its learned state's size (0: none)."""
+def make_spec(cfg: Config, data_fps: float, num_chunks: int | None = None, *, action_space: ActionSpace,
+              state_dim: int = 0) -> RolloutSpec:
+    """``data_fps``: the frame rate of the world model's data and ``action_space`` its actions' space (both from the
+    saved model: ``checkpoint.read_robot``, or ``NormStats.action_space``). ``state_dim``: its learned state's size
+    (0: none)."""
     r, d = cfg.rollout, cfg.data
-    space = DELTA_EE if action_space is None else action_space
+    space = action_space
     if space.dim != cfg.model.action_dim:
         raise UserError(f"the action space (norm_stats.json) is {space.dim}-D, the model's "
                         f"model.action_dim is {cfg.model.action_dim}")
@@ -146,22 +150,17 @@ def make_spec(cfg: Config, data_fps: float = 20.0, num_chunks: int | None = None
     if num_chunks is None:
         num_chunks = math.ceil(r.episode_seconds * r.control_hz / r.keep_frames - 1e-9)
     return RolloutSpec(len(d.views), tuple(d.image_size), d.context_frames, d.future_frames, r.keep_frames,
-                       r.policy_chunk, int(num_chunks), int(round(stride)), cfg.sample.steps, ratio,
-                       float(cfg.sample.context_noise), r.tau_units, cfg.sample.inverse_steps, space,
-                       float(data_fps), int(state_dim), int(d.anchor))
+                       r.policy_chunk, int(num_chunks), int(round(stride)), cfg.sample.steps, space, float(data_fps),
+                       ratio, float(cfg.sample.context_noise), r.tau_units, cfg.sample.inverse_steps,
+                       int(state_dim), int(d.anchor))
 
 
-BENCHMARK_TAU = 0.02  # the paper's threshold, set in the raw units of delta_ee actions (metres, radians)
-
-
-def resolve_tau(tau: float | None, action_space: ActionSpace) -> float:
-    """``rollout.tau`` as a rollout of a world model acting in ``action_space`` uses it: as given, or where None
-    (the default) ``BENCHMARK_TAU`` for the benchmark's delta_ee actions and inf (no early termination) for any other
-    action space, whose units (joint radians, ...) that value means nothing in until a tau is calibrated on held-out
-    conditions in the dataset's own units (``sc3 sweep episodes --data STORE --taus ...``)."""
-    if tau is not None:
-        return float(tau)
-    return BENCHMARK_TAU if action_space.kind == "delta_ee" else math.inf
+def resolve_tau(tau: float | None) -> float:
+    """``rollout.tau`` as a rollout uses it: as given (by the caller or the saved config), or where None no early
+    termination (inf). A tau is in an action space's raw units, so none is assumed here: a benchmark sets its own
+    (the bussing benchmark's paper value, ``benchmarks.bussing.hooks.BENCHMARK_TAU``), another robot calibrates one
+    on held-out conditions in the dataset's own units (``sc3 sweep episodes --data STORE --taus ...``)."""
+    return math.inf if tau is None else float(tau)
 
 
 class InitialConditions(NamedTuple):
@@ -323,13 +322,15 @@ class Rollout:
         frame_valid bool [B, N*l], terminated_at int32 [B] (-1 never), termination_rate float, tau float
     """
 
-    def __init__(self, cfg: Config, norm_stats, mesh=None, data_fps: float = 20.0, num_chunks: int | None = None,
+    def __init__(self, cfg: Config, norm_stats, mesh=None, *, data_fps: float, num_chunks: int | None = None,
                  cache: bool = True, state_reader=None, head=None):
-        """``head``: the world model's learned state (``state_head.load``; None: policies see the imagined
-        commanded state)."""
+        """``data_fps``: the frame rate of the world model's data (``checkpoint.read_robot(path).fps``); its action
+        space is its norm stats'. ``head``: the world model's learned state (``state_head.load``; None: policies see
+        the imagined commanded state)."""
         self.cfg = cfg
-        self.spec = make_spec(cfg, data_fps, num_chunks, norm_stats.action_space, state_head.state_dim(head))
-        self.tau = resolve_tau(cfg.rollout.tau, self.spec.action_space)  # what run / run_host use by default
+        self.spec = make_spec(cfg, data_fps, num_chunks, action_space=norm_stats.action_space,
+                              state_dim=state_head.state_dim(head))
+        self.tau = resolve_tau(cfg.rollout.tau)  # what run / run_host use by default
         if state_reader is not None and self.spec.action_space.kind != "delta_ee":
             raise UserError(f"a state reader sets the gripper entry of an end-effector pose; this world model's "
                             f"actions are {self.spec.action_space.kind}")

@@ -35,6 +35,9 @@ def load_initial_conditions(path: str, cfg, spec, episodes: int | None, start: i
 
     store = EpisodeStore(p)
     check_shape(cfg, store)  # views, image size, action dimension: one line naming both sides, before any compile
+    if abs(float(store.fps) - float(spec.data_fps)) > 1e-9:
+        raise UserError(f"{p}/dataset.json: episodes at {store.fps} fps, the world model's rollout runs on data at "
+                        f"{spec.data_fps} fps (its config.json data.fps): give episodes at its frame rate")
     if spec.state_dim and store.state_dim != spec.state_dim:
         raise UserError(f"{p}: the world model's learned state is {spec.state_dim}-D, this store records "
                         f"{'no state' if not store.state_dim else f'a {store.state_dim}-D one'} (dataset.json "
@@ -56,14 +59,21 @@ def load_initial_conditions(path: str, cfg, spec, episodes: int | None, start: i
     return ids, rollout.stack_initial_conditions(items), store
 
 
-def data_fps(initial_conditions: str, given: float | None) -> float:
-    """The frame rate the model was trained at: ``given``, else the episode store's, else 20."""
+def data_fps(source: str, given: float | None) -> float:
+    """The frame rate the model was trained at: ``given``, else what ``source`` records -- a saved world model its
+    own (``checkpoint.read_robot``: config.json's data.fps), an episode store its dataset.json's -- else a one-line
+    UserError (no frame rate is assumed)."""
     if given is not None:
         return given
-    meta = Path(initial_conditions) / "dataset.json"
+    p = Path(source)
+    if (p / "config.json").is_file():
+        from sc3_jax import checkpoint
+        return checkpoint.read_robot(p).fps
+    meta = p / "dataset.json"
     if meta.exists():
         return atomic.read_json(meta, "restore it (the episode store's metadata)")["fps"]
-    return 20.0
+    raise UserError(f"{source}: neither a saved world model nor an episode store, so no frame rate to read: give "
+                    "--data-fps (the frame rate of the data the world model was trained on)")
 
 
 def write_videos(out: Path, ids, result: dict, views, fps: float) -> list[str]:

@@ -8,7 +8,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from test_rollout import STATS, _cfg, _ics, _params
+from test_rollout import FPS, STATS, _cfg, _ics, _params
 
 from sc3_jax import flow, modes, rollout
 from sc3_jax.config import replace
@@ -48,7 +48,7 @@ def test_the_model_reads_where_in_time_the_anchor_sits():
 
 def test_a_closed_loop_keeps_the_first_observation_at_a_growing_gap(monkeypatch):
     cfg = replace(_cfg(), data=dict(anchor=True))
-    ro = rollout.Rollout(cfg, STATS, num_chunks=3, cache=False)
+    ro = rollout.Rollout(cfg, STATS, data_fps=FPS, num_chunks=3, cache=False)
     assert ro.spec.anchor == 1
     params = _params(cfg)
     ics = _ics(cfg, n=1)

@@ -6,6 +6,7 @@ import pytest
 
 from sc3_jax import plan
 from sc3_jax.config import MeshConfig, load_config, replace
+from sc3_jax.data.action_space import DELTA_EE
 
 BOUND = 1.3
 
@@ -19,7 +20,7 @@ def cfg():
 
 
 def test_a_chunk_compiles_to_within_1_3x_of_the_ideal_flops(cfg):
-    a = plan.chunk_account(cfg)
+    a = plan.chunk_account(cfg, action_space=DELTA_EE, data_fps=20.0)
     parts = a["parts"]
     assert a["counted_depths"] == (2,) and a["steps"] == (10, 10)
     assert parts["forward step"]["runs"] == 10 and parts["inverse step"]["runs"] == 10
@@ -34,7 +35,7 @@ def test_a_chunk_compiles_to_within_1_3x_of_the_ideal_flops(cfg):
 
 
 def test_the_bound_fails_without_the_context_cache(cfg):
-    a = plan.chunk_account(cfg, cache=False)
+    a = plan.chunk_account(cfg, cache=False, action_space=DELTA_EE, data_fps=20.0)
     assert a["parts"]["context encoding"]["flops"] == 0 and a["parts"]["inverse encoding"]["flops"] == 0
     assert a["ratio"] > 1.5 * BOUND  # every Euler step runs every token, an inverse one ~100x its noisy ones
 

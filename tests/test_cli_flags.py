@@ -28,7 +28,7 @@ IDEAS = {"world model": (flags.WORLD_MODEL, re.compile(r"world-model|checkpoint|
 POSITIONAL_KEPT = {"report", "rescore", "curve", "convert"}
 
 # the commands that sample a world model to evaluate it: each has --sample-steps and --inverse-steps
-SAMPLING = {"rollout", "diagnose", "plan", "sweep bench", "sweep episodes", "sweep so101"}
+SAMPLING = {"rollout", "diagnose", "plan", "sweep bench", "sweep bussing", "sweep episodes", "sweep so101"}
 
 
 def _targets() -> dict[str, list[str]]:

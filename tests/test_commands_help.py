@@ -158,8 +158,8 @@ def test_the_help_check_catches_a_docstring_under_the_wrong_flag():
 
 @pytest.mark.parametrize("command, argv, expected", [
     ("report", ["a", "b", "--out", "o", "--videos", "1", "--taus", "0.02", "0.05", "--draws", "50"],
-     dict(results=("a", "b"), out="o", videos=1, taus=(0.02, 0.05), draws=50, real=None)),
-    ("report", ["a"], dict(results=("a",), out=None, videos=None, taus=None, draws=2000, real=None)),
+     dict(results=("a", "b"), out="o", videos=1, taus=(0.02, 0.05), draws=50, real=None, benchmark=None)),
+    ("report", ["a"], dict(results=("a",), out=None, videos=None, taus=None, draws=2000, real=None, benchmark=None)),
     ("curve", ["spec.json", "--out", "o"], dict(spec="spec.json", out="o", draws=2000)),
     ("rescore", ["r", "--perception", "p.npz", "--state-reader", "s.npz", "--no-progress"],
      dict(results="r", perception="p.npz", state_reader="s.npz", progress=False)),

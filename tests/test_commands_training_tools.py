@@ -74,8 +74,8 @@ def test_the_spellings_from_before_still_parse(command, argv, expected):
 def test_plan_config_overrides_reach_the_config(monkeypatch, capsys):
     seen = {}
 
-    def fake_plan(cfg, mesh_cfg, device, mfu, compile, chunk):
-        seen.update(cfg=cfg, mesh=mesh_cfg, device=device, chunk=chunk)
+    def fake_plan(cfg, mesh_cfg, device, mfu, compile, chunk, *, action_space, data_fps):
+        seen.update(cfg=cfg, mesh=mesh_cfg, device=device, chunk=chunk, robot=(action_space, data_fps))
         return {}
 
     from sc3_jax import plan
@@ -87,6 +87,7 @@ def test_plan_config_overrides_reach_the_config(monkeypatch, capsys):
     cfg = seen["cfg"]
     assert (cfg.name, cfg.data.batch_size, cfg.model.attention_impl) == ("tiny", 64, "blockwise")
     assert seen["mesh"] == MeshConfig(2, 4, 1, 1) and seen["device"] == "v5p" and seen["chunk"] is False
+    assert seen["robot"] == (None, None)  # no --data: no robot facts assumed (plan.cost_robot's stand-ins)
     assert capsys.readouterr().out.strip() == "verdict: stub"
 
 

@@ -480,7 +480,7 @@ def test_rollout_on_time_compressed_latents(monkeypatch):
     cfg = Config(model=model, data=DataConfig(image_size=size, context_frames=K, future_frames=T),
                  rollout=RolloutConfig(policy_chunk=T, keep_frames=l), sample=SampleConfig(steps=2))
     stats = NormStats(np.full(7, 0.001, np.float32), np.full(7, 0.01, np.float32))
-    ro = rollout.Rollout(cfg, stats, num_chunks=N)
+    ro = rollout.Rollout(cfg, stats, data_fps=20.0, num_chunks=N)
     assert ro.chunk_fns.window == (2, 2)
     params = dit.init_params(model, tok.token_dim, jax.random.key(0), tok.grid(size))
     params = jax.tree.map(lambda x: x + 0.05 * jax.random.normal(jax.random.key(1), x.shape), params)
@@ -514,4 +514,4 @@ def test_rollout_on_time_compressed_latents(monkeypatch):
         d = np.abs(off["frames"][b, :, :l].astype(int) - want.astype(int))
         assert d.max() <= 1 and np.mean(d > 0) < 0.05, (d.max(), np.mean(d > 0))  # eager vs jit float rounding
     with pytest.raises(ValueError, match="context_frames = 1 \\+ 4 k"):
-        rollout.Rollout(replace(cfg, data=dict(context_frames=4)), stats, num_chunks=N)
+        rollout.Rollout(replace(cfg, data=dict(context_frames=4)), stats, data_fps=20.0, num_chunks=N)

@@ -14,6 +14,7 @@ from sc3_jax.data import norm_stats
 from sc3_jax.data import pipeline as P
 from sc3_jax.data import rotations as R
 from sc3_jax.data import synthetic as S
+from sc3_jax.data.action_space import DELTA_EE
 from sc3_jax.data.episodes import Episode, EpisodeError, EpisodeStore
 
 LENGTH = 30
@@ -102,7 +103,7 @@ def test_batch_format_and_window_frames(store, stats):
             idx = t0 + s * np.arange(6)
             for v, view in enumerate(cfg.views):
                 np.testing.assert_array_equal(b["frames"][k, v], ep.frames[view][idx])
-            want = P.window_actions(ep.actions, ep.ee_pose, t0, s, 2, 4, bool(b["pseudo"][k]))
+            want = P.window_actions(ep.actions, ep.ee_pose, t0, s, 2, 4, bool(b["pseudo"][k]), DELTA_EE)
             np.testing.assert_allclose(stats.denormalize(b["actions"][k]), want, atol=1e-6)
             if not b["pseudo"][k] and s == 1:
                 np.testing.assert_allclose(stats.denormalize(b["actions"][k]), ep.actions[idx[1:5]], atol=1e-6)
@@ -128,7 +129,7 @@ def test_stride2_composed_actions_match_the_poses(store, stats):
             np.testing.assert_allclose(acts[j, 3:6], want_rot, atol=2e-5)
             assert acts[j, 6] == pytest.approx(ep.actions[t + 1, 6], abs=1e-6)
             # and it is not simply the sum of the two rotation vectors in general
-    single = P.compose_actions(np.array([[0, 0, 0, 1.0, 0, 0, 0], [0, 0, 0, 0, 1.0, 0, 0.5]]), 0, 2)
+    single = P.compose_actions(np.array([[0, 0, 0, 1.0, 0, 0, 0], [0, 0, 0, 0, 1.0, 0, 0.5]]), 0, 2, DELTA_EE)
     assert not np.allclose(single[3:6], [1.0, 1.0, 0.0], atol=1e-2)
     np.testing.assert_allclose(single[3:6], R.compose_rotvec([0, 1.0, 0], [1.0, 0, 0]), atol=1e-6)
 

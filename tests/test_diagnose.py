@@ -70,7 +70,8 @@ def _copy_last_model(root):
     assert cfg.model.prediction == "residual"  # zero-initialised output: predicts the last context frame
     # 3 sampler steps of its own: `sc3 diagnose` samples as the sweep does (SweepConfig's 2 steps, 1 to re-read U)
     cfg = replace(cfg, model=dict(dim=32, depth=1, num_heads=2, num_kv_heads=1, head_dim=16, mlp_dim=64,
-                                  rope_axes_dim=(4, 2, 2)), sample=dict(steps=3))
+                                  rope_axes_dim=(4, 2, 2)), sample=dict(steps=3),
+                  data=dict(fps=20.0, state_dim=0))  # its data's facts, as `sc3 train` records them (_tiny_store's)
     params = jax.device_get(train.init_state(cfg)["params"])
     stats = NormStats(np.zeros(7, np.float32), np.full(7, 0.02, np.float32))
     return checkpoint.save(root / "wm", cfg, stats, params, np.float32)
@@ -150,8 +151,9 @@ def test_copy_last_model_scores_exactly_the_copy_last_baseline(run):
     assert idr["mse"] == pytest.approx(idr["zero"], rel=1e-6) and idr["ratio_to_floor"] >= 1.0 - 1e-6
     # the floor recomputed from the recorded actions: the 8 model-rate actions of each chunk (pairs of 20 Hz
     # actions composed, from the last context frame s + 2), normalised by the model's stats (mean 0, std 0.02)
+    from sc3_jax.data.action_space import DELTA_EE
     from sc3_jax.data.pipeline import compose_actions
-    a = np.stack([compose_actions(store.load(eid).actions, s + 2 + 2 * i, 2) for eid in store.episode_ids()
+    a = np.stack([compose_actions(store.load(eid).actions, s + 2 + 2 * i, 2, DELTA_EE) for eid in store.episode_ids()
                   for s in (0, 16) for i in range(8)]) / 0.02
     assert idr["n_steps"] == len(a) == 32
     assert idr["zero"] == pytest.approx(np.mean(a ** 2), rel=1e-5)

@@ -147,7 +147,7 @@ def test_type_checking_imports_and_acyclic_graphs_pass(tmp_path, closing):
 # it in this list. Entries are module prefixes under sc3_jax; the longest one that matches places a module.
 LAYERS: list[tuple[str, tuple[str, ...]]] = [
     ("stats", ("stats",)),  # the bottom floor: the statistics import no other sc3_jax module
-    ("utilities", ("errors", "atomic", "xla_cost", "safe_names", "locks", "validate")),
+    ("utilities", ("errors", "atomic", "xla_cost", "safe_names", "locks", "validate", "module_attr")),
     ("video", ("video",)),
     ("metrics", ("evaluate.metrics", "evaluate.permanence")),
     ("episodes", ("data",)),
@@ -173,7 +173,7 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
     ("sweep", ("evaluate.worker_pool", "evaluate.ic_sweep")),
     ("report", ("evaluate.report", "evaluate.report_html", "evaluate.calibrate", "evaluate.intervals", "evaluate.bootstrap",
                 "evaluate.merged", "evaluate.curve", "evaluate.report_episodes", "evaluate.report_figures")),
-    ("benchmarks", ("benchmarks",)),
+    ("benchmarks", ("benchmark", "benchmarks")),  # the interface and its registry (by name: it imports none), then each
     ("commands", ("cli", "commands", "convert_cli", "demo")),
 ]
 
@@ -278,5 +278,17 @@ def test_the_benchmarks_hooks_load_no_simulator_for_a_labs_robot():
             "assert hooks.perception_scorer(['front'], (96, 128))[0] is None; "
             "hooks.object_pixels(np.zeros((1, 2, 4, 4, 3), np.uint8)); "
             "print(sorted(m for m in ('mujoco', 'sc3_jax.benchmarks.bussing.perception') if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "[]", out
+
+
+def test_the_benchmark_registry_imports_no_benchmark():
+    """``sc3_jax/benchmark.py`` names the benchmarks by "module:attr" strings, imported on lookup: neither its source
+    nor importing it loads ``sc3_jax.benchmarks``."""
+    import subprocess
+    import sys
+    graph = import_graph(ROOT / "sc3_jax")
+    assert not {d for d in graph["sc3_jax.benchmark"] if d.startswith("sc3_jax.benchmarks")}
+    code = "import sys, sc3_jax.benchmark; print(sorted(m for m in sys.modules if m.startswith('sc3_jax.benchmarks')))"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]", out

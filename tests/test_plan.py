@@ -15,6 +15,7 @@ from sc3_jax.commands import parse_with_config
 from sc3_jax.commands.plan import Args as PlanArgs
 from sc3_jax.commands.plan import config_of as plan_config
 from sc3_jax.config import MeshConfig, load_config, replace
+from sc3_jax.data.action_space import ActionSpace
 from sc3_jax.errors import UserError
 
 
@@ -73,7 +74,8 @@ def test_paper_plan_from_abstract_shapes(capsys):
     verdict = out.strip().splitlines()[-1]
     assert verdict.startswith("verdict: does not fit on 32 x gb200") and "activations" in verdict
     assert "it fits with --model.attention-impl fused --model.remat " in verdict and "--set" not in out
-    p = plan.plan(load_config("paper"), MeshConfig(4, 8, 1, 1), "gb200", 0.4, chunk=False)
+    p = plan.plan(load_config("paper"), MeshConfig(4, 8, 1, 1), "gb200", 0.4, chunk=False, action_space=None,
+                  data_fps=None)
     assert 5.0e17 < p["step_flops"] < 6.0e17  # ~ (6 + 2 remat) x 2.0e9 x 12.9M tokens + attention
     assert p["params_bytes"] == pytest.approx(p["params"] * 4 / 8, rel=1e-3)  # fp32, split over fsdp=8
     assert p["step_seconds"] == pytest.approx(p["step_flops"] / (32 * 2.5e15 * 0.4))
@@ -82,12 +84,12 @@ def test_paper_plan_from_abstract_shapes(capsys):
     # the same 32 devices with the sequence split 4 ways by ring attention: same tokens per device, score blocks of
     # (N/4)^2 instead of N^2 per sample, 4x the samples per device: ~4x less attention-score memory
     ring = plan.plan(replace(load_config("paper"), model=dict(attention_impl="ring")), MeshConfig(4, 2, 1, 4),
-                     "gb200", 0.4, chunk=False)
+                     "gb200", 0.4, chunk=False, action_space=None, data_fps=None)
     assert ring["step_flops"] == p["step_flops"] and ring["activations_bytes"] < p["activations_bytes"] / 3
 
 
 def test_chunk_flops_tiny():
-    c = plan.chunk_flops(load_config("tiny"))
+    c = plan.chunk_flops(load_config("tiny"), action_space=None, data_fps=None)
     assert c["steps"] == 10 and c["per_step"] > 0
     assert c["total"] == pytest.approx(c["first_step"] + 9 * c["per_step"])
 
@@ -157,7 +159,7 @@ def test_plan_any_robot_pixel_tokens():
     view and 4 actions -> 4 x 6 x 15 + 4 = 364 tokens; the action and pose weights are 14-D; the rollout chunk
     (14-D absolute actions and state) is counted."""
     cfg = _cfg(FOUR + ["--data.image-size", "24", "40"])
-    p = plan.plan(cfg, MeshConfig(1, 1, 1, 1), "h100")
+    p = plan.plan(cfg, MeshConfig(1, 1, 1, 1), "h100", action_space=ActionSpace("absolute", 14), data_fps=None)
     sh = p["shape"]
     assert (sh["grid"], sh["token_dim"], sh["action_dim"], sh["state_dim"], sh["action_kind"]) == (
         [3, 5], 8 * 8 * 3, 14, 14, "absolute")
@@ -180,7 +182,7 @@ def test_plan_any_robot_wan_latents(monkeypatch):
         raise AssertionError("the planner allocated the VAE's weights")
     monkeypatch.setattr(wan_vae, "init_params", no_weights)
     cfg = _cfg(FOUR + WAN + ["--data.image-size", "32", "64"])
-    p = plan.plan(cfg, MeshConfig(1, 1, 1, 1), "h100")
+    p = plan.plan(cfg, MeshConfig(1, 1, 1, 1), "h100", action_space=None, data_fps=None)
     sh = p["shape"]
     assert (sh["context_token_frames"], sh["future_token_frames"], sh["grid"], sh["token_dim"]) == (2, 2, [2, 4], 48)
     assert p["tokens_per_sample"] == 4 * (2 + 2) * 2 * 4 + 8
@@ -258,7 +260,7 @@ def test_aloha_wan_config_shape():
     """configs/aloha_wan.py: 4 views at 480x640 on Wan2.2 latents, 14-D actions: 15 x 20 tokens per token frame,
     2 + 6 token frames per view, 24 actions -> 9,624 tokens; refused shapes would fail here first."""
     cfg = load_config("aloha_wan")
-    plan.check_shape(cfg)
+    plan.check_shape(cfg, action_space=None, data_fps=None)
     sh = plan.shape_of(cfg)
     assert (len(sh["views"]), sh["image_size"], sh["grid"], sh["action_dim"], sh["state_dim"]) == (
         4, [480, 640], [15, 20], 14, 14)

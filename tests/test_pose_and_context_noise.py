@@ -10,6 +10,7 @@ from sc3_jax.config import DataConfig, FlowConfig, ModelConfig
 from sc3_jax.data import norm_stats
 from sc3_jax.data import pipeline as P
 from sc3_jax.data import synthetic as S
+from sc3_jax.data.action_space import DELTA_EE
 from sc3_jax.model import dit
 
 CFG = ModelConfig(dim=32, depth=2, num_heads=2, num_kv_heads=1, head_dim=16, mlp_dim=64, rope_axes_dim=(4, 2, 2),
@@ -53,7 +54,8 @@ def test_window_pose_equals_integrated_commanded_actions(store):
             idx = P.window_frame_indices(t0, s, 2, 4)
             raw_actions = stats.denormalize(b["actions"][k])
             start = P.start_pose(ep.actions, ep.ee_pose, int(idx[1]))
-            rollout_pose = np.asarray(imagination_state.frame_poses(jnp.asarray(start), jnp.asarray(raw_actions)))
+            rollout_pose = np.asarray(imagination_state.frame_poses(jnp.asarray(start), jnp.asarray(raw_actions),
+                                                                    DELTA_EE))
             got = b["pose"][k] * stats.pose_std + stats.pose_mean
             np.testing.assert_allclose(got, rollout_pose, atol=2e-5)
             # the integrated xyz follows the recorded poses (pseudo: exactly; recorded: up to clipping at walls)
@@ -67,8 +69,8 @@ def test_gripper_label_has_one_meaning(store):
     """Pseudo-actions and recorded actions of the same window carry the same gripper command."""
     ep = store.load(store.episode_ids()[0])
     for stride in (1, 2, 3):
-        rec = P.window_actions(ep.actions, ep.ee_pose, 0, stride, 2, 4, pseudo=False)
-        pse = P.window_actions(ep.actions, ep.ee_pose, 0, stride, 2, 4, pseudo=True)
+        rec = P.window_actions(ep.actions, ep.ee_pose, 0, stride, 2, 4, pseudo=False, space=DELTA_EE)
+        pse = P.window_actions(ep.actions, ep.ee_pose, 0, stride, 2, 4, pseudo=True, space=DELTA_EE)
         np.testing.assert_array_equal(rec[:, 6], pse[:, 6])
     # the measured gap differs from the command on this data (otherwise the test above proves nothing)
     assert np.abs(ep.ee_pose[1:, 6] - ep.actions[:-1, 6]).max() > 1e-3

@@ -11,6 +11,7 @@ import pytest
 from sc3_jax import imagination_state, rollout
 from sc3_jax.config import config_from_dict, load_config, replace
 from sc3_jax.data import rotations
+from sc3_jax.data.action_space import DELTA_EE
 from sc3_jax.data.norm_stats import NormStats
 from sc3_jax.evaluate import results
 from sc3_jax.evaluate.metrics import psnr, psnr_by_view, termination_rate
@@ -39,7 +40,8 @@ def _params(cfg, seed=0):
     return jax.tree.map(lambda x: x + 0.05 * jax.random.normal(jax.random.key(seed + 1), x.shape), p)
 
 
-STATS = NormStats(np.full(7, 0.001, np.float32), np.full(7, 0.01, np.float32))
+STATS = NormStats(np.full(7, 0.001, np.float32), np.full(7, 0.01, np.float32), action_space=DELTA_EE)
+FPS = 20.0  # the synthetic data's frame rate (what a saved model's checkpoint.read_robot gives)
 
 
 def _ics(cfg, n=B, seed=0):
@@ -53,7 +55,7 @@ def _ics(cfg, n=B, seed=0):
 @pytest.fixture(scope="module")
 def setup():
     cfg = _cfg()
-    ro = rollout.Rollout(cfg, STATS, num_chunks=N)
+    ro = rollout.Rollout(cfg, STATS, data_fps=FPS, num_chunks=N)
     params = ro.place_params(_params(cfg))
     policy = simple.linear_policy(jax.random.key(7), len(cfg.data.views), chunk=cfg.rollout.policy_chunk)
     ics = _ics(cfg)
@@ -86,12 +88,12 @@ def test_shapes_and_spec(setup):
     np.testing.assert_allclose(ref["u_raw"], np.linalg.norm(ref["actions"] - ref["reread"], axis=-1)
                                .reshape(B, N, 3).mean(-1), rtol=1e-5)
     # paper defaults: 20 s at 10 Hz with l = 16 -> 13 chunks at frame stride 2 (20 Hz data)
-    spec = rollout.make_spec(load_config("paper"))
+    spec = rollout.make_spec(load_config("paper"), FPS, action_space=DELTA_EE)
     assert (spec.num_chunks, spec.stride, spec.keep, spec.predict, spec.policy_chunk) == (13, 2, 16, 24, 25)
     with pytest.raises(ValueError, match="keep_frames"):
-        rollout.make_spec(replace(cfg, rollout=dict(keep_frames=5)))
+        rollout.make_spec(replace(cfg, rollout=dict(keep_frames=5)), FPS, action_space=DELTA_EE)
     with pytest.raises(ValueError, match="policy_chunk"):  # fewer actions than the 3 frames a chunk keeps
-        rollout.make_spec(replace(cfg, rollout=dict(policy_chunk=2)))
+        rollout.make_spec(replace(cfg, rollout=dict(policy_chunk=2)), FPS, action_space=DELTA_EE)
 
 
 def test_scan_and_host_loop_agree(setup):
@@ -108,7 +110,7 @@ def test_a_chunk_shorter_than_the_window_is_held_at_its_last_action(setup):
     the chunk's last action held, in the scan and the host loop alike; fewer than the kept frames is refused."""
     cfg, _, params, policy, ics, keys, _ = setup
     short_cfg = replace(cfg, rollout=dict(policy_chunk=3))
-    ro = rollout.Rollout(short_cfg, STATS, num_chunks=N)
+    ro = rollout.Rollout(short_cfg, STATS, data_fps=FPS, num_chunks=N)
     assert (ro.spec.executed, ro.spec.raw_needed, ro.spec.step_actions) == (3, 4, 4)
     first3 = lambda p, o, k: policy.apply(p, o, k)[:3]  # noqa: E731
     short = dataclasses.replace(policy, apply=first3, chunk=3)
@@ -138,7 +140,7 @@ def test_inverse_steps_change_only_the_reread(setup):
     are the forward sampler's (same keys), only the re-read actions and U move."""
     cfg, ro, params, policy, ics, keys, ref = setup
     assert ro.spec.inverse_steps is None  # default: the forward sampler's steps
-    fewer = rollout.Rollout(replace(cfg, sample=dict(inverse_steps=1)), STATS, num_chunks=N)
+    fewer = rollout.Rollout(replace(cfg, sample=dict(inverse_steps=1)), STATS, data_fps=FPS, num_chunks=N)
     assert fewer.spec.inverse_steps == 1
     out = fewer.run(params, policy, ics, keys, tau=math.inf)
     for k in ("frames", "actions", "states"):
@@ -174,7 +176,7 @@ def test_termination_at_first_chunk_above_tau(setup):
             base = out["states"][b, c * 3 - 1] if c > 0 else ics.state[b]
             for cc in range(c + 1, N):
                 acts = jnp.asarray(out["actions"][b, cc * 3:cc * 3 + 3])
-                _, st = imagination_state.integrate(jnp.asarray(base), acts)
+                _, st = imagination_state.integrate(jnp.asarray(base), acts, DELTA_EE)
                 np.testing.assert_allclose(out["states"][b, cc * 3:cc * 3 + 3], st, atol=1e-6)
     # the host loop terminates the same way; skip_done stops querying finished episodes but keeps every valid chunk
     calls = []
@@ -211,12 +213,12 @@ def test_tau_units_decide_which_u_is_compared(setup):
     u, u_raw = np.asarray(emit["u"])[:B_], np.asarray(emit["u_raw"])[:B_]
     assert np.all(u > 10 * u_raw)  # std 0.01: normalised U is ~100x the raw one
     tau = float(np.sqrt(u.min() * u_raw.max()))  # between every raw and every normalised U
-    norm = rollout.Rollout(replace(cfg, rollout=dict(tau_units="normalised")), STATS, num_chunks=N)
+    norm = rollout.Rollout(replace(cfg, rollout=dict(tau_units="normalised")), STATS, data_fps=FPS, num_chunks=N)
     for r, stops in ((ro, False), (norm, True)):
         c, _ = r._model_step(params, r._init(frames, *state), acts, k, jnp.float32(tau))
         assert np.all(np.asarray(c.done)[:B_] == stops)
     with pytest.raises(ValueError, match="tau_units"):
-        rollout.make_spec(replace(cfg, rollout=dict(tau_units="metres")))
+        rollout.make_spec(replace(cfg, rollout=dict(tau_units="metres")), FPS, action_space=DELTA_EE)
 
 
 def test_context_unchanged_by_terminating_chunk(setup):
@@ -238,7 +240,7 @@ def test_context_unchanged_by_terminating_chunk(setup):
 def test_cached_and_uncached_rollouts_agree(setup):
     cfg, ro, params, policy, ics, keys, ref = setup
     assert cfg.model.context_attention == "causal" and ro.chunk_fns.cache  # -> cached by default
-    uncached = rollout.Rollout(cfg, STATS, num_chunks=N, cache=False)
+    uncached = rollout.Rollout(cfg, STATS, data_fps=FPS, num_chunks=N, cache=False)
     _assert_same(ref, uncached.run(params, policy, ics, keys, tau=math.inf), atol=2e-5)
 
 
@@ -255,7 +257,7 @@ def test_imagination_state_matches_numpy_rotations():
     acts = np.concatenate([rng.normal(0, 0.01, (6, 3)), rng.normal(0, 0.2, (6, 3)), rng.uniform(0, 0.08, (6, 1))],
                           1).astype(np.float32)
     acts[2, 3:6] = 0.0  # zero rotation
-    final, states = imagination_state.integrate(jnp.asarray(s0), jnp.asarray(acts))
+    final, states = imagination_state.integrate(jnp.asarray(s0), jnp.asarray(acts), DELTA_EE)
     s = s0.astype(np.float64)
     for i, a in enumerate(acts):
         s = np.concatenate([s[:3] + a[:3], rotations.compose_rotvec(a[3:6], s[3:6]), a[6:7]])
@@ -284,7 +286,8 @@ def test_offline_replay_with_recorded_actions(tmp_path, setup):
     np.testing.assert_allclose(ics.state[0], eps[0].ee_pose[2])
     np.testing.assert_allclose(actions[0, 1, 0, :3], eps[0].actions[2 + 2 * 3: 2 + 2 * 3 + 2, :3].sum(0), atol=1e-6)
     with pytest.raises(ValueError, match="too few"):
-        rollout.from_episode(eps[0], store.views, rollout.make_spec(cfg, store.fps, num_chunks=7))
+        rollout.from_episode(eps[0], store.views,
+                             rollout.make_spec(cfg, store.fps, num_chunks=7, action_space=DELTA_EE))
     out = ro.run_offline(params, ics, actions, rollout.episode_keys(0, B))
     np.testing.assert_allclose(out["actions"], actions[:, :, :3].reshape(B, N * 3, 7))
     assert "psnr" not in out  # scoring is the caller's (evaluate.metrics)
@@ -350,11 +353,11 @@ def test_policy_rate_actions_are_composed_to_the_model_rate():
     rng = np.random.default_rng(1)
     raw = np.concatenate([rng.normal(0, 0.01, (8, 3)), rng.normal(0, 0.2, (8, 3)), rng.uniform(0, 0.08, (8, 1))],
                          1).astype(np.float32)
-    got = np.asarray(imagination_state.compose(jnp.asarray(raw), 2))
-    want = np.stack([compose_actions(raw, i, 2) for i in range(0, 8, 2)])
+    got = np.asarray(imagination_state.compose(jnp.asarray(raw), 2, DELTA_EE))
+    want = np.stack([compose_actions(raw, i, 2, DELTA_EE) for i in range(0, 8, 2)])
     np.testing.assert_allclose(got, want, atol=2e-5)
     cfg = replace(_cfg(), rollout=dict(policy_chunk=8, keep_frames=3, policy_hz=20.0, control_hz=10.0))
-    ro = rollout.Rollout(cfg, STATS, num_chunks=2)
+    ro = rollout.Rollout(cfg, STATS, data_fps=FPS, num_chunks=2)
     assert (ro.spec.ratio, ro.spec.raw_needed) == (2, 8)
     policy = simple.linear_policy(jax.random.key(7), len(cfg.data.views), chunk=8, noise=0.0)
     out = ro.run(ro.place_params(_params(cfg)), policy, _ics(cfg), rollout.episode_keys(0, B), tau=math.inf)
@@ -363,9 +366,10 @@ def test_policy_rate_actions_are_composed_to_the_model_rate():
     host = as_host(policy)
     obs = {"images": _ics(cfg).frames[0][:, -1], "state": _ics(cfg).state[0], "task": np.int32(0)}
     a0 = np.asarray(host.infer(obs), np.float32)
-    _, states = imagination_state.integrate(jnp.asarray(_ics(cfg).state[0]), jnp.asarray(a0[:6]))
+    _, states = imagination_state.integrate(jnp.asarray(_ics(cfg).state[0]), jnp.asarray(a0[:6]), DELTA_EE)
     np.testing.assert_allclose(out["states"][0, :3], np.asarray(states)[1::2], atol=1e-5)
-    np.testing.assert_allclose(out["actions"][0, :3], np.stack([compose_actions(a0, i, 2) for i in (0, 2, 4)]),
+    np.testing.assert_allclose(out["actions"][0, :3],
+                               np.stack([compose_actions(a0, i, 2, DELTA_EE) for i in (0, 2, 4)]),
                                atol=2e-5)
     with pytest.raises(ValueError, match="policy_chunk=5"):
-        rollout.make_spec(replace(cfg, rollout=dict(policy_chunk=5)))
+        rollout.make_spec(replace(cfg, rollout=dict(policy_chunk=5)), FPS, action_space=DELTA_EE)

@@ -21,7 +21,10 @@ def test_command_1s_default_is_the_headline_model_and_loads_with_its_tokenizer_a
     reader = perception.state_reader(perception.load(reader_path))
     gap = float(reader.apply(reader.params, jnp.zeros((3, 64, 64, 3), jnp.uint8)))
     assert 0.0 <= gap <= 0.09
-    ro = rollout.Rollout(cfg, stats, state_reader=reader)  # loads the shipped tokenizer
+    robot = checkpoint.read_robot(path)  # its recorded robot facts: 20 fps, 7-D delta_ee, the three views
+    assert (robot.fps, robot.action_space.kind, robot.action_dim, robot.views) == (20.0, "delta_ee", 7,
+                                                                                 ("left", "right", "wrist"))
+    ro = rollout.Rollout(cfg, stats, data_fps=robot.fps, state_reader=reader)  # loads the shipped tokenizer
     assert ro.spec.views == 3 and tuple(ro.spec.image_size) == (64, 64)
     assert all(np.all(np.isfinite(np.asarray(v, np.float32))) for v in jax.tree_util.tree_leaves(params))
 

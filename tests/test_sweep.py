@@ -40,7 +40,8 @@ POLICIES = _one_per_split()
 def tiny_world_model(root):
     cfg = load_config("bussing_sim")
     cfg = replace(cfg, model=dict(dim=32, depth=1, num_heads=2, num_kv_heads=1, head_dim=16, mlp_dim=64,
-                                  rope_axes_dim=(4, 2, 2)), sample=dict(steps=2))
+                                  rope_axes_dim=(4, 2, 2)), sample=dict(steps=2),
+                  data=dict(fps=20.0, state_dim=0))  # its data's facts, as `sc3 train` records them
     params = train.init_state(cfg)["params"]
     stats = NormStats(np.zeros(7, np.float32), np.full(7, 0.02, np.float32))
     return checkpoint.save(root / "wm", cfg, stats, jax.device_get(params), np.float32)
@@ -95,7 +96,9 @@ def test_validate_rescores_real_rollouts_as_the_sweep_scored_them(setup):
     from sc3_jax.evaluate.scorers import agreement
     root, cfg = setup
     real = [r for r in ResultsStore(cfg.out).records() if r["mode"] == "real"]
-    stride = rollout.make_spec(checkpoint.load(cfg.world_model)[0]).stride
+    robot = checkpoint.read_robot(cfg.world_model)
+    stride = rollout.make_spec(checkpoint.read_config(cfg.world_model), robot.fps,
+                               action_space=robot.action_space).stride
     got = validate(cfg.out, perception.load(root / "perception.npz"), score_stride=stride)
     truth = [r["objects"] for r in real]
     assert got["clean"] == agreement([r["perception"] for r in real], truth)
@@ -528,7 +531,8 @@ def test_chunk_actions_compose_pairs_and_hold_still_after_the_end():
 
 def sweep_spec():
     from sc3_jax import rollout
-    return rollout.make_spec(load_config("bussing_sim"), num_chunks=2)
+    from sc3_jax.data.action_space import DELTA_EE
+    return rollout.make_spec(load_config("bussing_sim"), 20.0, num_chunks=2, action_space=DELTA_EE)  # its data: 20 fps
 
 
 def test_remote_policy_over_the_openpi_protocol(setup, tmp_path):

@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
-from typing import Literal
-
 from sc3_jax.commands import parse_evaluated
 from sc3_jax.evaluate.diagnose import DiagnoseConfig, Stage
 from sc3_jax.evaluate.world_model_defaults import SamplerSteps
@@ -51,9 +49,10 @@ class Args(SamplerSteps):
     """perception weights for the outcome check (None: the shipped ones)"""
     progress: bool = D.progress
     """a progress bar on stderr (--no-progress: none, for batch logs)"""
-    benchmark: Literal["bussing", "so101", "none"] = "bussing"
-    """whose measures the passes read: the simulated bussing benchmark's (perception outcome scorer, its objects'
-    pixels), SO-101's (the block's and the goal marker's pixels, the arm's; no outcome scorer), or none"""
+    benchmark: str = "bussing"
+    """whose measures the passes read: a benchmark's name (sc3_jax/benchmark.py: bussing, the simulated benchmark's
+    perception outcome scorer and its objects' pixels; so101, the block's and the goal marker's pixels, the arm's, no
+    outcome scorer), any benchmark as package.module:attr, or none"""
     stages: tuple[Stage, ...] = D.stages
     """the passes to run: teacher_forced (one chunk ahead, shuffled actions, inverse dynamics), counterfactual,
     open_loop (drift and outcome reproduction); the others' sections and gates read "not run". --stages open_loop:
@@ -82,11 +81,11 @@ def main(argv: list[str]) -> int:
 
 
 def benchmark_hooks(name: str):
-    """(outcome scorer factory or None, scene measures by name) of the benchmark ``name`` (``--benchmark``)."""
-    if name == "bussing":  # its arm is grey like its floor: no colour tells it apart, so objects only
-        from sc3_jax.benchmarks.bussing.hooks import object_pixels, perception_scorer
-        return perception_scorer, {"objects": object_pixels}
-    if name == "so101":
-        from sc3_jax.benchmarks.so101.hooks import arm_pixels, object_pixels
-        return None, {"objects": object_pixels, "arm": arm_pixels}
-    return None, {}
+    """(outcome scorer factory or None, scene measures by name) of the benchmark ``name`` (``--benchmark``: a
+    registered name or package.module:attr, ``sc3_jax.benchmark.get``; "none": neither)."""
+    if name == "none":
+        return None, {}
+    from sc3_jax import benchmark
+
+    bm = benchmark.get(name)
+    return bm.outcome_scorer, dict(bm.measures)

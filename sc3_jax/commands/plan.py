@@ -83,9 +83,11 @@ def main(argv: list[str]) -> int:
     cfg = evaluation_config(cfg, Sampler(sample_steps=a.sample_steps, inverse_steps=a.inverse_steps,
                                          tau_units=cfg.rollout.tau_units))
     cfg, store = _shape_from_store(cfg, argv, a.data)
-    # a store's action space is the rollout's, its frame rate the rollout's frame stride
-    kw = {} if store is None else {"action_space": store.action_space, "data_fps": float(store.fps)}
-    p = plan.plan(cfg, plan.parse_mesh(a.mesh), a.device, a.mfu, a.compile, a.chunk, **kw)
+    # a store's action space is the rollout's, its frame rate the rollout's frame stride; without one the config's
+    # data.fps where it records it, and no action kind (plan.cost_robot: a chunk's cost depends on neither)
+    space, fps = (None, cfg.data.fps) if store is None else (store.action_space, float(store.fps))
+    p = plan.plan(cfg, plan.parse_mesh(a.mesh), a.device, a.mfu, a.compile, a.chunk, action_space=space,
+                  data_fps=fps)
     print(plan.format_plan(p))  # ends with the verdict: fits or not, why, and the options that make it fit
     return 0
 

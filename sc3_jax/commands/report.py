@@ -33,6 +33,9 @@ class Args:
     real: tuple[str, ...] | None = None
     """a sweep of held-out episodes only: real outcomes of the same policies, [NAME=]PATH (episode stores with
     labels, a LeRobot dataset, a CSV; docs/your_robot.md), instead of the sweep's own --real"""
+    benchmark: str | None = None
+    """whose scene measure reads the objects-kept row: a benchmark's name or package.module:attr (None: the one the
+    store's sweep recorded, else the bussing benchmark's)"""
 
 
 MAX_DRAWS = 100_000  # a paired bootstrap's intervals settle long before; 2e8 draws took 3 GB
@@ -48,20 +51,27 @@ def check_options(a: Args) -> None:
     validate.taus(a.taus)
 
 
-def scene_of(results: str):
-    """The scene measure a store's objects-kept row is read with: the benchmark its sweep named
-    (``real_frames/scene.json``, one of ``sc3 diagnose --benchmark``'s names), else the bussing benchmark's."""
-    from sc3_jax.commands.diagnose import benchmark_hooks
-
+def scene_of(results: str, name: str | None = None):
+    """The scene measure a store's objects-kept row is read with: that of the benchmark ``name`` (``--benchmark``),
+    else of the one the store's sweep recorded (``benchmark.json``: a registered name or package.module:attr, as
+    ``sc3 sweep NAME`` was given it; from before it, ``real_frames/scene.json``, one of the built-in names), else
+    the bussing benchmark's. None when that benchmark has no scene measure."""
+    from sc3_jax import benchmark
     from sc3_jax.evaluate.report_episodes import REAL_FRAMES
     from sc3_jax.validate import json_object
 
-    saved = Path(results) / REAL_FRAMES / "scene.json"
-    name = (json_object(atomic.read_json(saved), str(saved), "delete it and rerun the sweep").get("benchmark")
-            if saved.is_file() else "bussing")
-    if name not in ("bussing", "so101"):  # the file is data: only a known benchmark's measure runs
-        raise UserError(f"{saved}: unknown benchmark {name!r} (known: bussing, so101)")
-    return benchmark_hooks(name)[1]["objects"]
+    if name is None:
+        name = benchmark.recorded(results)
+    if name is None:
+        saved = Path(results) / REAL_FRAMES / "scene.json"
+        name = (json_object(atomic.read_json(saved), str(saved), "delete it and rerun the sweep").get("benchmark")
+                if saved.is_file() else "bussing")
+        if name not in benchmark.names():  # the file is data: only a built-in benchmark's measure runs
+            raise UserError(f"{saved}: unknown benchmark {name!r} (known: {', '.join(benchmark.names())})")
+    try:
+        return benchmark.get(name).scene
+    except UserError as e:
+        raise UserError(f"{results}: {e} (--benchmark NAME reads the store with another's measure)") from None
 
 
 def main(argv: list[str]) -> int:
@@ -71,7 +81,7 @@ def main(argv: list[str]) -> int:
     check_options(a)
     from sc3_jax.evaluate import report  # after parsing: --help and a typo need not load plotting
 
-    md = report.render(list(a.results), a.out, a.videos, a.taus, a.draws, scene=scene_of(a.results[0]),
+    md = report.render(list(a.results), a.out, a.videos, a.taus, a.draws, scene=scene_of(a.results[0], a.benchmark),
                        real=a.real)
     t = json.loads((md.parent / "report.json").read_text())
     print("\n".join(report.closing_lines(t)))

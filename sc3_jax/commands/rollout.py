@@ -57,6 +57,9 @@ class Args(SamplerSteps):
     """also replay the recorded actions open loop and compare with the recorded frames (episode stores only)"""
     perception: str | None = None
     """perception weights for the success estimate (None: the shipped ones)"""
+    benchmark: str = "bussing"
+    """whose outcome scorer makes the success estimate and whose policy names --policy takes: a benchmark's name
+    (sc3_jax/benchmark.py: bussing, the simulated benchmark's perception and zoo; so101) or package.module:attr"""
     learned_state: bool = True
     """hand the policy the world model's learned robot state where it has one (state_head.npz); --no-learned-state:
     the integrated commands (exact for absolute targets, or velocities of the recorded state)"""
@@ -70,12 +73,13 @@ def main(argv: list[str]) -> int:
     a, cfg = parse_evaluated(Args, argv, "rollout")
     import numpy as np
 
-    from sc3_jax import atomic, checkpoint, rollout, rollout_io, state_head
-    from sc3_jax.benchmarks.bussing.hooks import named_policy, perception_scorer
+    from sc3_jax import atomic, benchmark, checkpoint, rollout, rollout_io, state_head
+    from sc3_jax.evaluate.diagnose_outcomes import no_scorer
     from sc3_jax.policies.openpi_mappings import for_world_model, get_mapping
     from sc3_jax.policies.resolve import resolve
 
     rollout_io.check_seconds(cfg.rollout.episode_seconds)
+    bm = benchmark.get(a.benchmark)  # an unknown name: one line before the model loads
     stats = checkpoint.read_norm_stats(a.world_model)
     params = checkpoint.load_params(a.world_model, cfg, a.step)
     fps = rollout_io.data_fps(a.data, a.data_fps)
@@ -89,7 +93,7 @@ def main(argv: list[str]) -> int:
         table = list(dict.fromkeys(prompts))
         ics = ics._replace(task=np.asarray([table.index(p) for p in prompts], np.int32))
         family = for_world_model(a.family, tuple(cfg.data.views), table, f"--family {a.family}")
-    policy = resolve(a.policy, cfg.rollout.policy_chunk, family, action_space=stats.action_space, named=named_policy,
+    policy = resolve(a.policy, cfg.rollout.policy_chunk, family, action_space=stats.action_space, named=bm.named_policy,
                      num_views=len(cfg.data.views)).policy
     n, s, tau = len(ids), ro.spec, ro.tau
     size = a.batch or n
@@ -107,7 +111,8 @@ def main(argv: list[str]) -> int:
                "sample_steps": s.steps, "inverse_steps": s.inverse_steps or s.steps,
                "termination_rate": result["termination_rate"], "terminated_at": result["terminated_at"].tolist(),
                "mean_u": u.pop("u_mean_per_episode"), **u,
-               "success": rollout_io.success_estimate(result, ids, store, cfg, perception_scorer, a.perception)}
+               "success": rollout_io.success_estimate(result, ids, store, cfg, bm.outcome_scorer or no_scorer,
+                                                  a.perception)}
     if a.video:
         summary["videos"] = rollout_io.write_videos(out, ids, result, cfg.data.views, cfg.rollout.control_hz)
     if a.offline:
@@ -136,7 +141,7 @@ def _report(sm: dict, out: Path, a: Args) -> list[str]:
     sc = sm["success"]
     if sc["available"]:
         im, rec = sc["imagined"], sc["recorded_physics"]
-        lines.append(f"success estimate (perception scorer on the imagined frames, {im['n_objects']} objects in "
+        lines.append(f"success estimate ({a.benchmark}'s scorer on the imagined frames, {im['n_objects']} objects in "
                      f"{sc['episodes']} episodes): " + _rates(im))
         if rec:
             lines.append("  for reference, the recorded episodes from the same starts (their own actions, physics): "
@@ -153,4 +158,4 @@ def _report(sm: dict, out: Path, a: Args) -> list[str]:
 
 
 def _rates(r: dict) -> str:
-    return ", ".join(f"{c} {r[c]:.2f}" for c in ("language", "lifting", "placing"))
+    return ", ".join(f"{c} {v:.2f}" for c, v in r.items() if c != "n_objects")  # the criteria, in their order

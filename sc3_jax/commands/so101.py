@@ -32,9 +32,9 @@ class Collect:
     """collection seed, 0-99: simulator seeds, recipes and the controllers' draws follow from it"""
     image_size: Annotated[tuple[int, int], tyro.conf.arg(metavar="H W")] = (80, 80)
     """every camera's height and width (even)"""
-    views: tuple[str, ...] = ("workspace", "wrist")
+    views: tuple[str, ...] | None = None
     """cameras to record: workspace (arm, block and goal fill the frame), wrist (follows the gripper), front (the
-    simulator's whole-room view)"""
+    simulator's whole-room view); None: the benchmark's (sc3_jax/benchmarks/so101/env.py VIEWS: workspace wrist)"""
     image_dtype: Literal["video", "image"] = "video"
     """how frames are stored: video (h264 mp4 files, needs PyAV) or image (lossless PNG inside the parquet files:
     no PyAV, larger)"""
@@ -96,9 +96,10 @@ def main(argv: list[str]) -> int:
 
 def _collect(a: Collect) -> int:
     from sc3_jax.benchmarks.so101.collect import collect
+    from sc3_jax.benchmarks.so101.env import VIEWS
 
     s = collect(a.out, a.episodes, a.heldout, a.seed, a.image_size, a.max_steps, a.workers, a.progress,
-                a.views, a.image_dtype)
+                VIEWS if a.views is None else a.views, a.image_dtype)
     for split, d in s["splits"].items():
         recipes = ", ".join(f"{k} {v['success_rate']:.2f} of {v['n']}" for k, v in d["per_recipe"].items())
         print(f"{split}: {d['n']} episodes, {d['frames']} frames, success rate {d['success_rate']:.2f} "

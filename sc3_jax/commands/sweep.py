@@ -1,21 +1,28 @@
-"""``sc3 sweep bench|so101|episodes [--OPTION VALUE ...]``: policies x initial conditions inside the world model, then
-the report. ``bench``: the simulated benchmark's seeds, real rollouts in its simulator and its scorer
-(sc3_jax/benchmarks/bussing/sweep.py). ``so101``: the SO-101 benchmark's (sc3_jax/benchmarks/so101/sweep.py: the
-simulator's outcomes, a success detector on the imagined frames). ``episodes``: held-out episodes of any robot, a lab's scorer and (``--real``)
-real outcomes from labels (sc3_jax/evaluate/ic_sweep.py, docs/your_robot.md). One store format and one report."""
+"""``sc3 sweep BENCHMARK|episodes [--OPTION VALUE ...]``: policies x initial conditions inside the world model, then
+the report. ``BENCHMARK``: a benchmark's own sweep, looked up by name (``sc3_jax/benchmark.py``: ``bussing``, alias
+``bench``, the simulated benchmark's seeds, real rollouts in its simulator and its scorer; ``so101``, the SO-101
+simulator's outcomes and a success detector on the imagined frames; or ``package.module:attr`` naming any
+``Benchmark``); the store records its name (``benchmark.json``) for ``sc3 report``. ``episodes``: held-out episodes
+of any robot, a lab's scorer and (``--real``) real outcomes from labels (sc3_jax/evaluate/ic_sweep.py,
+docs/your_robot.md). One store format and one report."""
 from __future__ import annotations
 
 import json
+from functools import partial
+from pathlib import Path
 
-from sc3_jax.benchmarks.bussing.sweep import SweepConfig
-from sc3_jax.benchmarks.so101.sweep import So101SweepConfig
-from sc3_jax.commands import run_group
+from sc3_jax import benchmark
+from sc3_jax.commands import parse, run_group
 from sc3_jax.commands.flags import respell
 from sc3_jax.errors import UserError
 from sc3_jax.evaluate.ic_sweep import ICSweepConfig
 
 SUMMARY = "policies x initial conditions inside the world model, then the report"  # the line `sc3 --help` shows
-SUBCOMMANDS: dict[str, type] = {"bench": SweepConfig, "so101": So101SweepConfig, "episodes": ICSweepConfig}
+# the registered benchmarks' sweeps (bench: bussing's, as README command 1 and the golden records name it), then the
+# benchmark-free one; any other benchmark by ``package.module:attr`` (``main``)
+SUBCOMMANDS: dict[str, type] = {"bench": benchmark.get("bench").sweep_config,
+                                "bussing": benchmark.get("bussing").sweep_config,
+                                "so101": benchmark.get("so101").sweep_config, "episodes": ICSweepConfig}
 
 
 # numeric options every sweep may have: (lowest, highest, what it counts); a value outside is one line, before
@@ -39,55 +46,37 @@ def check_options(cfg) -> None:
     validate.taus(getattr(cfg, "taus", None))
 
 
-def bench(cfg: SweepConfig) -> int:
-    from pathlib import Path
-
-    from sc3_jax.benchmarks.bussing import sweep
-    from sc3_jax.benchmarks.bussing.hooks import object_pixels
+def sweep(name: str, cfg) -> int:
+    """The sweep of the benchmark ``name`` (a registered name or package.module:attr), then its report, read with the
+    benchmark's scene measure; the store records the name for ``sc3 report``."""
     from sc3_jax.evaluate import report
 
+    bm = benchmark.get(name)
     check_options(cfg)
-    out = sweep.run_sweep(cfg)
+    out = bm.run_sweep(cfg)
+    benchmark.record(cfg.out, name)
     if out != Path(cfg.out):  # one shard of several: the report reads them all once every shard has finished
         print(f"shard done: {out}; once every shard has finished: sc3 report {cfg.out}")
         return 0
     try:
-        md = report.render(out, out / "report", scene=object_pixels)
+        md = report.render(out, out / "report", scene=bm.scene)
     except UserError as e:  # e.g. --modes online alone: the rollouts are kept, the report waits for real ones
         print(f"rollouts: {out}; no report: {e}")
         return 0
     t = json.loads((out / "report" / "report.json").read_text())
+    if bm.describe_sweep is not None:
+        print("\n".join(bm.describe_sweep(cfg, out)))
     print("\n".join(report.closing_lines(t)))
-    print(f"report: {md} (and report.html, report.json, correlation.png)")
-    return 0
-
-
-def so101(cfg: So101SweepConfig) -> int:
-    from sc3_jax.atomic import read_json
-    from sc3_jax.benchmarks.so101 import sweep
-    from sc3_jax.evaluate import report
-
-    check_options(cfg)
-    out = sweep.run(cfg)
-    from sc3_jax.benchmarks.so101.hooks import object_pixels
-    md = report.render(out, out / "report", real=[str(out / sweep.REAL_FILE)], scene=object_pixels)
-    t = read_json(out / "report" / "report.json")
-    c = read_json(out / sweep.CHECK_FILE)
-    what = f"the detector {cfg.detector}" if cfg.detector else f"the scorer {cfg.scorer}"
-    print(f"SO-101: {cfg.episodes} simulator seeds per policy, real in the simulator, imagined inside "
-          f"{cfg.world_model}, scored by {what}")
-    print(f"{what} on the real episodes agrees with the simulator on {c['agreement']:.2f} of {c['all']['n']}")
-    print("\n".join(report.closing_lines(t)))
-    print(f"report: {md} (and report.html, report.json)")
+    also = ["report.html", "report.json"] + ["correlation.png"] * (out / "report" / "correlation.png").exists()
+    print(f"report: {md} (and {', '.join(also)})")
     return 0
 
 
 def episodes(cfg: ICSweepConfig) -> int:
-    from sc3_jax.benchmarks.bussing.hooks import named_policy
     from sc3_jax.evaluate import ic_sweep, report
 
     check_options(cfg)
-    out = ic_sweep.run(cfg, named=named_policy)
+    out = ic_sweep.run(cfg, named=benchmark.get("bussing").named_policy)  # the simulated benchmark's zoo names
     md = report.render(out, out / "report", real=cfg.real or None)
     t = json.loads((out / "report" / "report.json").read_text())
     print(f"sweep: {len(cfg.policies)} policies x {cfg.episodes} held-out initial conditions (+ "
@@ -108,6 +97,14 @@ def main(argv: list[str]) -> int:
         job = "episodes" if any(a.split("=")[0] == "--data" for a in argv) else "bench"
         raise UserError(f"name the sweep: `sc3 sweep {job} {' '.join(argv)}` (bench: the simulated benchmark; "
                         "episodes: held-out episodes of any robot)")
+    if argv and argv[0] not in SUBCOMMANDS and ":" in argv[0]:  # a benchmark defined outside sc3_jax
+        bm = benchmark.get(argv[0])
+        if bm.run_sweep is None:
+            raise UserError(f"benchmark {argv[0]!r} has no sweep of its own: `sc3 sweep episodes` ranks policies on "
+                            "held-out episodes of any robot")
+        return sweep(argv[0], parse(bm.sweep_config, argv[1:], f"sweep {argv[0]}"))
+    run = {name: partial(sweep, name) for name in SUBCOMMANDS if name != "episodes"}
     return run_group("sweep", "Policies x initial conditions inside the world model, then the report "
-                     "(docs/sweep.md, docs/your_robot.md).", SUBCOMMANDS, {"bench": bench, "so101": so101, "episodes": episodes},
-                     argv)
+                     "(docs/sweep.md, docs/your_robot.md). SUBCOMMAND: a benchmark's sweep, or any benchmark as "
+                     f"{benchmark.FORM}, or episodes (any robot's held-out episodes).", SUBCOMMANDS,
+                     {**run, "episodes": episodes}, argv)

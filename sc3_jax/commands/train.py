@@ -47,6 +47,9 @@ def main(argv: list[str]) -> int:
     declared = cfg
     if (Path(cfg.data.path) / "dataset.json").is_file():
         cfg = shape_from_dataset(cfg, cfg.data.path, explicit_fields(argv))
+        old = _saved_config(cfg)
+        if old is not None:  # a run started before its config recorded the data's fps / state: resumed as saved
+            cfg = _keep(cfg, old, ROBOT_FIELDS, explicit_fields(argv))
     _check_tokenizer(cfg)
     cfg = _sized(cfg, declared, explicit_fields(argv))
     cfg = _memory_plan(cfg, explicit_fields(argv))
@@ -82,6 +85,7 @@ def _check_tokenizer(cfg) -> None:
             "--model.tokenizer-path TOK/tokenizer; or train on pixel patches with no tokenizer: --config tiny")
 
 
+ROBOT_FIELDS = (("data", "fps"), ("data", "state_dim"))  # facts a saved model reads back (checkpoint.read_robot)
 SIZED_FIELDS = (("model", "frame_tokens"), ("model", "patch_size"), ("data", "batch_size"))
 
 

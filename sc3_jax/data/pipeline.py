@@ -59,7 +59,7 @@ def window_span(stride: int, context_frames: int, future_frames: int) -> int:
     return (context_frames + future_frames - 1) * stride + 1
 
 
-def compose_actions(actions: np.ndarray, t: int, stride: int, space: ActionSpace = DELTA_EE) -> np.ndarray:
+def compose_actions(actions: np.ndarray, t: int, stride: int, space: ActionSpace) -> np.ndarray:
     """The single action equivalent to recorded ``actions[t : t+stride]`` (float32 [A])."""
     a = actions[t:t + stride]
     if len(a) != stride:
@@ -79,7 +79,7 @@ def start_pose(actions: np.ndarray, ee_pose: np.ndarray, t: int) -> np.ndarray:
     return DELTA_EE.start_state(actions, ee_pose, None, t)
 
 
-def integrate_poses(pose: np.ndarray, actions: np.ndarray, space: ActionSpace = DELTA_EE,
+def integrate_poses(pose: np.ndarray, actions: np.ndarray, space: ActionSpace,
                     dt: float = 1.0) -> np.ndarray:
     """float32 [n + 1, A]: ``pose`` and the imagined states after each of ``actions`` [n, A] (``dt`` seconds per
     action, for velocities); the numpy twin of ``imagination_state.frame_poses``."""
@@ -87,7 +87,7 @@ def integrate_poses(pose: np.ndarray, actions: np.ndarray, space: ActionSpace = 
 
 
 def window_actions(actions: np.ndarray, ee_pose: np.ndarray | None, start: int, stride: int, context_frames: int,
-                   future_frames: int, pseudo: bool, space: ActionSpace = DELTA_EE) -> np.ndarray:
+                   future_frames: int, pseudo: bool, space: ActionSpace) -> np.ndarray:
     """Un-normalised float32 [T, A] actions of a window (see the module docstring)."""
     idx = window_frame_indices(start, stride, context_frames, future_frames)[context_frames - 1:]
     if pseudo:
@@ -216,7 +216,7 @@ def build_index(store: EpisodeStore, cfg) -> WindowIndex:
 class _MakeWindow:
     """random_map transform: (episode number, start) + per-sample rng -> one training window."""
 
-    def __init__(self, reader: _EpisodeReader, cfg, stats: NormStats, latents=None, fps: float = 20.0):
+    def __init__(self, reader: _EpisodeReader, cfg, stats: NormStats, latents=None, *, fps: float):
         self.reader, self.stats, self.latents, self.fps = reader, stats, latents, float(fps)
         self.space = stats.action_space
         self.views = tuple(cfg.views)
@@ -292,7 +292,7 @@ def make_dataset(cfg, store: EpisodeStore, stats: NormStats, process_index: int 
     samples = (grain.MapDataset.source(index.pairs)
                .shuffle(seed=int(cfg.seed))
                .repeat()
-               .random_map(_MakeWindow(reader, cfg, stats, latents, store.fps), seed=int(cfg.seed) + 1))
+               .random_map(_MakeWindow(reader, cfg, stats, latents, fps=store.fps), seed=int(cfg.seed) + 1))
     local_batch = cfg.batch_size // process_count
     num_local = (len(samples) // cfg.batch_size) * local_batch
     local = (grain.MapDataset.range(num_local)

@@ -3,10 +3,11 @@ store's ``dataset.json`` unless the user set them, and a user-set (or trained) s
 one-line ``UserError`` naming both sides, before anything compiles.
 
 - :func:`shape_from_dataset` (``sc3 train``): fills ``data.views``, ``model.num_views``, ``data.image_size``,
-  ``model.action_dim`` from the store, and turns pseudo-actions off (``data.pseudo_action_prob`` 0) where the data
-  cannot give them (no measured end-effector pose, or actions that are not delta_ee), and cross-view inpainting off
-  (``modes.probs``' second share to the other two, in proportion) where the model sees one view; the fields named in
-  ``explicit`` are checked instead of filled.
+  ``model.action_dim``, ``data.fps`` and ``data.state_dim`` from the store (so a saved model's config.json records
+  its robot's facts: ``checkpoint.read_robot``), and turns pseudo-actions off (``data.pseudo_action_prob`` 0) where
+  the data cannot give them (no measured end-effector pose, or actions that are not delta_ee), and cross-view
+  inpainting off (``modes.probs``' second share to the other two, in proportion) where the model sees one view; the
+  fields named in ``explicit`` are checked instead of filled.
 - :func:`check_shape` (a trained model against a store of initial conditions, ``sc3 rollout``): checks only.
 - :func:`explicit_fields`: which of those fields a command line set (``--SECTION.FIELD``).
 
@@ -25,7 +26,7 @@ from sc3_jax.errors import UserError
 
 # the fields this module fills (``section.field``), in the order they are decided
 SHAPE_FIELDS = ("data.views", "model.num_views", "data.image_size", "model.action_dim", "data.pseudo_action_prob",
-                "modes.probs")
+                "modes.probs", "data.fps", "data.state_dim")
 
 
 def shape_from_dataset(cfg, store, explicit: Collection[str] = ()):
@@ -46,6 +47,14 @@ def shape_from_dataset(cfg, store, explicit: Collection[str] = ()):
     _check_image_size(image_size, store, where)
     action_dim = model.action_dim if "model.action_dim" in explicit else store.action_space.dim
     _check_action_dim(action_dim, store, where)
+    fps = data.fps if "data.fps" in explicit else float(store.fps)
+    if fps is None or abs(float(fps) - float(store.fps)) > 1e-9:
+        raise UserError(f"data.fps={fps}, but {where} has fps {store.fps}")
+    recorded = int(store.state_dim or 0)  # 0: the store records no state
+    state_dim = data.state_dim if "data.state_dim" in explicit else recorded
+    if state_dim != recorded:
+        raise UserError(f"data.state_dim={state_dim}, but {where} records "
+                        f"{f'a {recorded}-D state' if recorded else 'no state'}")
     refusal = store.action_space.pseudo_refusal(store.has_pose)
     pseudo = data.pseudo_action_prob
     if refusal and pseudo > 0:
@@ -53,7 +62,8 @@ def shape_from_dataset(cfg, store, explicit: Collection[str] = ()):
             raise UserError(f"data.pseudo_action_prob={pseudo}, but {where}: {refusal}")
         pseudo = 0.0
     return dataclasses.replace(
-        cfg, data=dataclasses.replace(data, views=views, image_size=image_size, pseudo_action_prob=pseudo),
+        cfg, data=dataclasses.replace(data, views=views, image_size=image_size, pseudo_action_prob=pseudo,
+                                      fps=float(fps), state_dim=int(state_dim)),
         model=dataclasses.replace(model, num_views=num_views, action_dim=action_dim),
         modes=dataclasses.replace(cfg.modes, probs=_mode_probs(cfg.modes.probs, views, "modes.probs" in explicit,
                                                                 where)))

@@ -224,6 +224,19 @@ def _episodes(store, cfg, n: int | None) -> list[str]:
     return ids
 
 
+def model_fps(cfg, store) -> float:
+    """The frame rate the world model (config ``cfg``) was trained at, which its held-out ``store`` must have: its
+    config.json's ``data.fps`` (``checkpoint.read_robot``); a model saved before it recorded one: the store's."""
+    from sc3_jax.errors import UserError
+
+    if cfg.data.fps is None:
+        return float(store.fps)
+    if abs(float(cfg.data.fps) - float(store.fps)) > 1e-9:
+        raise UserError(f"{store.root}/dataset.json: episodes at {store.fps} fps, the world model was trained at "
+                        f"{cfg.data.fps} fps (its config.json data.fps): give held-out episodes at its frame rate")
+    return float(cfg.data.fps)
+
+
 def _plan(cfg, stats, params, store, ids, dc: DiagnoseConfig, scorer_for, measures: dict) -> _Plan:
     from sc3_jax import rollout as ro_mod
     from sc3_jax.config import replace
@@ -233,10 +246,11 @@ def _plan(cfg, stats, params, store, ids, dc: DiagnoseConfig, scorer_for, measur
     views = list(cfg.data.views)
     eps = [store.load(e, mmap=True) for e in ids]
     K, Tp, hz = cfg.data.context_frames, cfg.data.future_frames, cfg.rollout.control_hz
-    s = ro_mod.make_spec(cfg, store.fps, 1, stats.action_space)  # the model's action space, not the default
+    fps = model_fps(cfg, store)
+    s = ro_mod.make_spec(cfg, fps, 1, action_space=stats.action_space)  # the model's action space and frame rate
     # teacher forcing keeps every predicted frame of recorded actions: a policy chunk as long as the window
     whole = dict(keep_frames=Tp, policy_chunk=max(cfg.rollout.policy_chunk, s.raw_needed))
-    tf = ro_mod.Rollout(replace(cfg, rollout=whole), stats, data_fps=store.fps, num_chunks=1)
+    tf = ro_mod.Rollout(replace(cfg, rollout=whole), stats, data_fps=fps, num_chunks=1)
     stride, keep = s.stride, s.keep
     off = stride * (K - 1)
     steps_in = [(ep.length - 1 - off) // stride for ep in eps]
@@ -250,7 +264,7 @@ def _plan(cfg, stats, params, store, ids, dc: DiagnoseConfig, scorer_for, measur
     scorer, note = scorer_for(views, cfg.data.image_size, dc.perception) if "open_loop" in dc.stages else (None, None)
     return _Plan(
         dc=dc, cfg=cfg, stats=stats, params=params, views=views, third=third, eps=eps, tf=tf,
-        ol=ro_mod.Rollout(cfg, stats, data_fps=store.fps, num_chunks=n_chunks), stride=stride, keep=keep, off=off,
+        ol=ro_mod.Rollout(cfg, stats, data_fps=fps, num_chunks=n_chunks), stride=stride, keep=keep, off=off,
         batch=-(-dc.batch // tf.batch_multiple) * tf.batch_multiple, samples=samples,
         donors=diagnose_video.shuffle_donors(samples, np.random.default_rng(dc.seed)), medians=medians,
         first=[np.stack([np.asarray(ep.frames[v][0]) for v in views]) for ep in eps], steps_in=steps_in,

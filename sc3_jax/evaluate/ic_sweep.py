@@ -243,7 +243,8 @@ def run(cfg: ICSweepConfig, named=None) -> Path:
     wcfg, stats, params = checkpoint.load(cfg.world_model)
     wcfg = evaluation_config(wcfg, cfg)  # the sweep's sampler settings (sc3 rollout / diagnose share them)
     warn_if_student_off_its_step(wcfg)
-    ro = rollout.Rollout(wcfg, stats, mesh=_mesh(cfg.batch), data_fps=rollout_io.data_fps(cfg.initial_conditions, None),
+    fps = checkpoint.read_robot(cfg.world_model, wcfg).fps  # the frame rate the model was trained at (config.json)
+    ro = rollout.Rollout(wcfg, stats, mesh=_mesh(cfg.batch), data_fps=fps,
                          head=state_head.load(cfg.world_model) if cfg.learned_state else None)
     s = ro.spec
     want = cfg.episodes + cfg.calibration_episodes

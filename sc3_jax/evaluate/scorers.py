@@ -9,13 +9,13 @@ and human scorers: ``benchmarks/bussing/scorers.py``).
 from __future__ import annotations
 
 import dataclasses
-import importlib
 import inspect
 from collections.abc import Callable, Mapping
 from typing import Protocol
 
 import numpy as np
 
+from sc3_jax import module_attr
 from sc3_jax.errors import UserError
 from sc3_jax.evaluate.metrics import CRITERIA, outcome_category
 
@@ -92,18 +92,10 @@ def load_outcome_scorer(spec: str) -> Callable[[RolloutView], dict[str, bool]]:
     if spec.startswith(DETECTOR_PREFIX):
         from sc3_jax.evaluate import success_detector
         return success_detector.load(spec[len(DETECTOR_PREFIX):])
-    mod_name, colon, attr = spec.partition(":")
-    if not colon or not mod_name or not attr:
+    if ":" not in spec:  # the one thing a scorer must return, said where the spelling is wrong
         raise UserError(f"--scorer {spec!r}: expected package.module:attr (a function or class taking a RolloutView "
                         "and returning {criterion: bool})")
-    try:
-        obj = importlib.import_module(mod_name)
-        for part in attr.split("."):
-            obj = getattr(obj, part)
-    except ImportError as e:
-        raise UserError(f"--scorer {spec!r}: cannot import {mod_name!r} ({e}); is it on PYTHONPATH?") from None
-    except AttributeError:
-        raise UserError(f"--scorer {spec!r}: {mod_name!r} has no attribute {attr!r}") from None
+    obj = module_attr.load(spec, "--scorer")
     if inspect.isclass(obj):
         try:
             obj = obj()

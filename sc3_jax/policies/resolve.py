@@ -15,9 +15,9 @@ e.g. ``served=ws://10.0.0.2:8000@bussing``. The sweep needs a task for every pol
 from __future__ import annotations
 
 import dataclasses
-import importlib
 from typing import Any
 
+from sc3_jax import module_attr
 from sc3_jax.data.action_space import ActionSpace
 from sc3_jax.policies.base import HostPolicy, JaxPolicy
 from sc3_jax.policies.openpi_mappings import ObsMapping
@@ -83,10 +83,7 @@ def resolve(spec: str, chunk: int | None = None, family: str | ObsMapping | None
 
 def load_object(spec: str) -> JaxPolicy | HostPolicy:
     """``package.module:attr``: attr is a JaxPolicy / HostPolicy, or a zero-argument factory returning one."""
-    mod_name, _, attr = spec.partition(":")
-    obj: Any = importlib.import_module(mod_name)
-    for part in attr.split("."):
-        obj = getattr(obj, part)
+    obj: Any = module_attr.load(spec, "policy")
     if not _is_policy(obj):
         if not callable(obj):
             raise TypeError(f"{spec} is neither a policy nor a factory")

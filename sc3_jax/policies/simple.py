@@ -24,7 +24,7 @@ def _zero(params, obs, rng):
     return jnp.broadcast_to(held, (params["chunk"].shape[0], held.shape[0])).astype(jnp.float32)
 
 
-def zero_policy(chunk: int = 25, action_space: ActionSpace = DELTA_EE) -> JaxPolicy:
+def zero_policy(chunk: int = 25, *, action_space: ActionSpace) -> JaxPolicy:
     """Stand still: the actions that keep the robot where its observed (imagined) state is, ``ActionSpace.hold``:
     zero deltas with gripper target = current gripper (delta_ee), the state itself (absolute targets), zero rates
     with the target dimensions held (velocity)."""
@@ -83,7 +83,7 @@ def linear_policy(key: jax.Array, num_views: int, chunk: int = 25, scale: float 
 
 
 def _builtin_zero(chunk: int, space: ActionSpace, num_views: int) -> JaxPolicy:
-    return zero_policy(chunk, space)
+    return zero_policy(chunk, action_space=space)
 
 
 def _builtin_random(chunk: int, space: ActionSpace, num_views: int) -> JaxPolicy:

@@ -5,6 +5,10 @@ from __future__ import annotations
 
 import numpy as np
 
+BENCHMARK_TAU = 0.02
+"""The paper's termination threshold for this benchmark, in the raw units of its delta_ee actions (metres, radians):
+the core assumes none (``rollout.resolve_tau``), this benchmark's configs set ``rollout.tau`` to it."""
+
 
 def named_policy(name: str):
     """A zoo policy by its name, with the task it acts on: ``policies.resolve``'s ``named``."""

@@ -61,7 +61,8 @@ class ModelRunner:
         # a shard's batches run on its own process's devices: under jax.distributed every process runs a different
         # share, so a mesh over every host's devices would wait for programs the other processes never start
         mesh = sharding.make_mesh(MeshConfig(-1, 1, 1), jax.local_devices())
-        self.ro = ro_mod.Rollout(wcfg, stats, mesh=mesh, state_reader=perception.state_reader(reader))
+        self.ro = ro_mod.Rollout(wcfg, stats, mesh=mesh, data_fps=checkpoint.read_robot(cfg.world_model, wcfg).fps,
+                                 state_reader=perception.state_reader(reader))
         self.setup, self.policies = setup, dict(policies or {})
         self.env = env or make_env(tuple(self.ro.spec.image_size))
         self.scorer = scorer or PerceptionScorer(p_params)

@@ -171,7 +171,8 @@ def run_sweep(cfg: SweepConfig) -> Path:
         from sc3_jax.evaluate.world_model_defaults import evaluation_config, warn_if_student_off_its_step
         wcfg = evaluation_config(checkpoint.read_config(cfg.world_model), cfg)
         warn_if_student_off_its_step(wcfg)
-        spec = ro_mod.make_spec(wcfg, action_space=checkpoint.read_norm_stats(cfg.world_model).action_space)
+        robot = checkpoint.read_robot(cfg.world_model, wcfg)  # the model's data's frame rate and action space
+        spec = ro_mod.make_spec(wcfg, robot.fps, action_space=robot.action_space)
     image_size, score_stride = (tuple(spec.image_size), spec.stride) if spec else ((64, 64), REAL_ONLY_STRIDE)
     env = make_env(image_size)
     seconds = cfg.episode_seconds or (wcfg.rollout.episode_seconds if spec else 20.0)

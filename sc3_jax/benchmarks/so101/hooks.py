@@ -1,6 +1,6 @@
 """What the commands hand the evaluation core of the SO-101 benchmark: its scene measures (the block and the goal
-marker, the scene's only objects; the arm) and the pixel masks they and the scorer share. numpy only: importing it
-needs no simulator.
+marker, the scene's only objects; the arm), the pixel masks they and the scorer share, and its zoo's policy names.
+numpy only: importing it needs no simulator (the zoo is imported when a name is looked up).
 
 The masks go by which channel dominates a pixel's chromaticity (r, g, b over their sum), not by a distance to the
 material's colour: the goal disc renders pale and at a different chromaticity in each camera (lit from the side it
@@ -48,3 +48,9 @@ def object_pixels(frames: np.ndarray) -> np.ndarray:
 def arm_pixels(frames: np.ndarray) -> np.ndarray:
     """The arm's scene measure: the fraction of its yellow parts' pixels, frames [V, T, H, W, 3] -> [V, T]."""
     return arm_mask(frames).mean((-2, -1))
+
+
+def named_policy(name: str):
+    """An SO-101 zoo policy by its name (``zoo.named_policy``, imported when called: the zoo loads JAX)."""
+    from sc3_jax.benchmarks.so101.zoo import named_policy as zoo_named
+    return zoo_named(name)

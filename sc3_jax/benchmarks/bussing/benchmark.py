@@ -1,0 +1,22 @@
+"""The simulated table-bussing benchmark as the commands look it up (``sc3_jax.benchmark.get("bussing")``, alias
+"bench"): its sweep (``sweep.py``: real rollouts in its simulator, offline and online ones inside the world model,
+scored by its perception network), its scene measure (its objects' pixels: its arm is grey like its floor, so no
+colour tells the arm apart) and outcome scorer, and its zoo's policy names (``hooks.py``). Importing this loads
+neither MuJoCo nor the perception network."""
+from __future__ import annotations
+
+from sc3_jax.benchmark import Benchmark
+
+from .hooks import named_policy, object_pixels, perception_scorer
+from .sweep import SweepConfig
+
+
+def run_sweep(cfg: SweepConfig):
+    """``sweep.run_sweep``, looked up when called (a test may stand in for it)."""
+    from . import sweep
+    return sweep.run_sweep(cfg)
+
+
+BENCHMARK = Benchmark(name="bussing", sweep_config=SweepConfig, run_sweep=run_sweep,
+                      measures={"objects": object_pixels}, outcome_scorer=perception_scorer,
+                      named_policy=named_policy)
