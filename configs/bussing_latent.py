@@ -30,6 +30,7 @@ than a guess; its accelerator twin ``bussing_latent_gpu`` does."""
 from pathlib import Path
 
 import sc3_jax
+from sc3_jax.benchmarks.bussing.hooks import BENCHMARK_TAU
 from sc3_jax.config import (Config, DataConfig, FlowConfig, ModeConfig, ModelConfig, RolloutConfig, SampleConfig,
                             TrainConfig)
 
@@ -44,11 +45,12 @@ def get_config(arg: str | None = None) -> Config:
                           patch_size=4, anchor_conditioning=True, action_to_frames=True, action_reads_frames=True,
                           pose_conditioning=True, context_noise=True),
         data=DataConfig(path="runs/bussing/demos", image_size=(64, 64), context_frames=2, future_frames=10,
-                        strides=(1, 2, 2, 3), batch_size=12),
+                        strides=(1, 2, 2, 3), batch_size=12, fps=20.0),
         modes=ModeConfig(probs=(0.7, 0.1, 0.2)),
         flow=FlowConfig(t_logit_mean=1.0, video_loss_weight=10.0, context_noise_max=0.3),
         train=TrainConfig(workdir="runs/bussing_latent/train", lr=1.5e-3, warmup_steps=150, steps=6000,
                           ckpt_every=250, log_every=25),
         sample=SampleConfig(steps=8, context_noise=0.02),
-        rollout=RolloutConfig(policy_chunk=25, keep_frames=8, episode_seconds=20.0, control_hz=10.0, policy_hz=20.0),
+        rollout=RolloutConfig(policy_chunk=25, keep_frames=8, episode_seconds=20.0, control_hz=10.0, policy_hz=20.0,
+                              tau=BENCHMARK_TAU),
     )

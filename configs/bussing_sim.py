@@ -22,6 +22,7 @@ temporal median (gate 3), true - shuffled actions +1.06 dB (gate 2), inverse dyn
 1.50, offline outcome reproduction 0.39 (gate 0.75). Online on the quick protocol (docs/results.md, "Closed loop on
 the quick protocol"): in distribution r 0.690 [0.526, 0.793], MMRV 0.385, against the policy-blind floor's 0.641 /
 0.468: a guess by its intervals. The latent recipe (``bussing_latent``, ``bussing_latent_gpu``) replaced it."""
+from sc3_jax.benchmarks.bussing.hooks import BENCHMARK_TAU
 from sc3_jax.config import (Config, DataConfig, FlowConfig, ModeConfig, ModelConfig, RolloutConfig, SampleConfig,
                             TrainConfig)
 
@@ -33,12 +34,13 @@ def get_config(arg: str | None = None) -> Config:
                           rope_axes_dim=(8, 8, 8), patch_size=16,
                           anchor_conditioning=True, action_to_frames=True, action_reads_frames=True),
         data=DataConfig(path="runs/bussing/demos", image_size=(64, 64), context_frames=2, future_frames=8,
-                        strides=(2,), batch_size=12),
+                        strides=(2,), batch_size=12, fps=20.0),
         # the sweep re-reads every imagined chunk with the inverse mode, so it gets more than the paper's 0.1
         modes=ModeConfig(probs=(0.7, 0.1, 0.2)),
         flow=FlowConfig(t_logit_mean=1.0, video_loss_weight=10.0),
         train=TrainConfig(workdir="runs/bussing/train", lr=1.5e-3, warmup_steps=150, steps=2600, ckpt_every=250,
                           log_every=25),
         sample=SampleConfig(steps=8),
-        rollout=RolloutConfig(policy_chunk=25, keep_frames=8, episode_seconds=20.0, control_hz=10.0, policy_hz=20.0),
+        rollout=RolloutConfig(policy_chunk=25, keep_frames=8, episode_seconds=20.0, control_hz=10.0, policy_hz=20.0,
+                              tau=BENCHMARK_TAU),
     )

@@ -50,7 +50,8 @@ class Args(SamplerSteps):
     batch: int | None = None
     """episodes per jitted call (None: all at once)"""
     data_fps: float | None = None
-    """frame rate the model was trained at (None: the store's fps, else 20)"""
+    """frame rate the model was trained at (None: the world model's own, config.json data.fps; a store at another
+    rate is refused)"""
     seed: int = 0
     """sampler and policy noise: episode i's draws depend only on (seed, i)"""
     offline: bool = False
@@ -82,7 +83,7 @@ def main(argv: list[str]) -> int:
     bm = benchmark.get(a.benchmark)  # an unknown name: one line before the model loads
     stats = checkpoint.read_norm_stats(a.world_model)
     params = checkpoint.load_params(a.world_model, cfg, a.step)
-    fps = rollout_io.data_fps(a.data, a.data_fps)
+    fps = rollout_io.data_fps(a.world_model, a.data_fps)
     ro = rollout.Rollout(cfg, stats, data_fps=fps, head=state_head.load(a.world_model) if a.learned_state else None)
     ids, ics, store = rollout_io.load_initial_conditions(a.data, cfg, ro.spec, a.episodes, a.start, a.task)
     family = a.family
