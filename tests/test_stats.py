@@ -117,13 +117,6 @@ def test_the_resampler_is_reproducible_and_draws_with_replacement():
         resample.multiplicities(0, 5, 0)
 
 
-def test_the_multinomial_resampler_is_reproducible():
-    w = resample.multinomial_multiplicities(6, 50, seed=3)
-    assert w.shape == (50, 6) and np.all(w.sum(1) == 6)
-    np.testing.assert_array_equal(w, resample.multinomial_multiplicities(6, 50, seed=3))
-    np.testing.assert_array_equal(w, np.random.default_rng(3).multinomial(6, np.full(6, 1 / 6), size=50))
-
-
 def test_the_percentile_interval_counts_nan_draws():
     iv = interval.percentile(np.r_[np.arange(101.0), np.nan])
     assert (iv["lo"], iv["hi"], iv["nan_draws"]) == (pytest.approx(2.5), pytest.approx(97.5), 1)

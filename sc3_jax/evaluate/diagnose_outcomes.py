@@ -99,7 +99,7 @@ def physics_reproduction(rows, seed: int = 0, draws: int = BOOTSTRAP_DRAWS) -> d
     pairs = [[(a, b) for a, b in zip(r["imagined"], r["physics"], strict=True)] for r in rows]  # per episode
     E = len(rows)
     # weights[d, e]: how often resampling d draws episode e (E draws with replacement)
-    weights = resample.multinomial_multiplicities(E, draws, seed) if E >= 2 else None
+    weights = resample.multiplicities(E, draws, seed) if E >= 2 else None
 
     def stat(hit, keep=lambda im, ph: True) -> dict:
         """Fraction of the kept (imagined, physics) objects where ``hit``, with its interval."""

@@ -4,7 +4,7 @@ A draw resamples the unit that was sampled -- n units, n picks with replacement 
 every draw; its spread is the sampling noise. Every draw comes from ``numpy.random.default_rng(seed)``, so the same
 seed gives the same draws, and the numbers a report prints are reproducible. The order in which the generator is
 consumed is part of those numbers: these functions draw exactly as the report always has, and changing a call here
-(its shape, its order, or ``integers`` for ``multinomial``) changes every interval printed since.
+(its shape or its order) changes every interval printed since.
 """
 from __future__ import annotations
 
@@ -34,10 +34,3 @@ def multiplicities(n: int, draws: int, seed: int) -> np.ndarray:
         raise ValueError(f"bootstrap: need n >= 1 units and draws >= 1, got n={n}, draws={draws}")
     return counts_of(indices(n, draws, seed), n)
 
-
-def multinomial_multiplicities(n: int, draws: int, seed: int) -> np.ndarray:
-    """[draws, n] multiplicities of n picks with replacement, drawn at once per draw (``Generator.multinomial``):
-    the same distribution as :func:`multiplicities`, another use of the generator, so other numbers for a seed.
-    ``sc3 diagnose``'s outcome intervals (``diagnose_outcomes``) have always been drawn this way; they keep it so
-    that a rerun prints the intervals it printed before."""
-    return np.random.default_rng(seed).multinomial(n, np.full(n, 1.0 / n), size=draws)
