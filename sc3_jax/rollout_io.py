@@ -1,6 +1,7 @@
 """What ``sc3 rollout`` needs around ``rollout.Rollout``: initial conditions from an episode store or an ``.npz``,
-rollouts in batches of episodes, the offline replay of the recorded actions, videos, and the figures its summary
-reports (U_chunk, termination, a perception-scored success estimate)."""
+rollouts in batches of episodes (closed loop, and the termination rate), videos, and the checks of its horizon made
+before the model loads. Imports nothing from ``sc3_jax.evaluate``: the summaries of a rollout (the offline replay,
+U_chunk, the success estimate, the finite-actions check) are ``evaluate/rollout_summary.py``."""
 from __future__ import annotations
 
 import math
@@ -120,80 +121,6 @@ def closed_loop(ro, params, policy, ics, keys, tau: float, size: int, progress: 
                                               skip_done=True), len(keys), size, False, "rollout")
 
 
-def offline(cfg, stats, params, store, ids, fps: float, spec, start: int, task: int, keys, size: int,
-            progress: bool) -> tuple[dict, np.ndarray, int]:
-    """The recorded actions replayed open loop from each episode's start, as many chunks as every episode supports
-    (at most the closed-loop ``spec``'s): (the rollout's arrays with ``psnr`` [B, V, T] and ``psnr_view`` [B, V] against the
-    recorded frames, those frames, the chunks run)."""
-    from sc3_jax import rollout
-    from sc3_jax.evaluate.metrics import psnr_by_view
-
-    if store is None:
-        raise UserError("--offline replays recorded actions: give an episode store as --data")
-    eps = [store.load(e) for e in ids]
-    n_off = min(min(rollout.max_offline_chunks(ep.length, spec, start) for ep in eps), spec.num_chunks)
-    if n_off < 1:
-        raise UserError(f"{store.root}: episodes too short for one offline chunk from frame {start}")
-    ro = rollout.Rollout(cfg, stats, data_fps=fps, num_chunks=n_off)
-    items = [rollout.from_episode(ep, cfg.data.views, ro.spec, start, task) for ep in eps]
-    ics = rollout.stack_initial_conditions([it[0] for it in items])
-    acts, tgts = np.stack([it[1] for it in items]), np.stack([it[2] for it in items])
-    pick = ics.take
-    off = run_batched(lambda sl: ro.run_offline(params, pick(sl), acts[sl], keys[sl], math.inf), len(ids), size,
-                      progress, "offline")
-    off["psnr"], off["psnr_view"] = (x.astype(np.float32) for x in psnr_by_view(off["frames"], tgts,
-                                                                                 off["frame_valid"]))
-    return off, tgts, n_off
-
-
-def u_summary(result: dict, tau: float, tau_units: str) -> dict:
-    """U_chunk in ``tau_units`` over every chunk run (chunks after termination are not run), and how many episodes
-    stopped at tau and after how many chunks."""
-    u = result["u_raw" if tau_units == "raw" else "u"]  # [B, N]
-    ran = np.ones(u.shape, bool)
-    for b, t in enumerate(result["terminated_at"]):
-        if t >= 0:
-            ran[b, t + 1:] = False  # the terminating chunk itself ran (its U is what stopped it)
-    vals = u[ran]
-    stopped = result["terminated_at"][result["terminated_at"] >= 0]
-    return {"tau": tau, "tau_units": tau_units, "u_mean": float(vals.mean()), "u_median": float(np.median(vals)),
-            "u_max": float(vals.max()), "u_mean_per_episode": [float(u[b][ran[b]].mean()) for b in range(len(u))],
-            "stopped": int(len(stopped)),
-            "stopped_at_chunk_mean": float(stopped.mean()) if len(stopped) else None}
-
-
-def success_estimate(result: dict, ids, store, cfg, scorer_for, perception: str | None = None) -> dict:
-    """The benchmark's scorer (``scorer_for(views, image_size, weights)``, as ``diagnose.diagnose`` takes it) on each
-    imagined rollout (its last context frame, then its frames up to termination,
-    as the sweep reads online rollouts): per-criterion success over the objects named by the episodes' meta.
-    ``{"available": False, "note": why}`` when the model's frames are not the scorer's or no object is named."""
-    from sc3_jax.evaluate.diagnose_outcomes import episode_objects, success_rates
-    from sc3_jax.evaluate.scorers import RolloutView
-
-    if store is None:
-        return {"available": False, "note": "an .npz of initial conditions names no objects to score"}
-    scorer, note = scorer_for(cfg.data.views, cfg.data.image_size, perception)
-    if scorer is None:
-        return {"available": False, "note": note}
-    imagined, recorded = [], []
-    for b, eid in enumerate(ids):
-        ep = store.load(eid)
-        objects, dests, physics = episode_objects(ep.meta)
-        if objects is None:
-            continue
-        frames = np.concatenate([result["initial_frames"][b][:, -1:], result["frames"][b][:, result["frame_valid"][b]]],
-                                1)
-        imagined.append(scorer.score(RolloutView(eid, frames, objects, dests)))
-        if physics is not None:
-            recorded.append(physics)
-    if not imagined:
-        return {"available": False, "note": f"{store.root}: no episode names its objects (meta.labels / "
-                                            "meta.initial_condition, as `sc3 sim demos` writes)"}
-    return {"available": True, "episodes": len(imagined), "imagined": success_rates(imagined),
-            # the recorded episodes' own outcomes: a reference for the same starts, under the recording's policy
-            "recorded_physics": success_rates(recorded) if recorded else None}
-
-
 MAX_EPISODE_SECONDS = 3600.0  # an hour of imagined video per episode: beyond it the frames are the bound
 
 
@@ -216,14 +143,3 @@ def check_horizon(spec, episode_seconds: float, episodes: int) -> None:
         raise UserError(f"--rollout.episode-seconds {episode_seconds:g}: {episodes} episodes' frames need about "
                         f"{frames / 1e9:.1f} GB, this machine has {avail / 1e9:.1f} GB available; give fewer seconds "
                         "or a smaller --batch")
-
-
-def check_result(result: dict, policy: str) -> None:
-    """The policy's actions (and the U they give) finite in every episode, as a sweep requires: else one line,
-    nothing written (a NaN in summary.json would read as a number)."""
-    from sc3_jax.evaluate.results import check_actions
-
-    u_raw = result.get("u_raw")
-    for b in range(len(result["actions"])):
-        check_actions(f"{policy}/{b}", result["actions"][b], None if u_raw is None else u_raw[b])
-

@@ -150,7 +150,7 @@ def test_the_libraries_keep_no_command_line():
 
 
 def test_u_summary_counts_the_chunks_run_and_the_episodes_stopped():
-    from sc3_jax.rollout_io import u_summary
+    from sc3_jax.evaluate.rollout_summary import u_summary
 
     u_raw = np.array([[0.01, 0.03, 0.5], [0.01, 0.01, 0.01], [0.09, 0.7, 0.7]])
     result = {"u_raw": u_raw, "u": 100 * u_raw, "terminated_at": np.array([1, -1, 0])}
@@ -171,7 +171,7 @@ def test_success_estimate_scores_the_kept_frames_of_objects_the_store_names(tmp_
     from sc3_jax.evaluate.scorers import RolloutView
     from sc3_jax.benchmarks.bussing.hooks import perception_scorer
     from sc3_jax.benchmarks.bussing.scorers import PerceptionScorer
-    from sc3_jax.rollout_io import success_estimate
+    from sc3_jax.evaluate.rollout_summary import success_estimate
 
     store = _tiny_store(tmp_path / "eps", n=1, steps=60)
     cfg = load_config("bussing_sim")  # left/right/wrist at 64x64: the scorer's frames

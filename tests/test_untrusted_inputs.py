@@ -488,7 +488,7 @@ def test_a_record_whose_outcome_is_not_true_or_false_is_one_line(tmp_path, outco
 
 @pytest.mark.parametrize("value", [np.nan, np.inf, 1e30])
 def test_sc3_rollout_refuses_non_finite_actions_and_their_u_before_writing(value):
-    from sc3_jax import rollout_io
+    from sc3_jax.evaluate import rollout_summary
 
     actions = np.zeros((2, 4, A), np.float32)
     actions[1, 2, 0] = value
@@ -496,8 +496,8 @@ def test_sc3_rollout_refuses_non_finite_actions_and_their_u_before_writing(value
     if value == 1e30:
         u_raw[1, 2] = np.inf  # 1e30 overflows U_chunk
     with pytest.raises(UserError, match=r"rollout zero/1: the policy's .* are not finite"):
-        rollout_io.check_result({"actions": actions, "u_raw": u_raw}, "zero")
-    rollout_io.check_result({"actions": np.zeros((2, 4, A), np.float32)}, "zero")  # finite: accepted
+        rollout_summary.check_result({"actions": actions, "u_raw": u_raw}, "zero")
+    rollout_summary.check_result({"actions": np.zeros((2, 4, A), np.float32)}, "zero")  # finite: accepted
 
 
 @pytest.mark.parametrize("seconds", [-1, 0, 1e9, float("inf"), float("nan")])

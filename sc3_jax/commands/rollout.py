@@ -1,6 +1,6 @@
 """``sc3 rollout --world-model WM --policy P --data IC --out DIR [--SECTION.FIELD VALUE ...]``:
 closed-loop (and optionally offline) rollouts of a policy inside a trained world model -> arrays, videos and a
-summary (sc3_jax/rollout_io.py, docs/rollout.md).
+summary (sc3_jax/rollout_io.py, sc3_jax/evaluate/rollout_summary.py, docs/rollout.md).
 
 Writes ``OUT/rollout.npz`` (every array of ``Rollout.run``, see sc3_jax/rollout.py), ``OUT/summary.json``, one
 ``OUT/<episode>_<view>.mp4`` per episode and view (context frames, then the kept frames up to termination) and, with
@@ -75,6 +75,7 @@ def main(argv: list[str]) -> int:
     import numpy as np
 
     from sc3_jax import atomic, benchmark, checkpoint, rollout, rollout_io, state_head
+    from sc3_jax.evaluate import rollout_summary
     from sc3_jax.evaluate.diagnose_outcomes import no_scorer
     from sc3_jax.policies.openpi_mappings import for_world_model, get_mapping
     from sc3_jax.policies.resolve import resolve
@@ -102,23 +103,23 @@ def main(argv: list[str]) -> int:
     out = Path(a.out)
     keys = np.asarray(rollout.episode_keys(a.seed, n))
     result = rollout_io.closed_loop(ro, params, policy, ics, keys, tau, size, a.progress)
-    rollout_io.check_result(result, a.policy)  # before anything is written
+    rollout_summary.check_result(result, a.policy)  # before anything is written
     out.mkdir(parents=True, exist_ok=True)
     atomic.save_npz(out / "rollout.npz", **result, episode_ids=np.asarray(ids))
-    u = rollout_io.u_summary(result, tau, cfg.rollout.tau_units)
+    u = rollout_summary.u_summary(result, tau, cfg.rollout.tau_units)
     summary = {"episodes": ids, "policy": a.policy, "seed": a.seed, "num_chunks": s.num_chunks, "keep_frames": s.keep,
                "stride": s.stride, "control_hz": cfg.rollout.control_hz, "episode_seconds": cfg.rollout.episode_seconds,
                # the sampler as it ran: forward-dynamics steps, and those of the re-read that yields U
                "sample_steps": s.steps, "inverse_steps": s.inverse_steps or s.steps,
                "termination_rate": result["termination_rate"], "terminated_at": result["terminated_at"].tolist(),
                "mean_u": u.pop("u_mean_per_episode"), **u,
-               "success": rollout_io.success_estimate(result, ids, store, cfg, bm.outcome_scorer or no_scorer,
-                                                  a.perception)}
+               "success": rollout_summary.success_estimate(result, ids, store, cfg, bm.outcome_scorer or no_scorer,
+                                                       a.perception)}
     if a.video:
         summary["videos"] = rollout_io.write_videos(out, ids, result, cfg.data.views, cfg.rollout.control_hz)
     if a.offline:
-        off, targets, n_off = rollout_io.offline(cfg, stats, params, store, ids, fps, s, a.start, a.task, keys, size,
-                                                 a.progress)
+        off, targets, n_off = rollout_summary.offline(cfg, stats, params, store, ids, fps, s, a.start, a.task, keys,
+                                                      size, a.progress)
         atomic.save_npz(out / "offline.npz", **off, targets=targets, episode_ids=np.asarray(ids))
         summary["offline_psnr_per_view"] = dict(zip(cfg.data.views, np.nanmean(off["psnr_view"], 0).tolist()))
         summary["offline_chunks"] = n_off

@@ -40,43 +40,21 @@ import dataclasses
 import math
 import time
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 
 # numpy only, all of them: the module stays cheap for report.py to import
 from sc3_jax.evaluate import diagnose_actions, diagnose_kept, diagnose_outcomes, diagnose_video
 from sc3_jax.evaluate.diagnose_actions import AXES, InverseErrors, arm_centroid  # noqa: F401  (public names)
+from sc3_jax.evaluate.diagnose_config import STAGES, DiagnoseConfig, Stage  # noqa: F401  (public names)
 from sc3_jax.evaluate.diagnose_report import (GATES, NOT_RUN_NOTE, gates, load_result,  # noqa: F401
                                               render_table, save_result, verdict)
 from sc3_jax.evaluate.diagnose_video import (PREDICTORS, ErrorSums, moving_mask, psnr_from_sums,  # noqa: F401
                                              squared_errors, temporal_median)
 
 
-Stage = Literal["teacher_forced", "counterfactual", "open_loop"]
-STAGES: tuple[Stage, ...] = ("teacher_forced", "counterfactual", "open_loop")  # the order they run in
 NOT_RUN = {"available": False, "note": NOT_RUN_NOTE}
-
-
-@dataclasses.dataclass(frozen=True)
-class DiagnoseConfig:
-    episodes: int | None = None  # N episodes evenly spaced over the store's sorted ids; None = all
-    seed: int = 0  # sampler noise (per sample / episode keys) and the action shuffle
-    moving_threshold: float = 0.06  # [-1, 1] units, any channel (see the module docstring)
-    horizons: tuple[float, ...] = (0.8, 2.0, 4.0, 6.0, 8.0)  # drift curve points (s)
-    max_seconds: float | None = None  # cap on the open-loop horizon (None: the longest episode)
-    batch: int = 8  # rollouts per jitted call (rounded up to the device count)
-    cf_distance: float = 0.05  # counterfactual displacement (m) added over one chunk
-    cf_starts: int = 2  # counterfactual start chunks per episode (evenly spaced over its teacher-forced chunks)
-    arm_threshold: float = 0.12  # [-1, 1] units: a pixel belongs to the arm when it differs this much from the median
-    min_arm_pixels: int = 4
-    perception: str | None = None  # perception weights (None: the shipped ones)
-    progress: bool = True
-    stages: tuple[Stage, ...] = STAGES  # the passes to run (module docstring); the others' sections read NOT_RUN
-    # gates (see GATES)
-    gate_margin_db: float = 3.0
-    gate_actions_db: float = 2.0
-    gate_reproduction: float = 0.75
 
 
 def load(world_model, model_config=None):

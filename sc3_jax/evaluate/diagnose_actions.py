@@ -12,14 +12,11 @@ Numpy only; the rollouts run in ``diagnose.py``."""
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING
 
 import numpy as np
 
+from sc3_jax.evaluate.diagnose_config import DiagnoseConfig
 from sc3_jax.stats import correlation
-
-if TYPE_CHECKING:
-    from sc3_jax.evaluate.diagnose import DiagnoseConfig
 
 AXES = {"+x": (1.0, 0.0, 0.0), "-x": (-1.0, 0.0, 0.0), "+y": (0.0, 1.0, 0.0), "-y": (0.0, -1.0, 0.0)}
 

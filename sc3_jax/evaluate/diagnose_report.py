@@ -4,15 +4,12 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from sc3_jax import atomic
+from sc3_jax.evaluate.diagnose_config import DiagnoseConfig
 from sc3_jax.evaluate.diagnose_video import PREDICTORS
-
-if TYPE_CHECKING:
-    from sc3_jax.evaluate.diagnose import DiagnoseConfig
 
 
 NOT_RUN_NOTE = "not run (--stages)"  # diagnose.NOT_RUN's note: how a skipped section and its gates read
