@@ -9,9 +9,9 @@ import numpy as np
 from sc3_jax import atomic
 
 
-def write_mp4(path: str | Path, frames: np.ndarray, fps: float = 20) -> None:
-    """``frames`` uint8 RGB [T, H, W, 3] -> ``path`` (mp4v codec), written whole or not at all (``atomic``: a kill
-    mid-video leaves the previous file, not a truncated one)."""
+def write_mp4(path: str | Path, frames: np.ndarray, fps: float) -> None:
+    """``frames`` uint8 RGB [T, H, W, 3] -> ``path`` (mp4v codec) played at ``fps`` (the frames' rate, the caller's),
+    written whole or not at all (``atomic``: a kill mid-video leaves the previous file, not a truncated one)."""
     import cv2
     frames = np.asarray(frames)
     h, w = frames.shape[1:3]

@@ -29,23 +29,19 @@ EXCLUDED = ("sc3_jax.benchmarks",)  # a benchmark's own facts are its to state
 # (qualified name, parameter) -> why its default is not a robot fact. Keep short: each entry is a debt or a reason.
 ALLOWED = {
     ("sc3_jax.config.DataConfig", "views"):
-        "the synthetic demo data's views, which data-less configs (tiny, paper, bussing_sim, cpu_medium) size their "
-        "per-view weights from; `sc3 train` replaces it from dataset.json (data/shape.py). Goes to () once those "
-        "configs name their views",
+        "debt: the synthetic demo data's views, which data-less configs (tiny, paper, bussing_sim, bussing_latent, "
+        "cpu_medium) size from; `sc3 train` replaces it from dataset.json (data/shape.py). () breaks those configs, "
+        "convert_cli's Config(model=...), and tests building DataConfig without views (data_pipeline, init_from, "
+        "sharding, autoencoder, self_forcing, flow_levers, pose_and_context_noise, ...)",
     ("sc3_jax.config.ModelConfig", "fps"):
         "cosmos3 layout's time-position scale (a model hyperparameter fixed at training; read back from config.json)",
     ("sc3_jax.config.ModelConfig", "base_fps"):
         "cosmos3 layout's time-position scale (a model hyperparameter fixed at training; read back from config.json)",
     ("sc3_jax.config.RolloutConfig", "control_hz"):
-        "the rollout's model frame rate, an evaluation setting (the paper's 10 Hz protocol) checked against the "
-        "model's data fps (rollout.make_spec), not a fact of the robot",
-    # debts outside this change's files: each belongs in a benchmark or as a required parameter
-    ("sc3_jax.commands.sim.Demos", "control_hz"): "debt: the bussing simulator's rate; belongs in benchmarks/bussing",
-    ("sc3_jax.commands.sim.Mixture", "control_hz"): "debt: the bussing simulator's rate; belongs in benchmarks/bussing",
-    ("sc3_jax.commands.sim.Scene", "control_hz"): "debt: the bussing simulator's rate; belongs in benchmarks/bussing",
-    ("sc3_jax.video.write_mp4", "fps"): "debt: a video's playback rate; every caller passes one (make it required)",
-    ("sc3_jax.evaluate.report_figures.side_by_side", "fps"):
-        "debt: a figure video's playback rate; make it required (its callers pass control_hz)",
+        "the rollout's model frame rate, an evaluation setting (the paper's 10 Hz protocol: stride = data fps / "
+        "control_hz, checked against the model's data fps in rollout.make_spec; saved in config.json), not a fact of "
+        "the robot. None as 'the data's fps' would change what it means (stride 1, not 2, on 20 Hz data) and need "
+        "resolving in its ~15 readers (rollout, diagnose, policy_hz, the sweeps)",
 }
 
 

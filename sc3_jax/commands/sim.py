@@ -32,8 +32,8 @@ class Scene:
 
     image_size: Annotated[tuple[int, int], SIZE] = (64, 64)
     """rendered views' height and width"""
-    control_hz: Literal[10, 20] = 20
-    """control (and frame) rate"""
+    control_hz: Literal[10, 20] | None = None
+    """control (and frame) rate (None: the simulator's own, benchmarks/bussing/env.py CONTROL_HZ, 20)"""
     n_objects: int = 3
     """objects on the table per episode"""
 
@@ -186,6 +186,13 @@ def _rates(s: dict) -> list[str]:
             "  (each criterion is scored on its own, per object)"]
 
 
+def _hz(a: Scene) -> int:
+    """--control-hz, or the bussing simulator's own rate (the benchmark's fact, not this command's)."""
+    from sc3_jax.benchmarks.bussing.env import CONTROL_HZ
+
+    return CONTROL_HZ if a.control_hz is None else a.control_hz
+
+
 def _demos(a: Demos) -> int:
     from sc3_jax.benchmarks.bussing import cli as lib
 
@@ -196,7 +203,7 @@ def _demos(a: Demos) -> int:
         if a.policy not in bussing:
             raise UserError(f"--policy {a.policy}: not a bussing zoo policy; choose one of {bussing}")
     res = lib.demos(a.out, a.episodes, a.seed, a.grasp_noise, a.release_noise, a.wrong_destination_prob,
-                    a.action_noise, a.image_size, a.control_hz, a.n_objects, policy=a.policy,
+                    a.action_noise, a.image_size, _hz(a), a.n_objects, policy=a.policy,
                     allow_swap_all=a.allow_swap_all)
     print(json.dumps(res, indent=1, default=str))
     source = f"zoo policy {a.policy}" if a.policy else "scripted expert"
@@ -214,7 +221,7 @@ def _mixture(a: Mixture) -> int:
 
     shard = _shard(a.shard)
     try:
-        res = generate_mixture(a.out, a.episodes, a.seed, a.recipe, a.image_size, a.control_hz, a.n_objects,
+        res = generate_mixture(a.out, a.episodes, a.seed, a.recipe, a.image_size, _hz(a), a.n_objects,
                                shard=shard, workers=a.workers, seconds=a.seconds,
                                progress=a.progress and a.workers == 1)
     except ValueError as e:  # episodes / seed / shard out of range

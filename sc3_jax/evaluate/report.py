@@ -566,7 +566,8 @@ def render(results, out: str | Path | None = None, videos: int | None = None, ta
             md += "\n## Real | online (| offline) (rows: views)\n\n" + "".join(f"* [{v}]({v})\n" for v in vids)
         elif videos:
             md += ("\n(No videos: no policy has real and online frames of its first evaluation condition in this "
-                   "store's rollouts/; an archived store, or a sweep of held-out episodes, keeps no real frames.)\n")
+                   "store's rollouts/ (an archived store, or a sweep of held-out episodes, keeps no real frames), or "
+                   "the world model's config.json, which gives the frames' rate, is not where the sweep read it.)\n")
         (stage / "report.md").write_text(md)
         p = _parts(t)
         (stage / "report.html").write_text(report_html.page(
@@ -591,11 +592,12 @@ def _figures(store: ResultsStore, t: dict, stage: Path, videos: int | None):
         report_figures.u_plot(store, t, stage / "u_chunk.png")
         figures.append(("u_chunk.png", "U_chunk per chunk, every policy (median and quartiles over the evaluation "
                                        "conditions); dashed: the candidate taus."))
-    vids = []
+    c = Path(t["config"]["world_model"]) / "config.json"  # the online frames' rate: the model's (no video without it)
+    vids, hz = [], json.loads(c.read_text()).get("rollout", {}).get("control_hz") if c.exists() else None
     for policy, _ in t["policies"]:
         if videos is not None and len(vids) >= videos:
             break
         name = file_name(f"{policy}_{seed}", ".mp4")
-        if report_figures.side_by_side(store, policy, seed, stage / name):
+        if hz and report_figures.side_by_side(store, policy, seed, stage / name, hz):
             vids.append(name)
     return figures, vids

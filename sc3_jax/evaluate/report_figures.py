@@ -107,9 +107,9 @@ def filmstrip(store: ResultsStore, policy: str, seed: int, path: Path, frames: i
     return True
 
 
-def side_by_side(store: ResultsStore, policy: str, seed: int, path: Path, fps: int = 10) -> bool:
-    """mp4 of real | online (| offline where kept) as columns, views as rows, at the model's frame rate; False if the
-    store does not keep the real and online frames."""
+def side_by_side(store: ResultsStore, policy: str, seed: int, path: Path, fps: float) -> bool:
+    """mp4 of real | online (| offline where kept) as columns, views as rows, played at ``fps`` (the model's rollout
+    frame rate, the online frames'); False if the store does not keep the real and online frames."""
     from sc3_jax.video import write_mp4
     got = paired_frames(store, policy, seed)
     if got is None:

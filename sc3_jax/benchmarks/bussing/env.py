@@ -37,6 +37,7 @@ HOME_POS = np.array([-0.05, 0.0, 0.18])
 GRASP_CMD = 0.02
 RELEASE_CMD = 0.045
 GRASP_TOL = 0.03
+CONTROL_HZ = 20  # the simulator's control (and frame) rate unless a caller picks 10 (`sc3 sim demos/mixture`)
 PHYSICS_DT = 0.002
 
 
