@@ -82,7 +82,9 @@ def test_a_store_records_its_benchmark_and_a_damaged_record_is_one_line(tmp_path
     benchmark.record(tmp_path, "bench")
     assert benchmark.recorded(tmp_path) == "bussing"
     benchmark.record(tmp_path, TOY)
-    assert scene_of(str(tmp_path)) is toy_benchmark.bright
+    with pytest.raises(UserError, match="add --benchmark"):  # a store names no code to import
+        scene_of(str(tmp_path))
+    assert scene_of(str(tmp_path), TOY) is toy_benchmark.bright
     assert scene_of(str(tmp_path), "so101") is benchmark.get("so101").scene  # --benchmark beats the record
     for bad in ("[1]", '{"benchmark": 3}', "{", '{"benchmark": "gone_module:B"}'):
         (tmp_path / benchmark.STORE_FILE).write_text(bad)
@@ -122,11 +124,15 @@ def test_sc3_sweep_runs_a_module_attr_benchmark(toy_swept, capsys):
     assert t["permanence"]  # the objects-kept row, read with the toy's scene measure
 
 
-def test_sc3_report_reads_the_benchmark_from_the_store(toy_swept, tmp_path, capsys):
+def test_sc3_report_imports_a_benchmark_only_when_its_command_line_names_it(toy_swept, tmp_path, capsys):
     _, _, out, _ = toy_swept
     toy_benchmark.CALLS["scene"] = 0
-    assert main(["report", str(out), "--out", str(tmp_path / "rep"), "--draws", "50"]) == 0
-    assert toy_benchmark.CALLS["scene"] > 0  # the toy's measure, named by OUT/benchmark.json
+    # OUT/benchmark.json names the toy, code outside the package: a store is data, so it is refused in one line
+    assert main(["report", str(out), "--out", str(tmp_path / "rep"), "--draws", "50"]) == 2
+    err = capsys.readouterr().err
+    assert f"add --benchmark {TOY}" in err and err.count("\n") == 1 and toy_benchmark.CALLS["scene"] == 0
+    assert main(["report", str(out), "--out", str(tmp_path / "rep"), "--draws", "50", "--benchmark", TOY]) == 0
+    assert toy_benchmark.CALLS["scene"] > 0  # the toy's measure, named on the command line
     assert json.loads((tmp_path / "rep" / "report.json").read_text())["permanence"]
     assert f"report: {tmp_path / 'rep' / 'report.md'}" in capsys.readouterr().out
 

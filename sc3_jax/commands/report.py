@@ -53,15 +53,19 @@ def check_options(a: Args) -> None:
 
 def scene_of(results: str, name: str | None = None):
     """The scene measure a store's objects-kept row is read with: that of the benchmark ``name`` (``--benchmark``),
-    else of the one the store's sweep recorded (``benchmark.json``: a registered name or package.module:attr, as
-    ``sc3 sweep NAME`` was given it; from before it, ``real_frames/scene.json``, one of the built-in names), else
-    the bussing benchmark's. None when that benchmark has no scene measure."""
+    else of the one the store's sweep recorded (``benchmark.json``, as ``sc3 sweep NAME`` was given it: a built-in
+    name; a package.module:attr there is refused, as the store is data and may come from anyone, until
+    ``--benchmark`` names it; from before it, ``real_frames/scene.json``, one of the built-in names), else the
+    bussing benchmark's. None when that benchmark has no scene measure."""
     from sc3_jax import benchmark
     from sc3_jax.evaluate.report_episodes import REAL_FRAMES
     from sc3_jax.validate import json_object
 
     if name is None:
         name = benchmark.recorded(results)
+        if name is not None and name not in benchmark.names():  # a store is data: it names no code to import
+            raise UserError(f"{Path(results) / benchmark.STORE_FILE}: the store was swept by {name!r}, code outside "
+                            f"sc3_jax; sc3 report imports only what its command line names: add --benchmark {name}")
     if name is None:
         saved = Path(results) / REAL_FRAMES / "scene.json"
         name = (json_object(atomic.read_json(saved), str(saved), "delete it and rerun the sweep").get("benchmark")
