@@ -86,6 +86,9 @@ class Robot:
         return self.action_space.dim
 
 
+MAX_FPS, MAX_STATE_DIM = 1000.0, 4096  # beyond any camera's rate and any robot's state: a damaged config.json
+
+
 def read_robot(path: str | Path, cfg: Config | None = None) -> Robot:
     """The robot facts of the saved model at ``path`` (any kind :func:`load` reads; ``cfg``: its config, where
     already read): config.json's ``data.fps`` / ``data.views`` / ``data.state_dim``, norm_stats.json's action space
@@ -100,6 +103,13 @@ def read_robot(path: str | Path, cfg: Config | None = None) -> Robot:
     else:
         space = ActionSpace("absolute", cfg.model.action_dim)
     fps, state_dim = d.fps, d.state_dim
+    if fps is not None and not (is_finite_number(fps) and 0 < fps <= MAX_FPS):
+        raise UserError(f"{path}/config.json: data.fps is {fps!r}, expected the episodes' frame rate, a number in "
+                        f"(0, {MAX_FPS:g}]: restore it")
+    if state_dim is not None and not (isinstance(state_dim, int) and not isinstance(state_dim, bool)
+                                      and 0 <= state_dim <= MAX_STATE_DIM):
+        raise UserError(f"{path}/config.json: data.state_dim is {state_dim!r}, expected the robot state's size, an "
+                        f"integer in [0, {MAX_STATE_DIM}]: restore it")
     if fps is None or state_dim is None:
         meta = Path(d.path) / "dataset.json"
         info = atomic.read_json(meta, "restore it (the episode store's metadata)") if meta.is_file() else None

@@ -201,7 +201,8 @@ def import_lerobot(root, out):
 EPISODE_FILES = ["store/e0/frames/cam.npy", "store/e1/actions.npy", "store/e0/actions.npy"]
 HEADER_FIELDS = ["views", "fps", "action_dim", "image_size", "state", "ee_pose", "format"]
 CONFIG_FIELDS = ["model.dim", "model.depth", "model.num_heads", "data.image_size", "data.views", "model",
-                 "sample.steps", "model.rope_axes_dim"]
+                 "sample.steps", "model.rope_axes_dim", "data.fps", "data.state_dim"]
+ROBOT_FACTS = ("data.fps", "data.state_dim")  # null or absent: read from the training store (a model saved before)
 INFO_FIELDS = ["fps", "features", "data_path", "video_path", "codebase_version", "chunks_size"]
 
 
@@ -281,7 +282,7 @@ def world_model_files(data):
         how = data.draw(st.sampled_from(["truncate", "retype"]), label="fault")
         if how == "truncate":
             return truncate("wm/config.json", data), rollout
-        return retype_json("wm/config.json", CONFIG_FIELDS, data), rollout
+        return retype_json("wm/config.json", CONFIG_FIELDS, data, optional=ROBOT_FACTS), rollout
     if kind == "params":
         how = data.draw(st.sampled_from(["truncate", "drop", "retype", "corrupt"]), label="fault")
 

@@ -199,3 +199,12 @@ def test_a_saved_model_records_its_robot_facts_and_a_rollout_reads_them(tmp_path
     assert len(str(e.value).splitlines()) == 1
     (tmp_path / "moved").rename(store_dir)
     assert checkpoint.read_robot(out).fps == info["fps"]
+
+    # a damaged fact is one line naming it, whatever the store says
+    for field, bad in (("fps", "abc"), ("fps", -1), ("fps", 1e308), ("fps", True), ("state_dim", 2.5),
+                       ("state_dim", -3), ("state_dim", "14"), ("state_dim", False)):
+        damaged = {**raw, "data": {**raw["data"], "fps": info["fps"], "state_dim": 0, field: bad}}
+        (out / "config.json").write_text(json.dumps(damaged))
+        with pytest.raises(UserError, match=rf"data\.{field} is") as e:
+            checkpoint.read_robot(out)
+        assert len(str(e.value).splitlines()) == 1
