@@ -31,5 +31,5 @@ def get_config(arg: str | None = None) -> Config:
                   # (inverse dynamics sees 0.8 samples per step at batch 8 otherwise); `paper` keeps 0.8/0.1/0.1.
                   modes=ModeConfig(probs=(0.6, 0.1, 0.3)),
                   flow=FlowConfig(t_logit_mean=1.0, video_loss_weight=10.0),
-                  train=TrainConfig(lr=3e-3, warmup_steps=50, steps=1500),
+                  train=TrainConfig(lr=3e-3, steps=1500),
                   rollout=RolloutConfig(keep_frames=3))

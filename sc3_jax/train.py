@@ -29,11 +29,33 @@ from sc3_jax.validate import check_host_memory
 # ================================================================================================================
 # State
 # ================================================================================================================
+def warmup_of(t) -> int:
+    """The run's warm-up steps: ``train.warmup_steps``, or (None) a thirtieth of the run, at least 1 and at most 100."""
+    return max(1, min(100, t.steps // 30)) if t.warmup_steps is None else int(t.warmup_steps)
+
+
+def lr_schedule(t) -> optax.Schedule:
+    """Linear warm-up from 0 to ``t.lr``, then a cosine to 0 *at* ``t.steps``, whatever the warm-up: the last steps
+    are where a short run gains most, so none ends mid-decay (``decay_steps <= warmup + 1`` in optax's schedule rises
+    for the whole run and never decays -- a run must be longer than its warm-up, ``check_schedule``)."""
+    warmup = warmup_of(t)
+    check_schedule(t)
+    return optax.warmup_cosine_decay_schedule(0.0, t.lr, warmup, t.steps, end_value=0.0)
+
+
+def check_schedule(t) -> None:
+    """One line for a run whose warm-up would swallow it (the rate would rise until the last step)."""
+    warmup = warmup_of(t)
+    if warmup >= t.steps:
+        raise UserError(f"train.warmup_steps {warmup} >= train.steps {t.steps}: the learning rate would rise for the "
+                        f"whole run and never decay; use fewer warm-up steps (e.g. --train.warmup-steps "
+                        f"{max(1, t.steps // 30)}) or more steps")
+
+
 def make_optimizer(cfg: Config) -> optax.GradientTransformation:
     """AdamW (paper defaults) with linear warm-up then cosine decay, global-norm clipping; weight decay on weight
     matrices only (``dit.decay_mask``: not on norms, biases or embeddings, whatever their stacking)."""
-    t = cfg.train
-    schedule = optax.warmup_cosine_decay_schedule(0.0, t.lr, max(t.warmup_steps, 1), max(t.steps, t.warmup_steps + 1))
+    schedule = lr_schedule(cfg.train)
     decay = dit.decay_mask(cfg.model, *token_geometry(cfg))
     return optax.chain(optax.clip_by_global_norm(t.grad_clip),
                        optax.adamw(schedule, b1=t.b1, b2=t.b2, weight_decay=t.weight_decay, mask=decay))
@@ -382,6 +404,7 @@ def train(cfg: Config, mesh=None, stop_at: int | None = None) -> dict:
     before it (a config that does not compile, a batch that does not fit) removes what it wrote (norm stats,
     latents), and one killed before it (the kernel's OOM killer) is undone by the next attempt (``INCOMPLETE``), so
     the corrected command is not refused as "another config" and reads no stats of other data."""
+    check_schedule(cfg.train)  # a warm-up longer than the run: one line before anything is written
     check_workdir(cfg)
     teacher_config(cfg)  # a wrong teacher is refused before anything is written
     workdir = Path(cfg.train.workdir)
