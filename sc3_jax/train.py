@@ -55,7 +55,8 @@ def check_schedule(t) -> None:
 def make_optimizer(cfg: Config) -> optax.GradientTransformation:
     """AdamW (paper defaults) with linear warm-up then cosine decay, global-norm clipping; weight decay on weight
     matrices only (``dit.decay_mask``: not on norms, biases or embeddings, whatever their stacking)."""
-    schedule = lr_schedule(cfg.train)
+    t = cfg.train
+    schedule = lr_schedule(t)
     decay = dit.decay_mask(cfg.model, *token_geometry(cfg))
     return optax.chain(optax.clip_by_global_norm(t.grad_clip),
                        optax.adamw(schedule, b1=t.b1, b2=t.b2, weight_decay=t.weight_decay, mask=decay))
@@ -334,7 +335,7 @@ def prepare_data(cfg: Config):
         stats = NormStats.load(stats_path)
     elif src_stats is not None and src_stats.exists():
         # a fine-tuned model must read actions in the units its params learned, not in this dataset's
-        stats = NormStats.load(src_stats)
+        stats = reconditioned(NormStats.load(src_stats), store)
         if jax.process_index() == 0:
             stats.save(stats_path)
     else:
@@ -354,6 +355,25 @@ def prepare_data(cfg: Config):
                                         latents=latent_cache.LatentReader(root, index.episode_ids))
     it = pipeline.make_iterator(data, store, stats, jax.process_index(), jax.process_count(), dataset)
     return store, stats, it
+
+
+def reconditioned(src, store):
+    """The statistics a fine-tune from ``src`` (a saved model's ``NormStats``) trains with: ``src``'s, unless its pose
+    condition is the old displacement from zero (velocities integrated into nothing measured) where this store's
+    data say which measured entries the commands move -- then ``src``'s action units with this store's pose
+    statistics, mapping and range (the pose input's meaning changes once; the action units stay)."""
+    from sc3_jax.data.norm_stats import NormStats
+
+    if src.action_space.kind != "velocity" or src.action_space.measured:
+        return src
+    new = NormStats.from_store(store)
+    if not new.action_space.measured or not src.action_space.same_kind(new.action_space):
+        return src
+    if jax.process_index() == 0:
+        print(f"init_from: the source's pose condition integrated its commands from zero; this run conditions on the "
+              f"measured state entries {list(new.action_space.measured)} (gains "
+              f"{[round(g, 4) for g in new.action_space.gain]}), the source's action units kept", flush=True)
+    return dataclasses.replace(src, pose_mean=new.pose_mean, pose_std=new.pose_std, action_space=new.action_space)
 
 
 # Fields a resumed run may change: how it runs, logs and checkpoints (and how its model is later sampled), not what
