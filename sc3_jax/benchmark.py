@@ -24,6 +24,28 @@ from sc3_jax.errors import UserError
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
+class Locators:
+    """Where things are in a benchmark's frames. A locator is ``locate(frames uint8 [V, T, H, W, 3], views) ->
+    float [V, T, 2]``: (row, col) image position in pixels per view and frame, nan where it cannot tell (too few
+    pixels, or a view it does not read, e.g. a wrist camera that moves with the arm)."""
+
+    arm: Callable | None = None
+    """the arm's image position (None: the pixels that differ from the episode's temporal median)"""
+    objects: Mapping[str, Callable] = dataclasses.field(default_factory=dict)
+    """the objects' image positions by name (e.g. SO-101's block)"""
+    moves: Mapping[str, str] = dataclasses.field(default_factory=dict)
+    """action name -> the recorded-state entry it moves (e.g. ``{"dx": "ee_x"}``), for a model whose action space
+    does not say (``ActionSpace.measured``)"""
+
+    def __post_init__(self):
+        bad = [k for k, f in {"arm": self.arm, **self.objects}.items() if f is not None and not callable(f)]
+        if bad:
+            raise TypeError(f"Locators: {bad} are not callable")
+        object.__setattr__(self, "objects", types.MappingProxyType(dict(self.objects)))
+        object.__setattr__(self, "moves", types.MappingProxyType(dict(self.moves)))
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
 class Benchmark:
     """What the commands take from a benchmark. ``frames`` below are uint8 [V, T, H, W, 3]."""
 
@@ -46,6 +68,9 @@ class Benchmark:
     named_policy: Callable[[str], tuple] | None = None
     """``named_policy(NAME) -> (policy, its task or None)``: its own policy names (``policies.resolve``'s
     ``named``), for ``sc3 rollout --policy NAME``"""
+    locators: Locators | None = None
+    """where the arm and the objects are in frames, and what the actions move (:class:`Locators`): ``sc3
+    diagnose``'s action-following and position measures. None: the arm is what the temporal median erases"""
 
     def __post_init__(self):
         if not self.name or not isinstance(self.name, str):
@@ -56,6 +81,8 @@ class Benchmark:
         if bad:
             raise TypeError(f"benchmark {self.name}: measures {bad} are not callable")
         object.__setattr__(self, "measures", types.MappingProxyType(dict(self.measures)))  # read-only, as the rest
+        if self.locators is not None and not isinstance(self.locators, Locators):
+            raise TypeError(f"benchmark {self.name}: locators is a {type(self.locators).__name__}, not a Locators")
 
     @property
     def scene(self) -> Callable | None:

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from sc3_jax.benchmark import Benchmark
 
-from .hooks import named_policy, object_pixels, perception_scorer
+from .hooks import locators, named_policy, object_pixels, perception_scorer
 from .sweep import SweepConfig
 
 
@@ -19,4 +19,4 @@ def run_sweep(cfg: SweepConfig):
 
 BENCHMARK = Benchmark(name="bussing", sweep_config=SweepConfig, run_sweep=run_sweep,
                       measures={"objects": object_pixels}, outcome_scorer=perception_scorer,
-                      named_policy=named_policy)
+                      named_policy=named_policy, locators=locators())

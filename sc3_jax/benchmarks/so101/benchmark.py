@@ -9,7 +9,7 @@ from pathlib import Path
 
 from sc3_jax.benchmark import Benchmark
 
-from .hooks import arm_pixels, named_policy, object_pixels
+from .hooks import arm_pixels, locators, named_policy, object_pixels
 from .sweep import So101SweepConfig
 
 
@@ -32,4 +32,5 @@ def describe_sweep(cfg: So101SweepConfig, out: Path) -> list[str]:
 
 
 BENCHMARK = Benchmark(name="so101", sweep_config=So101SweepConfig, run_sweep=run_sweep, describe_sweep=describe_sweep,
-                      measures={"objects": object_pixels, "arm": arm_pixels}, named_policy=named_policy)
+                      measures={"objects": object_pixels, "arm": arm_pixels}, named_policy=named_policy,
+                      locators=locators())

@@ -50,6 +50,32 @@ def arm_pixels(frames: np.ndarray) -> np.ndarray:
     return arm_mask(frames).mean((-2, -1))
 
 
+def arm_position(frames: np.ndarray, views) -> np.ndarray:
+    """The arm's image position (``benchmark.Locators.arm``): the centroid of its yellow parts, frames [V, T, H, W, 3]
+    -> (row, col) [V, T, 2] in pixels; nan in the wrist view (it moves with the arm) and where too few show."""
+    from sc3_jax.evaluate.locate import centroid, masked_views
+    return masked_views(centroid(arm_mask(frames)), views)
+
+
+def block_position(frames: np.ndarray, views) -> np.ndarray:
+    """The block's image position: the centroid of its purple pixels (red and blue over green), in pixels, in the
+    views that stay put (the workspace camera; nan in the wrist view, where the block is a blur that moves with the
+    camera) -> [V, T, 2]."""
+    from sc3_jax.evaluate.locate import centroid, masked_views
+    return masked_views(centroid(block_mask(frames)), views)
+
+
+# what SO-101's velocity actions move in its 14-D state (env.STATE_NAMES), for a model whose action space does not
+# declare it (ActionSpace.measured): the gripper frame's xyz; the gripper target is compared with nothing
+MOVES = {"dx": "ee_x", "dy": "ee_y", "dz": "ee_z"}
+
+
+def locators():
+    """Its ``benchmark.Locators``: the arm, the block (pixels of the workspace view), what the actions move."""
+    from sc3_jax.benchmark import Locators
+    return Locators(arm=arm_position, objects={"block": block_position}, moves=MOVES)
+
+
 def named_policy(name: str):
     """An SO-101 zoo policy by its name (``zoo.named_policy``, imported when called: the zoo loads JAX)."""
     from sc3_jax.benchmarks.so101.zoo import named_policy as zoo_named
