@@ -66,6 +66,11 @@ def read_config(path: str | Path, what: str = "") -> Config:
     except (TypeError, ValueError, AttributeError) as e:  # a section retyped (a list where fields are)
         raise UserError(f"{path}/config.json: does not read as a config ({e}); {fix}") from None
     check_config_types(cfg, Config(), f"{path}/config.json", fix)
+    names = list(cfg.data.views)
+    twice = sorted({v for v in names if names.count(v) > 1}, key=names.index)
+    if twice:  # each camera is fed in at its view's position: a name twice would feed one camera in as another
+        raise UserError(f"{path}/config.json: data.views {names} names {', '.join(map(repr, twice))} twice; each "
+                        f"view is one camera, in the model's view order: {fix}")
     tp = cfg.model.tokenizer_path
     if tp and not Path(tp).is_absolute() and (path / tp).exists():  # a tokenizer shipped inside the model dir
         cfg = dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, tokenizer_path=str((path / tp).absolute())))
@@ -90,13 +95,34 @@ MAX_FPS, MAX_STATE_DIM = 1000.0, 4096  # beyond any camera's rate and any robot'
 
 
 def read_robot(path: str | Path, cfg: Config | None = None) -> Robot:
-    """The robot facts of the saved model at ``path`` (any kind :func:`load` reads; ``cfg``: its config, where
-    already read): config.json's ``data.fps`` / ``data.views`` / ``data.state_dim``, norm_stats.json's action space
-    (a ``sc3 convert`` output, which has none: the model's dimension as absolute targets, naming no robot). A fact
-    config.json predates is read from the store the model was trained on (``data.path``'s dataset.json), else a
-    one-line UserError names the field to add."""
+    """The robot facts of the saved model at ``path`` (any kind :func:`load` reads; ``cfg``: its config as the caller
+    runs it, where already read): config.json's ``data.fps`` / ``data.views`` / ``data.state_dim``, norm_stats.json's
+    action space (a ``sc3 convert`` output, which has none: the model's dimension as absolute targets, naming no
+    robot). A fact config.json predates is read from the store the model was trained on (:func:`training_store`),
+    else a one-line UserError names the field to add; so is a frame rate ``cfg.rollout.control_hz`` does not divide
+    (a rollout advances a whole number of the data's frames per model step)."""
     path = Path(path)
     cfg = read_config(path) if cfg is None else cfg
+    robot = _recorded_robot(path, cfg)
+    hz = cfg.rollout.control_hz
+    stride = robot.fps / hz if is_finite_number(hz) and hz > 0 else 0.0
+    if round(stride) < 1 or abs(stride - round(stride)) > 1e-6:
+        raise UserError(f"{path}/config.json: data.fps {robot.fps:g} is not a whole multiple of rollout.control_hz "
+                        f"{hz!r} (a rollout advances a whole number of the data's frames per model step): restore "
+                        "data.fps (the episodes' frame rate), or set rollout.control_hz to a rate that divides it")
+    return robot
+
+
+def training_store(path: str | Path, cfg: Config) -> Path | None:
+    """The episode store the saved model at ``path`` was trained on (config.json ``data.path``), where that can be
+    known: an absolute path. A relative one was relative to wherever training ran, which nothing records, so it is
+    never read against the current directory (whatever ``./train`` that holds is another store): None."""
+    p = Path(cfg.data.path) if cfg.data.path else None
+    return p if p is not None and p.is_absolute() else None
+
+
+def _recorded_robot(path: Path, cfg: Config) -> Robot:
+    """:func:`read_robot`'s facts, unchecked against the rollout's rate (what :func:`export` records)."""
     d = cfg.data
     if (path / "norm_stats.json").exists():
         space = read_norm_stats(path).action_space
@@ -111,13 +137,17 @@ def read_robot(path: str | Path, cfg: Config | None = None) -> Robot:
         raise UserError(f"{path}/config.json: data.state_dim is {state_dim!r}, expected the robot state's size, an "
                         f"integer in [0, {MAX_STATE_DIM}]: restore it")
     if fps is None or state_dim is None:
-        meta = Path(d.path) / "dataset.json"
-        info = atomic.read_json(meta, "restore it (the episode store's metadata)") if meta.is_file() else None
+        store = training_store(path, cfg)
+        meta = store / "dataset.json" if store is not None else None
+        info = atomic.read_json(meta, "restore it (the episode store's metadata)") if meta and meta.is_file() else None
         if fps is None:
             if not (isinstance(info, dict) and is_finite_number(info.get("fps")) and info["fps"] > 0):
+                where = (f"its training data {d.path} is not here to read it from" if store is not None or not d.path
+                         else f"its training data's path {d.path!r} is relative to wherever it was trained, so "
+                              "it is not read")
                 raise UserError(f"{path}/config.json: no data.fps (saved before models recorded their data's frame "
-                                f"rate) and its training data {d.path} is not here to read it from: add \"fps\": N "
-                                "(the episodes' frame rate) to the \"data\" section of config.json")
+                                f"rate) and {where}: add \"fps\": N (the episodes' frame rate) to the \"data\" "
+                                "section of config.json")
             fps = info["fps"]
         if state_dim is None:
             st = info.get("state") if isinstance(info, dict) else None
@@ -269,7 +299,7 @@ def export(workdir: str | Path, out: str | Path, dtype=np.float16) -> Path:
     its learned robot state (``state_head.npz``) where it has one."""
     cfg, stats, params = load(workdir)
     try:  # a run whose config.json predates its robot facts: recorded from its store while that is here
-        cfg = with_robot(cfg, read_robot(workdir, cfg))
+        cfg = with_robot(cfg, _recorded_robot(Path(workdir), cfg))
     except UserError:
         pass  # not here either: exported as it is (read_robot then names the field to add)
     out = save(out, cfg, stats, params, dtype)

@@ -5,8 +5,26 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from pathlib import Path
 
 from sc3_jax.config import Config
+
+
+def with_data_facts(cfg: Config) -> Config:
+    """``cfg`` with its store's frame rate and recorded state size (``cfg.data.path``'s dataset.json), as `sc3 train`
+    records them (data/shape.py), so the model a demo makes reads them back (``checkpoint.read_robot``). A demo
+    workdir started before demos recorded them resumes as it was saved (its config.json without them: a changed
+    config would be refused)."""
+    from sc3_jax import atomic
+    from sc3_jax.data.episodes import EpisodeStore
+
+    saved = Path(cfg.train.workdir) / "config.json"
+    old = atomic.read_json(saved, "restore it, or use another --out") if saved.is_file() else None
+    if isinstance(old, dict) and isinstance(old.get("data"), dict) and old["data"].get("fps") is None:
+        return cfg
+    store = EpisodeStore(cfg.data.path)
+    return dataclasses.replace(cfg, data=dataclasses.replace(cfg.data, fps=float(store.fps),
+                                                             state_dim=int(store.state_dim or 0)))
 
 
 def heldout_batches(cfg: Config, path: str, num_batches: int, batch_size: int = 16):

@@ -48,6 +48,7 @@ def main(argv: list[str]) -> int:
     print(f"[1/3] synthetic episodes: {a.episodes} -> {cfg.data.path}, 16 held out -> {heldout}")
     synthetic.generate(cfg.data.path, a.episodes, image_size=cfg.data.image_size, seed=0)
     synthetic.generate(str(heldout), 16, image_size=cfg.data.image_size, seed=10_000)
+    cfg = demo.with_data_facts(cfg)  # the model it makes records its data's frame rate (checkpoint.read_robot)
     print(f"[2/3] training {cfg.name} for {cfg.train.steps} steps -> {cfg.train.workdir} (resumes if interrupted)")
     metrics = demo.train_and_evaluate(cfg, str(heldout))
     atomic.write_json(out / "demo_metrics.json", metrics)
