@@ -39,7 +39,9 @@ def get_config(arg: str | None = None):
         cfg, name="so101_latent",
         # 48 tokens a frame wanted over the views (the bussing model's budget): 4x4 latent patches on two 80x80
         # cameras give 50
-        model=dict(tokenizer_path="runs/so101/tokenizer/tokenizer", num_views=2, frame_tokens=48),
+        # action_sum "pose": the shortcut adds where the commands moved the gripper (metres, from the measured
+        # state), not a running sum of normalised velocities that drifts by the mean every frame
+        model=dict(tokenizer_path="runs/so101/tokenizer/tokenizer", num_views=2, frame_tokens=48, action_sum="pose"),
         data=dict(path="runs/so101/train", views=("workspace", "wrist"), image_size=(80, 80), context_frames=2,
                   future_frames=12, strides=(1, 1, 2)),
         train=dict(workdir="runs/so101/world_model", steps=6000),

@@ -71,7 +71,12 @@ class ModelConfig:
     """shortcut: each future frame token also sees the 3x3 neighbourhood of its patch in the last context frame
     (channel-concatenation conditioning, as video diffusion models do with conditioning latents)"""
     action_to_frames: bool = False
-    """shortcut: future frame K+j's tokens also see (clean) action j and the running sum of actions 0..j"""
+    """shortcut: future frame K+j's tokens also see (clean) action j and how far the actions 0..j moved the robot
+    (model.action_sum)"""
+    action_sum: str = "actions"
+    """what action_to_frames adds up: "pose" -- the pose condition's displacement since the last context frame
+    (physical units over the state's spread: a still arm adds nothing; needs pose_conditioning) -- or "actions", the
+    running sum of normalised actions (models saved before "pose": a still arm adds the mean offset every frame)"""
     action_reads_frames: bool = False
     """shortcut: action j's token also sees the difference of the two frames it connects, in every view (when both
     are clean)"""
@@ -159,6 +164,10 @@ class ModelConfig:
             raise ValueError(f"unknown tokenizer {self.tokenizer!r} (available: 'pixel', 'conv_ae', 'wan2.1', 'wan2.2')")
         if self.pose_conditioning and self.layout != "sc3":
             raise ValueError("pose_conditioning needs layout='sc3'")
+        if self.action_sum not in ("actions", "pose"):
+            raise ValueError(f"action_sum must be 'actions' or 'pose', got {self.action_sum!r}")
+        if self.action_sum == "pose" and self.action_to_frames and not self.pose_conditioning:
+            raise ValueError("action_sum 'pose' adds up the pose condition: it needs pose_conditioning")
         if self.prediction not in ("residual", "velocity"):
             raise ValueError(f"prediction must be 'residual' or 'velocity', got {self.prediction!r}")
         if self.context_attention not in ("full", "causal"):

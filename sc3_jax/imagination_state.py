@@ -1,7 +1,8 @@
 """The robot state inside an imagined rollout (there is no simulator to read it from): the jnp twins of
 ``sc3_jax/data/action_space.py``, for the action space the world model was trained in (every function takes it,
 static; default the simulated benchmark's delta_ee). Absolute targets: the state is the last target. Velocities:
-integrated at ``dt`` seconds per action, target dimensions as absolute ones.
+``state + gain * action * dt`` into the measured quantity each dimension moves (``ActionSpace.measured``), clipped
+to the range the recordings show, target dimensions as absolute ones.
 
 For delta_ee, the state is the end-effector pose ``(x, y, z, rotvec, gripper)`` (float32 [7], the episode format's
 ``ee_pose``). Each commanded raw action ``a = (dx, dy, dz, axis-angle r, gripper target)`` is integrated onto it open
@@ -66,8 +67,9 @@ def step(state, action, space: ActionSpace, dt: float = 1.0):
     """One commanded raw action [A] applied to the state [A] (``dt``: its seconds, for velocities)."""
     if space.kind == "absolute":
         return action.astype(state.dtype)
-    if space.kind == "velocity":
-        return _targets(state + action * dt, action, space).astype(state.dtype)
+    if space.kind == "velocity":  # gain: state units per action unit per second; clipped to the recorded range
+        x = _targets(state + action * jnp.asarray(space.gains, state.dtype) * dt, action, space)
+        return space.clip(x.astype(state.dtype))
     rot = matrix_to_rotvec(rotvec_to_matrix(action[3:6]) @ rotvec_to_matrix(state[3:6]))
     return jnp.concatenate([state[:3] + action[:3], rot, action[6:7]]).astype(state.dtype)
 

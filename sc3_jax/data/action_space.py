@@ -9,13 +9,22 @@ Kinds (``kind``):
   at the window's first frame when the dataset recorded none). Pseudo-actions from consecutive measured poses.
 - ``absolute``: position targets of any dimension (joints or end-effector coordinates; a bimanual ALOHA: 14 joint
   targets). Composed: the last target. Imagined state: the last target (what the robot is driven to).
-- ``velocity``: rates of any dimension, in units per second. Composed: the mean. Imagined state: integrated at
-  ``dt`` seconds per action from the episode's recorded ``state`` [T, dim]. ``targets`` lists dimensions that are
+- ``velocity``: rates of any dimension. Composed: the mean. Imagined state: ``state + gain * action * dt`` at ``dt``
+  seconds per action, from the *measured* quantity each dimension moves: ``measured[i]`` is the index of the
+  recorded ``state`` entry that dimension i drives (SO-101's dx drives ee_x), ``gain[i]`` its state units per action
+  unit per second; both stated at import (``dataset.json``) or fitted from the recorded data (:func:`fit_measured`,
+  by ``NormStats.from_store``) and saved with the model in ``norm_stats.json``. Without a mapping, a recorded state of
+  the action's own dimension is the measurement; with neither, the commands integrate from zero (a displacement
+  since the window's start: nothing tells the model where the arm is). ``targets`` lists dimensions that are
   position targets instead (e.g. DROID's gripper): composed and imagined as in ``absolute``.
 
-The imagined state always lives in the action's own space (``dim`` values named ``state_names``): it is what can be
-computed from actions alone, so the model's pose condition and the state a policy observes inside an imagined rollout
-both have the action's dimension. Pseudo-actions exist only where a real end-effector pose was measured
+``low`` / ``high`` (velocity only; set from the data by ``NormStats.from_store``): the range the imagined state
+took in the recordings; every integration step is clipped to it, in training windows and rollouts alike, so a
+rollout's commanded state never leaves what training showed.
+
+The imagined state always lives in the action's own space (``dim`` values named ``state_names``), each dimension in
+the units of what it moves, so the model's pose condition and the state a policy observes inside an imagined
+rollout both have the action's dimension. Pseudo-actions exist only where a real end-effector pose was measured
 (``delta_ee`` with ``ee_pose``); every other case is refused in one line (``pseudo_refusal``).
 """
 from __future__ import annotations
@@ -40,10 +49,17 @@ class ActionSpace:
     dim: int = 7
     names: tuple[str, ...] = ()  # one per dimension; () = defaults (DELTA_EE_NAMES, or a0, a1, ...)
     targets: tuple[int, ...] = ()  # velocity only: dimensions that are position targets (a gripper)
+    measured: tuple[int, ...] = ()  # velocity only: per dimension the recorded-state entry it moves (-1: none)
+    gain: tuple[float, ...] = ()  # velocity only: per dimension, state units per action unit per second (() = 1)
+    low: tuple[float, ...] = ()  # the imagined state's recorded range, per dimension (() = unclipped)
+    high: tuple[float, ...] = ()
 
     def __post_init__(self):
         object.__setattr__(self, "names", tuple(str(n) for n in self.names) or _default_names(self.kind, self.dim))
         object.__setattr__(self, "targets", tuple(int(i) for i in self.targets))
+        object.__setattr__(self, "measured", tuple(int(i) for i in self.measured))
+        for f in ("gain", "low", "high"):
+            object.__setattr__(self, f, tuple(float(x) for x in getattr(self, f)))
         if self.kind not in KINDS:
             raise UserError(f"action_space.kind {self.kind!r}: one of {', '.join(KINDS)}")
         if int(self.dim) < 1:
@@ -58,6 +74,20 @@ class ActionSpace:
             raise UserError(f"action_space.targets: only velocity actions have target dimensions, not {self.kind}")
         if any(not 0 <= i < self.dim for i in self.targets):
             raise UserError(f"action_space.targets {list(self.targets)}: indices must lie in [0, {self.dim})")
+        if (self.measured or self.gain) and self.kind != "velocity":
+            raise UserError(f"action_space.measured/gain: only velocity actions integrate into a measurement, not "
+                            f"{self.kind}")
+        for f in ("measured", "gain", "low", "high"):
+            v = getattr(self, f)
+            if v and len(v) != self.dim:
+                raise UserError(f"action_space.{f}: {len(v)} values for {self.dim} dimensions")
+        if any(i < -1 for i in self.measured):
+            raise UserError(f"action_space.measured {list(self.measured)}: state indices, or -1 for none")
+        if bool(self.low) != bool(self.high):
+            raise UserError("action_space: low and high come together")
+        if not all(np.isfinite(self.gain)) or (self.low and not np.all(np.less_equal(self.low, self.high))):
+            raise UserError(f"action_space: gain {list(self.gain)}, low {list(self.low)}, high {list(self.high)}: "
+                            "finite gains and low <= high")
 
     # -- the declaration ---------------------------------------------------------------------------------------
     @property
@@ -65,9 +95,24 @@ class ActionSpace:
         """Names of the imagined state's dimensions (the action's own space; a pose for delta_ee)."""
         return POSE_NAMES if self.kind == "delta_ee" else self.names
 
+    @property
+    def gains(self) -> np.ndarray:
+        """float32 [dim]: state units per action unit per second (1 where none was stated or fitted)."""
+        return np.asarray(self.gain or (1.0,) * self.dim, np.float32)
+
+    def clip(self, x):
+        """``x`` [..., dim] (numpy or jnp) clipped to the recorded range, where one is set."""
+        if not self.low:
+            return x
+        xp = np if isinstance(x, np.ndarray) else _jnp()
+        return xp.clip(x, xp.asarray(self.low, x.dtype), xp.asarray(self.high, x.dtype))
+
     def to_dict(self) -> dict:
         d = {"kind": self.kind, "dim": self.dim, "names": list(self.names)}
-        return {**d, "targets": list(self.targets)} if self.targets else d
+        for f in ("targets", "measured", "gain", "low", "high"):
+            if getattr(self, f):
+                d[f] = list(getattr(self, f))
+        return d
 
     @classmethod
     def from_dict(cls, d: dict | None, dim: int | None = None, where: str = "action_space") -> ActionSpace:
@@ -78,18 +123,26 @@ class ActionSpace:
         else:
             if not isinstance(d, dict) or "kind" not in d:
                 raise UserError(f"{where}: expected {{\"kind\": ..., \"dim\": ..., \"names\": [...]}}, got {d!r}")
-            unknown = set(d) - {"kind", "dim", "names", "targets"}
+            unknown = set(d) - set(FIELDS)
             if unknown:
-                raise UserError(f"{where}: unknown keys {sorted(unknown)} (kind, dim, names, targets)")
-            space = cls(d["kind"], int(d.get("dim", dim if dim is not None else len(d.get("names", ())))),
-                        tuple(d.get("names", ())), tuple(d.get("targets", ())))
+                raise UserError(f"{where}: unknown keys {sorted(unknown)} ({', '.join(FIELDS)})")
+            try:
+                space = cls(d["kind"], int(d.get("dim", dim if dim is not None else len(d.get("names", ())))),
+                            *(tuple(d.get(f, ())) for f in FIELDS[2:]))
+            except (TypeError, ValueError) as e:
+                raise UserError(f"{where}: {e}") from None
         if dim is not None and space.dim != dim:
             raise UserError(f"{where}: declares {space.dim}-D actions, action_dim is {dim}")
         return space
 
     def same_kind(self, other: ActionSpace) -> bool:
-        """Whether actions of ``other`` mean what these mean (names aside: they only label the dimensions)."""
+        """Whether actions of ``other`` mean what these mean (names aside: they only label the dimensions; the
+        measurement they integrate into and its range are facts of the data, fitted again from another store)."""
         return (self.kind, self.dim, self.targets) == (other.kind, other.dim, other.targets)
+
+    def conditioned(self, other: ActionSpace) -> bool:
+        """Whether a model of ``other``'s statistics is told where the arm is the way these would tell it."""
+        return self.same_kind(other) and (self.measured, self.gain) == (other.measured, other.gain)
 
     def check(self, actions: np.ndarray, what: str = "actions") -> None:
         if np.ndim(actions) < 1 or np.shape(actions)[-1] != self.dim:
@@ -129,9 +182,13 @@ class ActionSpace:
         state, actions = np.asarray(state, np.float64), np.asarray(actions, np.float64)
         if self.kind == "absolute":
             return np.concatenate([state[None], actions]).astype(np.float32)
-        out = np.concatenate([state[None], state + np.cumsum(actions * dt, axis=0)])
-        out[1:, list(self.targets)] = actions[:, list(self.targets)]
-        return out.astype(np.float32)
+        out, s, g, tg = [state.astype(np.float32)], state.astype(np.float32), self.gains, list(self.targets)
+        for a in actions.astype(np.float32):  # step by step, as rollouts do: each step is clipped to the range
+            s = s + g * a * np.float32(dt)
+            s[tg] = a[tg]
+            s = self.clip(s)
+            out.append(s)
+        return np.stack(out).astype(np.float32)
 
     def start_state(self, actions: np.ndarray, ee_pose: np.ndarray | None, state: np.ndarray | None,
                     t: int) -> np.ndarray:
@@ -163,28 +220,53 @@ class ActionSpace:
         return self.start_state(actions, ee_pose, state, t)
 
     def _measured(self, actions, state, t: int) -> np.ndarray:
+        if self.measured and state is not None:  # each dimension's own measurement (SO-101: dx -> ee_x)
+            s = np.zeros(self.dim, np.float32)
+            for i, j in enumerate(self.measured):
+                if j >= 0:
+                    s[i] = state[t, j]
+            s[list(self.targets)] = actions[0, list(self.targets)]  # before any command: the first target
+            return self.clip(s)
         if state is not None and np.shape(state)[-1] == self.dim:
             return np.asarray(state[t], np.float32).copy()
         if self.kind == "absolute":  # no matching measurement: the first target stands in for it
             return np.asarray(actions[0], np.float32).copy()
-        # velocities of something the robot does not record (end-effector deltas under a joint state): the commands
-        # integrate from zero, a displacement since the window's (the rollout's) start; the policy is handed the
-        # robot's own state by the learned state head (state_head.py), not this
-        return np.zeros(self.dim, np.float32)
+        # velocities of something the robot does not record: the commands integrate from zero, a displacement since
+        # the window's (the rollout's) start (state a mapping, or record the quantity, to tell the model more)
+        s = np.zeros(self.dim, np.float32)
+        s[list(self.targets)] = actions[0, list(self.targets)]
+        return s
 
     def state_series(self, actions: np.ndarray, ee_pose: np.ndarray | None,
-                     state: np.ndarray | None) -> np.ndarray | None:
-        """The recorded values the imagined state takes (its normalisation statistics come from them): the poses,
-        the targets, or the recorded state; None where nothing was recorded (delta_ee without a pose)."""
+                     state: np.ndarray | None, dt: float = 1.0) -> np.ndarray | None:
+        """The recorded values the imagined state takes (its normalisation statistics and range come from them):
+        the poses, the targets, or the measured entries; None where nothing was recorded (delta_ee without a pose).
+        ``dt``: seconds per recorded action (the displacement of velocities that move nothing recorded)."""
         if self.kind == "delta_ee":
             return ee_pose
+        a = np.asarray(actions, np.float64)
         if self.kind == "absolute":
-            return actions
-        if state is None or np.shape(state)[-1] != self.dim:  # the displacement since the start (see _measured)
-            state = np.cumsum(np.asarray(actions, np.float64), axis=0)
-        s = np.array(state, np.float64)
-        s[:, list(self.targets)] = np.asarray(actions, np.float64)[:, list(self.targets)]
+            return a
+        if self.measured and state is not None:
+            s = np.zeros(a.shape)
+            for i, j in enumerate(self.measured):
+                if j >= 0:
+                    s[:, i] = np.asarray(state, np.float64)[:, j]
+                elif i not in self.targets:  # moves nothing recorded: its displacement since the start
+                    s[:, i] = np.cumsum(a[:, i] * self.gains[i] * dt)
+        elif state is None or np.shape(state)[-1] != self.dim:  # the displacement since the start (see _measured)
+            s = np.cumsum(a * self.gains * dt, axis=0)
+        else:
+            s = np.array(state, np.float64)
+        s[:, list(self.targets)] = a[:, list(self.targets)]
         return s
+
+    def with_range(self, low, high) -> ActionSpace:
+        """This space with its integrated state clipped to [low, high]: velocities only (targets are what the
+        policy sends, and a delta_ee pose's rotation wraps)."""
+        if self.kind != "velocity":
+            return self
+        return dataclasses.replace(self, low=tuple(np.asarray(low, float)), high=tuple(np.asarray(high, float)))
 
     # -- pseudo-actions ------------------------------------------------------------------------------------------
     def pseudo_refusal(self, has_pose: bool) -> str | None:
@@ -213,6 +295,47 @@ class ActionSpace:
         out[:, 3:6] = rotations.relative_rotvec(p[:-1, 3:6], p[1:, 3:6])
         out[:, 6] = p[1:, 6] if actions is None else np.asarray(actions)[idx[1:] - 1, 6]
         return out.astype(np.float32)
+
+
+FIELDS = ("kind", "dim", "names", "targets", "measured", "gain", "low", "high")
+FIT_MIN_R2 = 0.5  # a dimension whose best state entry explains less of its step changes moves nothing recorded
+
+
+def fit_measured(space: ActionSpace, episodes, dt: float) -> ActionSpace:
+    """``space`` with ``measured`` and ``gain`` fitted from recorded (actions [T, A], state [T, S]) pairs: for each
+    velocity dimension, the state entry whose step change ``state[t+1] - state[t]`` a no-intercept line through
+    ``action[t] * dt`` explains best (each entry used once, best fits first), and that line's slope; a dimension
+    explained below ``FIT_MIN_R2`` moves nothing recorded (-1). Unchanged where it is stated, not velocity, or
+    without a recorded state of another dimension."""
+    if space.kind != "velocity" or space.measured:
+        return space
+    x, y = [], []
+    for actions, state in episodes:
+        if state is None or np.shape(state)[-1] == space.dim or len(actions) < 2:
+            continue
+        x.append(np.asarray(actions[:-1], np.float64) * dt)
+        y.append(np.diff(np.asarray(state, np.float64), axis=0))
+    if not x:
+        return space
+    x, y = np.concatenate(x), np.concatenate(y)  # [N, A], [N, S]
+    xx, yy, xy = (x * x).sum(0), (y * y).sum(0), x.T @ y  # [A], [S], [A, S]
+    r2 = np.where((xx[:, None] > 0) & (yy[None] > 0), xy ** 2 / np.maximum(xx[:, None] * yy[None], 1e-300), 0.0)
+    r2[list(space.targets)] = 0.0
+    measured, gain = [-1] * space.dim, [1.0] * space.dim
+    for flat in np.argsort(-r2, axis=None):
+        i, j = np.unravel_index(flat, r2.shape)
+        if r2[i, j] < FIT_MIN_R2:
+            break
+        if measured[i] == -1 and j not in measured:
+            measured[i], gain[i] = int(j), float(xy[i, j] / xx[i])
+    if all(m == -1 for m in measured):
+        return space
+    return dataclasses.replace(space, measured=tuple(measured), gain=tuple(gain))
+
+
+def _jnp():
+    import jax.numpy as jnp  # only rollouts clip jnp arrays; the data pipeline stays numpy-only
+    return jnp
 
 
 def _default_names(kind: str, dim: int) -> tuple[str, ...]:

@@ -3,8 +3,11 @@ params learned, and the action space those units belong to), computed once from 
 data pipeline and by rollouts. Numpy only: loading a world model does not import the data pipeline.
 
 The "pose" statistics are those of the imagined robot state the model is conditioned on (its ``pose`` input): the
-end-effector pose for delta_ee actions, the targets for absolute ones, the recorded state for velocities
-(``ActionSpace.state_series``). That state lives in the action's space, so both have the action's dimension."""
+end-effector pose for delta_ee actions, the targets for absolute ones, for velocities the recorded state entries
+they move (``ActionSpace.state_series``; which entries, and at what gain, is stated at import or fitted here:
+``action_space.fit_measured``). That state lives in the action's space, so both have the action's dimension. The
+statistics' action space carries the fitted mapping and the state's recorded range, so a saved model integrates its
+commands as its training windows did."""
 from __future__ import annotations
 
 import dataclasses
@@ -63,18 +66,25 @@ class NormStats:
         """Over all recorded actions and imagined-state values of every episode (each episode validated;
         EpisodeError names a bad one). Without any recorded state values (delta_ee without ee_pose) the state
         statistics are 0 / 1."""
-        space = store.action_space
+        from sc3_jax.data.action_space import fit_measured
+
+        dt = 1.0 / float(store.fps)
+        ids = store.episode_ids()
+        # velocity commands of a quantity the state records under other entries: which entries, and their gains
+        space = fit_measured(store.action_space, ((ep.actions, ep.state) for ep in
+                                                  (store.load(e, mmap=True) for e in ids)), dt)
         total, total_sq, count = 0.0, 0.0, 0
-        p_total, p_sq = 0.0, 0.0
-        for eid in store.episode_ids():
+        p_total, p_sq, p_low, p_high = 0.0, 0.0, np.inf, -np.inf
+        for eid in ids:
             ep = store.load(eid, mmap=True)
-            series = space.state_series(ep.actions, ep.ee_pose, ep.state)
+            series = space.state_series(ep.actions, ep.ee_pose, ep.state, dt)
             a = ep.actions.astype(np.float64)
             total = total + a.sum(0)
             total_sq = total_sq + (a * a).sum(0)
             if series is not None:
                 p = np.asarray(series).astype(np.float64)
                 p_total, p_sq = p_total + p.sum(0), p_sq + (p * p).sum(0)
+                p_low, p_high = np.minimum(p_low, p.min(0)), np.maximum(p_high, p.max(0))
             count += a.shape[0]
         if count == 0:
             raise ValueError(f"{store.root}: no episodes to compute action statistics from")
@@ -84,7 +94,8 @@ class NormStats:
             return cls(mean, np.sqrt(var), action_space=space)
         p_mean = p_total / count
         p_var = np.maximum(p_sq / count - p_mean * p_mean, 0.0)
-        return cls(mean, np.sqrt(var), p_mean, np.sqrt(p_var), space)
+        # the imagined state stays where the recordings went (velocities; ActionSpace.with_range)
+        return cls(mean, np.sqrt(var), p_mean, np.sqrt(p_var), space.with_range(p_low, p_high))
 
     def normalize(self, a: np.ndarray) -> np.ndarray:
         return ((np.asarray(a, np.float32) - self.mean) / self.std).astype(np.float32)

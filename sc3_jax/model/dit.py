@@ -217,9 +217,13 @@ def _embed(params, cfg: ModelConfig, inp: Inputs, grid, domain: int, K: int | No
     future = jnp.zeros_like(xv[:, :, K:])
     if cfg.anchor_conditioning:  # the 3x3 neighbourhood of the same patch in the last context frame
         future = future + (_neighbourhood(inp.video[:, :, K - 1], grid).astype(dt) @ params["anchor_in"].astype(dt))[:, :, None]
-    if cfg.action_to_frames:  # frame K+j: action j and the sum of actions 0..j (clean actions only)
+    if cfg.action_to_frames:  # frame K+j: action j and how far actions 0..j moved the robot (clean actions only)
         a = jnp.where(inp.action_noisy[..., None], 0, inp.actions).astype(dt)
-        feats = jnp.concatenate([a, jnp.cumsum(a, axis=1)], axis=-1) @ params["action_to_frames"].astype(dt)
+        if cfg.action_sum == "pose":  # physical displacement since the last context frame, in the pose's units
+            moved = jnp.where(inp.action_noisy[..., None], 0, inp.pose[:, 1:] - inp.pose[:, :1]).astype(dt)
+        else:  # models saved before: the running sum of normalised actions
+            moved = jnp.cumsum(a, axis=1)
+        feats = jnp.concatenate([a, moved], axis=-1) @ params["action_to_frames"].astype(dt)
         future = future + feats[:, None, :, None, :]
     xv = xv.at[:, :, K:].add(future)
     if cfg.pose_conditioning:
