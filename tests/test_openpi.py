@@ -78,10 +78,12 @@ def assert_same(a, b, path="obj"):
         assert type(a) is type(b) and a == b, (path, a, b)
 
 
-def payload():
+def payload(nan: bool = True):
+    """Every kind of value the codec carries; ``nan``: one float32 NaN among them (the codec carries it exactly, a
+    server refuses it: a policy would answer NaN actions)."""
     rng = np.random.default_rng(1)
     f32 = rng.normal(size=(4, 6)).astype(np.float32)
-    f32[0, 0] = np.nan
+    f32[0, 0] = np.nan if nan else 0.5
     return {
         "images": rng.integers(0, 256, size=(3, 8, 10, 3), dtype=np.uint8),
         "f32_noncontig": f32[:, ::2],
@@ -465,12 +467,14 @@ def test_roundtrip_exact_native(server_factory):
     with WebsocketClientPolicy("127.0.0.1", server.port, timeout_s=10) as client:
         assert client.metadata["policy"] == "EchoPolicy" and client.metadata["chunk"] == 4
         assert_same(client.metadata["extra"], np.arange(2))
-        p = payload()
+        p = payload(nan=False)
         reply = client.infer_raw(p)
         assert_same(p, reply["echo"])
         assert_same(echo.actions, reply["actions"])
         assert set(reply["server_timing"]) == {"infer_ms"}
         assert "prev_total_ms" in client.infer_raw(p)["server_timing"]  # the same arrays: a new shape is refused
+        with pytest.raises(PolicyServerError, match="observation f32_noncontig holds NaN or inf"):
+            client.infer_raw(payload(nan=True))
 
     fixed = FixedPolicy()
     server = server_factory(fixed)

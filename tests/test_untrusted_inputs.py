@@ -606,6 +606,100 @@ def test_the_server_caps_its_connections():
         assert _send(server.url, {"images": np.zeros((4, 4, 3), np.uint8)})[0] == "actions"
 
 
+def _linear_obs(h: int = 8, views: int = 1, state=(0.1, -0.2)) -> dict:
+    return {"images": np.full((views, h, 8, 3), 50, np.uint8), "state": np.asarray(state, np.float32),
+            "task": np.asarray(0, np.int32)}
+
+
+def _linear_server(**kw):
+    import jax
+
+    from sc3_jax.policies.openpi_server import PolicyServer
+    from sc3_jax.policies.simple import linear_policy
+
+    return PolicyServer(linear_policy(jax.random.key(0), num_views=1, chunk=4, action_dim=2), port=0, **kw).start()
+
+
+def test_a_refused_first_observation_fixes_nothing_and_says_no_internals():
+    """Today's faults: a first observation the policy cannot take fixed the server's shape (every later client was
+    refused until restart) and came back as a raw `TypeError: dot_general ...`."""
+    with _linear_server() as server:
+        kind, msg = _send(server.url, _linear_obs(views=2))  # two views: the linear map's dot product cannot take it
+        assert kind == "error" and "\n" not in msg and msg.startswith("PolicyError: policy 'linear' cannot take"), msg
+        assert "images [2, 8, 8, 3]" in msg and "dot_general" not in msg and "jax" not in msg.lower(), msg
+        kind, msg = _send(server.url, _linear_obs(state=(0.0, 0.0, 0.0)))  # a state the policy does not read
+        assert kind == "error" and msg.startswith("ObservationError: observation state has shape [3]"), msg
+        assert server.signature is None  # nothing refused fixed the shape
+        kind, reply = _send(server.url, _linear_obs())  # the first good client is served, and fixes it
+        assert kind == "actions" and reply["actions"].shape == (4, 2), reply
+        kind, msg = _send(server.url, _linear_obs(h=12))
+        assert kind == "error" and msg.startswith("ShapeError: observation images is"), msg
+
+
+@given(where=st.sampled_from(["state", "nested"]), value=st.sampled_from([np.nan, np.inf, -np.inf]),
+       at=st.integers(0, 1))
+@settings(max_examples=6, deadline=None)
+def test_a_non_finite_observation_is_one_line_and_never_nan_actions(where, value, at):
+    from sc3_jax.policies.openpi_server import ObservationError, PolicyServer
+
+    class Echo:  # answers its state back: a NaN in would be NaN actions out
+        chunk = 1
+
+        def infer(self, obs):
+            return np.asarray(obs["state"], np.float32)[None]
+
+    state = np.zeros(2, np.float32)
+    state[at] = value
+    obs = {"state": state} if where == "state" else {"state": np.zeros(2, np.float32), "extra": {"x": state}}
+    server = PolicyServer(Echo(), port=0)
+    try:
+        with pytest.raises(ObservationError, match="holds NaN or inf"):
+            server._infer(obs)
+        assert server.signature is None
+    finally:
+        server.shutdown()
+    with PolicyServer(Echo(), port=0).start() as live:  # over a real socket: one line back, then served again
+        kind, msg = _send(live.url, obs)
+        assert kind == "error" and "\n" not in msg and "NaN or inf" in msg, msg
+        assert _send(live.url, {"state": np.ones(2, np.float32)})[0] == "actions"
+
+
+def test_non_finite_actions_never_leave_the_server():
+    with _server_of(lambda obs: np.full((2, 2), np.nan, np.float32)) as server:
+        kind, msg = _send(server.url, {"state": np.zeros(2, np.float32)})
+        assert kind == "error" and "non-finite actions" in msg, msg
+
+
+def _server_of(fn):
+    """A server of a host policy answering ``fn(obs)``."""
+    from sc3_jax.policies.openpi_server import PolicyServer
+
+    class Fn:
+        chunk = 2
+
+        def infer(self, obs):
+            return fn(obs)
+    return PolicyServer(Fn(), port=0).start()
+
+
+def test_idle_connections_time_out_and_free_their_slots():
+    """Today: 8 idle connections held every slot forever, and every other client got 503."""
+    import websockets.sync.client
+
+    import contextlib
+
+    import websockets.exceptions
+
+    with _linear_server(max_connections=2, idle_seconds=1.0) as server, contextlib.ExitStack() as stack:
+        for _ in range(2):
+            stack.enter_context(websockets.sync.client.connect(server.url)).recv(timeout=10)  # metadata: served
+        with pytest.raises(websockets.exceptions.InvalidStatus, match="503"):
+            _send(server.url, _linear_obs())  # both slots are held by clients that say nothing
+        time.sleep(2.0)  # longer than idle_seconds: the server has closed both
+        kind, reply = _send(server.url, _linear_obs())
+        assert kind == "actions", reply
+
+
 @pytest.mark.parametrize("argv, said", [(["--port", "99999"], "--port 99999: expected a number from 0 to 65535"),
                                         (["--host", "0.0.0.0"], "--host 0.0.0.0 listens beyond this machine: set a "
                                                                 "key")])

@@ -20,7 +20,7 @@ import websockets.sync.server
 from websockets.frames import CloseCode
 
 from sc3_jax.policies import msgpack_numpy
-from sc3_jax.policies.base import HostPolicy, JaxPolicy, as_host
+from sc3_jax.policies.base import HostPolicy, JaxAsHost, JaxPolicy, as_host
 from sc3_jax.policies.openpi_mappings import ObsMapping, get_mapping
 from sc3_jax.validate import mask_paths
 
@@ -36,8 +36,17 @@ class ShapeError(ValueError):
     """An observation whose keys or array shapes differ from the first one this server took."""
 
 
+class ObservationError(ValueError):
+    """An observation this server refuses before its policy sees it (non-finite numbers, a state of another size)."""
+
+
+class PolicyError(RuntimeError):
+    """The policy could not take an observation (the client is told which, not the library's internals)."""
+
+
 MAX_VALUES = 1 << 16  # plain msgpack values (list items, map entries) one decoded message may hold; arrays are bytes
 MAX_CONNECTIONS = 8  # open connections at once: with max_queue=2, memory stays near 3 x max_size per connection
+IDLE_SECONDS = 120.0  # a connection silent this long is closed (its slot freed); our client reconnects on its own
 
 
 def decode(msg: bytes, budget: int = MAX_VALUES) -> Any:
@@ -84,6 +93,24 @@ def signature(obs: Mapping, prefix: str = "") -> dict[str, tuple]:
     return out
 
 
+def check_finite(obs: Mapping, prefix: str = "") -> None:
+    """ObservationError naming the first array (of a nested observation) holding NaN or inf: a policy would answer
+    it with NaN actions, which a client would execute or average in."""
+    for k, v in obs.items():
+        key = f"{prefix}{k}"
+        if isinstance(v, Mapping):
+            check_finite(v, key + "/")
+        elif isinstance(v, (np.ndarray, np.generic)) and v.dtype.kind in "fc" and not np.all(np.isfinite(v)):
+            raise ObservationError(f"observation {key} holds NaN or inf: send finite numbers")
+        elif isinstance(v, float) and not np.isfinite(v):
+            raise ObservationError(f"observation {key} is {v}: send finite numbers")
+
+
+def describe(sig: Mapping[str, tuple]) -> str:
+    """An observation's signature as a client reads it: ``images [4, 4, 3] |u1, state [2] <f4``."""
+    return ", ".join(f"{k} {list(shape)} {dtype}" for k, (shape, dtype) in sorted(sig.items()))
+
+
 def one_line(e: BaseException) -> str:
     """What a client is told of an error: its type and first line, every path masked (``validate.mask_paths``: rooted,
     ``./``, ``../``, ``~`` and relative file names), so the server's layout stays in its log with the traceback."""
@@ -105,17 +132,20 @@ class PolicyServer:
     ``shutdown()`` to stop, or ``serve_forever()`` to block.
 
     Safe to expose: it binds 127.0.0.1 unless told otherwise; at most ``max_connections`` are served at once (a
-    further one gets 503); a message over ``max_message_bytes`` closes its connection (1009) before it is read, and
-    one of more than ``MAX_VALUES`` plain values (an image as nested lists) is refused while it is decoded; the first
-    observation fixes the keys and array shapes, whatever container carried them (one compiled program), and
-    another is refused; an error reaches the client as one line without paths, the traceback only the server's
-    log.
+    further one gets 503) and one silent for ``idle_seconds`` is closed, freeing its slot; a message over
+    ``max_message_bytes`` closes its connection (1009) before it is read, and one of more than ``MAX_VALUES`` plain
+    values (an image as nested lists) is refused while it is decoded; an observation holding NaN or inf, or a state
+    of another size than the policy declares, is refused before the policy sees it, and non-finite actions never
+    leave; the first observation the policy answers fixes the keys and array shapes, whatever container carried
+    them (one compiled program), and another is refused (a refused one fixes nothing); an error reaches the client
+    as one line without paths or the library's internals (a JAX policy's shape error names the observation's
+    shapes, not XLA's), the traceback only the server's log.
     """
 
     def __init__(self, policy: JaxPolicy | HostPolicy, host: str = "127.0.0.1", port: int = 8000,
                  metadata: Mapping[str, Any] | None = None, mapping: ObsMapping | str | None = None,
                  api_key: str | None = None, max_message_bytes: int = MAX_MESSAGE_BYTES,
-                 max_connections: int = MAX_CONNECTIONS):
+                 max_connections: int = MAX_CONNECTIONS, idle_seconds: float = IDLE_SECONDS):
         self.policy = as_host(policy) if isinstance(policy, JaxPolicy) else policy
         if not callable(getattr(self.policy, "infer", None)):
             raise TypeError(f"{type(policy).__name__} is neither a JaxPolicy nor a HostPolicy (no .infer)")
@@ -135,8 +165,9 @@ class PolicyServer:
         self._thread: threading.Thread | None = None
         self._serving = False
         self._stopped = False
-        self.signature: dict[str, tuple] | None = None  # of the first observation taken
+        self.signature: dict[str, tuple] | None = None  # of the first observation answered
         self.max_connections = int(max_connections)
+        self.idle_seconds = float(idle_seconds)
         self._open = 0  # connections being served (a further one is answered 503 before its upgrade)
         self._open_lock = threading.Lock()
         # max_queue: at most a few messages buffered per connection, so memory stays near max_size per client
@@ -168,26 +199,50 @@ class PolicyServer:
                                       f"this server takes {self.max_connections} connections at once\n")
         return None
 
+    def _check_signature(self, sig: dict) -> None:
+        if self.signature is not None and sig != self.signature:  # a new shape would compile another program
+            diff = sorted(k for k in sig.keys() | self.signature.keys() if sig.get(k) != self.signature.get(k))
+            raise ShapeError(f"observation {diff[0]} is {sig.get(diff[0], 'missing')}, this server takes "
+                             f"{self.signature.get(diff[0], 'no such key')} (fixed by its first observation)")
+
     def _infer(self, obs: Any) -> dict:
+        """The reply to one observation. Only an observation the policy answered fixes the server's shapes: one
+        refused (here or by the policy) leaves the next client to be the first."""
         if not isinstance(obs, dict):
             raise TypeError(f"expected an observation dict, got {type(obs).__name__}")
+        check_finite(obs)
         sig = signature(obs)
         with self._lock:
+            self._check_signature(sig)
+        ours = self.mapping.from_family(obs) if self.mapping is not None else obs
+        want = getattr(self.policy, "state_dim", None)  # what the policy declares it reads
+        state = ours.get("state") if isinstance(ours, Mapping) else None
+        if want is not None and state is not None and np.shape(state) != (int(want),):
+            raise ObservationError(f"observation state has shape {list(np.shape(state))}, policy "
+                                   f"{self.metadata['policy']!r} reads [{int(want)}]")
+        with self._lock:
+            self._check_signature(sig)  # another first observation may have been answered meanwhile
+            try:
+                out = self.policy.infer(ours)
+            except (TypeError, ValueError, IndexError, KeyError) as e:
+                if not isinstance(self.policy, JaxAsHost):
+                    raise  # a host policy's own words (its author's), paths masked by one_line
+                # inside JAX: a shape the traced policy cannot take; its message is the library's internals
+                logger.error("policy %s failed on %s: %s", self.metadata["policy"], describe(sig), e)
+                raise PolicyError(f"policy {self.metadata['policy']!r} cannot take this observation ({describe(sig)}"
+                                  f"): check its arrays' shapes and dtypes ({type(e).__name__} in the policy)") from None
+            if isinstance(out, Mapping):
+                reply = dict(out)
+            else:
+                actions = np.asarray(out)
+                if actions.dtype.kind in "fc" and not np.all(np.isfinite(actions)):
+                    raise PolicyError(f"policy {self.metadata['policy']!r} answered non-finite actions")
+                if self.mapping is not None:
+                    actions = self.mapping.actions_to_family(actions)
+                reply = {"actions": actions}
             if self.signature is None:
                 self.signature = sig
-            elif sig != self.signature:  # a new shape would compile (and keep) another program
-                diff = sorted(k for k in sig.keys() | self.signature.keys() if sig.get(k) != self.signature.get(k))
-                raise ShapeError(f"observation {diff[0]} is {sig.get(diff[0], 'missing')}, this server takes "
-                                 f"{self.signature.get(diff[0], 'no such key')} (fixed by its first observation)")
-        ours = self.mapping.from_family(obs) if self.mapping is not None else obs
-        with self._lock:
-            out = self.policy.infer(ours)
-        if isinstance(out, Mapping):
-            return dict(out)
-        actions = np.asarray(out)
-        if self.mapping is not None:
-            actions = self.mapping.actions_to_family(actions)
-        return {"actions": actions}
+        return reply
 
     def _handler(self, ws: websockets.sync.server.ServerConnection) -> None:
         with self._open_lock:  # counted where a connection is served, so none is counted that never was
@@ -210,8 +265,11 @@ class PolicyServer:
         prev_total_ms = None
         while True:
             try:
-                msg = ws.recv()
+                msg = ws.recv(timeout=self.idle_seconds)
             except websockets.exceptions.ConnectionClosed:
+                return
+            except TimeoutError:  # an idle client keeps no slot: it is closed, and ours reconnects when it sends
+                ws.close(CloseCode.NORMAL_CLOSURE, f"idle for {self.idle_seconds:g} s")
                 return
             start = time.monotonic()
             try:
