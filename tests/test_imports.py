@@ -170,9 +170,10 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
                      "evaluate.diagnose_config", "evaluate.diagnose_video", "evaluate.diagnose_actions",
                      "evaluate.diagnose_outcomes", "evaluate.diagnose_report", "evaluate.diagnose_table",
                      "evaluate.diagnose_kept", "evaluate.rollout_summary", "plan", "plan_vae", "sizing")),
-    ("sweep", ("evaluate.worker_pool", "evaluate.ic_sweep")),
+    ("sweep", ("evaluate.worker_pool", "evaluate.ic_sweep", "evaluate.gym_env")),
     ("report", ("evaluate.report", "evaluate.report_html", "evaluate.calibrate", "evaluate.intervals", "evaluate.bootstrap",
-                "evaluate.merged", "evaluate.curve", "evaluate.report_episodes", "evaluate.report_figures")),
+                "evaluate.merged", "evaluate.curve", "evaluate.report_episodes", "evaluate.report_figures",
+                "evaluate.eval_info")),
     ("benchmarks", ("benchmark", "benchmarks")),  # the interface and its registry (by name: it imports none), then each
     ("commands", ("cli", "commands", "convert_cli", "demo")),
 ]
