@@ -3,7 +3,9 @@ world-model checkpoint, on held-out episodes (sc3_jax/evaluate/diagnose.py, docs
 from __future__ import annotations
 
 import dataclasses
+import math
 from pathlib import Path
+
 from sc3_jax.commands import parse_evaluated
 from sc3_jax.evaluate.diagnose import DiagnoseConfig, Stage
 from sc3_jax.evaluate.world_model_defaults import SamplerSteps
@@ -29,6 +31,10 @@ class Args(SamplerSteps):
     """N episodes evenly spaced over the store (None: all)"""
     cf_starts: int = D.cf_starts
     """counterfactual starts per episode"""
+    cf_fraction: float = D.cf_fraction
+    """counterfactual shift of each action axis, a fraction of that axis's recorded std (the model's norm stats)"""
+    carry_px: float = D.carry_px
+    """pixels a real object must move with the arm to count as carried"""
     out: str | None = None
     """also write the result as JSON here (WM/diagnose.json, in --world-model WM, is where `sc3 report` and `sc3
     diagnose-table` look)"""
@@ -51,8 +57,9 @@ class Args(SamplerSteps):
     """a progress bar on stderr (--no-progress: none, for batch logs)"""
     benchmark: str = "bussing"
     """whose measures the passes read: a benchmark's name (sc3_jax/benchmark.py: bussing, the simulated benchmark's
-    perception outcome scorer and its objects' pixels; so101, the block's and the goal marker's pixels, the arm's, no
-    outcome scorer), any benchmark as package.module:attr, or none"""
+    perception outcome scorer, its objects' pixels and positions; so101, the block's and the goal marker's pixels,
+    the arm's and the block's image positions, what its actions move in its state, no outcome scorer), any
+    benchmark as package.module:attr, or none"""
     stages: tuple[Stage, ...] = D.stages
     """the passes to run: teacher_forced (one chunk ahead, shuffled actions, inverse dynamics), counterfactual,
     open_loop (drift and outcome reproduction); the others' sections and gates read "not run". --stages open_loop:
@@ -61,14 +68,15 @@ class Args(SamplerSteps):
 
 def main(argv: list[str]) -> int:
     a, cfg = parse_evaluated(Args, argv, "diagnose")
+    strips = a.filmstrips or (str(Path(a.out).with_suffix("")) + "_filmstrips" if a.out else None)
+    check(a, strips)  # at the door: a bad bound or an unwritable path is one line before any rollout
     from sc3_jax.evaluate import diagnose
 
     fields = {f.name for f in dataclasses.fields(DiagnoseConfig)}
     dc = DiagnoseConfig(**{k: v for k, v in dataclasses.asdict(a).items() if k in fields})
     scorer_for, scene = benchmark_hooks(a.benchmark)
-    strips = a.filmstrips or (str(Path(a.out).with_suffix("")) + "_filmstrips" if a.out else None)
     result = diagnose.diagnose(a.world_model, a.data, dc, model_config=cfg, scorer_for=scorer_for, scene=scene,
-                               filmstrips=strips)
+                               filmstrips=strips, locators=benchmark_locators(a.benchmark))
     print(diagnose.render_table(result))
     st = result["settings"]
     print(f"sampler: {st['sample_steps']} forward Euler steps, U re-read in {st['inverse_steps']} (`sc3 sweep`'s "
@@ -80,6 +88,46 @@ def main(argv: list[str]) -> int:
     return 0
 
 
+def check(a: Args, strips: str | None) -> None:
+    """One-line UserErrors for the options that would fail later (a traceback, or a write after the whole
+    diagnosis): counts below 1, non-finite or non-positive amounts, an output under a file or onto a folder."""
+    from sc3_jax.errors import UserError
+
+    def positive(flag, x, what):
+        if not (isinstance(x, (int, float)) and math.isfinite(x) and x > 0):
+            raise UserError(f"{flag} {x}: {what}")
+    if a.episodes is not None:
+        positive("--episodes", a.episodes, "at least 1 held-out episode (leave it out: all of the store's)")
+    positive("--batch", a.batch, "at least 1 rollout per jitted call")
+    positive("--cf-starts", a.cf_starts, "at least 1 counterfactual start per episode (--stages without "
+                                         "counterfactual skips the pass)")
+    positive("--cf-fraction", a.cf_fraction, "a positive fraction of each action axis's std")
+    positive("--carry-px", a.carry_px, "a positive number of pixels")
+    if a.max_seconds is not None:
+        positive("--max-seconds", a.max_seconds, "a positive number of seconds (leave it out: the longest episode)")
+    for h in a.horizons:
+        positive("--horizons", h, "positive numbers of seconds")
+    if a.out:
+        _under_a_folder("--out", Path(a.out))
+        if Path(a.out).is_dir():
+            raise UserError(f"--out {a.out}: is a folder; give the JSON file's path, e.g. {Path(a.out) / 'diagnose.json'}")
+    if strips:
+        flag = "--filmstrips" if a.filmstrips else "--out (its filmstrips folder)"
+        _under_a_folder(flag, Path(strips))
+        if Path(strips).exists() and not Path(strips).is_dir():
+            raise UserError(f"{flag} {strips}: is a file, not a folder for the filmstrips")
+
+
+def _under_a_folder(flag: str, path: Path) -> None:
+    """The nearest existing ancestor of ``path`` must be a folder (else nothing can be written there)."""
+    from sc3_jax.errors import UserError
+    for up in path.absolute().parents:
+        if up.exists():
+            if not up.is_dir():
+                raise UserError(f"{flag} {path}: {up} is a file, not a folder")
+            return
+
+
 def benchmark_hooks(name: str):
     """(outcome scorer factory or None, scene measures by name) of the benchmark ``name`` (``--benchmark``: a
     registered name or package.module:attr, ``sc3_jax.benchmark.get``; "none": neither)."""
@@ -89,3 +137,12 @@ def benchmark_hooks(name: str):
 
     bm = benchmark.get(name)
     return bm.outcome_scorer, dict(bm.measures)
+
+
+def benchmark_locators(name: str):
+    """The benchmark's ``Locators`` (where its arm and objects are, what its actions move), or None ("none", or a
+    benchmark without them: the arm is then read by the median rule)."""
+    if name == "none":
+        return None
+    from sc3_jax import benchmark
+    return benchmark.get(name).locators

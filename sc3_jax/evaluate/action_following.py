@@ -73,27 +73,30 @@ class PixelReadout:
         return self.map[axis] * disp
 
 
-def fit_image_map(chunks, locator, views, space, dt: float) -> dict:
-    """Per third-person view the least-squares map [A, 2] from what a real chunk commands
-    (``moved.chunk_displacement``) to how far the real arm's image position moved over it, no intercept (a chunk
-    that commands nothing leaves the arm put), with R^2 per image coordinate. ``chunks``: (episode, model-rate
-    actions [n, A], real frames at the chunk's start and end [V, 2, H, W, 3])."""
+def fit_image_map(chunks, locator, views, space, dt: float, axes=None) -> dict:
+    """Per view the least-squares map [A, 2] from what a real chunk commands along ``axes`` (default every axis;
+    ``moved.chunk_displacement``) to how far the real arm's image position moved over it, no intercept (a chunk
+    that commands nothing leaves the arm put), with R^2 per image coordinate; the other axes' rows are 0.
+    ``chunks``: (episode, model-rate actions [n, A], real frames at the chunk's start and end [V, 2, H, W, 3]).
+    None where fewer than max(8, 2 x axes) chunks show the arm at both ends."""
+    axes = list(range(space.dim) if axes is None else axes)
     X, Y = [], {}
     for e, acts, pair in chunks:
         pos = locator(e)(pair, views)  # [V, 2, 2]
-        X.append(mv.chunk_displacement(space, acts, dt))
+        X.append(mv.chunk_displacement(space, acts, dt)[axes])
         for v in range(len(views)):
             Y.setdefault(v, []).append(pos[v, 1] - pos[v, 0])
     out = {}
-    X = np.asarray(X).reshape(len(X), -1)
+    X = np.asarray(X).reshape(len(X), len(axes))
     for v, ys in Y.items():
         ys = np.asarray(ys)
         ok = np.all(np.isfinite(ys), 1)
-        if ok.sum() < max(8, 2 * X.shape[1]):
+        if ok.sum() < max(8, 2 * len(axes)):
             out[v] = {"map": None, "r2": [math.nan, math.nan], "n": int(ok.sum())}
             continue
-        J = np.linalg.lstsq(X[ok], ys[ok], rcond=None)[0]
-        res = ys[ok] - X[ok] @ J
+        J = np.zeros((space.dim, 2))
+        J[axes] = np.linalg.lstsq(X[ok], ys[ok], rcond=None)[0]
+        res = ys[ok] - X[ok] @ J[axes]
         r2 = 1 - (res ** 2).sum(0) / np.maximum(((ys[ok] - ys[ok].mean(0)) ** 2).sum(0), 1e-12)
         out[v] = {"map": J, "r2": [float(x) for x in r2], "n": int(ok.sum())}
     return out
@@ -115,10 +118,11 @@ def shifted(actions: np.ndarray, axes, std: np.ndarray, fraction: float) -> list
 def run(starts, imagine, readouts, space, axes, std, fraction: float, dt: float) -> list[dict]:
     """Every start's variants imagined (one batch) and read: one row per (start, read-out, shifted variant).
     ``starts``: dicts with "episode", "start", "ic" (one condition), "actions" (model-rate [1, n, A] raw), "robot"
-    (the recorded state there, or None); ``imagine(ics, actions, noise ids) -> frames [V, n, H, W, 3]`` each (the
+    (the recorded state there, or None), optionally "noise" (its noise id; default its index); ``imagine(ics, actions, noise ids) -> frames [V, n, H, W, 3]`` each (the
     variants of one start share a noise id, so what differs between them is the actions)."""
     jobs = [(k, var) for k, s in enumerate(starts) for var in shifted(s["actions"], axes, std, fraction)]
-    frames = imagine([starts[k]["ic"] for k, _ in jobs], [var[3] for _, var in jobs], [k for k, _ in jobs])
+    frames = imagine([starts[k]["ic"] for k, _ in jobs], [var[3] for _, var in jobs],
+                     [starts[k].get("noise", k) for k, _ in jobs])
     by_start: dict[int, dict] = {}
     for (k, (name, axis, delta, _)), f in zip(jobs, frames):
         by_start.setdefault(k, {})[name] = (axis, delta, f)

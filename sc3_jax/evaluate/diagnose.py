@@ -11,8 +11,12 @@ store). Everything is computed first (:func:`diagnose` -> a JSON-able dict), the
   blurs the robot away scores); the same with action chunks shuffled across episodes (same noise draws). Drift: open
   loop from the episode's first real frames with the recorded actions (after the episode's end the robot holds
   still, as in the sweep's offline mode), PSNR at fixed horizons, as far as episodes last.
-* actions (``diagnose_actions.py``): counterfactual chunks (the recorded one displaced by +-x / +-y, a few cm over
-  the chunk) read off the arm's image position; inverse dynamics on real frames against the mean-action floors.
+* action following (``diagnose_follow.py``: ``action_following.py``, ``tracking.py``), the headline measures, for
+  every action space: counterfactual chunks (the recorded commands shifted along each action axis by a fraction of
+  its std) scored by where the imagined arm goes (the learned state head's end effector, or the arm's image
+  position) -- the cosine with the commanded direction and the gain; the imagined end effector, arm and objects
+  against the real ones in the open loop at 1, 2, 4, 8 s; whether a block the real gripper carries is carried.
+* inverse dynamics (``diagnose_actions.py``) on real frames against the mean-action floors.
 * outcomes (``diagnose_outcomes.py``): the perception scorer on the open-loop imagined rollout vs the real
   episode's physics labels, per object.
 * kept (``diagnose_kept.py``): where objects die, the benchmark's scene measures (objects, the arm) imagined over
@@ -23,8 +27,7 @@ store). Everything is computed first (:func:`diagnose` -> a JSON-able dict), the
 ``DiagnoseConfig.stages`` picks the passes that run: "teacher_forced" (frames one chunk ahead, shuffled actions,
 inverse dynamics), "counterfactual", "open_loop" (drift and outcomes). A section of a pass not run reads
 ``{"available": false, "note": "not run (--stages)"}`` and its gates neither pass nor fail (``"pass": null``), so a
-large outcome set costs only its open-loop rollouts. The counterfactual pass displaces an end-effector pose: a model
-whose actions are not delta_ee, or a store without the pose, skips it (its section says why).
+large outcome set costs only its open-loop rollouts.
 
 Moving pixels of a target frame: any channel differs from the reference frame (the last real context frame) by more
 than ``moving_threshold`` in [-1, 1] units (0.06 = 7.65 grey levels: above the renderer's anti-aliasing flicker,
@@ -45,8 +48,8 @@ from typing import Any
 import numpy as np
 
 # numpy only, all of them: the module stays cheap for report.py to import
-from sc3_jax.evaluate import diagnose_actions, diagnose_kept, diagnose_outcomes, diagnose_video
-from sc3_jax.evaluate.diagnose_actions import AXES, InverseErrors, arm_centroid  # noqa: F401  (public names)
+from sc3_jax.evaluate import diagnose_follow, diagnose_kept, diagnose_outcomes, diagnose_video
+from sc3_jax.evaluate.diagnose_actions import InverseErrors, arm_centroid  # noqa: F401  (public names)
 from sc3_jax.evaluate.diagnose_config import STAGES, DiagnoseConfig, Stage  # noqa: F401  (public names)
 from sc3_jax.evaluate.diagnose_report import (GATES, NOT_RUN_NOTE, gates, load_result,  # noqa: F401
                                               render_table, save_result, verdict)
@@ -107,12 +110,12 @@ class _Plan:
     first: list  # per episode its first frame [V, H, W, 3]
     steps_in: list  # per episode the target steps it has from start 0
     horizon_steps: list
-    calib: dict
     scorer: Any
     scorer_note: str | None
     kept: Any  # diagnose_kept.Kept (the benchmark's scene measures through the stages) or None
     tokenizer: Any  # the world model's, for the round-trip stage
     id_mean: Any  # one sampler step from pure noise = the model's conditional-mean estimate
+    follow: Any = None  # diagnose_follow.Follow: the action-following read-outs and tracks
 
 
 @dataclasses.dataclass
@@ -127,7 +130,7 @@ class _Sums:
 
 
 def diagnose(world_model, heldout_store, config: DiagnoseConfig | None = None, *, model_config=None,
-             scorer_for=None, scene=None, filmstrips=None, **overrides) -> dict:
+             scorer_for=None, scene=None, filmstrips=None, locators=None, head=None, **overrides) -> dict:
     """Every diagnostic of ``world_model`` (a path or ``(cfg, norm_stats, params)``) on the episode store
     ``heldout_store`` (path or ``EpisodeStore``); see the module docstring. ``model_config``: the world model's
     config to evaluate under (default: its own; ``sc3 diagnose`` passes the sweep's evaluation settings and the
@@ -136,7 +139,9 @@ def diagnose(world_model, heldout_store, config: DiagnoseConfig | None = None, *
     ``perception_scorer``; None: no outcome reproduction); ``scene``: the benchmark's scene measure
     (``permanence.SceneMeasure``, or a dict of them by name: ``{"objects": ..., "arm": ...}``), with which every
     stage says how much of the objects the imagined frames keep over time (None: not measured); ``filmstrips``: a
-    folder for a filmstrip per stage (None: none). Returns a JSON-able dict (non-finite numbers as floats: write it
+    folder for a filmstrip per stage (None: none); ``locators``: the benchmark's (``benchmark.Locators``: the arm,
+    its objects, what the actions move; None: the arm by the median rule, no objects); ``head``: the learned state
+    head (default: ``state_head.npz`` beside a world model given as a path). Returns a JSON-able dict (non-finite numbers as floats: write it
     with :func:`save_result`)."""
     from tqdm import tqdm
 
@@ -148,12 +153,12 @@ def diagnose(world_model, heldout_store, config: DiagnoseConfig | None = None, *
     cfg, stats, params, name = load(world_model, model_config)
     store = heldout_store if isinstance(heldout_store, EpisodeStore) else EpisodeStore(heldout_store)
     ids = _episodes(store, cfg, dc.episodes)
-    # the displaced chunks move an end-effector pose and are read off it: a store without one skips that pass
-    cf_skip = "counterfactual" in dc.stages and (stats.action_space.kind != "delta_ee" or not store.has_pose)
-    if cf_skip:
-        dc = dataclasses.replace(dc, stages=tuple(s for s in dc.stages if s != "counterfactual"))
+    if head is None and isinstance(world_model, (str, Path)):
+        from sc3_jax import state_head
+        head = state_head.load(world_model)
     measures = {"objects": scene} if callable(scene) else dict(scene or {})
     p = _plan(cfg, stats, params, store, ids, dc, scorer_for or diagnose_outcomes.no_scorer, measures)
+    p = dataclasses.replace(p, follow=diagnose_follow.plan(p, store, head, locators, dc.stages))
     acc = _Sums()
     bar = tqdm(total=len(p.eps), desc="diagnose", unit="episode", disable=not dc.progress)
     for g0 in range(0, len(p.eps), p.batch):  # episodes per step: one open-loop batch
@@ -170,10 +175,6 @@ def diagnose(world_model, heldout_store, config: DiagnoseConfig | None = None, *
     result = _result(p, acc, name, store, ids)
     if p.kept is not None and filmstrips is not None:
         result["permanence"]["filmstrips"] = p.kept.write_filmstrips(filmstrips, p.views)
-    if cf_skip:
-        result["counterfactual"]["note"] = (f"not run: it displaces an end-effector pose, this model's actions are "
-                                            f"{stats.action_space.kind}" + ("" if store.has_pose else
-                                                                            " and the store records no pose"))
     result["gates"] = gates(result, dc)
     result["seconds"] = round(time.time() - t0, 1)
     return result
@@ -247,9 +248,7 @@ def _plan(cfg, stats, params, store, ids, dc: DiagnoseConfig, scorer_for, measur
         donors=diagnose_video.shuffle_donors(samples, np.random.default_rng(dc.seed)), medians=medians,
         first=[np.stack([np.asarray(ep.frames[v][0]) for v in views]) for ep in eps], steps_in=steps_in,
         horizon_steps=[int(round(h * hz)) for h in dc.horizons],
-        # the camera fit reads every stride-th frame of every episode: only the counterfactual pass needs it
-        calib=diagnose_actions.calibrate(eps, views, third, medians, stride, dc) if "counterfactual" in dc.stages
-        else {}, scorer=scorer, scorer_note=note,
+        scorer=scorer, scorer_note=note,
         kept=diagnose_kept.Kept(measures, hz, keep, len(views)) if measures else None,
         tokenizer=make_tokenizer(cfg.model), id_mean=make_sampler(cfg, steps=1))
 
@@ -302,20 +301,26 @@ def _inverse_dynamics(p: _Plan, acc: _Sums, ics, targets, acts, first_sample: in
 
 
 def _counterfactual(p: _Plan, acc: _Sums, group: list[int]):
-    """The recorded chunk vs displaced ones from the same real starts, read at the chunk's last frame."""
+    """The recorded chunk vs chunks shifted along each action axis from the same real starts
+    (``diagnose_follow.counterfactual``), every variant of one start with the same noise."""
+    acc.cf_rows += diagnose_follow.counterfactual(p, p.follow, group, _imagine(p, p.tf, p.dc.seed + 1))
+
+
+def _imagine(p: _Plan, rollout, seed: int):
+    """``imagine(ics, actions, noise ids) -> frames [V, l', H, W, 3]`` each: ``rollout``'s offline run in batches;
+    one noise id, one key (``episode_keys(seed, 1, start=id)``)."""
     from sc3_jax import rollout as ro_mod
     bat = _Batcher(p.batch)
-    items = diagnose_actions.variants(p.eps, group, p.samples, p.views, p.tf.spec, p.dc)
-    frames = []
-    for a, b in bat.chunks(len(items)):
-        part = items[a:b]
-        ics = _padded(bat, ro_mod.stack_initial_conditions([it[3] for it in part]))
-        # every variant of one start shares its noise: the difference between them is the actions'
-        keys = np.stack([np.asarray(ro_mod.episode_keys(p.dc.seed + 1, 1, start=it[0] * 100_000 + it[1]))[0]
-                         for it in part])
-        out = p.tf.run_offline(p.params, ics, bat.pad(np.stack([it[4] for it in part])), bat.pad(keys))
-        frames += [out["frames"][j][:, -1] for j in range(b - a)]  # [V, H, W, 3] at the chunk's end
-    acc.cf_rows += diagnose_actions.counterfactual_rows(items, frames, p.medians, p.calib, p.third, p.dc)
+
+    def imagine(ics, actions, noise):
+        out = []
+        for a, b in bat.chunks(len(ics)):
+            ic = _padded(bat, ro_mod.stack_initial_conditions(ics[a:b]))
+            keys = np.stack([np.asarray(ro_mod.episode_keys(seed, 1, start=k))[0] for k in noise[a:b]])
+            res = rollout.run_offline(p.params, ic, bat.pad(np.stack(actions[a:b])), bat.pad(keys))
+            out += [res["frames"][j] for j in range(b - a)]
+        return out
+    return imagine
 
 
 def _open_loop(p: _Plan, acc: _Sums, group: list[int]):
@@ -347,6 +352,7 @@ def _open_loop(p: _Plan, acc: _Sums, group: list[int]):
                 ks = p.kept.wanted(1, int(np.asarray(valid).sum()))
                 at = [k - 1 for k in ks]
                 p.kept.add("open loop", e, ks, pred[:, at], tgt[:, at])
+            diagnose_follow.track(p, p.follow, e, ctx_last, pred, tgt, int(np.asarray(valid).sum()), acts_l[a + j])
             if p.scorer is not None:
                 acc.outcomes.append(diagnose_outcomes.outcome(p.scorer, p.eps[e], ics.frames[j], pred, tgt, valid,
                                                               p.steps_in[e]))
@@ -385,8 +391,8 @@ def _result(p: _Plan, acc: _Sums, name: str, store, ids) -> dict:
             acc.tf, p.views, cfg.data.future_frames / cfg.rollout.control_hz, len(p.samples), acc.u)),
         "drift": ran("open_loop", lambda: diagnose_video.drift_section(acc.ol, p.views, dc.horizons,
                                                                        p.horizon_steps)),
-        "counterfactual": ran("counterfactual", lambda: diagnose_actions.cf_section(acc.cf_rows, p.calib, p.views,
-                                                                                   p.third, dc)),
+        "counterfactual": ran("counterfactual", lambda: diagnose_follow.section(p, p.follow, acc.cf_rows)),
+        "tracking": ran("open_loop", lambda: p.follow.tracks.section(seed=dc.seed)),
         "inverse_dynamics": ran("teacher_forced", acc.inverse.section),
         "outcomes": ran("open_loop", lambda: diagnose_outcomes.outcome_section(acc.outcomes, p.scorer_note,
                                                                                seed=dc.seed)),

@@ -18,10 +18,11 @@ class DiagnoseConfig:
     horizons: tuple[float, ...] = (0.8, 2.0, 4.0, 6.0, 8.0)  # drift curve points (s)
     max_seconds: float | None = None  # cap on the open-loop horizon (None: the longest episode)
     batch: int = 8  # rollouts per jitted call (rounded up to the device count)
-    cf_distance: float = 0.05  # counterfactual displacement (m) added over one chunk
+    cf_fraction: float = 0.5  # counterfactual shift per action axis, a fraction of the axis's recorded std
     cf_starts: int = 2  # counterfactual start chunks per episode (evenly spaced over its teacher-forced chunks)
     arm_threshold: float = 0.12  # [-1, 1] units: a pixel belongs to the arm when it differs this much from the median
     min_arm_pixels: int = 4
+    carry_px: float = 3.0  # an object the real arm moves this many pixels (its way) is carried (tracking.py)
     perception: str | None = None  # perception weights (None: the shipped ones)
     progress: bool = True
     stages: tuple[Stage, ...] = STAGES  # the passes to run (diagnose.py's docstring); the others' sections read NOT_RUN

@@ -13,7 +13,7 @@ from sc3_jax.evaluate.diagnose_video import PREDICTORS
 
 
 NOT_RUN_NOTE = "not run (--stages)"  # diagnose.NOT_RUN's note: how a skipped section and its gates read
-SECTIONS = ("teacher_forced", "inverse_dynamics", "counterfactual", "drift", "outcomes")
+SECTIONS = ("teacher_forced", "inverse_dynamics", "counterfactual", "drift", "tracking", "outcomes")
 GATES = ("teacher-forced moving PSNR - copy-last, every third-person view (dB)",
          "teacher-forced moving PSNR - temporal median, every third-person view (dB)",
          "true - shuffled actions, moving PSNR, every view (dB)",
@@ -94,6 +94,10 @@ def render_table(result: dict) -> str:
          + (f" (U re-read in {st['inverse_steps']})" if st.get("inverse_steps") else "") +
          f", moving pixels: any channel > {st['moving_threshold']:g} from the last real context frame; PSNR in dB "
          f"of pooled errors; {_f(result['seconds'], '{:.0f}')} s"]
+    if "tracking" in result or "readouts" in result.get("counterfactual", {}):  # (results from before: no headline)
+        from sc3_jax.evaluate import diagnose_headline
+        L += ["", "### Where the imagined arm and objects go (the headline measures)", ""] + \
+            diagnose_headline.lines(result)
     for key, heading, body in (
             ("teacher_forced", "One chunk ahead from real context (teacher-forced{})", _teacher_forced_lines),
             ("drift", "Drift (open loop from the first real frames, recorded actions){}", _drift_lines),
@@ -150,19 +154,20 @@ def _drift_lines(drift: dict) -> tuple[str, list[str]]:
 
 
 def _counterfactual_lines(cf: dict) -> tuple[str, list[str]]:
-    if "views" not in cf:  # skipped for a model without an end-effector pose to displace: the note says so
-        return "", [cf["note"]]
-    L = ["| view | pairs | points the commanded way | correlation | gain | opposite commands opposite | "
-         "commanded px | imagined px | recorded-chunk arm error px | camera fit R^2 (row, col) |",
-         "|---|---|---|---|---|---|---|---|---|---|"]
-    for v, r in cf["views"].items():
-        r2 = cf["calibration_r2"].get(v)
-        L.append(f"| {v} | {r['n_pairs']} | {_f(r['direction_agreement'])} | {_f(r['correlation'])} | "
-                 f"{_f(r['gain'])} | {_f(r['opposite_fraction'])} | {_f(r['commanded_px'], '{:.1f}')} | "
-                 f"{_f(r['imagined_px'], '{:.1f}')} | {_f(r['recorded_position_error_px'], '{:.1f}')} | "
-                 + (f"{_f(r2[0])}, {_f(r2[1])}" if r2 else "") + " |")
-    return (f" (recorded chunk +- {100 * cf['distance_m']:g} cm in x / y, arm centroid vs the temporal median)",
-            L)
+    if "readouts" not in cf:  # a diagnose.json from before the measure (or a skip note)
+        return "", [cf.get("note", "not measured")]
+    from sc3_jax.evaluate.diagnose_headline import cell
+    L = [f"- {n}" for n in cf["notes"]]
+    L += [f"- image map (what a real chunk commands -> how far the arm moved in the image), R^2 (row, col) in "
+          f"{v}: {_f(m['r2'][0])}, {_f(m['r2'][1])} over {m['n']} chunks" for v, m in cf["image_map"].items()]
+    L += ["", "| read-out | axis | cosine | gain | pairs |", "|---|---|---|---|---|"]
+    for name, r in cf["readouts"].items():
+        L.append(f"| {name} | every shifted axis | {cell(r['cosine'])} | {cell(r['gain'])} | {r['cosine']['n']} |")
+        L += [f"| | {a} | {cell(x['cosine'])} | {cell(x['gain'])} | {x['cosine']['n']} |" for a, x in r["axes"].items()]
+    if not cf["readouts"]:
+        L.append("| none | | | | 0 |")
+    shifts = ", ".join(f"{a} {v:.3g}" for a, v in cf["shift_raw"].items())
+    return f" (recorded chunk shifted by +- {cf['fraction_of_std']:g} std per axis: {shifts or 'no axis'})", L
 
 
 def _inverse_lines(idr: dict) -> tuple[str, list[str]]:

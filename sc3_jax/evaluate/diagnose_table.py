@@ -27,7 +27,7 @@ COLUMNS = (
     ("wrist", "wrist TF moving - copy-last (dB)", True),
     ("actions", "true - shuffled actions, worst view (dB)", True),
     ("drift", "open loop 4 s moving - copy-last, 3rd-person mean (dB)", True),
-    ("direction", "counterfactual: commanded way", True),
+    ("direction", "counterfactual cosine (headline read-out)", True),
     ("inverse", "inverse dynamics MSE / floor", False),
     ("outcome", "outcome reproduction", True),
     ("gates_failed", "gates failed", False),
@@ -63,11 +63,19 @@ def summary(result: dict, config: dict) -> dict:
         "wrist": min((vs_copy_last(tf[v]["psnr"]) for v in wrist if v in tf), default=math.nan),
         "actions": gate[GATES[2]]["value"],
         "drift": sum(drift) / len(drift) if drift else math.nan,
-        "direction": result["counterfactual"].get("views", {}).get("all", {}).get("direction_agreement", math.nan),
+        "direction": _cosine(result["counterfactual"]),
         "inverse": result["inverse_dynamics"].get("ratio_to_floor", math.nan) if trains_inverse else None,
         "outcome": gate[GATES[3]]["value"],
         "gates_failed": sum(g.get("pass") is False for g in result["gates"]),
     }
+
+
+def _cosine(cf: dict) -> float:
+    """The counterfactual's headline cosine; a result from before the measure: its fraction pointing the commanded
+    way (the nearest figure it has)."""
+    if cf.get("readouts") and cf.get("headline"):
+        return cf["readouts"][cf["headline"]]["cosine"]["value"]
+    return cf.get("views", {}).get("all", {}).get("direction_agreement", math.nan)
 
 
 def load(path: str | Path) -> tuple[str, dict]:

@@ -81,8 +81,8 @@ class Tracks:
                 continue
             im = moves_with(im_obj[v], im_arm[v], self.carry_px)
             c = self.carried.setdefault((name, view), {"real": {}, "hit": {}})
-            c["real"][e] = int(real.sum())
-            c["hit"][e] = im[real].astype(float).tolist()
+            c["real"][e] = c["real"].get(e, 0) + int(real.sum())  # (a pooled name adds its objects up)
+            c["hit"].setdefault(e, []).extend(im[real].astype(float).tolist())
 
     def section(self, seed: int = 0, draws: int = DRAWS) -> dict:
         out: dict = {"seconds": list(SECONDS), "carry_px": self.carry_px, "with_arm_cosine": WITH_ARM}

@@ -1,0 +1,50 @@
+"""``sc3 diagnose``'s options are checked at the door (issue 66): a count below 1, a non-finite amount, an output
+path under a file are one UserError line naming the flag, before the store is opened or a rollout runs."""
+import pytest
+from test_diagnose import _copy_last_model
+
+from sc3_jax.cli import main as cli
+from sc3_jax.evaluate import diagnose as dg
+
+
+@pytest.fixture(scope="module")
+def model(tmp_path_factory):
+    return _copy_last_model(tmp_path_factory.mktemp("bounds"))
+
+
+@pytest.mark.parametrize("flags, says", [
+    (["--episodes", "0"], "--episodes 0: at least 1 held-out episode"),
+    (["--batch", "0"], "--batch 0: at least 1 rollout"),
+    (["--cf-starts", "-1"], "--cf-starts -1: at least 1 counterfactual start"),
+    (["--max-seconds", "nan"], "--max-seconds nan: a positive number of seconds"),
+    (["--cf-fraction", "0"], "--cf-fraction 0.0: a positive fraction"),
+    (["--horizons", "1", "inf"], "--horizons inf: positive numbers of seconds"),
+    (["--filmstrips", "{file}"], "--filmstrips {file}: is a file, not a folder"),
+    (["--out", "{file}/x.json"], "--out {file}/x.json: {file} is a file, not a folder"),
+    (["--out", "{file}/x.json", "--filmstrips", "{dir}/strips"], "--out {file}/x.json: {file} is a file"),
+    (["--out", "{dir}"], "--out {dir}: is a folder"),
+])
+def test_a_bad_option_is_one_line_before_any_work(model, tmp_path, capsys, monkeypatch, flags, says):
+    f = tmp_path / "a_file"
+    f.write_text("x")
+    fill = lambda x: x.format(file=f, dir=tmp_path)  # noqa: E731
+    monkeypatch.setattr(dg, "diagnose", lambda *a, **k: pytest.fail("the diagnosis ran"))
+    # the store does not exist: the option is refused before anything reads it
+    rc = cli(["diagnose", "--world-model", str(model), "--data", str(tmp_path / "no_store"), "--no-progress"]
+             + [fill(x) for x in flags])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and fill(says) in err[0], err
+
+
+def test_good_options_reach_the_diagnosis(model, tmp_path, capsys, monkeypatch):
+    called = {}
+
+    def fake(wm, data, dc, **kw):
+        called.update(dc=dc, locators=kw["locators"])
+        raise SystemExit(0)
+    monkeypatch.setattr(dg, "diagnose", fake)
+    with pytest.raises(SystemExit):
+        cli(["diagnose", "--world-model", str(model), "--data", str(tmp_path), "--episodes", "1", "--max-seconds",
+             "2.5", "--cf-fraction", "0.25", "--benchmark", "so101", "--out", str(tmp_path / "new" / "d.json")])
+    assert called["dc"].cf_fraction == 0.25 and called["dc"].max_seconds == 2.5 and called["dc"].episodes == 1
+    assert set(called["locators"].objects) == {"block"} and called["locators"].moves["dx"] == "ee_x"
