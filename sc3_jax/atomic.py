@@ -260,6 +260,7 @@ def save_npy(path: str | os.PathLike, array) -> None:
 def read_json(path: str | os.PathLike, fix: str = "restore it or delete it"):
     """The JSON in ``path``; a damaged file is a one-line ``UserError`` (file:line: problem; ``fix``)."""
     path = Path(path)
+    _regular(path, fix)
     try:
         return json.loads(path.read_bytes())
     except json.JSONDecodeError as e:
@@ -276,6 +277,7 @@ def read_jsonl(path: str | os.PathLike, what: str, fix: str) -> list:
     path = Path(path)
     if not path.exists():
         return []
+    _regular(path, fix)
     raw = path.read_bytes()
     if path.suffix == ".gz":
         try:
@@ -295,6 +297,31 @@ def read_jsonl(path: str | os.PathLike, what: str, fix: str) -> list:
             raise UserError(f"{path}:{i}: not {what} ({problem}); {fix}")
         out.append(obj)
     return out
+
+
+def _regular(path: Path, fix: str) -> None:
+    """An existing ``path`` that is not a regular file (a FIFO would block the read forever, a device never end it)
+    is one line; a missing one is left to the caller (it may be optional)."""
+    if path.exists() and not path.is_file():
+        raise UserError(f"{path}: not a regular file (a FIFO, device or directory); {fix}")
+
+
+def _npz_fits(z, path, fix: str) -> None:
+    """Each array of an opened ``.npz`` declares no more data than its member holds (a header claiming 1e11 rows
+    would have numpy allocate terabytes before reading), read from the headers alone."""
+    readers = {(1, 0): np.lib.format.read_array_header_1_0, (2, 0): np.lib.format.read_array_header_2_0}
+    zf = getattr(z, "zip", None)
+    for info in (zf.infolist() if zf is not None else ()):
+        with zf.open(info) as f:
+            try:
+                version = np.lib.format.read_magic(f)
+                shape, _, dtype = readers[version](f)
+            except (ValueError, KeyError, EOFError, OSError, SyntaxError, TypeError):
+                continue  # left to np.load, which says what is wrong
+            header = f.tell()
+        if not dtype.hasobject and header + int(np.prod(shape, dtype=object)) * dtype.itemsize > info.file_size:
+            raise UserError(f"{path}: array {info.filename} declares {dtype} {list(shape)}, more than it holds "
+                            f"({info.file_size:,} bytes): damaged or crafted; {fix}")
 
 
 def drop_cut_line(path: str | os.PathLike) -> int:
@@ -318,6 +345,7 @@ def open_npz(path: str | os.PathLike, fix: str = "restore it or write it again")
     one-line ``UserError`` naming the file, not numpy's zip or pickle errors."""
     def damaged():
         return UserError(f"{path}: damaged or truncated (not a readable .npz); {fix}")
+    _regular(Path(path), fix)
     try:
         # a file cut short of the zip magic reaches numpy's pickle branch: ValueError about allow_pickle
         z = np.load(path)
@@ -325,6 +353,7 @@ def open_npz(path: str | os.PathLike, fix: str = "restore it or write it again")
         raise damaged() from None
     with z:
         try:
+            _npz_fits(z, path, fix)
             yield z
         except (zipfile.BadZipFile, zlib.error, EOFError):
             raise damaged() from None

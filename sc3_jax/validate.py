@@ -8,6 +8,8 @@ import math
 import os
 import pickle
 import re
+import stat
+from pathlib import Path
 
 import numpy as np
 
@@ -16,9 +18,52 @@ from sc3_jax.errors import UserError
 NUMERIC = "fiu"  # dtype kinds an array of numbers may have (bool, complex, strings, objects are not numbers)
 
 
-def load_npy(path: str | os.PathLike, fix: str, mmap: bool = False) -> np.ndarray:
+def regular_file(path: str | os.PathLike, fix: str, inside: str | os.PathLike | None = None) -> Path:
+    """``path`` if it is a regular file (and, with ``inside``, one whose real path lies inside that directory's),
+    else one line: a FIFO in place of an array would block its reader forever, a device would be read without end,
+    and a file linked out of a store someone handed over is another store's (or the system's) data."""
+    path = Path(path)
+    try:
+        st = os.stat(path)  # stat does not open: a FIFO is seen, not waited on
+    except FileNotFoundError:
+        raise UserError(f"{path}: missing (a link to nothing, or deleted); {fix}") from None
+    if not stat.S_ISREG(st.st_mode):
+        raise UserError(f"{path}: not a regular file (a FIFO, device or directory); {fix}")
+    if inside is not None:
+        base = os.path.realpath(inside)
+        if os.path.commonpath([base, os.path.realpath(path)]) != base:
+            raise UserError(f"{path}: a link to a file outside {inside}; the store's files must be its own: {fix}")
+    return path
+
+
+def npy_fits(path: str | os.PathLike, fix: str) -> None:
+    """One line when an ``.npy``'s header declares more data than the file holds (a header claiming 1e11 rows
+    would have numpy ask for terabytes before reading a byte), read from the header alone; a header numpy cannot
+    parse is left to ``np.load``, which says so."""
+    readers = {(1, 0): np.lib.format.read_array_header_1_0, (2, 0): np.lib.format.read_array_header_2_0}
+    with open(path, "rb") as f:
+        try:
+            version = np.lib.format.read_magic(f)
+            shape, _, dtype = readers[version](f)
+        except (ValueError, KeyError, EOFError, OSError, SyntaxError, TypeError):
+            return
+        if dtype.hasobject:
+            return  # a pickle: np.load refuses it (allow_pickle=False)
+        need = f.tell() + math.prod(shape) * dtype.itemsize
+    have = os.path.getsize(path)
+    if need > have:
+        raise UserError(f"{path}: its header declares {dtype} {list(shape)} ({need:,} bytes), the file holds "
+                        f"{have:,}: damaged or crafted; {fix}")
+
+
+def load_npy(path: str | os.PathLike, fix: str, mmap: bool = False, inside: str | os.PathLike | None = None
+             ) -> np.ndarray:
     """``np.load`` of one ``.npy``: a file cut short, a damaged header or a pickle is one line, never a traceback
-    from inside numpy (``mmap length is greater than file size``)."""
+    from inside numpy (``mmap length is greater than file size``); so is anything but a regular file (inside
+    ``inside`` where given: :func:`regular_file`) and a header declaring more than the file holds
+    (:func:`npy_fits`), both found before anything is allocated."""
+    regular_file(path, fix, inside)
+    npy_fits(path, fix)
     try:
         return np.load(path, mmap_mode="r" if mmap else None, allow_pickle=False)
     except (ValueError, OSError, EOFError, pickle.UnpicklingError) as e:
@@ -54,7 +99,8 @@ def is_finite_number(x) -> bool:
 def in_range(name: str, value, low, high, why: str) -> None:
     """A numeric option within [low, high] (and finite), else one line naming the option and why the bound."""
     if not is_finite_number(value) or not low <= value <= high:
-        raise UserError(f"{name} {value}: expected a number from {low:g} to {high:g} ({why})")
+        show = lambda x: str(x) if isinstance(x, int) else f"{x:g}"  # noqa: E731  (2**32 - 1 in full, not 4.29e+09)
+        raise UserError(f"{name} {value}: expected a number from {show(low)} to {show(high)} ({why})")
 
 
 def same_files(paths) -> dict[tuple[int, int], list[str]]:
@@ -121,3 +167,75 @@ def mask_paths(text: str) -> str:
     rooted = rf"(?<![\w./])(?:~|\.\.?)?/(?!/){word}"  # not the // of a URL
     relative = r"(?<![\w/.~-])[\w.-]+(?:/[\w.-]+)*/[\w-]+\.[A-Za-z]\w{0,5}\b"
     return re.sub(rf"{rooted}|{relative}", "<path>", text)
+
+
+def out_dir(path: str | os.PathLike, option: str, links: bool = True) -> Path:
+    """An output directory a command may create or write into, checked before its work: one line when it is a file,
+    or under one (the work would end in NotADirectoryError, hours later). ``links=False``: a link there is refused
+    too, so nothing is written through it into what it points at (a report/ linked out of a store someone handed
+    over)."""
+    path = Path(path)
+    if not links and path.is_symlink():
+        raise UserError(f"{option} {path}: a symbolic link (to {os.readlink(path)}); nothing is written through it: "
+                        "remove the link, or give another directory")
+    for p in (path, *path.parents):
+        if p.is_dir():
+            break
+        if os.path.lexists(p):
+            what = "is a file" if p == path else f"is under {p}, a file"
+            raise UserError(f"{option} {path}: {what}, not a directory: give a directory")
+    return path
+
+
+# sc3 train's numeric config fields: (section, field) -> (option, low, high, what); None values are the config's own
+# "unset" (sized or derived later). A value outside is one line before anything is read or written: --batch 0 was a
+# ZeroDivisionError inside JAX, --train.steps 0 an exit 0 with no checkpoint, --train.lr nan a NaN model
+TRAIN_BOUNDS = {
+    ("data", "batch_size"): ("--batch", 1, 1_000_000, "samples per step"),
+    ("data", "context_frames"): ("--data.context-frames", 1, 1024, "frames"),
+    ("data", "future_frames"): ("--data.future-frames", 1, 1024, "frames"),
+    ("data", "pseudo_action_prob"): ("--data.pseudo-action-prob", 0, 1, "a probability"),
+    ("data", "read_threads"): ("--data.read-threads", 0, 256, "threads"),
+    ("data", "seed"): ("--data.seed", 0, 2**32 - 1, "a seed"),
+    ("train", "steps"): ("--train.steps", 1, 10**9, "optimizer steps"),
+    ("train", "lr"): ("--train.lr", 1e-12, 10, "a learning rate"),
+    ("train", "warmup_steps"): ("--train.warmup-steps", 0, 10**9, "optimizer steps"),
+    ("train", "weight_decay"): ("--train.weight-decay", 0, 10, "AdamW's decay"),
+    ("train", "b1"): ("--train.b1", 0, 0.999999, "Adam's first-moment decay, below 1"),
+    ("train", "b2"): ("--train.b2", 0, 0.999999, "Adam's second-moment decay, below 1"),
+    ("train", "grad_clip"): ("--train.grad-clip", 1e-12, 1e12, "a gradient norm; 0 would never move the model"),
+    ("train", "grad_accum"): ("--train.grad-accum", 1, 1 << 20, "micro-batches per step"),
+    ("train", "seed"): ("--train.seed", 0, 2**32 - 1, "a seed"),
+    ("train", "log_every"): ("--train.log-every", 1, 10**9, "steps"),
+    ("train", "ckpt_every"): ("--train.ckpt-every", 1, 10**9, "steps"),
+    ("train", "keep_checkpoints"): ("--train.keep-checkpoints", 1, 10**6, "checkpoints"),
+    ("flow", "t_logit_mean"): ("--flow.t-logit-mean", -100, 100, "a logit"),
+    ("flow", "t_logit_std"): ("--flow.t-logit-std", 1e-6, 100, "a spread"),
+    ("flow", "video_loss_weight"): ("--flow.video-loss-weight", 0, 1e6, "a loss weight"),
+    ("flow", "action_loss_weight"): ("--flow.action-loss-weight", 0, 1e6, "a loss weight"),
+    ("flow", "context_noise_max"): ("--flow.context-noise-max", 0, 1, "a noise level"),
+    ("flow", "distill_steps"): ("--flow.distill-steps", 1, 1000, "sampler steps"),
+}
+
+
+def train_config(cfg) -> None:
+    """``sc3 train``'s config at the door (``TRAIN_BOUNDS``, the mode probabilities, the strides, the mesh, the
+    workdir), one ``UserError`` line for the first field out of bounds, before anything is read or written."""
+    for (section, field), (option, low, high, what) in TRAIN_BOUNDS.items():
+        value = getattr(getattr(cfg, section), field)
+        if value is not None:
+            in_range(option, value, low, high, what)
+    probs = tuple(cfg.modes.probs)
+    for p in probs:
+        in_range("--modes.probs", p, 0, 1, "probabilities")
+    if not sum(probs) > 0:
+        raise UserError(f"--modes.probs {' '.join(map(str, probs))}: all zero, no training mode is drawn")
+    if not cfg.data.strides:
+        raise UserError("--data.strides: give at least one frame stride")
+    for s in cfg.data.strides:
+        in_range("--data.strides", s, 1, 1000, "frame strides")
+    for axis in ("fsdp", "tensor", "context"):
+        in_range(f"--mesh.{axis}", getattr(cfg.mesh, axis), 1, 1 << 16, "devices")
+    if cfg.mesh.data != -1:
+        in_range("--mesh.data", cfg.mesh.data, 1, 1 << 16, "devices; -1: all the others")
+    out_dir(cfg.train.workdir, "--train.workdir")

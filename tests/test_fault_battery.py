@@ -5,6 +5,7 @@ every drawn fault: a non-zero exit, exactly one line on stderr, no traceback, th
 written outside OUT. The faults are drawn by ``hypothesis`` (a failure prints the example that breaks, and the
 planted-fault test shows the battery catching a validator switched off)."""
 import contextlib
+import gzip
 import io
 import json
 import os
@@ -72,10 +73,17 @@ def pristine(tmp_path_factory) -> Path:
     _world_model(root)
     results = root / "results"
     shutil.copytree(DOCS / "stores" / "cmd1_s1", results)
-    import gzip
     (results / "results.jsonl").write_bytes(gzip.decompress((results / "results.jsonl.gz").read_bytes()))
     (results / "results.jsonl.gz").unlink()
     (root / "real.csv").write_text("policy,episode,success\nzero,e0,1\nzero,e1,0\n")
+    # a sweep of held-out episodes (sweep.json names its policies and conditions), its records unarchived
+    episodes = root / "results_ep"
+    episodes.mkdir()
+    shutil.copy(DOCS / "stores" / "so101_sweep36" / "sweep.json", episodes)
+    (episodes / "results.jsonl").write_bytes(
+        gzip.decompress((DOCS / "stores" / "so101_sweep36" / "results.jsonl.gz").read_bytes()))
+    # initial conditions as sc3 rollout reads an .npz (one condition): the policy is resolved before any rollout
+    np.savez(root / "ic.npz", frames=np.zeros((1, 3, 2, 16, 16, 3), np.uint8), state=np.zeros((1, 7), np.float32))
     return root
 
 
@@ -229,8 +237,8 @@ def results_records(data):
         p = root / "results" / "results.jsonl"
         lines = p.read_text().splitlines(keepends=True)
         r = json.loads(lines[i])
-        how = data.draw(st.sampled_from(["outcome", "u", "policy", "mode", "cut", "missing", "garbage"]),
-                        label="fault")
+        how = data.draw(st.sampled_from(["outcome", "u", "policy", "mode", "cut", "missing", "garbage", "twice",
+                                         "negative u"]), label="fault")
         if how == "outcome":
             r["objects"][0]["lifting"] = data.draw(st.sampled_from([2, "yes", [], None, 0.5]), label="outcome")
         elif how == "u":
@@ -242,7 +250,13 @@ def results_records(data):
             r["mode"] = data.draw(st.sampled_from(["imagined", None, 1]), label="mode")
         elif how == "missing":
             r.pop("objects")
-        if how == "cut":  # a complete line cut short (its newline kept): not a kill's cut line, a damaged one
+        elif how == "negative u":  # U_chunk is a distance: a negative one is no U a sweep measured
+            key = next((k for k in ("u", "u_raw") if k in r), "u")  # a real record has none: then a layout fault too
+            r[key] = [-data.draw(st.floats(1e-6, 10), label="-u")] * len(r.get(key) or [0])
+        if how == "twice":  # the same rollout id again, other numbers: the last one silently won
+            r["objects"] = [dict(o, placing=not o["placing"]) for o in r["objects"]]
+            lines.append(json.dumps(r) + "\n")
+        elif how == "cut":  # a complete line cut short (its newline kept): not a kill's cut line, a damaged one
             text = lines[i].rstrip("\n")
             lines[i] = text[:data.draw(st.integers(1, len(text) - 1), label="cut")] + "\n"
         elif how == "garbage":
@@ -326,7 +340,104 @@ def lerobot_info(data):
     return retype_json("lerobot/meta/info.json", [key], data, bad), import_lerobot
 
 
-KINDS = {"episode arrays": episode_arrays, "dataset.json": dataset_json, "results records": results_records,
+def store_files(data):
+    """An episode store's file that is not its own regular file: a frames file linked to another store, a FIFO in
+    place of an array (which hung the reader), or an .npy whose header claims more rows than the file holds (which
+    had numpy ask for terabytes)."""
+    how = data.draw(st.sampled_from(["link out", "fifo", "huge header"]), label="fault")
+    rel = data.draw(st.sampled_from(EPISODE_FILES), label="file")
+
+    def damage(root: Path):
+        p = root / rel
+        if how == "link out":
+            other = root / "other_store" / p.name
+            other.parent.mkdir(exist_ok=True)
+            shutil.copy(p, other)  # the same bytes: only where they live is wrong
+            p.unlink()
+            p.symlink_to(other)
+        elif how == "fifo":
+            raw = p.read_bytes()
+            p.unlink()
+            os.mkfifo(p)
+            _feed_fifo(p, raw)
+        else:
+            x = np.load(p)
+            rows = data.draw(st.sampled_from([10**11, 10**9, 2 * len(x)]), label="rows")
+            with open(p, "wb") as f:  # the header of a longer array, the data of this one
+                np.lib.format.write_array_header_1_0(f, {"descr": np.lib.format.dtype_to_descr(x.dtype),
+                                                         "fortran_order": False, "shape": (rows, *x.shape[1:])})
+                f.write(x.tobytes())
+    return damage, export
+
+
+def _feed_fifo(path: Path, raw: bytes, wait_s: float = 3.0) -> None:
+    """Once a reader opens the FIFO (within ``wait_s``), hand it ``raw``: a reader that opens a FIFO then reads a
+    whole array and exits 0, which the battery sees, instead of hanging the test forever."""
+    import errno
+    import threading
+    import time
+
+    def feed():
+        end = time.monotonic() + wait_s
+        while time.monotonic() < end:
+            try:
+                fd = os.open(path, os.O_WRONLY | os.O_NONBLOCK)
+            except OSError as e:
+                if e.errno not in (errno.ENXIO, errno.ENOENT):
+                    return
+                time.sleep(0.05)
+                continue
+            with contextlib.suppress(OSError):
+                os.set_blocking(fd, True)
+                os.write(fd, raw)
+            os.close(fd)
+            return
+    threading.Thread(target=feed, daemon=True).start()
+
+
+def report_default(root, out):
+    return ["report", str(root / "results"), "--draws", "10"]  # into the store's own report/
+
+
+def report_episodes(root, out):
+    return ["report", str(root / "results_ep"), "--out", str(out / "report"), "--draws", "10"]
+
+
+def episode_sweep_records(data):
+    """A store of held-out episodes whose records are not of its sweep.json: a record of an episode it does not
+    list, of a policy it did not run, an edited policy_names, or the report/ it is written into linked elsewhere."""
+    how = data.draw(st.sampled_from(["foreign episode", "foreign policy", "renamed", "report link"]), label="fault")
+    i = data.draw(st.integers(0, 30), label="record")
+
+    def damage(root: Path):
+        if how == "report link":  # a bench store's report/ linked to files outside it: they would be overwritten
+            victim = root / "victim"
+            victim.mkdir()
+            (victim / "report.md").write_text("not yours to overwrite\n")
+            (root / "results" / "report").symlink_to(victim, target_is_directory=True)
+            return
+        store = root / "results_ep"
+        if how == "renamed":
+            cfg = json.loads((store / "sweep.json").read_text())
+            k = data.draw(st.integers(0, len(cfg["policy_names"]) - 1), label="name")
+            cfg["policy_names"][k] = data.draw(st.sampled_from(["so_best", cfg["policy_names"][k - 1]]),
+                                               label="as")
+            (store / "sweep.json").write_text(json.dumps(cfg))
+            return
+        p = store / "results.jsonl"
+        lines = p.read_text().splitlines(keepends=True)
+        r = json.loads(lines[i])
+        if how == "foreign episode":
+            r["episode"] = data.draw(st.sampled_from(["seed99999999", "elsewhere"]), label="episode")
+        else:
+            r["policy"] = "not_swept"
+            r["id"] = f"not_swept/{r['seed']}_online"
+        lines[i] = json.dumps(r) + "\n"
+        p.write_text("".join(lines))
+    return damage, report_default if how == "report link" else report_episodes
+
+
+KINDS = {"episode arrays": episode_arrays, "store files": store_files, "episode sweep records": episode_sweep_records, "dataset.json": dataset_json, "results records": results_records,
          "labels CSV": labels_csv, "world model": world_model_files, "LeRobot info.json": lerobot_info}
 
 
@@ -371,6 +482,63 @@ def test_numeric_options_at_their_edges_are_one_line(pristine, data):
            lambda root, out: [a.replace("{root}", str(root)).replace("{out}", str(out)) for a in args])
 
 
+def _rollout_ic(*extra):
+    return lambda root, out: ["rollout", "--world-model", str(root / "wm"), "--policy", "zero", "--data",
+                              str(root / "ic.npz"), "--out", str(out / "r"), "--no-video", "--no-progress", *extra]
+
+
+def _train(*extra):
+    return lambda root, out: ["train", "--config", "tiny", "--data", str(root / "store"), "--train.workdir",
+                              str(out / "wd"), "--train.no-progress", *extra]
+
+
+def _import(*extra):
+    return lambda root, out: [*import_lerobot(root, out), *extra]
+
+
+# each of today's faults at the door, by command: one line and nothing written (the last of each argv wins)
+DOOR = {
+    "rollout --episodes -1": _rollout_ic("--episodes", "-1"), "rollout --start -5": _rollout_ic("--start", "-5"),
+    "rollout --batch 0": _rollout_ic("--batch", "0"), "rollout --seed -1": _rollout_ic("--seed", "-1"),
+    "rollout --data-fps 0": _rollout_ic("--data-fps", "0"),
+    "rollout --policy nosuchname": _rollout_ic("--policy", "nosuchname"),
+    "rollout --policy os:getcwd": _rollout_ic("--policy", "os:getcwd"),
+    "rollout --out FILE": lambda root, out: [*_rollout_ic()(root, out), "--out", str(root / "real.csv")],
+    "rollout --out FILE/x": lambda root, out: [*_rollout_ic()(root, out), "--out", str(root / "real.csv" / "x")],
+    "train --batch 0": _train("--batch", "0"), "train --train.steps 0": _train("--train.steps", "0"),
+    "train --train.lr nan": _train("--train.lr", "nan"), "train --train.lr -1": _train("--train.lr", "-1"),
+    "train --train.lr inf": _train("--train.lr", "inf"), "train --train.b2 1": _train("--train.b2", "1"),
+    "train --train.grad-clip 0": _train("--train.grad-clip", "0"),
+    "train --train.log-every 0": _train("--train.log-every", "0"),
+    "train --modes.probs 0 0 0": _train("--modes.probs", "0", "0", "0"),
+    "train --train.workdir FILE": lambda root, out: [*_train()(root, out), "--train.workdir", str(root / "real.csv")],
+    "import --image-size 0 -5": _import("--image-size", "0", "-5"),
+    "import --image-size 20000 20000": _import("--image-size", "20000", "20000"),
+    "import --fps 0": _import("--fps", "0"), "import --fps nan": _import("--fps", "nan"),
+    "import --out FILE/x": lambda root, out: [*import_lerobot(root, out)[:-4], "--out", str(root / "real.csv" / "x"),
+                                              "--action-space", "absolute"],
+    "export --crf 99": lambda root, out: [*export(root, out), "--crf", "99"],
+    "report --out FILE": lambda root, out: [*report(root, out), "--out", str(root / "real.csv")],
+    "sweep --scorer os:getcwd": lambda root, out: [*sweep_real(root, out), "--scorer", "os:getcwd"],
+}
+
+
+@pytest.mark.parametrize("case", list(DOOR))
+def test_each_option_out_of_bounds_is_one_line_before_anything_is_written(pristine, case):
+    attack(pristine, lambda root: None, DOOR[case])
+
+
+def test_a_refused_import_leaves_nothing_so_the_corrected_rerun_runs(pristine, tmp_path):
+    """--image-size 0 -5 left a dataset.json that refused the corrected command; now nothing is written first."""
+    out = tmp_path / "store"
+    with contextlib.redirect_stderr(io.StringIO()):
+        assert main(_import("--image-size", "0", "-5")(pristine, tmp_path)) == 2
+    assert not out.exists()
+    with contextlib.redirect_stdout(io.StringIO()):
+        assert main(_import("--image-size", "4", "4")(pristine, tmp_path)) == 0
+    assert EpisodeStore(out).image_size == (4, 4)
+
+
 # -- the battery catches what it is for ------------------------------------------------------------------------------
 def test_the_battery_catches_a_planted_fault(pristine, monkeypatch):
     """The episode reader's door switched off (np.load as it was): the battery must fail on a truncated array."""
@@ -380,3 +548,40 @@ def test_the_battery_catches_a_planted_fault(pristine, monkeypatch):
                                                                                       else None))
     with pytest.raises(AssertionError, match="traceback"):
         test_every_damaged_file_kind_ends_in_one_line_and_changes_nothing_outside_out(pristine, "episode arrays")
+
+
+def _off(*_a, **_k):
+    return None
+
+
+# each door of issue 66, switched off, and a fault the battery must then catch: (what is switched off, the attack)
+PLANTED = {
+    "rollout bounds": (["sc3_jax.commands.rollout.check_options"], "rollout --episodes -1"),
+    "train bounds": (["sc3_jax.validate.train_config"], "train --batch 0"),
+    "import bounds": (["sc3_jax.data.lerobot.check_options"], "import --image-size 0 -5"),
+    "scorer signature": (["inspect.Signature.bind"], "sweep --scorer os:getcwd"),
+    "import --out": (["sc3_jax.validate.out_dir"], "import --out FILE/x"),
+    "report --out": (["sc3_jax.validate.out_dir"], "report --out FILE"),
+}
+
+
+@pytest.mark.parametrize("door", list(PLANTED))
+def test_the_battery_catches_each_door_switched_off(pristine, monkeypatch, door):
+    targets, case = PLANTED[door]
+    for t in targets:
+        monkeypatch.setattr(t, _off)
+    with pytest.raises(AssertionError):
+        attack(pristine, lambda root: None, DOOR[case])
+
+
+@pytest.mark.parametrize("kind, targets", [
+    ("store files", ["sc3_jax.validate.regular_file", "sc3_jax.validate.npy_fits"]),
+    ("episode sweep records", ["sc3_jax.evaluate.report_episodes.check_against_sweep", "sc3_jax.validate.out_dir"]),
+])
+def test_the_battery_catches_the_store_doors_switched_off(pristine, monkeypatch, kind, targets):
+    """The store's own regular files (no link out, no FIFO, no header larger than its file) and its records of its
+    own sweep: each switched off, the battery fails on the kind that tests it."""
+    for t in targets:
+        monkeypatch.setattr(t, _off)
+    with pytest.raises((AssertionError, ExceptionGroup)):  # hypothesis reports several distinct failures as a group
+        test_every_damaged_file_kind_ends_in_one_line_and_changes_nothing_outside_out(pristine, kind)

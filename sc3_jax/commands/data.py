@@ -159,6 +159,11 @@ def _export(a: ExportLerobot) -> int:
     from sc3_jax.data.episodes import EpisodeStore
     from sc3_jax.data.lerobot_write import export_store
 
+    from sc3_jax.validate import in_range, out_dir
+
+    if a.crf is not None:  # h264's scale is 0-51, av1's 0-63: ffmpeg's own error would come after the first frames
+        in_range("--crf", a.crf, 0, 51 if a.codec == "h264" else 63, f"{a.codec} quality, lower is better")
+    out_dir(a.out, "--out")
     store = EpisodeStore(a.data)
     s = export_store(store, a.out, version=a.version, codec=a.codec, image_dtype=a.images, crf=a.crf,
                      views=list(a.views) if a.views else None, overwrite=a.overwrite)

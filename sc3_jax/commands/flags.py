@@ -112,6 +112,16 @@ def arity(args: type, prefix: str = "") -> dict[str, int]:
     return out
 
 
+def _positionals(args: type) -> list[str]:
+    """The metavars (RESULTS, SRC) of the positional fields of the dataclass ``args``."""
+    try:
+        hints = typing.get_type_hints(args, include_extras=True)
+    except (NameError, TypeError):
+        return []
+    return [f.name.upper() for f in dataclasses.fields(args)
+            if any(m is tyro.conf.Positional for m in _unwrap(hints[f.name])[1])]
+
+
 def _strays(argv: list[str], takes: dict[str, int]) -> list[int]:
     """Indices of the tokens of ``argv`` that no option takes as its value: positional arguments."""
     out, i = [], 0
@@ -147,8 +157,23 @@ def refuse_old_spellings(command: str, argv: list[str], args: type) -> None:
         fixed[strays[0]:strays[0]] = [new] + [argv[i] for i in strays]
     if not said:
         return
-    what = ", ".join(f"{old} is now {new}" for old, new in said)
     missing = sorted({new for _, new in said if new not in takes})
+    place = _positionals(args)
+    if missing and all(m in (DATA, WORLD_MODEL) for m in missing) and len(place) == 1:
+        # a command whose store (or model) is its positional argument: the value moves there, not to an option
+        values, rest, i = [], [], 0
+        while i < len(argv):
+            t, i = argv[i], i + 1
+            if OLD.get(_name(t)) not in missing:
+                rest.append(t)
+            elif "=" in t:
+                values.append(t.split("=", 1)[1])
+            elif i < len(argv):
+                values, i = values + [argv[i]], i + 1
+        olds = ", ".join(sorted({old for old, new in said if new in missing}))
+        raise UserError(f"sc3 {command} takes its {place[0]} as the positional argument, not {olds}: "
+                        f"sc3 {command} {shlex.join(values + rest)}")
+    what = ", ".join(f"{old} is now {new}" for old, new in said)
     if missing:
         where = "; ".join(ELSEWHERE.get(m, f"`sc3 {command} --help` lists its options") for m in missing)
         raise UserError(f"{what}, which sc3 {command} does not take: {where}")

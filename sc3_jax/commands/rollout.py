@@ -70,18 +70,48 @@ class Args(SamplerSteps):
     """progress bars on stderr (--no-progress: none, for batch logs)"""
 
 
+# each numeric option's bounds (low, high, what): one line at the door, before the model loads
+BOUNDS = {"episodes": (1, 10**6, "initial conditions"), "start": (0, 10**7, "a frame index"),
+          "task": (0, 2**31 - 1, "a task id"), "batch": (1, 4096, "episodes per call"),
+          "data_fps": (1e-3, 10_000, "frames per second"), "seed": (0, 2**32 - 1, "a seed"),
+          "step": (0, 10**12, "a checkpoint step"), "sample_steps": (1, 1000, "sampler steps"),
+          "inverse_steps": (1, 1000, "sampler steps")}
+
+
+def check_options(a: Args) -> None:
+    """Every numeric option within ``BOUNDS`` (``--episodes -1`` ran 15 of 16 episodes, ``--start -5`` started at
+    frame 75), and --out a directory it can make, before anything loads."""
+    from sc3_jax import validate
+
+    for name, (low, high, what) in BOUNDS.items():
+        value = getattr(a, name)
+        if value is not None:
+            validate.in_range(f"--{name.replace('_', '-')}", value, low, high, what)
+    validate.out_dir(a.out, "--out")
+
+
+def benchmark_of(name: str):
+    """The benchmark ``--benchmark`` names; "none": one with no scorer and no policy names, as sc3 diagnose reads
+    it (its success estimate then says there is none)."""
+    from sc3_jax import benchmark
+
+    return benchmark.Benchmark(name="none") if name == "none" else benchmark.get(name)
+
+
 def main(argv: list[str]) -> int:
     a, cfg = parse_evaluated(Args, argv, "rollout")
+    check_options(a)
     import numpy as np
 
-    from sc3_jax import atomic, benchmark, checkpoint, rollout, rollout_io, state_head
+    from sc3_jax import atomic, checkpoint, rollout, rollout_io, state_head
+    from sc3_jax.errors import UserError
     from sc3_jax.evaluate import rollout_summary
     from sc3_jax.evaluate.diagnose_outcomes import no_scorer
     from sc3_jax.policies.openpi_mappings import for_world_model, get_mapping
     from sc3_jax.policies.resolve import resolve
 
     rollout_io.check_seconds(cfg.rollout.episode_seconds)
-    bm = benchmark.get(a.benchmark)  # an unknown name: one line before the model loads
+    bm = benchmark_of(a.benchmark)  # an unknown name: one line before the model loads
     stats = checkpoint.read_norm_stats(a.world_model)
     params = checkpoint.load_params(a.world_model, cfg, a.step)
     fps = rollout_io.data_fps(a.world_model, a.data_fps)
@@ -95,8 +125,13 @@ def main(argv: list[str]) -> int:
         table = list(dict.fromkeys(prompts))
         ics = ics._replace(task=np.asarray([table.index(p) for p in prompts], np.int32))
         family = for_world_model(a.family, tuple(cfg.data.views), table, f"--family {a.family}")
-    policy = resolve(a.policy, cfg.rollout.policy_chunk, family, action_space=stats.action_space, named=bm.named_policy,
-                     num_views=len(cfg.data.views)).policy
+    try:  # an unknown name, or a module:attr that is no policy: one line, before anything compiles
+        policy = resolve(a.policy, cfg.rollout.policy_chunk, family, action_space=stats.action_space,
+                         named=bm.named_policy, num_views=len(cfg.data.views)).policy
+    except (ValueError, TypeError) as e:
+        if isinstance(e, UserError):
+            raise
+        raise UserError(f"--policy {a.policy}: {e}") from None
     n, s, tau = len(ids), ro.spec, ro.tau
     size = a.batch or n
     rollout_io.check_horizon(s, cfg.rollout.episode_seconds, min(size, n))

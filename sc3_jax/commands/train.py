@@ -37,6 +37,9 @@ def main(argv: list[str]) -> int:
     a, cfg = parse_with_config(Args, argv, "train", config_of)
     if a.help_config:
         tyro.cli(Config, default=cfg, args=["--help"], prog=f"sc3 train --config {a.config}")
+    from sc3_jax import validate
+
+    validate.train_config(cfg)  # every numeric field in bounds, the workdir a directory: before anything is read
     import jax
 
     from sc3_jax import sizing, train

@@ -42,7 +42,7 @@ from sc3_jax import atomic
 from sc3_jax.data.action_space import ActionSpace
 from sc3_jax.errors import UserError
 from sc3_jax.safe_names import check_name, join_inside
-from sc3_jax.validate import is_count, is_finite_number, json_object, load_npy, numeric
+from sc3_jax.validate import is_count, is_finite_number, json_object, load_npy, numeric, regular_file
 
 FORMAT = "sc3-episodes"
 VERSION = 1
@@ -187,13 +187,14 @@ class EpisodeStore:
             path = d / "frames" / f"{view}.npy"
             if not path.exists():
                 raise EpisodeError(episode_id, f"frames/{view}", f"missing view file {path}")
-            frames[view] = load_npy(path, fix, mmap)
+            frames[view] = load_npy(path, fix, mmap, inside=self.root)  # the store's own regular files only
         arrays = {"ee_pose": None, "state": None}
         for field in self.array_fields():
             path = d / f"{field}.npy"
             if not path.exists():
                 raise EpisodeError(episode_id, field, f"missing file {path}")
-            arrays[field] = numeric(load_npy(path, fix), str(path), fix)
+            arrays[field] = numeric(load_npy(path, fix, inside=self.root), str(path), fix)
+        regular_file(d / "meta.json", fix, inside=self.root)
         meta = json_object(atomic.read_json(d / "meta.json", fix), str(d / "meta.json"), fix)
         prompt = meta.get("prompt", "")
         if not isinstance(prompt, str):

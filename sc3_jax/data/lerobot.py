@@ -440,6 +440,24 @@ def _codec_tag(stream) -> str:
         return "unknown"
 
 
+MAX_SIDE = 4096  # pixels a side of an imported frame: a 20000 x 20000 one is 1.2 GB, per frame and view
+
+
+def check_options(out, fps: float | None, image_size) -> None:
+    """The numeric options of an import and its --out, in one line each before anything is read or written (``--fps
+    0`` was a ZeroDivisionError, ``--image-size 0 -5`` a cv2 traceback after the store's dataset.json was written,
+    which then refused the corrected rerun)."""
+    from sc3_jax.validate import in_range, out_dir
+
+    if fps is not None:
+        in_range("--fps", fps, 1e-3, 10_000, "frames per second")
+    for side in image_size or ():
+        in_range("--image-size", side, 1, MAX_SIDE, "pixels a side")
+    if image_size is not None and len(image_size) != 2:
+        raise UserError(f"--image-size {' '.join(map(str, image_size))}: expected H W")
+    out_dir(out, "--out")
+
+
 def _stride(source_fps: float, fps: float | None, where: Path) -> int:
     if fps is None:
         return 1
@@ -528,6 +546,7 @@ def import_lerobot(root: str | os.PathLike, out: str | os.PathLike, views=None, 
     """
     if not re.fullmatch(r"[A-Za-z0-9_-]*", id_prefix):
         raise LeRobotError(out, f"id prefix {id_prefix!r}: letters, digits, '_' and '-' only (it names folders)")
+    check_options(out, fps, image_size)
     from .action_space import ActionSpace, names_of
     from .episodes import Episode, EpisodeStore
 

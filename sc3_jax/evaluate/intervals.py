@@ -30,7 +30,7 @@ import numpy as np
 from sc3_jax.errors import UserError
 from sc3_jax.evaluate import bootstrap, metrics
 from sc3_jax.evaluate.results import SPLIT_ORDER
-from sc3_jax.stats import correlation, floor, interval, rank_violation, resample, split_half
+from sc3_jax.stats import correlation, floor, interval, rank_first, rank_violation, resample, split_half
 
 STATISTICS = (("pearson", correlation.pearson), ("mmrv", rank_violation.mmrv))  # each row's, in table order
 
@@ -169,19 +169,21 @@ def score(rates: np.ndarray, criteria: list[str], primary: str | None) -> np.nda
 
 def ranking(names, criteria, primary, point, draws, counts) -> list[dict]:
     """Policies best first by ``score``: each with its score and rates (95% intervals), its rank (ties share one),
-    the interval of its rank over the bootstrap draws, and P(best) (the share of draws in which it ranks first).
+    the interval of its rank over the bootstrap draws, and P(best) (the share of draws in which it ranks first, a tie
+    for first split among those tied: ``stats.rank_first``).
     ``point`` [1, P, C] and ``draws`` [B, P, C] rates (``bootstrap.rates``), ``counts`` [P, n] rollouts."""
     point_score, sdraws = score(point[0], criteria, primary), score(draws, criteria, primary)  # [P], [B, P]
     with np.errstate(invalid="ignore"):
         ranks = 1 + (sdraws[:, None, :] > sdraws[:, :, None]).sum(-1)  # [B, P]: 1 + policies scoring higher
     key = np.nan_to_num(point_score, nan=-1.0)  # a policy without rollouts yet ranks last
+    best = rank_first.p_first(sdraws)  # a tie for first is split, not counted as each one's win
     order = sorted(range(len(names)), key=lambda p: (-key[p], names[p]))
     out = []
     for p in order:
         lo, hi = np.percentile(ranks[:, p], [2.5, 97.5])
         out.append({"policy": names[p], "rank": int(1 + (key > key[p]).sum()),
                     "rollouts": int(counts[p].sum()), "score": interval.summary(float(point_score[p]), sdraws[:, p]),
-                    "rank_interval": [int(lo), int(math.ceil(hi))], "p_best": float(np.mean(ranks[:, p] == 1)),
+                    "rank_interval": [int(lo), int(math.ceil(hi))], "p_best": float(best[p]),
                     "rates": {c: interval.summary(float(point[0, p, k]), draws[:, p, k])
                               for k, c in enumerate(criteria)}})
     return out

@@ -553,8 +553,12 @@ def render(results, out: str | Path | None = None, videos: int | None = None, ta
     policy: ``videos`` at most) to ``out`` (None: the first store's report/); returns report.md. Every file is
     written to a staging directory and moved into ``out`` only once all of them exist (report.md last), so a failure
     (a damaged frames file, an unwritable ``out``) or a kill leaves the previous report as it was."""
+    from sc3_jax.validate import out_dir
+
     roots = [results] if isinstance(results, (str, Path)) else list(results)
-    out = Path(out) if out is not None else Path(roots[0]) / "report"
+    # a store is someone else's data: its report/ linked elsewhere would have the report overwrite what it points at
+    out = out_dir(out if out is not None else Path(roots[0]) / "report", "--out" if out is not None else
+                  "the report directory", links=False)
     t = compute(results, taus, draws, scene=scene, real=real)
     with atomic.staged(out, last=("report.md",)) as stage:
         (stage / "report.json").write_text(json.dumps(t, indent=1))

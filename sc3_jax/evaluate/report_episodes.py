@@ -7,7 +7,8 @@ Ranking: per policy and criterion the success rate over the evaluation condition
 with a 95% bootstrap interval; the conditions are resampled with replacement, one resample per draw for every
 policy (paired: all policies were rolled out from the same conditions with the same noise). Policies are ranked by
 the rate of ``success`` when the scorer reports it, else by the mean over its criteria; each policy's rank is
-recomputed in every draw (``rank_interval``, and ``p_best``: the share of draws where it ranks first).
+recomputed in every draw (``rank_interval``, and ``p_best``: the share of draws where it ranks first, a tie for
+first split among those tied).
 
 Against real outcomes (points: policy x criterion, the criteria both sides report), each with a 95% interval:
 
@@ -66,7 +67,9 @@ def compute(results: str | Path, real: tuple[str, ...] | list[str] | None = None
     if real is None:
         saved = Path(results) / REAL_FILE
         real = tuple(atomic.read_json(saved)["real"]) if saved.is_file() else ()
-    recs = [r for r in store.records() if r["mode"] == "online"]
+    everything = store.records()
+    check_against_sweep(cfg, everything, store.root)
+    recs = [r for r in everything if r["mode"] == "online"]
     if not recs:
         raise UserError(f"{results}: no rollouts yet (rerun the sweep)")
     names = list(cfg["policy_names"])
@@ -101,6 +104,40 @@ def compute(results: str | Path, real: tuple[str, ...] | list[str] | None = None
         if kept:
             out["permanence"] = kept
     return out
+
+
+def check_against_sweep(cfg: dict, records: list[dict], root: Path) -> None:
+    """The records of a store of held-out episodes are of its sweep.json: ``policy_names`` the names its
+    ``policies`` give (an edited name would relabel, or silently drop, a policy's rollouts), every record of one of
+    them, of a condition it lists (``conditions[seed]``, the episode the record names). One line naming the store
+    and the record, else."""
+    from sc3_jax.policies.resolve import name_of
+
+    where = root / "sweep.json"
+    names, specs, conds = cfg.get("policy_names"), cfg.get("policies"), cfg.get("conditions")
+    if not (isinstance(names, list) and all(isinstance(n, str) for n in names) and len(set(names)) == len(names)):
+        raise UserError(f"{where}: policy_names is {names!r}, expected the sweep's distinct policy names; restore it")
+    if isinstance(specs, list) and all(isinstance(x, str) for x in specs):
+        try:
+            derived = [name_of(x) for x in specs]
+        except ValueError as e:
+            raise UserError(f"{where}: policies: {e}; restore it") from None
+        if derived != names:
+            raise UserError(f"{where}: policy_names {names} are not the names its policies give ({derived}): "
+                            "edited? restore it")
+    if not (isinstance(conds, list) and all(isinstance(c, str) for c in conds)):
+        raise UserError(f"{where}: conditions is {conds!r}, expected the sweep's episode ids; restore it")
+    for i, r in enumerate(records, 1):
+        problem = None
+        if r.get("policy") not in names:
+            problem = f"policy {r.get('policy')!r} is none of the sweep's {names}"
+        elif not (isinstance(r.get("seed"), int) and 0 <= r["seed"] < len(conds)):
+            problem = f"condition {r.get('seed')!r} is none of the sweep's {len(conds)}"
+        elif "episode" in r and r["episode"] != conds[r["seed"]]:
+            problem = f"episode {r['episode']!r} is not the sweep's condition {r['seed']} ({conds[r['seed']]!r})"
+        if problem:
+            raise UserError(f"{root}: record {i} ({r.get('id')!r}): {problem} (sweep.json); the record is not of "
+                            "this sweep: delete its line or restore the store")
 
 
 REAL_FRAMES = "real_frames"
@@ -314,7 +351,12 @@ def summary(t: dict) -> list[str]:
                      f"{x['policy']} {ci(x['score'], 2)}" for i, x in enumerate(p))
     lines = [f"ranking by {t['ranked_by']} inside the world model ({t['conditions']['evaluation']} conditions per "
              f"policy, 95% intervals): {ranked}"]
-    if len(p) > 1:
+    tied = [x["policy"] for x in p if x["rank"] == p[0]["rank"]]
+    if len(tied) > 1:  # the same score: no first to name (P(best) splits each tied draw among them)
+        lines.append(f"{' and '.join(tied)} tie for first at {ci(p[0]['score'], 2)}; first in "
+                     + ", ".join(f"{x['p_best']:.0%}" for x in p[:len(tied)]) + " of the bootstrap draws (ties "
+                     "split): more conditions (--episodes) may tell them apart")
+    elif len(p) > 1:
         lines.append(f"{p[0]['policy']} ranks first in {p[0]['p_best']:.0%} of the bootstrap draws"
                      + ("" if p[0]["score"]["lo"] > p[1]["score"]["hi"] else
                         f"; its interval overlaps {p[1]['policy']}'s: more conditions (--episodes) would tell them "

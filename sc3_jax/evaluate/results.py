@@ -26,7 +26,7 @@ import numpy as np
 from sc3_jax import atomic, locks
 from sc3_jax.errors import UserError
 from sc3_jax.safe_names import ALLOWED, check_name, is_safe, join_inside
-from sc3_jax.validate import is_finite_number
+from sc3_jax.validate import is_finite_number, regular_file
 from sc3_jax.evaluate.metrics import OVERALL
 
 EVAL_MODES = ("real", "offline", "online")
@@ -204,8 +204,9 @@ class ResultsStore:
 
     def load_arrays(self, rid: str) -> dict:
         p = self.array_path(rid)
-        with atomic.open_npz(p, f"restore it, or delete it and {rid}'s line in {self.path} and resume the sweep"
-                                " to run it again") as z:
+        fix = f"restore it, or delete it and {rid}'s line in {self.path} and resume the sweep to run it again"
+        regular_file(p, fix, inside=self.root)  # a store's arrays are its own: no link into another store, no FIFO
+        with atomic.open_npz(p, fix) as z:
             return {k: z[k] for k in z.files}
 
 
@@ -244,11 +245,15 @@ def check_records(records: list[dict], path: Path, fix: str) -> None:
     ``"yes"``, a list), a U that is not a finite number, a missing outcome, is one line naming the record, never a
     silent rate (``success: 2`` read as 1.00 [0.00, 2.00]) or a traceback in the report."""
     first: dict[str, dict] = {}
+    seen: dict[str, int] = {}
     for i, r in enumerate(records, 1):
         def bad(problem: str):
             raise UserError(f"{path}: record {i} ({r.get('id')!r}): {problem}; {fix}")
         if not isinstance(r.get("id"), str) or r.get("mode") not in EVAL_MODES:
             bad(f"needs a text id and a mode of {list(EVAL_MODES)}")
+        if r["id"] in seen:  # a sweep writes each rollout once: a second line would silently replace the first
+            bad(f"the same rollout as record {seen[r['id']]}")
+        seen[r["id"]] = i
         if "policy" in r and not is_safe(r["policy"]):  # a directory of the store, a name every report prints
             bad(f"policy name {r['policy']!r} is not one a sweep writes ({ALLOWED})")
         for k in ("seed", "num_chunks", "stride", "length", "score_stride"):
@@ -270,8 +275,9 @@ def check_records(records: list[dict], path: Path, fix: str) -> None:
                     isinstance(v, (bool, str)) for v in o.values()) for o in r[k])):
                 bad(f"{k} must be a list of objects whose criteria are true or false")
         for k in ("u", "u_raw"):
-            if k in r and not (isinstance(r[k], list) and all(is_finite_number(x) for x in r[k])):
-                bad(f"{k} must be a list of finite numbers")
+            # U_chunk is a distance between action chunks: a negative one is no U a sweep measured
+            if k in r and not (isinstance(r[k], list) and all(is_finite_number(x) and x >= 0 for x in r[k])):
+                bad(f"{k} must be a list of finite numbers >= 0 (U_chunk, a distance)")
         # one mode, one layout: a record missing an outcome (or with other criteria) would drop out of a rate
         have = {k: sorted(r["outcomes"]) if k == "outcomes" else True for k in OUTCOME_FIELDS if k in r}
         ref = first.setdefault(r["mode"], have)

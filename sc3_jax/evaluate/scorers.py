@@ -105,6 +105,13 @@ def load_outcome_scorer(spec: str) -> Callable[[RolloutView], dict[str, bool]]:
     fn = fn if callable(fn) else obj
     if not callable(fn):
         raise UserError(f"--scorer {spec!r}: {type(obj).__name__} is neither callable nor has a score method")
+    try:  # it is called with one RolloutView: a function taking none (os:getcwd) is said now, not after the rollouts
+        inspect.signature(fn).bind(None)
+    except TypeError:
+        raise UserError(f"--scorer {spec!r}: takes {inspect.signature(fn)}, not one RolloutView; give a function "
+                        "or class taking a RolloutView and returning {criterion: bool}") from None
+    except ValueError:  # no signature to read (some builtins): its first call says
+        pass
     return fn
 
 

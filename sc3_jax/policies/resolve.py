@@ -15,12 +15,14 @@ e.g. ``served=ws://10.0.0.2:8000@bussing``. The sweep needs a task for every pol
 from __future__ import annotations
 
 import dataclasses
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from sc3_jax import module_attr
 from sc3_jax.data.action_space import ActionSpace
-from sc3_jax.policies.base import HostPolicy, JaxPolicy
 from sc3_jax.policies.openpi_mappings import ObsMapping
+
+if TYPE_CHECKING:
+    from sc3_jax.policies.base import HostPolicy, JaxPolicy
 
 TASKS = ("bussing", "reverse")
 LEROBOT = "lerobot:"
@@ -94,4 +96,13 @@ def load_object(spec: str) -> JaxPolicy | HostPolicy:
 
 
 def _is_policy(obj) -> bool:
+    from sc3_jax.policies.base import JaxPolicy  # here: a name is parsed (a report reads a store's) without JAX
+
     return isinstance(obj, JaxPolicy) or callable(getattr(obj, "infer", None))
+
+
+def name_of(spec: str) -> str:
+    """The name a policy spec gives its records (``NAME=`` or the spec itself): what a store's ``policy_names``
+    says, derived from its ``policies`` without building any policy."""
+    name, body, _ = parse(spec)
+    return name or body

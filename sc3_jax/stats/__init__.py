@@ -6,6 +6,7 @@
     interval        the percentile interval of bootstrap draws, and a point estimate summarised with it
     floor           the policy-blind floor: the guess an evaluator's r and MMRV must beat
     split_half      the split-half noise ceiling: random halves of the real data, and its point value
+    rank_first      P(best): the share of draws in which a policy ranks first, ties split evenly
 
 The bottom floor of the package: pure numpy, no jax, and no import of any other ``sc3_jax`` module
 (``tests/test_imports.py`` holds it to that), so the report, diagnostics and training read the same definitions.
