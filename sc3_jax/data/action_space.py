@@ -298,7 +298,8 @@ class ActionSpace:
 
 
 FIELDS = ("kind", "dim", "names", "targets", "measured", "gain", "low", "high")
-FIT_MIN_R2 = 0.5  # a dimension whose best state entry explains less of its step changes moves nothing recorded
+FIT_MIN_R2 = 0.25  # a dimension whose best state entry explains less of its step changes moves nothing recorded
+# (SO-101 explains 0.37-0.50: its arm lags, saturates and stops on the table; unrelated entries stay under 0.05)
 
 
 def fit_measured(space: ActionSpace, episodes, dt: float) -> ActionSpace:
