@@ -36,6 +36,7 @@ kept frames and states (a ``RolloutView``, as the sweep's) and ``info["final_inf
 side, so a frame is held for a chunk."""
 from __future__ import annotations
 
+import fractions
 import math
 from pathlib import Path
 
@@ -136,7 +137,9 @@ class WorldModelVecEnv(gym.vector.VectorEnv):
         self.single_action_space = gym.spaces.Box(-np.inf, np.inf, (s.action_dim,), np.float32)
         self.observation_space = gym.vector.utils.batch_space(self.single_observation_space, self.num_envs)
         self.action_space = gym.vector.utils.batch_space(self.single_action_space, self.num_envs)
-        self.metadata = {"render_modes": ["rgb_array"], "render_fps": s.ratio / s.model_dt,
+        fps = s.ratio / s.model_dt  # policy actions per second; an int where it is one: video writers want an int
+        self.metadata = {"render_modes": ["rgb_array"], "render_fps": int(round(fps)) if abs(fps - round(fps)) < 1e-9
+                         else fractions.Fraction(fps).limit_denominator(1000),
                          "autoreset_mode": gym.vector.AutoresetMode.SAME_STEP}
         self.render_mode = "rgb_array"
         self._jax = jax
