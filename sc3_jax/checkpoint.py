@@ -264,6 +264,41 @@ def _orbax_item(path: Path, step: int | None) -> tuple[Path, bool]:
     return path.absolute() / "checkpoints" / str(step) / "state", True
 
 
+def identity(path: str | Path, step: int | None = None) -> dict:
+    """What a store records of the saved model at ``path`` that its rollouts came from: ``{"sha256": ...,
+    "step": N}`` -- a content hash of the files that decide them (config.json, norm_stats.json, the params that
+    :func:`load_params` reads: params.npz, params/ or the checkpoint of ``step``, default the latest; a learned
+    tokenizer's files, the learned state head) and the training step of a workdir's checkpoint (None for an export,
+    which records none). Cheap: one sha256 pass over a few MB to a few hundred."""
+    path = Path(path)
+    cfg = read_config(path)
+    files = [("config.json", path / "config.json"), ("norm_stats.json", path / "norm_stats.json"),
+             ("state_head.npz", path / "state_head.npz")]
+    if (path / "params.npz").exists():
+        files.append(("params.npz", path / "params.npz"))
+    else:
+        item, in_state = _orbax_item(path, step)
+        step = int(item.parent.name) if in_state else None
+        files += [(f"params/{f.relative_to(item)}", f) for f in sorted(item.rglob("*")) if f.is_file()]
+    tok = Path(cfg.model.tokenizer_path) if cfg.model.tokenizer == "conv_ae" and cfg.model.tokenizer_path else None
+    if tok is not None and tok.is_dir():  # a few MB; a pretrained video VAE (GBs) is named by its path in config.json
+        files += [(f"tokenizer/{f.relative_to(tok)}", f) for f in sorted(tok.rglob("*")) if f.is_file()]
+    return {"sha256": files_sha256([(n, f) for n, f in files if f.is_file()]), "step": step}
+
+
+def files_sha256(files: list[tuple[str, Path]]) -> str:
+    """sha256 over (name, size, bytes) of each file, in the order given: a renamed, cut or edited file changes it."""
+    import hashlib
+
+    h = hashlib.sha256()
+    for name, f in files:
+        h.update(f"{name}\0{f.stat().st_size}\0".encode())
+        with open(f, "rb") as fh:
+            for block in iter(lambda: fh.read(1 << 22), b""):
+                h.update(block)
+    return h.hexdigest()
+
+
 def _load_npz(path: Path, target) -> dict:
     """``{"a/b/c": array}`` (written by :func:`save`) -> params placed as ``target`` says."""
     with atomic.open_npz(path, NPZ_FIX) as z:

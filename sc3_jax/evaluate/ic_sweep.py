@@ -32,6 +32,12 @@ states, U). A rerun skips every rollout whose line exists; a killed run redoes a
 
 ``--real`` sources are written to ``real.json`` beside (not in) ``sweep.json``: they change the report, not the
 rollouts, so a store is re-reported against other real outcomes without rolling out again.
+
+``sweep.json`` also records what the rollouts came from (:func:`with_identity`, for this sweep and the simulated
+benchmark's): the world model's content hash and training step (``checkpoint.identity``: a path names a workdir
+that may train on), and the content hash of the scorer and of each policy where they are files. Resuming against
+a changed one is refused in one line naming both; a store written before these were recorded resumes with a note
+and records none (nothing says what its first rollouts came from, so no later hash could vouch for them).
 """
 from __future__ import annotations
 
@@ -186,11 +192,13 @@ def _resolve(specs: tuple[str, ...], chunk: int, mappings: dict, action_space, n
     return out
 
 
-def trained_on(store, ids, train_path: str) -> int | None:
+def trained_on(store, ids, train_path: str | Path | None) -> int | None:
     """How many of the episodes ``ids`` of ``store`` are in the world model's training store (``train_path``): all
     when it is the same store, else those imported from the same LeRobot dataset with the same episode_index (other
     stores' episode ids say nothing: two simulator stores both begin at ep000000); None when the training store is
-    not here to compare."""
+    not here to compare (or unknown: None, a relative data.path, ``checkpoint.training_store``)."""
+    if train_path is None:
+        return None
     train = Path(train_path)
     if not (train / "dataset.json").exists():
         return None
@@ -202,6 +210,99 @@ def trained_on(store, ids, train_path: str) -> int | None:
         return (meta["lerobot_root"], meta["episode_index"]) if "lerobot_root" in meta else None
     seen = {key(train, p.name) for p in train.iterdir() if (p / "meta.json").exists()} - {None}
     return sum(key(Path(store.root), e) in seen for e in ids)
+
+
+# sweep.json's record of what its rollouts came from (with_identity)
+IDENTITY_KEYS = ("world_model_sha256", "world_model_step", "scorer_sha256", "policies_sha256")
+
+
+def identity(world_model: str | None, scorer: str | None, policies: list[tuple[str, str]]) -> dict:
+    """The identity fields of a sweep's ``sweep.json``: the world model's content hash and step
+    (``checkpoint.identity``; none when ``world_model`` is None, a sweep that reads no model), the ``scorer``
+    spec's hash and each (name, spec) of ``policies`` whose spec names files (:func:`spec_sha256`)."""
+    from sc3_jax import checkpoint
+
+    out = {}
+    if world_model is not None:
+        wm = checkpoint.identity(world_model)
+        out.update(world_model_sha256=wm["sha256"], world_model_step=wm["step"])
+    scored = spec_sha256(scorer) if scorer else None
+    if scored:
+        out["scorer_sha256"] = scored
+    acting = {name: spec_sha256(spec) for name, spec in policies}
+    if any(acting.values()):
+        out["policies_sha256"] = {n: h for n, h in acting.items() if h}
+    return out
+
+
+def spec_sha256(spec: str) -> str | None:
+    """The content hash of the files a --scorer / --policies spec names: a ``package.module:attr``'s source file, a
+    ``detector:DIR`` or ``lerobot:PATH`` directory; None for a server, a built-in or a benchmark's own name (those
+    are not files of the user's, or not files at all)."""
+    import importlib.util
+
+    from sc3_jax import checkpoint
+    from sc3_jax.policies.resolve import parse
+
+    try:
+        body = parse(spec)[1]
+    except ValueError:
+        return None
+    for prefix in ("detector:", "lerobot:"):
+        if body.startswith(prefix):
+            root = Path(body[len(prefix):])
+            files = [root] if root.is_file() else sorted(f for f in root.rglob("*") if f.is_file())
+            return checkpoint.files_sha256([(str(f.relative_to(root)) if f != root else f.name, f) for f in files]) \
+                if files else None
+    if "://" in body or ":" not in body:
+        return None
+    try:  # imported already (the spec was resolved): its module's file
+        found = importlib.util.find_spec(body.partition(":")[0])
+    except (ImportError, ValueError):
+        return None
+    origin = Path(found.origin) if found is not None and found.origin else None
+    return checkpoint.files_sha256([(origin.name, origin)]) if origin is not None and origin.is_file() else None
+
+
+def with_identity(out: str | Path, config: dict, ident: dict) -> dict:
+    """``config`` (a sweep.json to be) with the identity fields ``ident`` (:func:`identity`), after checking them
+    against the store ``out`` already holds: a resume against another world model (its workdir trained on, or
+    another export at the same path), scorer or policy file is refused in one line naming the old and the new.
+    A store whose rollouts were recorded before sweep.json named their model is accepted with a note and
+    ``config`` returned as it is: it records nothing new (nothing says what its first rollouts came from)."""
+    from sc3_jax.evaluate.results import ResultsStore
+
+    path = Path(out) / "sweep.json"
+    if not path.is_file() or not ResultsStore(out)._holds_results():  # a new store (or one with no rollout yet)
+        return {**config, **ident}
+    old = atomic.read_json(path, "restore it from a copy, or use another --out")
+    if not isinstance(old, dict):
+        return {**config, **ident}  # not a sweep's record: the store refuses it in its own line
+    if "world_model_sha256" not in old:
+        print(f"note: {path} predates recording the world model's content hash: resumed as it was, with none "
+              "recorded (a changed model at the same path is not detected; a new --out records it)")
+        return config
+
+    def model(d):
+        step = d.get("world_model_step")
+        return f"{'an export' if step is None else f'step {step}'}, sha256 {str(d.get('world_model_sha256'))[:16]}"
+    if ident.get("world_model_sha256") not in (None, old["world_model_sha256"]):
+        raise UserError(f"{out} holds rollouts of world model {old.get('world_model')} at {model(old)}; "
+                        f"{config.get('world_model')} is now {model(ident)}: resuming would rank two models' rollouts "
+                        "together; give the model it was swept with, or use another --out")
+    if old.get("scorer_sha256") != ident.get("scorer_sha256"):
+        raise UserError(f"{out} was scored by --scorer {old.get('scorer')} with sha256 "
+                        f"{str(old.get('scorer_sha256'))[:16]}; its files are now sha256 "
+                        f"{str(ident.get('scorer_sha256'))[:16]}: resuming would mix two scorers' outcomes; restore "
+                        "it, or use another --out")
+    was, now = old.get("policies_sha256") or {}, ident.get("policies_sha256") or {}
+    changed = sorted(n for n in set(was) & set(now) if was[n] != now[n])
+    if changed:
+        n = changed[0]
+        raise UserError(f"{out} holds rollouts of policy {n!r} with sha256 {was[n][:16]}; its files are now sha256 "
+                        f"{now[n][:16]}: resuming would rank two versions of it together; restore it, name the new "
+                        "one otherwise, or use another --out")
+    return {**config, **ident}
 
 
 def cut(u: np.ndarray, tau: float) -> int:
@@ -253,7 +354,7 @@ def run(cfg: ICSweepConfig, named=None) -> Path:
         raise UserError(f"--data {cfg.initial_conditions}: {len(ids)} episodes, the sweep needs "
                         f"--episodes {cfg.episodes} + --calibration-episodes {cfg.calibration_episodes} = {want}: "
                         "lower them or give more held-out episodes")
-    seen = trained_on(store, ids, wcfg.data.path) if store else None
+    seen = trained_on(store, ids, checkpoint.training_store(cfg.world_model, wcfg)) if store else None
     if seen:
         print(f"warning: {seen} of the {len(ids)} initial conditions are episodes the world model trained on "
               f"(its data.path {wcfg.data.path}): they rank what it has seen; give held-out episodes (e.g. `sc3 data "
@@ -275,7 +376,9 @@ def run(cfg: ICSweepConfig, named=None) -> Path:
             ro.check_policy(policy)
         except UserError as e:
             raise UserError(f"--policies {spec}: {e} (world model {cfg.world_model})") from None
-    results = ResultsStore(cfg.out, cfg.to_json(ids, [n for n, _, _ in policies]), lock=True)
+    config = with_identity(cfg.out, cfg.to_json(ids, [n for n, _, _ in policies]),
+                           identity(cfg.world_model, cfg.scorer, [(n, spec) for n, spec, _ in policies]))
+    results = ResultsStore(cfg.out, config, lock=True)
     try:
         if cfg.real:
             atomic.write_json(results.root / REAL_FILE, {"real": list(cfg.real)})

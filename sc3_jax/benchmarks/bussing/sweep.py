@@ -14,7 +14,9 @@ Early termination is swept after the fact: each online rollout runs once untrunc
 outcomes of the rollout cut after every chunk; a threshold tau keeps the chunks before the first one with
 U_chunk > tau, which are exactly the frames a rollout run with that tau would have produced.
 
-Results go to a results store (``results.py``: ``sweep.json``, ``results.jsonl``, one npz per rollout). A killed
+Results go to a results store (``results.py``: ``sweep.json``, ``results.jsonl``, one npz per rollout);
+``sweep.json`` records the world model's content hash and step (``evaluate/ic_sweep.py``'s ``with_identity``: a
+resume against a changed model is refused, a store from before the hash resumes with a note). A killed
 sweep restarted with the same config skips every rollout whose line exists and redoes only the work in flight: one
 real rollout, or one world-model batch (``batch`` initial conditions are rolled out together, and a batch is always
 the same set, so results do not depend on where a sweep was killed).
@@ -142,6 +144,7 @@ def run_sweep(cfg: SweepConfig) -> Path:
     from sc3_jax.benchmarks.bussing.real_workers import RealJob, RealSetup, default_workers, run_real_jobs
     from sc3_jax.benchmarks.bussing.scorers import PerceptionScorer
     from sc3_jax.benchmarks.bussing.policy_eval import make_env
+    from sc3_jax.evaluate.ic_sweep import identity, with_identity
 
     cfg = dataclasses.replace(cfg, degradations=degradations_choice(cfg.degradations))
     bad = [m for m in cfg.modes if m not in EVAL_MODES]
@@ -184,6 +187,11 @@ def run_sweep(cfg: SweepConfig) -> Path:
     copies = real_to_copy(cfg.real_from, config, {n: t for n, t, _ in policies},
                           [(policies[p][0], s) for p, s in real_seeds], image_size, score_stride,
                           ResultsStore(out).done()) if cfg.real_from else []
+    # what the rollouts come from (ic_sweep.with_identity): a resume against a changed model is refused; the model
+    # is hashed whenever it is there to read, so a real-only resume cannot re-stamp another model's online rollouts
+    reads_model = bool(wm_modes) or (Path(cfg.world_model) / "config.json").is_file()
+    config = with_identity(out, config, identity(cfg.world_model if reads_model else None, None,
+                                                 [(n, spec) for (n, _, _), spec in zip(policies, specs)]))
     store = ResultsStore(out, config, lock=True)
     try:
         link_real(store, cfg.real_from, copies)
