@@ -5,6 +5,8 @@ import ast
 import errno
 import importlib
 import importlib.util
+import os
+import signal
 import sys
 import textwrap
 
@@ -67,6 +69,9 @@ def usage() -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run ``sc3 ARGV``; returns its exit status. ``argv`` None: this process is the command (the ``sc3`` script,
+    ``python -m sc3_jax.cli``), whose Ctrl-C ends it here (:func:`_interrupted`)."""
+    own_process = argv is None
     argv = sys.argv[1:] if argv is None else argv
     if not argv or argv[0] in ("-h", "--help"):
         print(usage())
@@ -80,8 +85,12 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return cmd(argv[1:])
     except KeyboardInterrupt:  # Ctrl-C: one line, not a traceback from wherever the command was
+        before = _sigint(signal.SIG_IGN)  # a second Ctrl-C while the line is written: no traceback
         print(f"\nsc3 {argv[0]}: interrupted; nothing half-written is left; "
               f"{RESUME.get(argv[0], 'run it again to redo it')}", file=sys.stderr)
+        if own_process:
+            _interrupted()
+        _sigint(before)
         return 130
     except (FileNotFoundError, FileExistsError, UserError) as e:  # expected faults: the one-line message says it all
         print(f"sc3 {argv[0]}: error: {e}", file=sys.stderr)
@@ -92,6 +101,29 @@ def main(argv: list[str] | None = None) -> int:
         print(f"sc3 {argv[0]}: error: cannot write {e.filename or ''}: {e.strerror}; choose another place (or free "
               "space there)", file=sys.stderr)
         return 2
+
+
+def _sigint(handler):
+    """Set SIGINT's handler (None: leave it); the one it had, or None off the main thread (where none can be set)."""
+    if handler is None:
+        return None
+    try:
+        return signal.signal(signal.SIGINT, handler)
+    except ValueError:
+        return None
+
+
+def _interrupted() -> None:
+    """Exit 130 now, without the interpreter's teardown. An interrupt leaves XLA's compile threads and orbax's async
+    checkpoint threads mid-work: tearing the interpreter down under them segfaulted (exit 139) or waited on them for
+    ever. Nothing is lost by skipping it: every writer is atomic, and the command's own cleanup (its ``finally``
+    blocks: locks released, temporaries removed, worker pools terminated) ran as the interrupt unwound to here."""
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError):  # a closed pipe: nothing more to say there
+            pass
+    os._exit(130)
 
 
 if __name__ == "__main__":

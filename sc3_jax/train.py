@@ -275,14 +275,21 @@ def restore(mngr: ocp.CheckpointManager, cfg: Config, mesh, step: int | None = N
 # Metrics
 # ================================================================================================================
 class MetricsLog:
-    """One JSON line per step in ``workdir/metrics.jsonl`` (appended across restarts) and TensorBoard events."""
+    """One JSON line per step in ``workdir/metrics.jsonl`` (appended across restarts, each step once) and
+    TensorBoard events."""
 
-    def __init__(self, workdir: Path, tensorboard: bool):
+    def __init__(self, workdir: Path, tensorboard: bool, resumed_at: int | None = None):
+        """``resumed_at``: the step of the checkpoint the run starts from (0 fresh; None: keep every row). The rows
+        after it were logged by an attempt stopped before its next checkpoint; those steps run again, so their old
+        rows are dropped (the file rewritten whole, renamed over the old: a kill here loses nothing) before the new
+        ones are appended."""
         self.path = workdir / "metrics.jsonl"
         self.is_primary = jax.process_index() == 0
         self.tb = None
         if self.is_primary:  # a line cut by a kill would be glued to the next one: drop it (its step reruns)
             atomic.drop_cut_line(self.path)
+            if resumed_at is not None:
+                drop_rows_after(self.path, resumed_at)
         if tensorboard and self.is_primary:
             from tensorboardX import SummaryWriter
             self.tb = SummaryWriter(str(workdir / "tensorboard"))
@@ -303,6 +310,25 @@ class MetricsLog:
     def close(self):
         if self.tb is not None:
             self.tb.close()
+
+
+def drop_rows_after(path: Path, step: int) -> int:
+    """Rewrite the metrics log ``path`` without its rows of steps after ``step`` (atomically); returns how many were
+    dropped. A line that does not read as a row is kept as it is (the log is informational: read_metrics names it)."""
+    if not path.is_file():
+        return 0
+    lines = path.read_text().splitlines(keepends=True)
+
+    def after(line: str) -> bool:
+        try:
+            row = json.loads(line)
+        except ValueError:
+            return False
+        return isinstance(row, dict) and isinstance(row.get("step"), int) and row["step"] > step
+    keep = [line for line in lines if not after(line)]
+    if len(keep) != len(lines):
+        atomic.write_text(path, "".join(keep))
+    return len(lines) - len(keep)
 
 
 def read_metrics(workdir: str | Path) -> dict[int, dict]:
@@ -498,10 +524,10 @@ def _steps(cfg: Config, workdir: Path, mesh, stop_at: int | None):
         data_iter.set_state(data_state["iterator"])
     else:
         state = create_state(cfg, mesh)
-    log = MetricsLog(workdir, cfg.train.tensorboard)
+    start = int(state["step"])
+    log = MetricsLog(workdir, cfg.train.tensorboard, resumed_at=start)
     stop = _PreemptionFlag()
     end = cfg.train.steps if stop_at is None else min(stop_at, cfg.train.steps)
-    start = int(state["step"])
     pending: list[tuple[int, dict]] = []
     last: dict = {}
     bar = _progress(start, end, cfg.train.progress and jax.process_index() == 0)

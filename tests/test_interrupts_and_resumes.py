@@ -1,0 +1,83 @@
+"""Ctrl-C ends a command with exit 130 and one line at any phase (here: `sc3 train` while it compiles, which segfaulted
+in the interpreter's teardown), and a resumed training run logs each step once in metrics.jsonl (a run stopped
+after logging steps its last checkpoint did not reach logged them again on resume)."""
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from sc3_jax import train
+from sc3_jax.config import load_config, replace
+from sc3_jax.data import synthetic
+
+SMALL = dict(dim=32, depth=1, num_heads=2, num_kv_heads=1, mlp_dim=64)  # a cheap tiny model: widths only
+
+
+@pytest.fixture
+def ctrl_c_reaches_children():
+    """SIGINT at its default in the commands started here, as in a terminal (a shell running pytest in the
+    background without job control hands it on ignored; see test_untrusted_inputs.py)."""
+    old = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, old)
+
+
+@pytest.fixture(scope="module")
+def episodes(tmp_path_factory):
+    root = tmp_path_factory.mktemp("episodes") / "store"
+    synthetic.generate(root, 4, length=24, seed=0)
+    return root
+
+
+def test_ctrl_c_while_sc3_train_compiles_exits_130_in_one_line(episodes, tmp_path, ctrl_c_reaches_children):
+    run = tmp_path / "run"
+    cmd = [sys.executable, "-m", "sc3_jax.cli", "train", "--config", "tiny", "--data", str(episodes), "--batch", "8",
+           "--train.workdir", str(run), "--train.steps", "50", "--train.no-progress",
+           "--train.no-tensorboard", *[a for k, v in SMALL.items() for a in (f"--model.{k}", str(v))]]
+    proc = subprocess.Popen(cmd, env={**os.environ, "PYTHONUNBUFFERED": "1"}, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    seen = []
+    for line in proc.stdout:  # the sizing it prints just before train.train: then it reads the data and compiles
+        seen.append(line)
+        if "to cut it:" in line:
+            break
+    assert proc.poll() is None, (seen, proc.stderr.read()[-3000:])
+    time.sleep(2.0)  # into the compile of the train step (tens of seconds on 2 shared cores)
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, err[-3000:]
+    lines = [x for x in err.strip().splitlines() if x.strip()]
+    assert lines[-1] == ("sc3 train: interrupted; nothing half-written is left; the same command resumes from its "
+                         "last checkpoint") and "Traceback" not in err, err[-3000:]
+    assert not (run / "metrics.jsonl").exists()  # stopped before its first step: while it prepared or compiled
+
+
+def test_a_resumed_runs_log_drops_the_rows_its_checkpoint_did_not_reach(tmp_path):
+    log = tmp_path / "metrics.jsonl"
+    log.write_text("".join(json.dumps({"step": s, "loss": 1.0 / s}) + "\n" for s in range(1, 8)) + "not json\n")
+    train.MetricsLog(tmp_path, tensorboard=False, resumed_at=4).write([{"step": 5, "loss": 0.5}])
+    rows = [json.loads(x) for x in log.read_text().splitlines() if x.startswith("{")]
+    assert [r["step"] for r in rows] == [1, 2, 3, 4, 5] and rows[-1]["loss"] == 0.5
+    assert "not json" in log.read_text()  # a line that is no row is kept (read_metrics names it)
+    train.MetricsLog(tmp_path, tensorboard=False).write([{"step": 6}])  # no resume step given: nothing dropped
+    assert [json.loads(x)["step"] for x in log.read_text().splitlines() if x.startswith("{")] == [1, 2, 3, 4, 5, 6]
+
+
+@pytest.mark.slow
+def test_a_resumed_training_run_logs_each_step_once(episodes, tmp_path):
+    cfg = replace(load_config("tiny"), model=SMALL, data=dict(path=str(episodes), batch_size=8),
+                  train=dict(workdir=str(tmp_path / "run"), steps=4, log_every=1, ckpt_every=2, progress=False,
+                             tensorboard=False, async_checkpointing=False))
+    train.train(cfg)
+    run = Path(cfg.train.workdir)
+    assert {2, 4} <= {int(p.name) for p in (run / "checkpoints").iterdir() if p.name.isdigit()}
+    shutil.rmtree(run / "checkpoints" / "4")  # stopped after logging steps 3-4, before their checkpoint was kept
+    train.train(replace(cfg, train=dict(steps=6)))  # resumes at step 2: steps 3-6 run (3-4 again)
+    steps = [json.loads(x)["step"] for x in (run / "metrics.jsonl").read_text().splitlines()]
+    assert steps == [1, 2, 3, 4, 5, 6]
