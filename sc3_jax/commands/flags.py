@@ -46,6 +46,9 @@ OLD = {"--checkpoint": WORLD_MODEL,
 POSITIONAL = {"diagnose": WORLD_MODEL, "train-state": WORLD_MODEL, "diagnose-table": WORLD_MODEL,
               "train-detector": DATA, "data import-lerobot": DATA, "data export-lerobot": DATA}
 
+# commands whose store is their positional argument (sc3 report RESULTS): an old store flag is respelt as it
+STORE_POSITIONAL = {"report": "RESULTS", "rescore": "RESULTS"}
+
 # where a refused flag's new spelling lives when the command itself does not take it
 ELSEWHERE = {SAMPLE_STEPS: "the sampler's steps are chosen where a world model is sampled: sc3 sweep, rollout, "
                            "diagnose, plan --sample-steps N (a config file's sample.steps is the model's own)",
@@ -112,16 +115,6 @@ def arity(args: type, prefix: str = "") -> dict[str, int]:
     return out
 
 
-def _positionals(args: type) -> list[str]:
-    """The metavars (RESULTS, SRC) of the positional fields of the dataclass ``args``."""
-    try:
-        hints = typing.get_type_hints(args, include_extras=True)
-    except (NameError, TypeError):
-        return []
-    return [f.name.upper() for f in dataclasses.fields(args)
-            if any(m is tyro.conf.Positional for m in _unwrap(hints[f.name])[1])]
-
-
 def _strays(argv: list[str], takes: dict[str, int]) -> list[int]:
     """Indices of the tokens of ``argv`` that no option takes as its value: positional arguments."""
     out, i = [], 0
@@ -158,9 +151,9 @@ def refuse_old_spellings(command: str, argv: list[str], args: type) -> None:
     if not said:
         return
     missing = sorted({new for _, new in said if new not in takes})
-    place = _positionals(args)
-    if missing and all(m in (DATA, WORLD_MODEL) for m in missing) and len(place) == 1:
-        # a command whose store (or model) is its positional argument: the value moves there, not to an option
+    what = ", ".join(f"{old} is now {new}" for old, new in said)
+    if missing == [DATA] and command in STORE_POSITIONAL:
+        # the store is this command's positional argument: the value moves there, not to an option it does not take
         values, rest, i = [], [], 0
         while i < len(argv):
             t, i = argv[i], i + 1
@@ -170,10 +163,8 @@ def refuse_old_spellings(command: str, argv: list[str], args: type) -> None:
                 values.append(t.split("=", 1)[1])
             elif i < len(argv):
                 values, i = values + [argv[i]], i + 1
-        olds = ", ".join(sorted({old for old, new in said if new in missing}))
-        raise UserError(f"sc3 {command} takes its {place[0]} as the positional argument, not {olds}: "
-                        f"sc3 {command} {shlex.join(values + rest)}")
-    what = ", ".join(f"{old} is now {new}" for old, new in said)
+        raise UserError(f"{what}, which sc3 {command} does not take: its store is the positional "
+                        f"{STORE_POSITIONAL[command]}: sc3 {command} {shlex.join(values + rest)}")
     if missing:
         where = "; ".join(ELSEWHERE.get(m, f"`sc3 {command} --help` lists its options") for m in missing)
         raise UserError(f"{what}, which sc3 {command} does not take: {where}")
