@@ -111,7 +111,9 @@ def readouts(eps):
     maps = af.fit_image_map(chunks, lambda e: arm_locator, ["front", "wrist"], SPACE, DT)
     assert maps[1]["map"] is None and maps[0]["r2"][0] > 0.99 and maps[0]["r2"][1] > 0.99  # the wrist says nothing
     moved = mv.moved(SPACE, Store())
-    return [af.HeadReadout(head_read, moved, Store.state_names),
+    fs = af.fit_state_map([(s["actions"][0], eps[s["episode"]].state[[s["start"], s["start"] + N]])
+                           for s in starts(eps, every=3)], SPACE, DT, (0, 1), af.cols_of(moved, (0, 1)))
+    return [af.HeadReadout(head_read, moved, Store.state_names, fs["map"], (0, 1)),
             af.PixelReadout(0, ["front", "wrist"], lambda e: arm_locator, maps[0]["map"])], moved
 
 
@@ -232,3 +234,14 @@ def test_a_carried_block_is_kept_by_a_replay_and_lost_by_a_model_that_leaves_it(
     blk = sec["objects"]["block: front"]["times"]["2 s"]["imagined"]
     assert blk["n"] == 2 and blk["value"] > 0  # the blank episode's block is lost (counted apart), the left one off
     assert sec["objects"]["block: front"]["times"]["2 s"]["imagined"]["lost"] == 1
+
+
+def test_the_state_map_gives_the_commanded_displacement_in_the_states_own_units():
+    """A robot whose velocity unit moves its state 2 units a second (SO-101: dx 1 is 0.025 m/s): the fitted map
+    reads 2 on the diagonal, so a gain of 1 means the state moved as far as the commands move the real robot."""
+    eps = episodes()
+    chunks = [(s["actions"][0], 2 * eps[s["episode"]].state[[s["start"], s["start"] + N]]) for s in starts(eps, 3)]
+    fs = af.fit_state_map(chunks, SPACE, DT, (0, 1), [0, 1])
+    np.testing.assert_allclose(fs["map"][:2], 2 * np.eye(2), atol=1e-6)
+    assert fs["map"][2].tolist() == [0.0, 0.0] and min(fs["r2"]) > 0.999
+    assert af.fit_state_map(chunks[:5], SPACE, DT, (0, 1), [0, 1])["map"] is None  # too few chunks to fit

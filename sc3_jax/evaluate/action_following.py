@@ -32,6 +32,11 @@ DRAWS = 2000
 MIN_PX = 0.5  # a commanded image shift below half a pixel says nothing a centroid could read
 
 
+def cols_of(moved: mv.Moved, axes=None) -> list[int]:
+    """The state entries the shifted ``axes`` (default: every axis ``moved`` maps) move, sorted."""
+    return sorted({moved.entry_of(i) for i in (moved.axes if axes is None else axes)} - {None})
+
+
 class HeadReadout:
     """The arm as the learned state head reads it off the frames, entries ``cols`` of the state (``Moved``).
     ``read(robot0 [S], actions [n, A], frames uint8 [V, n, H, W, 3]) -> states [n, S]``. It is fed the recorded
@@ -40,15 +45,19 @@ class HeadReadout:
 
     kind = "state"
 
-    def __init__(self, read, moved: mv.Moved, state_names):
-        self.read, self.moved = read, moved
-        self.cols = sorted(set(moved.entries))
+    def __init__(self, read, moved: mv.Moved, state_names, state_map: np.ndarray | None = None, axes=None):
+        self.read, self.moved, self.map = read, moved, state_map
+        self.cols = cols_of(moved, axes)  # [A, len(cols)] is state_map's shape (fit_state_map)
         self.name = "end effector (state head): " + ", ".join(state_names[j] for j in self.cols)
 
     def position(self, start: dict, frames: np.ndarray) -> np.ndarray:
         return np.asarray(self.read(start["robot"], start["actions"], frames))[-1, self.cols]
 
     def commanded(self, axis: int, disp: float) -> np.ndarray:
+        """The state map's row (:func:`fit_state_map`: the recorded units per commanded unit) where one was fitted,
+        else the entry the axis moves, one for one."""
+        if self.map is not None:
+            return self.map[axis] * disp
         d = np.zeros(len(self.cols))
         j = self.moved.entry_of(axis)
         if j is not None:
@@ -100,6 +109,23 @@ def fit_image_map(chunks, locator, views, space, dt: float, axes=None) -> dict:
         r2 = 1 - (res ** 2).sum(0) / np.maximum(((ys[ok] - ys[ok].mean(0)) ** 2).sum(0), 1e-12)
         out[v] = {"map": J, "r2": [float(x) for x in r2], "n": int(ok.sum())}
     return out
+
+
+def fit_state_map(chunks, space, dt: float, axes, cols) -> dict:
+    """The least-squares map [A, len(cols)] from what a real chunk commands along ``axes`` to how far the recorded
+    state entries ``cols`` moved over it (no intercept; R^2 per entry): the commanded displacement in the state's own
+    units whatever the actions' scale (a velocity in [-1, 1] that moves the gripper at 0.2 m/s). ``chunks``:
+    (model-rate actions [n, A], the recorded state at the chunk's start and end [2, S])."""
+    X = np.asarray([mv.chunk_displacement(space, a, dt)[list(axes)] for a, _ in chunks]).reshape(-1, len(axes))
+    Y = np.asarray([st[1, cols] - st[0, cols] for _, st in chunks], np.float64).reshape(-1, len(cols))
+    ok = np.all(np.isfinite(Y), 1)
+    if ok.sum() < max(8, 2 * len(axes)):
+        return {"map": None, "r2": [math.nan] * len(cols), "n": int(ok.sum())}
+    J = np.zeros((space.dim, len(cols)))
+    J[list(axes)] = np.linalg.lstsq(X[ok], Y[ok], rcond=None)[0]
+    res = Y[ok] - X[ok] @ J[list(axes)]
+    r2 = 1 - (res ** 2).sum(0) / np.maximum(((Y[ok] - Y[ok].mean(0)) ** 2).sum(0), 1e-12)
+    return {"map": J, "r2": [float(x) for x in r2], "n": int(ok.sum())}
 
 
 def shifted(actions: np.ndarray, axes, std: np.ndarray, fraction: float) -> list[tuple[str, int, float, np.ndarray]]:

@@ -72,10 +72,14 @@ def plan(p, store, head, locators, stages) -> Follow:
         return cache[e]
     objects = dict(locators.objects) if locators else {}
     readouts, maps, axes = [], {}, tuple(moved.axes) or tuple(range(space.dim))
-    if read is not None:
-        readouts.append(af.HeadReadout(read, moved, store.state_names))
     if "counterfactual" in stages:
-        fitted = af.fit_image_map(_real_chunks(p), arm, p.views, space, p.tf.spec.model_dt, axes)
+        chunks = _real_chunks(p)
+        if read is not None:
+            fs = af.fit_state_map([(a, st) for _, a, _, st in chunks if st is not None], space, p.tf.spec.model_dt,
+                                  axes, af.cols_of(moved, axes))
+            maps["state"] = {"r2": fs["r2"], "n": fs["n"]}
+            readouts.append(af.HeadReadout(read, moved, store.state_names, fs["map"], axes))
+        fitted = af.fit_image_map([c[:3] for c in chunks], arm, p.views, space, p.tf.spec.model_dt, axes)
         for v in p.third:
             maps[p.views[v]] = {"r2": fitted[v]["r2"], "n": fitted[v]["n"]}
             if fitted[v]["map"] is not None:
@@ -92,8 +96,9 @@ def plan(p, store, head, locators, stages) -> Follow:
 
 
 def _real_chunks(p):
-    """(episode, model-rate actions [l', A], real frames at the chunk's start and end [V, 2, H, W, 3]) of a chunk
-    from every stride-th frame of every episode (the image map needs more chunks than the teacher-forced starts)."""
+    """(episode, model-rate actions [l', A], real frames at the chunk's start and end [V, 2, H, W, 3], the recorded
+    state there [2, S] or None) of a chunk from every stride-th frame of every episode (the maps need more chunks
+    than the teacher-forced starts)."""
     from sc3_jax import rollout as ro_mod
     out = []
     s = p.tf.spec
@@ -102,7 +107,8 @@ def _real_chunks(p):
         acts_all = np.asarray(ep.actions)
         for f0 in range(p.off, ep.length - span, p.stride):
             acts = ro_mod.chunk_actions(acts_all[f0:], s)[0]
-            out.append((e, acts, np.stack([np.asarray(ep.frames[v])[[f0, f0 + span]] for v in p.views])))
+            state = None if getattr(ep, "state", None) is None else np.asarray(ep.state, np.float64)[[f0, f0 + span]]
+            out.append((e, acts, np.stack([np.asarray(ep.frames[v])[[f0, f0 + span]] for v in p.views]), state))
     return out
 
 

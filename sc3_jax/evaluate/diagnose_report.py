@@ -158,7 +158,9 @@ def _counterfactual_lines(cf: dict) -> tuple[str, list[str]]:
         return "", [cf.get("note", "not measured")]
     from sc3_jax.evaluate.diagnose_headline import cell
     L = [f"- {n}" for n in cf["notes"]]
-    L += [f"- image map (what a real chunk commands -> how far the arm moved in the image), R^2 (row, col) in "
+    L += [f"- state map (what a real chunk commands -> how far the recorded state moved), R^2 per entry: "
+          f"{', '.join(_f(x) for x in m['r2'])} over {m['n']} chunks" if v == "state" else
+          f"- image map (what a real chunk commands -> how far the arm moved in the image), R^2 (row, col) in "
           f"{v}: {_f(m['r2'][0])}, {_f(m['r2'][1])} over {m['n']} chunks" for v, m in cf["image_map"].items()]
     L += ["", "| read-out | axis | cosine | gain | pairs |", "|---|---|---|---|---|"]
     for name, r in cf["readouts"].items():
