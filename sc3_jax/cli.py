@@ -118,6 +118,12 @@ def _interrupted() -> None:
     checkpoint threads mid-work: tearing the interpreter down under them segfaulted (exit 139) or waited on them for
     ever. Nothing is lost by skipping it: every writer is atomic, and the command's own cleanup (its ``finally``
     blocks: locks released, temporaries removed, worker pools terminated) ran as the interrupt unwound to here."""
+    mp_util = sys.modules.get("multiprocessing.util")
+    if mp_util is not None:  # a terminated worker pool's semaphores, released (else the resource tracker warns of
+        try:  # them after this command's last line); the finalizers the interpreter's exit would run first
+            mp_util._run_finalizers(0)
+        except Exception:  # noqa: BLE001  (exiting regardless: a finalizer's fault changes nothing)
+            pass
     for stream in (sys.stdout, sys.stderr):
         try:
             stream.flush()

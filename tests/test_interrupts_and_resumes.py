@@ -58,6 +58,38 @@ def test_ctrl_c_while_sc3_train_compiles_exits_130_in_one_line(episodes, tmp_pat
     assert not (run / "metrics.jsonl").exists()  # stopped before its first step: while it prepared or compiled
 
 
+@pytest.mark.slow
+def test_ctrl_c_while_a_sweeps_workers_run_exits_130_in_one_line(tmp_path, ctrl_c_reaches_children):
+    """`sc3 sweep bench --workers 2`: spawned workers roll out in the simulator when Ctrl-C reaches the whole
+    process group; the command's line is the last (no worker traceback, no resource tracker's warning after it),
+    and the store resumes."""
+    import jax
+
+    from sc3_jax.benchmarks.bussing import perception
+    from test_sweep import tiny_world_model
+
+    wm = tiny_world_model(tmp_path)
+    perception.save(tmp_path / "perception.npz", perception.init(jax.random.key(1)))
+    out = tmp_path / "out"
+    cmd = [sys.executable, "-m", "sc3_jax.cli", "sweep", "bench", "--world-model", str(wm), "--perception",
+           str(tmp_path / "perception.npz"), "--episodes", "2", "--calibration-episodes", "1", "--ceiling-episodes",
+           "1", "--episode-seconds", "1.6", "--batch", "2", "--workers", "2", "--no-progress", "--out", str(out)]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    results, t0 = out / "results.jsonl", time.time()
+    while proc.poll() is None and time.time() - t0 < 300 and not (results.exists() and results.read_text()):
+        time.sleep(0.2)
+    assert proc.poll() is None, proc.communicate()[1][-3000:]
+    os.killpg(proc.pid, signal.SIGINT)  # what Ctrl-C in a terminal does: every process of the group
+    _, err = proc.communicate(timeout=120)
+    time.sleep(1.0)  # a resource tracker outliving the command would write its warning by now
+    assert proc.returncode == 130, err[-3000:]
+    lines = [x for x in err.strip().splitlines() if x.strip()]
+    assert lines[-1] == ("sc3 sweep: interrupted; nothing half-written is left; the same command resumes it "
+                         "(finished rollouts are kept)") and "Traceback" not in err, err[-3000:]
+    from sc3_jax.evaluate.results import ResultsStore
+    assert ResultsStore(out).records()  # whole records kept, readable
+
+
 def test_a_resumed_runs_log_drops_the_rows_its_checkpoint_did_not_reach(tmp_path):
     log = tmp_path / "metrics.jsonl"
     log.write_text("".join(json.dumps({"step": s, "loss": 1.0 / s}) + "\n" for s in range(1, 8)) + "not json\n")

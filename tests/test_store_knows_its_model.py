@@ -32,7 +32,7 @@ def test_a_resumed_sweep_against_another_model_is_refused_naming_both(tmp_path):
     config = {"world_model": "wm", "scorer": "s:f"}
     assert ic_sweep.with_identity(out, config, IDENT) == {**config, **IDENT}  # the same model: resumed
     trained_on = {**IDENT, "world_model_sha256": "b" * 64, "world_model_step": 240}
-    with pytest.raises(UserError, match=r"world model wm at step 120, sha256 a{16}; wm is now step 240, sha256 b{16}"
+    with pytest.raises(UserError, match=r"world model wm \(step 120, sha256 a{16}\); wm is now step 240, sha256 b{16}"
                                         r": resuming would rank two models' rollouts together") as e:
         ic_sweep.with_identity(out, config, trained_on)
     assert "\n" not in str(e.value)

@@ -284,10 +284,10 @@ def with_identity(out: str | Path, config: dict, ident: dict) -> dict:
         return config
 
     def model(d):
-        step = d.get("world_model_step")
-        return f"{'an export' if step is None else f'step {step}'}, sha256 {str(d.get('world_model_sha256'))[:16]}"
+        step, sha = d.get("world_model_step"), str(d.get("world_model_sha256"))[:16]
+        return f"sha256 {sha}, an export" if step is None else f"step {step}, sha256 {sha}"
     if ident.get("world_model_sha256") not in (None, old["world_model_sha256"]):
-        raise UserError(f"{out} holds rollouts of world model {old.get('world_model')} at {model(old)}; "
+        raise UserError(f"{out} holds rollouts of world model {old.get('world_model')} ({model(old)}); "
                         f"{config.get('world_model')} is now {model(ident)}: resuming would rank two models' rollouts "
                         "together; give the model it was swept with, or use another --out")
     if old.get("scorer_sha256") != ident.get("scorer_sha256"):
