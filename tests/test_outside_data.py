@@ -159,3 +159,11 @@ def test_an_edited_policy_names_or_a_foreign_record_is_refused_naming_the_store(
         check_against_sweep(cfg, [dict(recs[0], episode="e9")], tmp_path)
     with pytest.raises(UserError, match=r"condition 5 is none of the sweep's 2"):
         check_against_sweep(cfg, [dict(recs[0], seed=5)], tmp_path)
+
+
+def test_a_sweep_whose_out_is_a_file_is_refused_before_its_first_rollout(tmp_path):
+    from sc3_jax.evaluate.results import ResultsStore
+
+    (tmp_path / "f").write_text("x")
+    with pytest.raises(UserError, match="--out .*is under .*a file, not a directory"):
+        ResultsStore(tmp_path / "f" / "sweep", {"modes": ["online"]})

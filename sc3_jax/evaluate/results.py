@@ -26,7 +26,7 @@ import numpy as np
 from sc3_jax import atomic, locks
 from sc3_jax.errors import UserError
 from sc3_jax.safe_names import ALLOWED, check_name, is_safe, join_inside
-from sc3_jax.validate import is_finite_number, regular_file
+from sc3_jax.validate import is_finite_number, out_dir, regular_file
 from sc3_jax.evaluate.metrics import OVERALL
 
 EVAL_MODES = ("real", "offline", "online")
@@ -109,6 +109,7 @@ class ResultsStore:
     def _check_config(self, config: dict):
         """Refuse (writing nothing) a store of another sweep, or one whose sweep is unknown or whose records do
         not read; then drop a line cut by a kill and write ``sweep.json``."""
+        out_dir(self.root, "--out")  # a file there (or above): one line before the first rollout, not after it
         cfg_path = self.root / "sweep.json"
         # modes may be added to a store (records are per mode); anything else that changes results may not.
         # real_from only says where identical real rollouts were copied from (the source may move later)
