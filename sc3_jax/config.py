@@ -298,7 +298,7 @@ class TrainConfig:
     lr: float = 1e-4
     """peak learning rate: linear warm-up from 0, then cosine decay to 0 at train.steps"""
     warmup_steps: int | None = None
-    """steps of linear learning-rate warm-up (None: a thirtieth of train.steps, 1-100); the rate then decays to 0 at
+    """steps of linear learning-rate warm-up (None: a thirtieth of train.steps, at most 100); the rate then decays to 0 at
     train.steps, and a warm-up as long as the run is refused"""
     weight_decay: float = 0.05
     """AdamW weight decay, on weight matrices only (not on norms, biases or embeddings)"""

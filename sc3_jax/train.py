@@ -30,8 +30,9 @@ from sc3_jax.validate import check_host_memory
 # State
 # ================================================================================================================
 def warmup_of(t) -> int:
-    """The run's warm-up steps: ``train.warmup_steps``, or (None) a thirtieth of the run, at least 1 and at most 100."""
-    return max(1, min(100, t.steps // 30)) if t.warmup_steps is None else int(t.warmup_steps)
+    """The run's warm-up steps: ``train.warmup_steps``, or (None) a thirtieth of the run, at most 100 (none under 30
+    steps: a smoke run of 1 step still updates)."""
+    return min(100, t.steps // 30) if t.warmup_steps is None else int(t.warmup_steps)
 
 
 def lr_schedule(t) -> optax.Schedule:
