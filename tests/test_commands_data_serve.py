@@ -231,9 +231,14 @@ def test_demo_verdicts_against_the_baselines():
 def test_demo_ends_with_a_verdict_per_check_and_where_its_outputs_are(tmp_path, monkeypatch, capsys):
     """The steps are stubbed (the real run: tests/test_learning.py, ~10 min): what the demo says about them."""
     from sc3_jax.data import synthetic
+    from sc3_jax.data.episodes import EpisodeStore
 
     made, trained = [], []
-    monkeypatch.setattr(synthetic, "generate", lambda path, n, **kw: made.append((path, n)))
+    def generate(path, n, **kw):  # an empty store: the demo reads its frame rate and state size into the model
+        made.append((path, n))
+        EpisodeStore(path, views=["cam"], fps=20, image_size=(8, 8), create=True)
+
+    monkeypatch.setattr(synthetic, "generate", generate)
     monkeypatch.setattr(demo_pieces, "train_and_evaluate", lambda cfg, heldout: trained.append(cfg) or METRICS)
     assert demo.main(["--out", str(tmp_path), "--steps", "3", "--episodes", "5"]) == 0
     out = capsys.readouterr().out.splitlines()
