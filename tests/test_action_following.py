@@ -245,3 +245,22 @@ def test_the_state_map_gives_the_commanded_displacement_in_the_states_own_units(
     np.testing.assert_allclose(fs["map"][:2], 2 * np.eye(2), atol=1e-6)
     assert fs["map"][2].tolist() == [0.0, 0.0] and min(fs["r2"]) > 0.999
     assert af.fit_state_map(chunks[:5], SPACE, DT, (0, 1), [0, 1])["map"] is None  # too few chunks to fit
+
+
+def test_a_sweep_report_shows_the_world_model_s_headline_rows_beside_it(tmp_path):
+    """The report of any sweep reads WM/diagnose.json's headline rows (diagnose_headline.beside_sweep): the
+    counterfactual cosine with its interval, against what an action-blind model and an exact follower read."""
+    import json
+
+    from sc3_jax.evaluate import diagnose_headline as H
+
+    assert H.beside_sweep(str(tmp_path)) is None and H.report_table(None) is None  # not diagnosed: no table
+    cos = {"value": 0.59, "lo": 0.49, "hi": 0.66, "n": 36}
+    res = {"episodes": [{}] * 6, "counterfactual": {"headline": "end effector", "fraction_of_std": 0.5,
+                                                    "axes": ["dx", "dy"],
+                                                    "readouts": {"end effector": {"cosine": cos, "gain": cos}}}}
+    (tmp_path / "diagnose.json").write_text(json.dumps(res))
+    title, header, rows = H.report_table(H.beside_sweep(str(tmp_path)))
+    assert "6 held-out episodes" in title and header[3] == "value"
+    assert rows[0][:4] == ["counterfactual cosine", "end effector", "-", "0.59 [0.49, 0.66]"]
+    assert "action-blind 0" in rows[0][4] and "follows exactly 1" in rows[0][4]

@@ -82,3 +82,17 @@ def test_a_shipped_sweep_store_writes_one_file_per_policy_with_its_rate(tmp_path
         assert info["sc3"]["store"] == str(src)
     with pytest.raises(UserError, match="no online records of policy 'nobody'"):
         eval_info.eval_info(records, "nobody")
+
+
+def test_sc3_report_writes_eval_info_beside_its_report(tmp_path, capsys):
+    import shutil
+
+    from sc3_jax import cli
+
+    store = tmp_path / "store"
+    shutil.copytree(ROOT / "docs" / "stores" / "so101_v3_sweep36", store)
+    assert cli.main(["report", str(store), "--real", str(store / "real.csv"), "--out", str(tmp_path / "r"),
+                     "--videos", "0", "--draws", "200"]) == 0
+    files = sorted((tmp_path / "r" / "eval_info").rglob("eval_info.json"))
+    assert len(files) == 8 and "8 eval_info.json in lerobot-eval's shape" in capsys.readouterr().out
+    assert {"per_task", "overall"} <= set(json.loads(files[0].read_text()))

@@ -88,6 +88,11 @@ def main(argv: list[str]) -> int:
     md = report.render(list(a.results), a.out, a.videos, a.taus, a.draws, scene=scene_of(a.results[0], a.benchmark),
                        real=a.real)
     t = json.loads((md.parent / "report.json").read_text())
+    from sc3_jax.evaluate import eval_info  # LeRobot's format beside ours, so a lab's dashboards read the sweep
+
+    infos = [f for r in a.results for f in eval_info.write(r, md.parent / "eval_info" / (Path(r).name if
+                                                                                         len(a.results) > 1 else ""))]
     print("\n".join(report.closing_lines(t)))
-    print(f"report: {md} (and report.html, report.json)")
+    print(f"report: {md} (and report.html, report.json; {len(infos)} eval_info.json in lerobot-eval's shape under "
+          f"{md.parent / 'eval_info'})")
     return 0

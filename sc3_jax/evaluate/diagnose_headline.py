@@ -7,6 +7,7 @@ free."""
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 KEPT_AT = "4 s"  # the secondary objects-kept row: its open-loop value at this time (the latest reached, if earlier)
 
@@ -112,3 +113,30 @@ def _unit(units: str) -> str:
     if units.startswith("robot"):
         return "(" + units + ")"
     return ""
+
+
+def beside_sweep(world_model: str) -> dict | None:
+    """The headline rows of the world model's own ``diagnose.json`` (``sc3 diagnose --world-model WM --out
+    WM/diagnose.json``: held-out episodes, not the sweep's rollouts), for a sweep's report; None without one."""
+    from sc3_jax.evaluate.diagnose_report import load_result
+
+    path = Path(world_model) / "diagnose.json"
+    if not path.is_file():
+        return None
+    res = load_result(path)
+    return {"path": str(path), "episodes": len(res.get("episodes", [])), "rows": summary_rows(res)}
+
+
+def report_table(d: dict | None):
+    """(title, header, rows) of :func:`beside_sweep`'s rows, or None where there are none."""
+    if not d or not d.get("rows"):
+        return None
+    rows = []
+    for r in d["rows"]:
+        value = cell(r) + (f" {r['units']}" if r.get("units") and _ok(r.get("value")) else "")
+        ref = ", ".join(f"{k} {v:.3g}" for k, v in (r.get("reference") or {}).items() if _ok(v))
+        rows.append([r["measure"], r.get("readout") or "-", r.get("time") or "-", value, ref or "-", str(r["n"]),
+                     r.get("note") or ""])
+    return (f"Where the imagined arm and objects go (the world model's diagnose.json, {d['episodes']} held-out "
+            "episodes; value [95% interval over episodes])",
+            ["measure", "read-out", "time", "value", "read against", "n", "note"], rows)

@@ -22,8 +22,8 @@ import numpy as np
 
 from sc3_jax import atomic
 from sc3_jax.errors import UserError
-from sc3_jax.evaluate import (bootstrap, calibrate, intervals, metrics, permanence, report_episodes, report_figures,
-                              report_html)
+from sc3_jax.evaluate import (bootstrap, calibrate, diagnose_headline, intervals, metrics, permanence,
+                              report_episodes, report_figures, report_html)
 from sc3_jax.evaluate.report_html import UNDEFINED, ci
 from sc3_jax.evaluate.report_html import fmt as _fmt
 from sc3_jax.evaluate.calibrate import object_rows as _object_rows
@@ -168,6 +168,7 @@ def bench(results, taus=None, draws: int = 2000, seed: int = 0, scene=None) -> d
         if kept:
             out["permanence"] = kept
     out["diagnose"] = _diagnose_gates(cfg["world_model"])
+    out["action_following"] = diagnose_headline.beside_sweep(cfg["world_model"])
     out["training_data"] = training_data(cfg["world_model"], {r["task"] for r in real.values()})
     out["read_from"] = str(store.root)  # the directory read (sweep.json's "out" is where the sweep wrote it)
     out["warnings"] = degenerate(policies)
@@ -454,6 +455,8 @@ def tables(t: dict) -> list[tuple[str, list[str], list[list[str]]]]:
         out.append(("World-model checkpoint gates", ["gate", "value", "threshold", "pass"],
                     [["not diagnosed: run `sc3 diagnose --world-model WORLD_MODEL --data HELDOUT --out WORLD_MODEL/diagnose.json`",
                       "-", "-", "-"]]))
+    if diagnose_headline.report_table(t.get("action_following")):
+        out.append(diagnose_headline.report_table(t["action_following"]))
     a = t["scorer_agreement"]
     out.append(("Perception scorer vs physics. Agreement per criterion on clean frames of every real rollout of the "
                 "sweep (evaluation, calibration and ceiling seeds), and on frames degraded the way generated frames "

@@ -35,7 +35,7 @@ import numpy as np
 
 from sc3_jax import atomic
 from sc3_jax.errors import UserError
-from sc3_jax.evaluate import bootstrap, calibrate, intervals
+from sc3_jax.evaluate import bootstrap, calibrate, diagnose_headline, intervals
 from sc3_jax.evaluate.report_html import ci, fmt, kept_table
 from sc3_jax.evaluate.ic_sweep import KIND, REAL_FILE
 from sc3_jax.evaluate.results import ResultsStore
@@ -103,6 +103,7 @@ def compute(results: str | Path, real: tuple[str, ...] | list[str] | None = None
         kept = closed_loop_kept(store, [r for r in recs if r["seed"] in ev_seeds], scene, draws, seed)
         if kept:
             out["permanence"] = kept
+    out["action_following"] = diagnose_headline.beside_sweep(cfg["world_model"])
     return out
 
 
@@ -319,6 +320,8 @@ def tables(t: dict) -> list[tuple[str, list[str], list[list[str]]]]:
     if t.get("permanence"):
         out.append(kept_table(t["permanence"], "closed loop: the online rollouts' frames over the real rollouts' "
                                                "from the same conditions"))
+    if diagnose_headline.report_table(t.get("action_following")):
+        out.append(diagnose_headline.report_table(t["action_following"]))
     if r and r["faithfulness"]:
         f = r["faithfulness"]
         rows = [[ROWS[k], str(f[k]["points"]), ci(f[k]["pearson"]), ci(f[k]["mmrv"]),
