@@ -361,3 +361,23 @@ def open_npz(path: str | os.PathLike, fix: str = "restore it or write it again")
             if "allow_pickle" not in str(e):
                 raise
             raise UserError(f"{path}: holds an object array (a pickle, never loaded here); {fix}") from None
+
+
+def drop_rows_after(path: str | os.PathLike, step: int) -> int:
+    """Rewrite the metrics log ``path`` without its rows of steps after ``step`` (atomically); returns how many were
+    dropped. A line that does not read as a row is kept as it is (the log is informational: read_metrics names it)."""
+    path = Path(path)
+    if not path.is_file():
+        return 0
+    lines = path.read_text().splitlines(keepends=True)
+
+    def after(line: str) -> bool:
+        try:
+            row = json.loads(line)
+        except ValueError:
+            return False
+        return isinstance(row, dict) and isinstance(row.get("step"), int) and row["step"] > step
+    keep = [line for line in lines if not after(line)]
+    if len(keep) != len(lines):
+        write_text(path, "".join(keep))
+    return len(lines) - len(keep)

@@ -9,6 +9,8 @@ import os
 import signal
 import sys
 import textwrap
+import threading
+import time
 
 # what Ctrl-C leaves, per command: the one line it ends with (every writer here is atomic, so nothing is half-written)
 RESUME = {"train": "the same command resumes from its last checkpoint",
@@ -82,10 +84,17 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     from sc3_jax.errors import UserError
 
+    if own_process:
+        _sigint(_raise_until_heard)
+        sys.unraisablehook = _quiet_interrupts
     try:
-        return cmd(argv[1:])
+        status = cmd(argv[1:])
+        if not _HEARD.is_set():
+            return status
+        raise KeyboardInterrupt  # an interrupt the command's code swallowed: still an interrupt
     except KeyboardInterrupt:  # Ctrl-C: one line, not a traceback from wherever the command was
         before = _sigint(signal.SIG_IGN)  # a second Ctrl-C while the line is written: no traceback
+        _HEARD.clear()
         print(f"\nsc3 {argv[0]}: interrupted; nothing half-written is left; "
               f"{RESUME.get(argv[0], 'run it again to redo it')}", file=sys.stderr)
         if own_process:
@@ -101,6 +110,34 @@ def main(argv: list[str] | None = None) -> int:
         print(f"sc3 {argv[0]}: error: cannot write {e.filename or ''}: {e.strerror}; choose another place (or free "
               "space there)", file=sys.stderr)
         return 2
+
+
+_HEARD = threading.Event()  # a Ctrl-C came and main has not yet written its line
+
+
+def _raise_until_heard(signum, frame):
+    """SIGINT: raise KeyboardInterrupt, and again every 2 s until main's handler takes it (longer than a command's
+    own cleanup, which a second raise would cut short). Python raises it
+    at whatever bytecode runs next; when that is a garbage-collection callback or a ``__del__`` (JAX's, under XLA's
+    compile), the interpreter prints "Exception ignored" and the command ran on to exit 0."""
+    if not _HEARD.is_set():
+        _HEARD.set()
+        threading.Thread(target=_resend, daemon=True).start()
+    raise KeyboardInterrupt
+
+
+def _quiet_interrupts(unraisable):
+    """An interrupt raised where Python cannot pass it on (a gc callback): no "Exception ignored" traceback, since
+    :func:`_raise_until_heard` raises it again; anything else as Python reports it."""
+    if not isinstance(unraisable.exc_value, KeyboardInterrupt):
+        sys.__unraisablehook__(unraisable)
+
+
+def _resend():
+    while _HEARD.is_set():
+        time.sleep(2.0)
+        if _HEARD.is_set() and signal.getsignal(signal.SIGINT) is _raise_until_heard:
+            signal.pthread_kill(threading.main_thread().ident, signal.SIGINT)
 
 
 def _sigint(handler):

@@ -134,19 +134,19 @@ def make_spec(cfg: Config, data_fps: float, num_chunks: int | None = None, *, ac
         raise UserError(f"the action space (norm_stats.json) is {space.dim}-D, the model's "
                         f"model.action_dim is {cfg.model.action_dim}")
     if not 1 <= r.keep_frames <= d.future_frames:
-        raise ValueError(f"rollout.keep_frames={r.keep_frames} must be in [1, data.future_frames={d.future_frames}]")
+        raise UserError(f"rollout.keep_frames={r.keep_frames} must be in [1, data.future_frames={d.future_frames}]")
     ratio = (r.policy_hz or r.control_hz) / r.control_hz
     if abs(ratio - round(ratio)) > 1e-6 or round(ratio) < 1:
-        raise ValueError(f"rollout.policy_hz {r.policy_hz} / control_hz {r.control_hz} is not a positive integer")
+        raise UserError(f"rollout.policy_hz {r.policy_hz} / control_hz {r.control_hz} is not a positive integer")
     ratio = int(round(ratio))
     if r.policy_chunk < r.keep_frames * ratio:  # a chunk may stop short of the discarded frames, not the kept ones
-        raise ValueError(f"rollout.policy_chunk={r.policy_chunk} < rollout.keep_frames={r.keep_frames} x {ratio}: "
+        raise UserError(f"rollout.policy_chunk={r.policy_chunk} < rollout.keep_frames={r.keep_frames} x {ratio}: "
                          "the policy must propose an action for every frame the rollout keeps")
     stride = data_fps / r.control_hz
     if abs(stride - round(stride)) > 1e-6 or round(stride) < 1:
-        raise ValueError(f"data fps {data_fps} / control_hz {r.control_hz} is not a positive integer frame stride")
+        raise UserError(f"data fps {data_fps} / control_hz {r.control_hz} is not a positive integer frame stride")
     if r.tau_units not in ("raw", "normalised"):
-        raise ValueError(f"rollout.tau_units {r.tau_units!r}: 'raw' or 'normalised'")
+        raise UserError(f"rollout.tau_units {r.tau_units!r}: 'raw' or 'normalised'")
     if num_chunks is None:
         num_chunks = math.ceil(r.episode_seconds * r.control_hz / r.keep_frames - 1e-9)
     return RolloutSpec(len(d.views), tuple(d.image_size), d.context_frames, d.future_frames, r.keep_frames,

@@ -191,6 +191,7 @@ def train(cfg: TokenizerTrainConfig, ae_cfg: ae.AEConfig, stop_at: int | None = 
         from tqdm.auto import tqdm
         bar = tqdm(total=cfg.steps, initial=start, desc="train-tokenizer", dynamic_ncols=True)
     atomic.drop_cut_line(workdir / "metrics.jsonl")  # a line cut by a kill would glue to the next one
+    atomic.drop_rows_after(workdir / "metrics.jsonl", start)  # steps past the checkpoint are trained again
     log = (workdir / "metrics.jsonl").open("a")
     t0 = time.perf_counter()
     end = cfg.steps if stop_at is None else min(stop_at, cfg.steps)

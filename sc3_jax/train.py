@@ -290,7 +290,7 @@ class MetricsLog:
         if self.is_primary:  # a line cut by a kill would be glued to the next one: drop it (its step reruns)
             atomic.drop_cut_line(self.path)
             if resumed_at is not None:
-                drop_rows_after(self.path, resumed_at)
+                atomic.drop_rows_after(self.path, resumed_at)
         if tensorboard and self.is_primary:
             from tensorboardX import SummaryWriter
             self.tb = SummaryWriter(str(workdir / "tensorboard"))
@@ -311,25 +311,6 @@ class MetricsLog:
     def close(self):
         if self.tb is not None:
             self.tb.close()
-
-
-def drop_rows_after(path: Path, step: int) -> int:
-    """Rewrite the metrics log ``path`` without its rows of steps after ``step`` (atomically); returns how many were
-    dropped. A line that does not read as a row is kept as it is (the log is informational: read_metrics names it)."""
-    if not path.is_file():
-        return 0
-    lines = path.read_text().splitlines(keepends=True)
-
-    def after(line: str) -> bool:
-        try:
-            row = json.loads(line)
-        except ValueError:
-            return False
-        return isinstance(row, dict) and isinstance(row.get("step"), int) and row["step"] > step
-    keep = [line for line in lines if not after(line)]
-    if len(keep) != len(lines):
-        atomic.write_text(path, "".join(keep))
-    return len(lines) - len(keep)
 
 
 def read_metrics(workdir: str | Path) -> dict[int, dict]:

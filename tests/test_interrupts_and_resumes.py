@@ -113,3 +113,33 @@ def test_a_resumed_training_run_logs_each_step_once(episodes, tmp_path):
     train.train(replace(cfg, train=dict(steps=6)))  # resumes at step 2: steps 3-6 run (3-4 again)
     steps = [json.loads(x)["step"] for x in (run / "metrics.jsonl").read_text().splitlines()]
     assert steps == [1, 2, 3, 4, 5, 6]
+
+
+def test_serving_a_policy_lets_ctrl_c_through_after_shutting_down():
+    """sc3 serve-policy exits 130 on Ctrl-C like every command: the server shuts down, the interrupt is not eaten."""
+    from sc3_jax.policies.openpi_server import serve_until_interrupted
+
+    class Server:
+        down = False
+
+        def serve_forever(self):
+            raise KeyboardInterrupt
+
+        def shutdown(self):
+            self.down = True
+
+    s = Server()
+    with pytest.raises(KeyboardInterrupt):
+        serve_until_interrupted(s)
+    assert s.down
+
+
+def test_a_resumed_tokenizer_logs_each_step_once(tmp_path):
+    """The tokenizer's metrics.jsonl, like the world model's, drops the rows past the checkpoint it resumes from."""
+    from sc3_jax import atomic
+
+    log = tmp_path / "metrics.jsonl"
+    log.write_text("".join(json.dumps({"step": i}) + "\n" for i in range(1, 8)) + "not json\n")
+    assert atomic.drop_rows_after(log, 4) == 3
+    assert log.read_text().splitlines() == [json.dumps({"step": i}) for i in range(1, 5)] + ["not json"]
+    assert atomic.drop_rows_after(log, 4) == 0 and atomic.drop_rows_after(tmp_path / "none.jsonl", 1) == 0

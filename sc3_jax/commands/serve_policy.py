@@ -149,6 +149,8 @@ def main(argv: list[str]) -> int:
           f"health check: http://{server.url.split('://', 1)[1]}/healthz", flush=True)
     print(f"metadata sent to every client: {json.dumps(server.metadata, default=str)}", flush=True)
     print(f"query it from our commands as --policy NAME={server.url}@TASK; Ctrl-C stops it", flush=True)
-    serve_until_interrupted(server)
-    print(f"stopped serving {server.metadata['policy']} on {server.url}")
+    try:
+        serve_until_interrupted(server)  # Ctrl-C comes through: the command exits 130
+    finally:
+        print(f"stopped serving {server.metadata['policy']} on {server.url}", flush=True)
     return 0

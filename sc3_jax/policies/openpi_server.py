@@ -340,11 +340,10 @@ def serve(policy: JaxPolicy | HostPolicy, host: str = "127.0.0.1", port: int = 8
 
 
 def serve_until_interrupted(server: PolicyServer) -> PolicyServer:
-    """Serve in this thread until KeyboardInterrupt (Ctrl-C), then shut down."""
+    """Serve in this thread until KeyboardInterrupt (Ctrl-C), then shut down and let the interrupt through (the
+    command exits 130, as every command does on Ctrl-C)."""
     try:
         server.serve_forever()
-    except KeyboardInterrupt:
-        pass
     finally:
         server.shutdown()
     return server
