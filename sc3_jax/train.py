@@ -450,7 +450,8 @@ def train(cfg: Config, mesh=None, stop_at: int | None = None) -> dict:
             if fresh:
                 before = _begin_attempt(workdir)
         for last in _steps(cfg, workdir, mesh, stop_at):
-            if lead and fresh and not started:  # the run exists from its first step: config.json says so
+            if lead and not started:  # the run exists from its first step: config.json says so; a resume that
+                # changed what a resume may (train.steps: the schedule's length) records it, so the file tells
                 atomic.write_json(workdir / "config.json", dataclasses.asdict(cfg))
                 (workdir / INCOMPLETE).unlink(missing_ok=True)
             started = True
@@ -512,6 +513,7 @@ def _steps(cfg: Config, workdir: Path, mesh, stop_at: int | None):
     end = cfg.train.steps if stop_at is None else min(stop_at, cfg.train.steps)
     pending: list[tuple[int, dict]] = []
     last: dict = {}
+    rate_at = lr_schedule(cfg.train)  # logged with every row: the rate each update used, read from the run
     bar = _progress(start, end, cfg.train.progress and jax.process_index() == 0)
     t0, n_since = time.perf_counter(), 0
     for step in range(start, end):
@@ -522,7 +524,8 @@ def _steps(cfg: Config, workdir: Path, mesh, stop_at: int | None):
         done = step + 1 == end
         preempted = stop.requested() or mngr.reached_preemption(step + 1)
         if len(pending) >= cfg.train.log_every or done or preempted:
-            rows = [{"step": s, **{k: float(v) for k, v in jax.device_get(m).items()}} for s, m in pending]
+            rows = [{"step": s, "lr": float(rate_at(s - 1)), **{k: float(v) for k, v in jax.device_get(m).items()}}
+                    for s, m in pending]
             rate = n_since / (time.perf_counter() - t0)
             rows[-1]["steps_per_s"] = rate
             log.write(rows)

@@ -111,8 +111,13 @@ def test_a_resumed_training_run_logs_each_step_once(episodes, tmp_path):
     assert {2, 4} <= {int(p.name) for p in (run / "checkpoints").iterdir() if p.name.isdigit()}
     shutil.rmtree(run / "checkpoints" / "4")  # stopped after logging steps 3-4, before their checkpoint was kept
     train.train(replace(cfg, train=dict(steps=6)))  # resumes at step 2: steps 3-6 run (3-4 again)
-    steps = [json.loads(x)["step"] for x in (run / "metrics.jsonl").read_text().splitlines()]
-    assert steps == [1, 2, 3, 4, 5, 6]
+    rows = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines()]
+    assert [r["step"] for r in rows] == [1, 2, 3, 4, 5, 6]
+    # the run's files say what it did: the rate each update used (on the resumed length's schedule from step 3) and
+    # the length it now has (a lengthened run's config.json once kept its first length)
+    six = train.lr_schedule(replace(cfg, train=dict(steps=6)).train)
+    assert [r["lr"] for r in rows[2:]] == pytest.approx([float(six(s - 1)) for s in (3, 4, 5, 6)])
+    assert json.loads((run / "config.json").read_text())["train"]["steps"] == 6
 
 
 def test_serving_a_policy_lets_ctrl_c_through_after_shutting_down():
