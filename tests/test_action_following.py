@@ -253,14 +253,15 @@ def test_a_sweep_report_shows_the_world_model_s_headline_rows_beside_it(tmp_path
     import json
 
     from sc3_jax.evaluate import diagnose_headline as H
+    from sc3_jax.evaluate.diagnose_report import beside_sweep
 
-    assert H.beside_sweep(str(tmp_path)) is None and H.report_table(None) is None  # not diagnosed: no table
+    assert beside_sweep(str(tmp_path)) is None and H.report_table(None) is None  # not diagnosed: no table
     cos = {"value": 0.59, "lo": 0.49, "hi": 0.66, "n": 36}
     res = {"episodes": [{}] * 6, "counterfactual": {"headline": "end effector", "fraction_of_std": 0.5,
                                                     "axes": ["dx", "dy"],
                                                     "readouts": {"end effector": {"cosine": cos, "gain": cos}}}}
     (tmp_path / "diagnose.json").write_text(json.dumps(res))
-    title, header, rows = H.report_table(H.beside_sweep(str(tmp_path)))
+    title, header, rows = H.report_table(beside_sweep(str(tmp_path)))
     assert "6 held-out episodes" in title and header[3] == "value"
     assert rows[0][:4] == ["counterfactual cosine", "end effector", "-", "0.59 [0.49, 0.66]"]
     assert "action-blind 0" in rows[0][4] and "follows exactly 1" in rows[0][4]

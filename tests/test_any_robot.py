@@ -425,5 +425,7 @@ def test_diagnose_takes_the_model_s_own_action_space(bimanual):
     result = diagnose.diagnose(str(tmp / "run"), store, dc, model_config=short)
     assert result["settings"]["sample_steps"] == 2 and result["gates"]
     assert result["teacher_forced"].get("available", True) and result["drift"].get("available", True)
-    assert "absolute" in result["counterfactual"]["note"]  # it displaces an end-effector pose: skipped, said why
-    assert result["counterfactual"]["note"] in diagnose.render_table(result)
+    # absolute targets are shifted themselves: the counterfactual runs for this robot too (it once said "skipped")
+    cf = result["counterfactual"]
+    assert cf.get("readouts") or cf.get("notes")
+    assert "counterfactual cosine" in diagnose.render_table(result)

@@ -7,7 +7,6 @@ free."""
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 KEPT_AT = "4 s"  # the secondary objects-kept row: its open-loop value at this time (the latest reached, if earlier)
 
@@ -115,20 +114,8 @@ def _unit(units: str) -> str:
     return ""
 
 
-def beside_sweep(world_model: str) -> dict | None:
-    """The headline rows of the world model's own ``diagnose.json`` (``sc3 diagnose --world-model WM --out
-    WM/diagnose.json``: held-out episodes, not the sweep's rollouts), for a sweep's report; None without one."""
-    from sc3_jax.evaluate.diagnose_report import load_result
-
-    path = Path(world_model) / "diagnose.json"
-    if not path.is_file():
-        return None
-    res = load_result(path)
-    return {"path": str(path), "episodes": len(res.get("episodes", [])), "rows": summary_rows(res)}
-
-
 def report_table(d: dict | None):
-    """(title, header, rows) of :func:`beside_sweep`'s rows, or None where there are none."""
+    """(title, header, rows) of ``diagnose_report.beside_sweep``'s rows, or None where there are none."""
     if not d or not d.get("rows"):
         return None
     rows = []

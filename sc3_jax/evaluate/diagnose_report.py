@@ -283,3 +283,15 @@ def verdict(result: dict) -> list[str]:
                    ("large enough to read per category" if r["n_objects"] >= r["min_objects"] else
                     f"too few to tell 0.67 from 0.75 (needs >= {r['min_objects']})"))
     return out
+
+
+def beside_sweep(world_model: str) -> dict | None:
+    """The headline rows (``diagnose_headline.summary_rows``) of the world model's own ``diagnose.json`` (``sc3 diagnose --world-model WM --out
+    WM/diagnose.json``: held-out episodes, not the sweep's rollouts), for a sweep's report; None without one."""
+    path = Path(world_model) / "diagnose.json"
+    if not path.is_file():
+        return None
+    from sc3_jax.evaluate import diagnose_headline
+
+    res = load_result(path)
+    return {"path": str(path), "episodes": len(res.get("episodes", [])), "rows": diagnose_headline.summary_rows(res)}

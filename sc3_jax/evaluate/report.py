@@ -22,8 +22,8 @@ import numpy as np
 
 from sc3_jax import atomic
 from sc3_jax.errors import UserError
-from sc3_jax.evaluate import (bootstrap, calibrate, diagnose_headline, intervals, metrics, permanence,
-                              report_episodes, report_figures, report_html)
+from sc3_jax.evaluate import (bootstrap, calibrate, diagnose_headline, diagnose_report, intervals, metrics,
+                              permanence, report_episodes, report_figures, report_html)
 from sc3_jax.evaluate.report_html import UNDEFINED, ci
 from sc3_jax.evaluate.report_html import fmt as _fmt
 from sc3_jax.evaluate.calibrate import object_rows as _object_rows
@@ -168,7 +168,7 @@ def bench(results, taus=None, draws: int = 2000, seed: int = 0, scene=None) -> d
         if kept:
             out["permanence"] = kept
     out["diagnose"] = _diagnose_gates(cfg["world_model"])
-    out["action_following"] = diagnose_headline.beside_sweep(cfg["world_model"])
+    out["action_following"] = diagnose_report.beside_sweep(cfg["world_model"])
     out["training_data"] = training_data(cfg["world_model"], {r["task"] for r in real.values()})
     out["read_from"] = str(store.root)  # the directory read (sweep.json's "out" is where the sweep wrote it)
     out["warnings"] = degenerate(policies)

@@ -35,7 +35,7 @@ import numpy as np
 
 from sc3_jax import atomic
 from sc3_jax.errors import UserError
-from sc3_jax.evaluate import bootstrap, calibrate, diagnose_headline, intervals
+from sc3_jax.evaluate import bootstrap, calibrate, diagnose_headline, diagnose_report, intervals
 from sc3_jax.evaluate.report_html import ci, fmt, kept_table
 from sc3_jax.evaluate.ic_sweep import KIND, REAL_FILE
 from sc3_jax.evaluate.results import ResultsStore
@@ -103,7 +103,7 @@ def compute(results: str | Path, real: tuple[str, ...] | list[str] | None = None
         kept = closed_loop_kept(store, [r for r in recs if r["seed"] in ev_seeds], scene, draws, seed)
         if kept:
             out["permanence"] = kept
-    out["action_following"] = diagnose_headline.beside_sweep(cfg["world_model"])
+    out["action_following"] = diagnose_report.beside_sweep(cfg["world_model"])
     return out
 
 
