@@ -8,6 +8,7 @@ import contextlib
 import gzip
 import io
 import json
+import math
 import os
 import shutil
 import tempfile
@@ -437,7 +438,48 @@ def episode_sweep_records(data):
     return damage, report_default if how == "report link" else report_episodes
 
 
-KINDS = {"episode arrays": episode_arrays, "store files": store_files, "episode sweep records": episode_sweep_records, "dataset.json": dataset_json, "results records": results_records,
+# norm_stats.json: the statistics and the action space a velocity model integrates its commands with (measured
+# state entries, gains, the recorded range); a retyped field here was a traceback, a NaN / negative std or a
+# fractional index a model run in other units without a word
+STATS_FIELDS = ["mean", "std", "pose_mean", "pose_std", "action_space"]
+SPACE_FIELDS = ["measured", "gain", "low", "high"]
+_BOTH = ["abc", 5, [None] * 7, [math.nan] * 7, [1] * 3]
+SPACE_WRONG = {"measured": [*_BOTH, None, [1.5] * 7, [True] * 7, [math.inf] * 7, [[1]] * 7, [-2] * 7, {"a": 1}],
+               "gain": [*_BOTH, None, [math.inf] * 7, [[1]] * 7, {"a": 1}],
+               "low": [*_BOTH, [math.inf] * 7, [2.0] * 7], "high": [*_BOTH, [-math.inf] * 7, [-2.0] * 7]}
+# WRONG less None: an absent or null action_space is the simulated benchmark's (files from before declarations)
+STATS_WRONG = st.one_of(st.sampled_from(["abc", "", [], [1, 2], {}, {"a": 1}, True, -1, 0, 1e308, "nan"]),
+                        st.sampled_from([[math.nan] * 7, [-1.0] * 7, [0.0] * 7, [math.inf] * 7, [1.0] * 3,
+                                         [[1.0]] * 7, ["a"] * 7]))
+
+
+def velocity_space(field: str, value) -> dict:
+    """A 7-D velocity declaration (the battery model's dimension) whose ``field`` is ``value``."""
+    space = {"kind": "velocity", "dim": 7, "names": [f"a{i}" for i in range(7)], "targets": [6],
+             "measured": [0, 1, 2, 3, 4, 5, -1], "gain": [1.0] * 7, "low": [-1.0] * 7, "high": [1.0] * 7}
+    space[field] = value
+    return space
+
+
+def norm_stats(data):
+    how = data.draw(st.sampled_from(["truncate", "retype", "action space"]), label="fault")
+    if how == "truncate":
+        return truncate("wm/norm_stats.json", data), rollout
+    if how == "retype":
+        return retype_json("wm/norm_stats.json", STATS_FIELDS, data, STATS_WRONG,
+                           optional=["pose_mean", "pose_std", "action_space"]), rollout
+    field = data.draw(st.sampled_from(SPACE_FIELDS), label="action_space field")
+    value = data.draw(st.sampled_from(SPACE_WRONG[field]), label=f"action_space.{field} =")
+
+    def damage(root: Path):
+        p = root / "wm" / "norm_stats.json"
+        d = json.loads(p.read_text())
+        d["action_space"] = velocity_space(field, value)
+        p.write_text(json.dumps(d))
+    return damage, rollout
+
+
+KINDS = {"norm_stats.json": norm_stats, "episode arrays": episode_arrays, "store files": store_files, "episode sweep records": episode_sweep_records, "dataset.json": dataset_json, "results records": results_records,
          "labels CSV": labels_csv, "world model": world_model_files, "LeRobot info.json": lerobot_info}
 
 
@@ -447,6 +489,31 @@ KINDS = {"episode arrays": episode_arrays, "store files": store_files, "episode 
 def test_every_damaged_file_kind_ends_in_one_line_and_changes_nothing_outside_out(pristine, kind, data):
     damage, argv = KINDS[kind](data)
     attack(pristine, damage, argv)
+
+
+@BATTERY
+@given(data=st.data())
+def test_every_damaged_norm_stats_field_is_refused_where_the_model_is_read(pristine, data):
+    """Not only one line from the command: the model's reader itself refuses each drawn fault (the command's line
+    could come from a later check), so no rollout ever runs in statistics it cannot trust."""
+    from sc3_jax import checkpoint
+    from sc3_jax.errors import UserError
+
+    damage, _ = norm_stats(data)
+    with tempfile.TemporaryDirectory() as tmp:
+        wm = Path(tmp) / "wm"
+        shutil.copytree(pristine / "wm", wm)
+        damage(Path(tmp))
+        if (wm / "norm_stats.json").read_bytes() == (pristine / "wm" / "norm_stats.json").read_bytes():
+            return  # nothing changed (nothing to refuse)
+        try:
+            checkpoint.read_robot(wm)
+        except UserError as e:
+            assert "\n" not in str(e) and "norm_stats.json" in str(e), str(e)
+        except Exception as e:  # noqa: BLE001  (what a user would see as a traceback)
+            raise AssertionError(f"traceback: {type(e).__name__}: {e}") from e
+        else:
+            raise AssertionError("a damaged norm_stats.json was read as a model's statistics")
 
 
 # -- options at their edges ---------------------------------------------------------------------------------------
@@ -572,6 +639,22 @@ def test_the_battery_catches_each_door_switched_off(pristine, monkeypatch, door)
         monkeypatch.setattr(t, _off)
     with pytest.raises(AssertionError):
         attack(pristine, lambda root: None, DOOR[case])
+
+
+def test_the_battery_catches_the_norm_stats_door_switched_off(pristine, monkeypatch):
+    """norm_stats.json read as it was before its door (no field checked): the battery fails on its kind."""
+    from sc3_jax.data.action_space import ActionSpace
+    from sc3_jax.data.norm_stats import NormStats
+
+    def unchecked(path):
+        d = json.loads(Path(path).read_text())
+        pose = [np.array(d[k], np.float32) if k in d else None for k in ("pose_mean", "pose_std")]
+        mean = np.array(d["mean"], np.float32)
+        return NormStats(mean, np.array(d["std"], np.float32), *pose,
+                         ActionSpace.from_dict(d.get("action_space"), mean.shape[0]))
+    monkeypatch.setattr(NormStats, "load", staticmethod(unchecked))
+    with pytest.raises((AssertionError, ExceptionGroup)):
+        test_every_damaged_norm_stats_field_is_refused_where_the_model_is_read(pristine)
 
 
 @pytest.mark.parametrize("kind, targets", [

@@ -56,8 +56,12 @@ class ActionSpace:
 
     def __post_init__(self):
         object.__setattr__(self, "names", tuple(str(n) for n in self.names) or _default_names(self.kind, self.dim))
-        object.__setattr__(self, "targets", tuple(int(i) for i in self.targets))
-        object.__setattr__(self, "measured", tuple(int(i) for i in self.measured))
+        for f in ("targets", "measured"):  # indices: whole numbers (1.5 or true read as 1 once, silently)
+            v = getattr(self, f)
+            if any(isinstance(i, bool) or not isinstance(i, (int, np.integer, float))
+                   or (isinstance(i, float) and not (np.isfinite(i) and i == int(i))) for i in v):
+                raise UserError(f"action_space.{f} {list(v)[:8]}: whole-number indices")
+            object.__setattr__(self, f, tuple(int(i) for i in v))
         for f in ("gain", "low", "high"):
             object.__setattr__(self, f, tuple(float(x) for x in getattr(self, f)))
         if self.kind not in KINDS:

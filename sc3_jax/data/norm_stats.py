@@ -18,6 +18,7 @@ import numpy as np
 
 from sc3_jax import atomic
 from sc3_jax.data.action_space import ActionSpace
+from sc3_jax.errors import UserError
 
 if TYPE_CHECKING:
     from sc3_jax.data.episodes import EpisodeStore
@@ -124,8 +125,33 @@ class NormStats:
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> "NormStats":
-        d = atomic.read_json(path)
-        pose = [np.array(d[k], np.float32) if k in d else None for k in ("pose_mean", "pose_std")]
-        mean = np.array(d["mean"], np.float32)
-        space = ActionSpace.from_dict(d.get("action_space"), mean.shape[0], f"{path}: action_space")
-        return cls(mean, np.array(d["std"], np.float32), *pose, space)
+        """The statistics saved at ``path``, checked at the door: a JSON object whose ``mean`` / ``std`` (and
+        ``pose_mean`` / ``pose_std`` where saved) are finite vectors of the action's dimension, standard deviations
+        positive, and an action space (``ActionSpace.from_dict``: measured entries, gains, range) of that
+        dimension; anything else is one line naming the field (a retyped or cut field was a traceback, a negative
+        or NaN std a model quietly run in other units)."""
+        from sc3_jax.validate import json_object
+
+        fix = "restore it from the model it came with (`sc3 train` writes it)"
+        d = json_object(atomic.read_json(path, fix), str(path), fix)
+        vec = {}
+        for key in ("mean", "std", "pose_mean", "pose_std"):
+            if key not in d:
+                if key in ("mean", "std"):
+                    raise UserError(f"{path}: no {key!r} (the action statistics); {fix}")
+                continue
+            v = d[key]
+            ok = isinstance(v, list) and v and all(isinstance(x, (int, float)) and not isinstance(x, bool)
+                                                   for x in v)
+            x = np.asarray(v, np.float64) if ok else None
+            if x is None or not np.all(np.isfinite(x)) or ("std" in key and not np.all(x > 0)):
+                need = "positive finite numbers" if "std" in key else "finite numbers"
+                raise UserError(f"{path}: {key} is {str(v)[:80]}, expected a list of {need}; {fix}")
+            if vec and x.shape != vec["mean"].shape:
+                raise UserError(f"{path}: {key} has {x.size} entries, mean {vec['mean'].size}: one per action "
+                                f"dimension; {fix}")
+            vec[key] = x.astype(np.float32)
+        if ("pose_mean" in vec) != ("pose_std" in vec):
+            raise UserError(f"{path}: pose_mean and pose_std come together; {fix}")
+        space = ActionSpace.from_dict(d.get("action_space"), vec["mean"].shape[0], f"{path}: action_space")
+        return cls(vec["mean"], vec["std"], vec.get("pose_mean"), vec.get("pose_std"), space)
