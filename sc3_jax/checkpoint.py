@@ -104,6 +104,11 @@ def read_robot(path: str | Path, cfg: Config | None = None) -> Robot:
     path = Path(path)
     cfg = read_config(path) if cfg is None else cfg
     robot = _recorded_robot(path, cfg)
+    far = [i for i in robot.action_space.measured if i >= robot.state_dim > 0]
+    if far:
+        raise UserError(f"{path}/norm_stats.json: action_space.measured {list(robot.action_space.measured)} names "
+                        f"state entries past the recorded state's {robot.state_dim}: restore it from the model it "
+                        "came with")
     hz = cfg.rollout.control_hz
     stride = robot.fps / hz if is_finite_number(hz) and hz > 0 else 0.0
     if round(stride) < 1 or abs(stride - round(stride)) > 1e-6:

@@ -462,9 +462,15 @@ class Rollout:
         s = self.spec
         name = getattr(policy, "name", None) or type(policy).__name__
         seen = s.state_dim or s.action_dim  # the state a policy is handed
-        check_dims(policy, s.action_dim, seen, name,
-                   f"the world model ({s.action_space.kind} actions, model.action_dim"
-                   + (f"; the robot's {s.state_dim}-D learned state)" if s.state_dim else ")"))
+        try:
+            check_dims(policy, s.action_dim, seen, name,
+                       f"the world model ({s.action_space.kind} actions, model.action_dim"
+                       + (f"; the robot's {s.state_dim}-D learned state)" if s.state_dim else ")"))
+        except UserError as e:  # a policy of the commands' own space: say the flag that hands it that state
+            if s.state_dim and getattr(policy, "state_dim", None) == s.action_dim:
+                raise UserError(f"{e}: --no-learned-state hands it the integrated commands ({s.action_dim}-D) "
+                                "instead") from None
+            raise
         need = getattr(policy, "min_views", None)  # an openpi mapping's cameras (ALOHA: 4)
         if need is not None and s.views < need:
             raise UserError(f"policy {name!r} reads {need} views (its mapping's min_views), the world model has "

@@ -183,3 +183,35 @@ def test_sc3_demo_records_its_datas_frame_rate_in_the_model_it_makes(tmp_path):
     Path(cfg.train.workdir).mkdir(parents=True)
     (Path(cfg.train.workdir) / "config.json").write_text(json.dumps({"data": {"fps": None}}))
     assert demo.with_data_facts(cfg).data.fps is None
+
+
+def test_a_measured_entry_past_the_recorded_state_is_one_line(tmp_path):
+    """norm_stats.json's action_space.measured names the recorded-state entries the commands move (SO-101: 11-13 of
+    14); one past the state was read without a word, to fail (or read another entry) inside a rollout."""
+    model = _copy(tmp_path)
+    raw = json.loads((model / "norm_stats.json").read_text())
+    raw["action_space"]["measured"] = [11, 12, 20, -1]
+    (model / "norm_stats.json").write_text(json.dumps(raw))
+    with pytest.raises(UserError, match=r"measured \[11, 12, 20, -1\] names state entries past the recorded "
+                                        r"state's 14") as e:
+        checkpoint.read_robot(model)
+    assert len(str(e.value).splitlines()) == 1
+
+
+def test_a_policy_of_the_commands_own_state_is_told_the_flag_that_hands_it_that_state():
+    """`--policy zero` on an SO-101 model (a 14-D learned state) was refused naming both sizes and not the way out:
+    --no-learned-state hands the policy the integrated commands, the state it reads."""
+    from sc3_jax import rollout, state_head
+    from sc3_jax.evaluate.ic_sweep import _mesh
+    from sc3_jax.policies import simple
+
+    path = ROOT / "exports" / "so101_v3_cpu"
+    cfg = checkpoint.read_config(path)
+    stats = checkpoint.read_norm_stats(path)
+    robot = checkpoint.read_robot(path, cfg)
+    ro = rollout.Rollout(cfg, stats, mesh=_mesh(1), data_fps=robot.fps, head=state_head.load(path))
+    zero = simple.builtin("zero", cfg.rollout.policy_chunk, stats.action_space, len(cfg.data.views))
+    with pytest.raises(UserError, match=r"has 14-D states: --no-learned-state hands it the integrated commands "
+                                        r"\(4-D\) instead$"):
+        ro.check_policy(zero)
+    rollout.Rollout(cfg, stats, mesh=_mesh(1), data_fps=robot.fps, head=None).check_policy(zero)  # what it says
