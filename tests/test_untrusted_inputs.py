@@ -702,11 +702,29 @@ def test_idle_connections_time_out_and_free_their_slots():
 
 @pytest.mark.parametrize("argv, said", [(["--port", "99999"], "--port 99999: expected a number from 0 to 65535"),
                                         (["--host", "0.0.0.0"], "--host 0.0.0.0 listens beyond this machine: set a "
-                                                                "key")])
+                                                                "key"),
+                                        (["--num-views", "0"], "--num-views 0: expected a number from 1 to 64"),
+                                        (["--image-size", "0", "8"], "--image-size 0: expected a number from 1"),
+                                        (["--default-task", "-1"], "--default-task -1: expected a number from 0")])
 def test_serve_policy_bounds_its_port_and_wants_a_key_off_loopback(argv, said, capsys, monkeypatch):
     monkeypatch.delenv("SC3_POLICY_API_KEY", raising=False)
     assert main(["serve-policy", "--policy", "zero", *argv]) == 2
     assert said in one_line(capsys, "serve-policy")
+
+
+def test_a_served_built_in_policy_sees_the_views_it_is_told():
+    """`sc3 serve-policy --policy linear --num-views 1` served a 3-view policy (--num-views reached only a family's
+    mapping): every native client's one-camera observation was refused."""
+    from sc3_jax.commands import parse
+    from sc3_jax.commands.serve_policy import Args, build_server
+
+    server = build_server(parse(Args, ["--policy", "linear", "--num-views", "1", "--port", "0"], "serve-policy"))
+    try:
+        reply = server._infer({"images": np.full((1, 8, 8, 3), 50, np.uint8), "state": np.zeros(7, np.float32),
+                               "task": np.asarray(0, np.int32)})
+        assert np.asarray(reply["actions"]).shape[1] == 7
+    finally:
+        server.shutdown()
 
 
 def test_the_server_says_where_it_really_listens_and_masks_every_path():

@@ -110,6 +110,12 @@ def build_server(a: Args, resolve: Callable[[str], Any] | None = None):
     from sc3_jax.validate import in_range
 
     in_range("--port", a.port, 0, 65535, "0: any free port")
+    if a.num_views is not None:
+        in_range("--num-views", a.num_views, 1, 64, "cameras")
+    for side in a.image_size or ():
+        in_range("--image-size", side, 1, 4096, "pixels a side")
+    if a.default_task is not None:
+        in_range("--default-task", a.default_task, 0, 2**31 - 1, "a task id")
     in_range("--max-message-mb", a.max_message_mb, 0.001, 1024, "one observation message")
     key = api_key(a)
     if not loopback(a.host) and not key:  # anyone who reaches this machine could drive the policy
@@ -119,7 +125,8 @@ def build_server(a: Args, resolve: Callable[[str], Any] | None = None):
         from sc3_jax.policies.resolve import resolve as resolve_spec
 
         from sc3_jax.benchmarks.bussing.hooks import named_policy
-        resolve = lambda spec: resolve_spec(spec, named=named_policy).policy  # noqa: E731
+        # a built-in policy sees --num-views cameras (ignored once: it saw the benchmark's 3 whatever was said)
+        resolve = lambda spec: resolve_spec(spec, named=named_policy, num_views=a.num_views).policy  # noqa: E731
     try:
         policy = resolve(a.policy)
     except (ValueError, ImportError) as e:  # a spelling, or a module:attr that does not import
