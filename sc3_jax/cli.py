@@ -34,7 +34,7 @@ def _command(module: str):
 MODULES = {"demo": "demo", "train": "train", "train-tokenizer": "train_tokenizer", "train-state": "train_state",
            "train-perception": "train_perception",
            "train-detector": "train_detector", "diagnose": "diagnose", "diagnose-table": "diagnose_table",
-           "rollout": "rollout", "sweep": "sweep", "report": "report",
+           "rollout": "rollout", "sweep": "sweep", "report": "report", "check-scorer": "check_scorer",
            "curve": "curve", "rescore": "rescore", "data": "data", "sim": "sim", "serve-policy": "serve_policy",
            "configs": "configs", "convert": "convert", "plan": "plan", "so101": "so101"}
 COMMANDS = {name: _command(m) for name, m in MODULES.items()}

@@ -51,7 +51,9 @@ class So101SweepConfig(SamplerSteps):
     """the success detector that scores imagined rollouts (`sc3 train-detector` on the imported collection)"""
     scorer: str | None = None
     """instead of --detector, any scorer spelling (package.module:attr), e.g.
-    sc3_jax.benchmarks.so101.scorer:block_at_goal (the block at rest on the goal disc, read from the frames)"""
+    sc3_jax.benchmarks.so101.placed:block_placed (the simulator's rule on the zoo estimator's block and goal and
+    the state's jaw: 0.98 agreement on real episodes) or sc3_jax.benchmarks.so101.scorer:block_at_goal (the block's
+    colour at rest on the goal disc)"""
     policies: tuple[str, ...] = ()
     """the policies, any spelling `sc3 sweep` takes (an SO-101 zoo name, lerobot:PATH, module:attr; none: the zoo)"""
     episodes: int = 36
@@ -164,7 +166,7 @@ def real_outcomes(out: Path, names: list[str], seeds: list[int], steps: int, ima
     try:
         for job, r in zip(jobs, tqdm(run_episodes(jobs, setup, workers), total=len(jobs), desc="real rollouts",
                                      unit="episode", disable=not progress)):
-            said = _says_done(scorer, r.frames, r.seed)
+            said = _says_done(scorer, r.frames, r.states, r.seed)
             keep_real_frames(out, _name(job.policy), f"seed{job.seed}", r.frames, hz)
             rows.append({"policy": _name(job.policy), "episode": f"seed{job.seed}",
                          "success": str(r.succeeded).lower()})
@@ -205,8 +207,9 @@ def _name(spec: str) -> str:
     return name or body
 
 
-def _says_done(scorer, frames: np.ndarray, seed: int) -> bool:
-    """The scorer's verdict on a real episode's frames [T, V, H, W, 3] (any criterion done: the task's one)."""
+def _says_done(scorer, frames: np.ndarray, states: np.ndarray, seed: int) -> bool:
+    """The scorer's verdict on a real episode's frames [T, V, H, W, 3] and states [T, 14] (any criterion done: the
+    task's one)."""
     from sc3_jax.evaluate.scorers import RolloutView
 
-    return any(scorer(RolloutView(f"seed{seed}", np.moveaxis(frames, 1, 0))).values())
+    return any(scorer(RolloutView(f"seed{seed}", np.moveaxis(frames, 1, 0), state=states)).values())
