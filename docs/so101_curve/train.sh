@@ -1,11 +1,15 @@
 #!/usr/bin/env bash
-# The SO-101 world-model campaign: one run, resumed exactly each session (rerunning this resumes the workdir).
-# Start: exports/so101_v3_cpu (int8 params, the old displacement-from-zero pose) re-conditioned on the measured end
-# effector (action_space.fit_measured), model.action_sum pose; 1100 steps at batch 12 ending at lr 0 (first launched with 1500, shortened at step 341 to end inside the session).
+# The SO-101 world-model campaign: one run continued across sessions. ./train.sh FROM WORKDIR STEPS SEED [WARMUP]
+# SEED: a new one each stretch, so a stretch does not redraw the previous stretch's windows in the same order.
+# FROM: the newest float32 export (exports/so101_vN_cpu, params only: the optimizer's moments are not exported, so
+# each stretch re-warms up briefly and decays to lr 0 at STEPS); rerunning with the same WORKDIR resumes it exactly.
+# Stretches so far: v3 -> v4 (wm, 1100 steps, seed 0, warm-up 50; first launched with 1500, shortened at step 341),
+# v4 -> v5 (wm2, seed 1, see docs/results.md).
 set -euo pipefail
+FROM=$1; WORKDIR=$2; STEPS=$3; SEED=$4; WARMUP=${5:-30}
 cd ~/sc3-runs/so101
 . /work/main/.venv/bin/activate
-EX=/work/main/exports/so101_v3_cpu
-exec sc3 train --config so101_latent --model.tokenizer-path $EX/tokenizer --model.action-sum pose \
-    --data ~/sc3-runs/so101/train --batch 12 --train.init-from $EX --train.workdir ~/sc3-runs/so101/wm \
-    --train.steps 1100 --train.ckpt-every 50 --train.log-every 10 --train.no-progress --train.warmup-steps 50
+exec sc3 train --config so101_latent --model.tokenizer-path "$FROM/tokenizer" --model.action-sum pose \
+    --data ~/sc3-runs/so101/train --batch 12 --train.init-from "$FROM" --train.workdir "$WORKDIR" \
+    --train.steps "$STEPS" --train.ckpt-every 50 --train.log-every 10 --train.no-progress --train.warmup-steps "$WARMUP" \
+    --train.seed "$SEED"

@@ -8,6 +8,8 @@ from pathlib import Path
 from sc3_jax.commands import parse_with_config
 from sc3_jax.commands.flags import explicit_fields, onto_config
 
+PREEMPTED = 143  # 128 + SIGTERM, as a shell reports a process the signal ended
+
 SUMMARY = "train (or resume) a world model from a named config or a config file"  # the line `sc3 --help` shows
 
 
@@ -58,6 +60,10 @@ def main(argv: list[str]) -> int:
     cfg = _memory_plan(cfg, explicit_fields(argv))
     print(sizing.describe(sizing.cost(cfg, jax.device_count())), flush=True)
     last = train.train(cfg)
+    if last.get("step") is not None and last["step"] < cfg.train.steps:  # SIGTERM (a scheduler's preemption)
+        print(f"stopped at step {last['step']} of {cfg.train.steps} (SIGTERM): its checkpoint is saved; rerun the "
+              f"same command to resume -> {cfg.train.workdir}", flush=True)
+        return PREEMPTED  # not "done", and the learned state is not trained on a half-trained model
     print(f"done: step {last.get('step')} loss {last.get('loss', float('nan')):.4f} -> {cfg.train.workdir}")
     from sc3_jax.data.episodes import EpisodeStore
 
