@@ -23,11 +23,20 @@ def model(tmp_path_factory):
     (["--out", "{file}/x.json"], "--out {file}/x.json: {file} is a file, not a folder"),
     (["--out", "{file}/x.json", "--filmstrips", "{dir}/strips"], "--out {file}/x.json: {file} is a file"),
     (["--out", "{dir}"], "--out {dir}: is a folder"),
+    # past what any store or machine holds (a day of seconds overflowed, a huge batch asked numpy for 42 TiB)
+    (["--max-seconds", "1e308"], "--max-seconds 1e+308: at most 86400 (seconds, a day)"),
+    (["--batch", "10000000000"], "--batch 10000000000: at most 4096"),
+    (["--episodes", "10000000000"], "--episodes 10000000000: at most 1000000"),
+    (["--cf-starts", "10000000000"], "--cf-starts 10000000000: at most 10000"),
+    (["--cf-fraction", "1e308"], "--cf-fraction 1e+308: at most 100"),
+    (["--filmstrips", "{link}"], "--filmstrips {link}: a symbolic link"),
 ])
 def test_a_bad_option_is_one_line_before_any_work(model, tmp_path, capsys, monkeypatch, flags, says):
     f = tmp_path / "a_file"
     f.write_text("x")
-    fill = lambda x: x.format(file=f, dir=tmp_path)  # noqa: E731
+    (tmp_path / "elsewhere").mkdir()
+    (tmp_path / "link").symlink_to(tmp_path / "elsewhere", target_is_directory=True)
+    fill = lambda x: x.format(file=f, dir=tmp_path, link=tmp_path / "link")  # noqa: E731
     monkeypatch.setattr(dg, "diagnose", lambda *a, **k: pytest.fail("the diagnosis ran"))
     # the store does not exist: the option is refused before anything reads it
     rc = cli(["diagnose", "--world-model", str(model), "--data", str(tmp_path / "no_store"), "--no-progress"]

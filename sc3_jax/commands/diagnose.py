@@ -93,20 +93,25 @@ def check(a: Args, strips: str | None) -> None:
     diagnosis): counts below 1, non-finite or non-positive amounts, an output under a file or onto a folder."""
     from sc3_jax.errors import UserError
 
-    def positive(flag, x, what):
+    def positive(flag, x, what, most=None):
         if not (isinstance(x, (int, float)) and math.isfinite(x) and x > 0):
             raise UserError(f"{flag} {x}: {what}")
+        if most is not None and x > most[0]:  # a count past any store, or an amount no episode is
+            raise UserError(f"{flag} {x}: at most {most[0]} ({most[1]})")
     if a.episodes is not None:
-        positive("--episodes", a.episodes, "at least 1 held-out episode (leave it out: all of the store's)")
-    positive("--batch", a.batch, "at least 1 rollout per jitted call")
+        positive("--episodes", a.episodes, "at least 1 held-out episode (leave it out: all of the store's)",
+                 (1_000_000, "held-out episodes"))
+    positive("--batch", a.batch, "at least 1 rollout per jitted call", (4096, "rollouts per jitted call"))
     positive("--cf-starts", a.cf_starts, "at least 1 counterfactual start per episode (--stages without "
-                                         "counterfactual skips the pass)")
-    positive("--cf-fraction", a.cf_fraction, "a positive fraction of each action axis's std")
-    positive("--carry-px", a.carry_px, "a positive number of pixels")
+                                         "counterfactual skips the pass)", (10_000, "starts per episode"))
+    positive("--cf-fraction", a.cf_fraction, "a positive fraction of each action axis's std",
+             (100, "action stds"))
+    positive("--carry-px", a.carry_px, "a positive number of pixels", (100_000, "pixels"))
     if a.max_seconds is not None:
-        positive("--max-seconds", a.max_seconds, "a positive number of seconds (leave it out: the longest episode)")
+        positive("--max-seconds", a.max_seconds, "a positive number of seconds (leave it out: the longest episode)",
+                 (86_400, "seconds, a day"))
     for h in a.horizons:
-        positive("--horizons", h, "positive numbers of seconds")
+        positive("--horizons", h, "positive numbers of seconds", (86_400, "seconds, a day"))
     if a.out:
         _under_a_folder("--out", Path(a.out))
         if Path(a.out).is_dir():
@@ -116,6 +121,8 @@ def check(a: Args, strips: str | None) -> None:
         _under_a_folder(flag, Path(strips))
         if Path(strips).exists() and not Path(strips).is_dir():
             raise UserError(f"{flag} {strips}: is a file, not a folder for the filmstrips")
+        from sc3_jax.validate import out_dir
+        out_dir(strips, flag)  # a link there: nothing is written through it
 
 
 def _under_a_folder(flag: str, path: Path) -> None:
