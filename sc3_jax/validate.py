@@ -169,11 +169,11 @@ def mask_paths(text: str) -> str:
     return re.sub(rf"{rooted}|{relative}", "<path>", text)
 
 
-def out_dir(path: str | os.PathLike, option: str, links: bool = True) -> Path:
+def out_dir(path: str | os.PathLike, option: str, links: bool = False) -> Path:
     """An output directory a command may create or write into, checked before its work: one line when it is a file,
-    or under one (the work would end in NotADirectoryError, hours later). ``links=False``: a link there is refused
-    too, so nothing is written through it into what it points at (a report/ linked out of a store someone handed
-    over)."""
+    or under one (the work would end in NotADirectoryError, hours later), or a symbolic link (nothing is written
+    through it into what it points at: a report/ linked out of a store someone handed over, a --out linked to
+    another run's files). ``links=True``: a link is followed (a directory above it may be one either way)."""
     path = Path(path)
     if not links and path.is_symlink():
         raise UserError(f"{option} {path}: a symbolic link (to {os.readlink(path)}); nothing is written through it: "

@@ -44,6 +44,12 @@ def main(argv: list[str]) -> int:
     from sc3_jax import atomic, demo
     from sc3_jax.data import synthetic
 
+    from sc3_jax.validate import in_range, out_dir
+
+    in_range("--episodes", a.episodes, 1, 1_000_000, "synthetic training episodes")
+    if a.steps is not None:  # 0 fell back to the config's 1,500 steps without a word
+        in_range("--steps", a.steps, 1, 10**9, "optimizer steps")
+    out_dir(a.out, "--out")  # a file there, under one or a link: one line before anything is generated
     out, heldout = Path(a.out), Path(a.out) / "heldout"
     print(f"[1/3] synthetic episodes: {a.episodes} -> {cfg.data.path}, 16 held out -> {heldout}")
     synthetic.generate(cfg.data.path, a.episodes, image_size=cfg.data.image_size, seed=0)

@@ -34,10 +34,31 @@ def main(argv: list[str]) -> int:
     from sc3_jax import tokenizer_train as tt
 
     cfg = TokenizerTrainConfig(**{f.name: getattr(a, f.name) for f in dataclasses.fields(TokenizerTrainConfig)})
+    check_options(cfg)
     ae_cfg = a.ae
     result = tt.export_latest(cfg, ae_cfg) if a.export_only else tt.train(cfg, ae_cfg)
     print("\n".join(summary(cfg, result)))
     return 0
+
+
+# the numeric options at the door: (field, option, low, high, what); --steps 0 or --lr nan exited 0 with an
+# untrained tokenizer, --batch 0 was a traceback from numpy, --steps 1e10 trained for ever
+BOUNDS = [("steps", "--steps", 1, 10**9, "optimizer steps"), ("batch_size", "--batch", 1, 1_000_000, "images per step"),
+          ("lr", "--lr", 1e-12, 10, "a learning rate"), ("warmup_steps", "--warmup-steps", 0, 10**9, "steps"),
+          ("moving_weight", "--moving-weight", 0, 1e6, "a loss weight"),
+          ("moving_threshold", "--moving-threshold", 0, 1, "a fraction of the pixel range"),
+          ("seed", "--seed", 0, 2**32 - 1, "a seed"), ("ckpt_every", "--ckpt-every", 1, 10**9, "steps"),
+          ("eval_frames", "--eval-frames", 1, 10**6, "held-out images per view")]
+
+
+def check_options(cfg) -> None:
+    """One line for an option out of its range, or a --workdir that is a file, under one or a link, before any
+    data is read."""
+    from sc3_jax.validate import in_range, out_dir
+
+    for field, option, low, high, what in BOUNDS:
+        in_range(option, getattr(cfg, field), low, high, what)
+    out_dir(cfg.workdir, "--workdir")
 
 
 def summary(cfg, result: dict) -> list[str]:

@@ -88,7 +88,8 @@ class NormStats:
                 p_low, p_high = np.minimum(p_low, p.min(0)), np.maximum(p_high, p.max(0))
             count += a.shape[0]
         if count == 0:
-            raise ValueError(f"{store.root}: no episodes to compute action statistics from")
+            raise UserError(f"{store.root}: no episodes to compute action statistics from (an empty store): "
+                            "import or generate episodes first")
         mean = total / count
         var = np.maximum(total_sq / count - mean * mean, 0.0)
         if np.ndim(p_total) == 0:  # no recorded state values

@@ -27,6 +27,7 @@ import numpy as np
 
 from sc3_jax.data import rotations
 from sc3_jax.data.episodes import Episode, EpisodeStore
+from sc3_jax.errors import UserError
 
 VIEWS = ("left", "right", "wrist")
 FPS = 20
@@ -311,7 +312,8 @@ def generate(root, num_episodes: int, length: int = 80, image_size=(16, 16), see
     a deterministic function of ``(seed, i)`` (and length/image size)."""
     store = EpisodeStore(root, views=list(VIEWS), fps=FPS, image_size=tuple(image_size), create=True)
     if tuple(store.image_size) != tuple(image_size):
-        raise ValueError(f"{root}: dataset has image size {store.image_size}, asked for {tuple(image_size)}")
+        raise UserError(f"{root}: dataset has image size {tuple(store.image_size)}, asked for {tuple(image_size)} "
+                        "(another config's data): use another --out, or the config it was made with")
     todo = [i for i in range(num_episodes) if episode_id(i) not in store]
     it = todo
     if progress and todo:
