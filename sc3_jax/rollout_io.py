@@ -24,11 +24,13 @@ def load_initial_conditions(path: str, cfg, spec, episodes: int | None, start: i
     p = Path(path)
     if p.suffix == ".npz":
         with atomic.open_npz(p, "write the initial conditions again") as z:
-            n = len(z["frames"]) if episodes is None else min(episodes, len(z["frames"]))
-            tasks = z["task"][:n] if "task" in z else np.full(n, task, np.int32)
-            robot = z["robot"][:n].astype(np.float32) if "robot" in z else None
-            ics = rollout.InitialConditions(z["frames"][:n], z["state"][:n].astype(np.float32), tasks.astype(np.int32),
-                                            robot)
+            arrays = {k: z[k] for k in ("frames", "state", "task", "robot") if k in z}
+        _check_npz(p, arrays)
+        n = len(arrays["frames"]) if episodes is None else min(episodes, len(arrays["frames"]))
+        tasks = arrays["task"][:n] if "task" in arrays else np.full(n, task, np.int32)
+        robot = arrays["robot"][:n].astype(np.float32) if "robot" in arrays else None
+        ics = rollout.InitialConditions(arrays["frames"][:n], arrays["state"][:n].astype(np.float32),
+                                        tasks.astype(np.int32), robot)
         return [f"ic{i:04d}" for i in range(n)], ics, None
     from sc3_jax.data.episodes import EpisodeStore
 
@@ -119,6 +121,29 @@ def closed_loop(ro, params, policy, ics, keys, tau: float, size: int, progress: 
                            "rollout")
     return run_batched(lambda sl: ro.run_host(params, policy, pick(sl), keys[sl], tau, progress=progress,
                                               skip_done=True), len(keys), size, False, "rollout")
+
+
+def _check_npz(p: Path, arrays: dict) -> None:
+    """An initial-conditions .npz at the door: frames uint8 [B, V, K, H, W, 3], state finite numbers [B, A], task
+    integers [B] and robot finite numbers [B, S] where given, one B (complex frames were cast to pixels without a
+    word)."""
+    fix = "write the initial conditions again (frames uint8 [B, V, K, H, W, 3], state float32 [B, A])"
+    for key in ("frames", "state"):
+        if key not in arrays:
+            raise UserError(f"{p}: no {key!r} array; {fix}")
+    f = arrays["frames"]
+    if f.dtype != np.uint8 or f.ndim != 6 or f.shape[-1] != 3 or len(f) < 1:
+        raise UserError(f"{p}: frames is {f.dtype} {list(f.shape)}, expected uint8 [B, V, K, H, W, 3]; {fix}")
+    for key, ndim, kinds in (("state", 2, "fiu"), ("robot", 2, "fiu"), ("task", 1, "iu")):
+        x = arrays.get(key)
+        if x is None:
+            continue
+        if x.dtype.kind not in kinds or x.ndim != ndim or len(x) != len(f):
+            want = "integers [B]" if key == "task" else "numbers [B, N]"
+            raise UserError(f"{p}: {key} is {x.dtype} {list(x.shape)}, expected {want} with B = {len(f)} (frames); "
+                            f"{fix}")
+        if x.dtype.kind == "f" and not np.isfinite(x).all():
+            raise UserError(f"{p}: {key} holds NaN or inf; {fix}")
 
 
 MAX_EPISODE_SECONDS = 3600.0  # an hour of imagined video per episode: beyond it the frames are the bound

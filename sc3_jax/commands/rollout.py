@@ -8,6 +8,7 @@ Writes ``OUT/rollout.npz`` (every array of ``Rollout.run``, see sc3_jax/rollout.
 from __future__ import annotations
 
 import dataclasses
+import math
 from pathlib import Path
 
 from sc3_jax.commands import parse_evaluated
@@ -111,6 +112,9 @@ def main(argv: list[str]) -> int:
     from sc3_jax.policies.resolve import resolve
 
     rollout_io.check_seconds(cfg.rollout.episode_seconds)
+    tau = cfg.rollout.tau  # -1 stopped every episode at its first chunk, nan never, both with exit 0
+    if tau is not None and (not isinstance(tau, (int, float)) or math.isnan(tau) or tau < 0):
+        raise UserError(f"--rollout.tau {tau}: a threshold is a non-negative number (inf: never stop)")
     bm = benchmark_of(a.benchmark)  # an unknown name: one line before the model loads
     stats = checkpoint.read_norm_stats(a.world_model)
     params = checkpoint.load_params(a.world_model, cfg, a.step)
