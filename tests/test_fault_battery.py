@@ -587,7 +587,101 @@ DOOR = {
     "export --crf 99": lambda root, out: [*export(root, out), "--crf", "99"],
     "report --out FILE": lambda root, out: [*report(root, out), "--out", str(root / "real.csv")],
     "sweep --scorer os:getcwd": lambda root, out: [*sweep_real(root, out), "--scorer", "os:getcwd"],
+    # scripts/probe_faults.py's finds (2026-12-02): each exited 0, was a traceback or hung
+    "rollout --rollout.tau -1": _rollout_ic("--rollout.tau", "-1"),
+    "rollout --rollout.tau nan": _rollout_ic("--rollout.tau", "nan"),
+    "train-tokenizer --steps 0": lambda root, out: _tokenizer(root, out, "--steps", "0"),
+    "train-tokenizer --lr nan": lambda root, out: _tokenizer(root, out, "--lr", "nan"),
+    "train-tokenizer --batch 0": lambda root, out: _tokenizer(root, out, "--batch", "0"),
+    "train-tokenizer --workdir FILE/x": lambda root, out: _tokenizer(root, out, "--workdir",
+                                                                     str(root / "real.csv" / "x")),
+    "demo --episodes 0": lambda root, out: ["demo", "--out", str(out / "demo"), "--episodes", "0"],
+    "demo --steps 0": lambda root, out: ["demo", "--out", str(out / "demo"), "--steps", "0", "--episodes", "1"],
+    "demo --out FILE": lambda root, out: ["demo", "--out", str(root / "real.csv"), "--episodes", "1"],
+    "serve-policy --num-views 0": lambda root, out: ["serve-policy", "--policy", "zero", "--num-views", "0"],
 }
+
+
+def _tokenizer(root, out, *extra):
+    return ["train-tokenizer", "--data", str(root / "store"), "--workdir", str(out / "tok"), "--steps", "1",
+            "--batch", "2", "--eval-frames", "2", "--no-progress", *extra]
+
+
+def _link_out(rel: str):
+    """``rel`` made a link to a directory of the inputs: a command's output there would write into it."""
+    def damage(root: Path):
+        (root / "victim").mkdir()
+        (root / "victim" / "keep.txt").write_text("not yours to overwrite\n")
+        (root / rel).symlink_to(root / "victim", target_is_directory=True)
+    return damage
+
+
+def _edit_file(rel: str, edit):
+    def damage(root: Path):
+        edit(root / rel)
+    return damage
+
+
+def _complex_frames(p: Path):
+    with np.load(p) as z:
+        arrays = {k: z[k] for k in z.files}
+    arrays["frames"] = arrays["frames"].astype(np.complex64)
+    np.savez(p, **arrays)
+
+
+def _link_header_out(p: Path):
+    other = p.parent.parent / "other_store_dataset.json"
+    shutil.copy(p, other)
+    p.unlink()
+    p.symlink_to(other)
+
+
+def _parquet_a_directory(root: Path):
+    f = sorted((root / "lerobot" / "meta" / "episodes").rglob("*.parquet"))[0]
+    f.unlink()
+    f.mkdir()
+
+
+# damaged inputs the probe found read silently or as a traceback, and outputs that were links written through
+FILE_DOOR = {
+    "an .npz of complex frames": (_edit_file("ic.npz", _complex_frames), _rollout_ic()),
+    "sweep.json a list": (_edit_file("results/sweep.json", lambda p: p.write_text("[1, 2]")), report),
+    "dataset.json linked out of its store": (_edit_file("store/dataset.json", _link_header_out), export),
+    "a LeRobot episodes parquet that is a directory": (_parquet_a_directory, import_lerobot),
+    "import --out a link": (_link_out("link"), lambda root, out: [*import_lerobot(root, out)[:-4], "--out",
+                                                                   str(root / "link"), "--action-space", "absolute"]),
+    "export --out a link": (_link_out("link"), lambda root, out: [*export(root, out)[:-1], str(root / "link")]),
+}
+
+
+# the line each says (a later check of the same run would otherwise also end in one line)
+SAYS = {"an .npz of complex frames": "frames is complex64", "rollout --rollout.tau -1": "--rollout.tau -1.0: a "
+        "threshold", "rollout --rollout.tau nan": "--rollout.tau nan: a threshold",
+        "export --out a link": "link"}
+
+
+@pytest.mark.parametrize("case", list(FILE_DOOR))
+def test_each_damaged_input_or_linked_output_the_probe_found_is_one_line(pristine, case):
+    damage, argv = FILE_DOOR[case]
+    line = attack(pristine, damage, argv)
+    assert SAYS.get(case, "") in line, line
+
+
+@pytest.mark.parametrize("case", ["rollout --rollout.tau -1", "rollout --rollout.tau nan"])
+def test_a_threshold_that_is_no_threshold_is_refused_before_the_model_loads(pristine, case):
+    line = attack(pristine, lambda root: None, DOOR[case])
+    assert SAYS[case] in line, line
+
+
+def test_an_import_resumed_at_another_image_size_is_refused(pristine, tmp_path):
+    """The store was reopened and every episode skipped as "already there", at the size they were, exit 0."""
+    with contextlib.redirect_stdout(io.StringIO()):
+        assert main(_import("--image-size", "8", "8")(pristine, tmp_path)) == 0
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
+        assert main(_import("--image-size", "4", "4")(pristine, tmp_path)) == 2
+    assert "asked for [4, 4]" in err.getvalue() and len(err.getvalue().strip().splitlines()) == 1
+    assert EpisodeStore(tmp_path / "store").image_size == (8, 8)
 
 
 @pytest.mark.parametrize("case", list(DOOR))

@@ -138,9 +138,15 @@ class EpisodeStore:
         declared = {"action_dim": action_space.dim, "action_space": action_space.to_dict(), "state": state,
                     "ee_pose": bool(has_pose)}
         if header.exists():
+            # the store's own regular file (a dataset.json linked to another store's was read as this one's)
+            regular_file(header, "restore it from a copy (or write the store again)", inside=self.root)
             info = read_header(header)
             have = {**info, **_declared(info)}
-            asked = {k: v for k, v in (("views", views and list(views)), ("fps", fps)) if v is not None}
+            # a reopened store is the one asked for: an import resumed with another --image-size skipped every
+            # episode as "already there", at the size they were
+            size = list(image_size) if image_size is not None and create else None
+            asked = {k: v for k, v in (("views", views and list(views)), ("fps", fps), ("image_size", size))
+                     if v is not None}
             for key, want in {**asked, **(declared if create else {})}.items():
                 if have[key] != want:
                     raise UserError(f"{header}: dataset has {key}={have[key]!r}, asked for {want!r}")

@@ -34,7 +34,7 @@ import numpy as np
 from sc3_jax import locks
 from sc3_jax.errors import UserError
 from sc3_jax.safe_names import ALLOWED, is_safe, join_inside
-from sc3_jax.validate import is_count, is_finite_number, json_object
+from sc3_jax.validate import is_count, is_finite_number, json_object, regular_file
 
 try:
     import pyarrow as pa
@@ -185,7 +185,7 @@ class LeRobotEpisodes:
             path = self.root / "meta" / "tasks.parquet"
             if not path.exists():
                 raise LeRobotError(path, "missing")
-            table = pq.read_table(path)
+            table = pq.read_table(_regular(path))
             col = _task_column(table, path)
             pairs = zip(table["task_index"].to_pylist(), table[col].to_pylist(), strict=True)
             return {int(i): str(t) for i, t in pairs}
@@ -199,7 +199,7 @@ class LeRobotEpisodes:
                 raise LeRobotError(self.root / "meta" / "episodes", "no episode parquet files")
             rows = []
             for f in files:  # per-episode stats columns are large and unused here: skip them
-                names = [n for n in pq.read_schema(f).names if not n.startswith("stats/")]
+                names = [n for n in pq.read_schema(_regular(f)).names if not n.startswith("stats/")]
                 rows += [{**r, "_meta_file": f} for r in pq.read_table(f, columns=names).to_pylist()]
         else:
             rows = _read_jsonl(self.root / "meta" / "episodes.jsonl")
@@ -231,14 +231,19 @@ class LeRobotEpisodes:
         """(mp4 path, time of the episode's t=0 inside it, end time or None)."""
         if self.version != "v3.0":
             e = int(ep["episode_index"])
-            return self._template("video_path", episode_chunk=e // int(self.info["chunks_size"]), video_key=key,
-                                  episode_index=e), 0.0, None
+            path = self._template("video_path", episode_chunk=e // int(self.info["chunks_size"]), video_key=key,
+                                  episode_index=e)
+            if os.path.lexists(path):
+                _regular(path)
+            return path, 0.0, None
         col = f"videos/{key}/"
         if col + "chunk_index" not in ep or ep[col + "chunk_index"] is None:
             raise LeRobotError(ep["_meta_file"], f"episode {ep['episode_index']} has no '{col}*' columns "
                                                  f"for camera {key!r}")
         path = self._template("video_path", video_key=key, chunk_index=ep[col + "chunk_index"],
                               file_index=ep[col + "file_index"])
+        if os.path.lexists(path):
+            _regular(path)
         return path, float(ep[col + "from_timestamp"]), float(ep[col + "to_timestamp"])
 
     # -- tabular data ------------------------------------------------------------------------------------------
@@ -247,7 +252,7 @@ class LeRobotEpisodes:
         path = self._data_path(ep)
         if not path.exists():
             raise LeRobotError(path, f"missing data file of episode {ep['episode_index']}")
-        have = pq.read_schema(path).names
+        have = pq.read_schema(_regular(path)).names
         for c in columns:
             if c not in have:
                 raise LeRobotError(path, f"column {c!r} missing (have {have})")
@@ -485,6 +490,12 @@ def _camera_map(features: dict, views, where: Path) -> dict[str, str]:
     if not mapping:
         raise LeRobotError(where, "dataset has no camera features (dtype video or image)")
     return mapping
+
+
+def _regular(path: Path) -> Path:
+    """``path`` if it is a regular file (a link to one is followed: a dataset in the Hugging Face cache is links
+    into its blobs), else one line: a directory there was pyarrow's OSError traceback, a FIFO hung the import."""
+    return regular_file(path, "restore the dataset's file from its source")
 
 
 def _task_column(table: pa.Table, where: Path) -> str:

@@ -47,7 +47,12 @@ ALL = ["all"]  # one "split": intervals' helpers pool every policy under metrics
 def is_store(results: str | Path) -> bool:
     """Whether ``results`` holds a sweep of held-out episodes (``sweep.json`` kind ``initial_conditions``)."""
     p = Path(results) / "sweep.json"
-    return p.is_file() and atomic.read_json(p).get("kind") == KIND
+    if not p.is_file():
+        return False
+    from sc3_jax.validate import json_object
+
+    fix = "restore it from a copy of the store"
+    return json_object(atomic.read_json(p, fix), str(p), fix).get("kind") == KIND
 
 
 def compute(results: str | Path, real: tuple[str, ...] | list[str] | None = None, draws: int = 2000,

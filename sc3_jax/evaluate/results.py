@@ -157,7 +157,11 @@ class ResultsStore:
 
     def config(self) -> dict:
         """The sweep's config as stored (``sweep.json``)."""
-        return atomic.read_json(self.root / "sweep.json", "restore it from a copy of the store")
+        from sc3_jax.validate import json_object
+
+        fix = "restore it from a copy of the store"
+        path = self.root / "sweep.json"
+        return json_object(atomic.read_json(path, fix), str(path), fix)
 
     def records(self) -> list[dict]:
         """Every complete line (a line cut by a kill, or still being written by a running sweep, is left out).
