@@ -479,7 +479,8 @@ def norm_stats(data):
     return damage, rollout
 
 
-KINDS = {"norm_stats.json": norm_stats, "episode arrays": episode_arrays, "store files": store_files, "episode sweep records": episode_sweep_records, "dataset.json": dataset_json, "results records": results_records,
+KINDS = {"norm_stats.json": norm_stats, "episode arrays": episode_arrays, "store files": store_files,
+         "episode sweep records": episode_sweep_records, "dataset.json": dataset_json, "results records": results_records,
          "labels CSV": labels_csv, "world model": world_model_files, "LeRobot info.json": lerobot_info}
 
 
