@@ -1,7 +1,7 @@
-"""`lerobot:PATH`: a LeRobot policy (its pretrained_model directory) acts in a world model, run by lerobot in its own
-environment through `policies/lerobot_child.py`. The test that trains a tiny ACT with lerobot and rolls it out needs
-an environment with lerobot: SC3_LEROBOT_PYTHON=VENV/bin/python (docs/so101.md says how to make one); without it
-that test is skipped, and the one-line errors are still checked."""
+"""`lerobot:PATH`: a LeRobot policy (its pretrained_model directory) acts in a world model, run by lerobot in-process
+where lerobot 0.6 sits beside sc3_jax (.ci/run's Python 3.12 environment), else in its own environment through
+`policies/lerobot_child.py` (SC3_LEROBOT_PYTHON=VENV/bin/python). The test that trains a tiny ACT with lerobot and
+rolls it out needs one of the two; without either it is skipped, and the one-line errors are still checked."""
 import importlib.util
 import json
 import os
@@ -23,9 +23,10 @@ CHUNK = 8  # the bimanual fixture model's rollout.policy_chunk
 
 
 def _lerobot_python() -> str | None:
+    """The Python that has lerobot: SC3_LEROBOT_PYTHON's (the child), else this one if it has it (in-process)."""
     py = os.environ.get(PYTHON_ENV)
     if not py:
-        return None
+        return sys.executable if importlib.util.find_spec("lerobot") is not None else None
     ok = subprocess.run([py, "-c", "import lerobot"], capture_output=True).returncode == 0
     return py if ok else None
 
@@ -65,19 +66,22 @@ def test_a_python_without_lerobot_is_one_line_naming_the_variable(tmp_path, monk
     p.close()
 
 
-@pytest.mark.skipif(_lerobot_python() is None, reason=f"no environment with lerobot ({PYTHON_ENV} unset or without it)")
+@pytest.mark.lerobot
+@pytest.mark.skipif(_lerobot_python() is None, reason=f"no lerobot here and no environment with it ({PYTHON_ENV})")
 def test_a_lerobot_act_trained_here_acts_inside_a_world_model(bimanual, tmp_path, monkeypatch):  # noqa: F811
     """A tiny ACT (4 cameras, 14-D state and actions, chunk 8) trained 3 steps by lerobot, then `sc3 rollout
     --policy lerobot:DIR` on the bimanual world model: the rollout's first actions are (within what the observation
     differs: the context frame against the first imagined one) what lerobot's own inference answers, not the state
-    a holding policy would send."""
+    a holding policy would send. In-process where this Python has lerobot 0.6 and SC3_LEROBOT_PYTHON is unset."""
     py = _lerobot_python()
     env = {**os.environ, "HF_HUB_OFFLINE": "1"}
     pm = tmp_path / "pretrained_model"
     subprocess.run([py, str(TINY_ACT), str(pm), "--views", str(len(CAMS)), "--image", str(H), str(W),
                     "--state-dim", str(A), "--action-dim", str(A), "--chunk", str(CHUNK), "--steps", "3"],
                    check=True, env=env, capture_output=True)
-    monkeypatch.setenv(PYTHON_ENV, py)
+    if py != sys.executable:
+        monkeypatch.setenv(PYTHON_ENV, py)
+    assert LeRobotPolicy(pm).in_process == (py == sys.executable and not os.environ.get(PYTHON_ENV))
     tmp, store = bimanual[0], bimanual[4]
     out = tmp_path / "ro"
     assert main(["rollout", "--world-model", str(tmp / "run"), "--policy", f"act=lerobot:{pm}", "--data",

@@ -14,7 +14,8 @@ length (8 bytes, little-endian), the payload. The child first sends ``J`` {chunk
 type}; then, per ``N`` observation {images uint8 [V, H, W, 3], state float32 [S]}, a ``N`` {actions [chunk, A]} or
 an ``E`` line (the child stays up). A ``J`` {"reset": true} clears the policy's queues. End of stdin: it exits.
 
-Inference, as ``lerobot-record`` does it in lerobot 0.4: ``get_policy_class(type).from_pretrained(PATH)``,
+Inference (``ChunkPolicy``, also what runs in-process where lerobot sits beside sc3_jax), as ``lerobot-record`` does
+it in lerobot 0.4 to 0.6: ``get_policy_class(type).from_pretrained(PATH)``,
 ``make_pre_post_processors(config, pretrained_path=PATH)`` (normalisation lives in those two pipelines),
 ``prepare_observation_for_inference`` -> preprocessor -> ``predict_action_chunk`` -> postprocessor; the first
 ``n_action_steps`` actions of the chunk are returned (what the policy would execute before predicting again). Our
@@ -50,6 +51,49 @@ def receive(inp) -> tuple[bytes, bytes] | None:
     return head[:1], inp.read(n)
 
 
+class ChunkPolicy:
+    """A LeRobot ``pretrained_model`` loaded as ``lerobot-record`` loads it, answering one observation with the chunk
+    of actions it would execute: used here, in the child, and in-process by ``lerobot_policy.LeRobotPolicy`` when
+    lerobot is importable beside sc3_jax (Python >= 3.12, lerobot 0.6)."""
+
+    def __init__(self, path: str, device: str = "cpu"):
+        import torch
+        from lerobot.policies.factory import get_policy_class, make_pre_post_processors
+
+        with open(os.path.join(path, "config.json")) as f:
+            kind = json.load(f)["type"]
+        self.device = torch.device(device)
+        self.policy = get_policy_class(kind).from_pretrained(path).to(device).eval()
+        self.pre, self.post = make_pre_post_processors(self.policy.config, pretrained_path=path)
+        feats = self.policy.config.input_features
+        self.views = [k for k, ft in feats.items() if str(getattr(ft.type, "value", ft.type)) == "VISUAL"]
+        self.state = feats.get("observation.state")
+        act = self.policy.config.output_features["action"]
+        self.chunk = int(getattr(self.policy.config, "n_action_steps", 1))
+        self.meta = {"chunk": self.chunk, "action_dim": int(act.shape[0]), "type": kind, "views": self.views,
+                     "state_dim": int(self.state.shape[0]) if self.state is not None else None}
+
+    def infer(self, images, state):
+        """images uint8 [V, H, W, 3] (the policy's cameras in order), state float32 [S] -> actions float32 [chunk, A]"""
+        import numpy as np
+        import torch
+        from lerobot.policies.utils import prepare_observation_for_inference
+
+        if len(images) != len(self.views):
+            raise ValueError(f"the policy reads {len(self.views)} camera(s) {self.views}, the observation has "
+                             f"{len(images)}")
+        obs = {k: np.array(images[i]) for i, k in enumerate(self.views)}  # a copy: torch wants it writable
+        if self.state is not None:
+            obs["observation.state"] = np.array(state, np.float32)
+        with torch.inference_mode():
+            batch = self.pre(prepare_observation_for_inference(obs, self.device))
+            actions = self.post(self.policy.predict_action_chunk(batch))[0, :self.chunk]
+        return actions.float().cpu().numpy()
+
+    def reset(self) -> None:
+        self.policy.reset()
+
+
 def main(argv: list[str]) -> int:
     out = _channel()
     inp = sys.stdin.buffer
@@ -57,24 +101,11 @@ def main(argv: list[str]) -> int:
     device = argv[argv.index("--device") + 1] if "--device" in argv else "cpu"
     try:
         import numpy as np
-        import torch
-        from lerobot.policies.factory import get_policy_class, make_pre_post_processors
-        from lerobot.policies.utils import prepare_observation_for_inference
-
-        with open(os.path.join(path, "config.json")) as f:
-            kind = json.load(f)["type"]
-        policy = get_policy_class(kind).from_pretrained(path).to(device).eval()
-        pre, post = make_pre_post_processors(policy.config, pretrained_path=path)
-        feats = policy.config.input_features
-        views = [k for k, ft in feats.items() if str(getattr(ft.type, "value", ft.type)) == "VISUAL"]
-        state = feats.get("observation.state")
-        act = policy.config.output_features["action"]
-        chunk = int(getattr(policy.config, "n_action_steps", 1))
+        policy = ChunkPolicy(path, device)
     except Exception as e:  # noqa: BLE001 - told to the parent as one line, then exit
         send(out, b"E", f"{type(e).__name__}: {str(e).strip().splitlines()[0] if str(e).strip() else ''}".encode())
         return 1
-    send(out, b"J", json.dumps({"chunk": chunk, "action_dim": int(act.shape[0]), "type": kind, "views": views,
-                                "state_dim": int(state.shape[0]) if state is not None else None}).encode())
+    send(out, b"J", json.dumps(policy.meta).encode())
     while (msg := receive(inp)) is not None:
         kind_b, payload = msg
         try:
@@ -83,17 +114,8 @@ def main(argv: list[str]) -> int:
                     policy.reset()
                 continue
             z = np.load(io.BytesIO(payload))
-            images = z["images"]
-            if len(images) != len(views):
-                raise ValueError(f"the policy reads {len(views)} camera(s) {views}, the observation has {len(images)}")
-            obs = {k: images[i] for i, k in enumerate(views)}
-            if state is not None:
-                obs["observation.state"] = z["state"].astype(np.float32)
-            with torch.inference_mode():
-                batch = pre(prepare_observation_for_inference(obs, torch.device(device)))
-                actions = post(policy.predict_action_chunk(batch))[0, :chunk]
             buf = io.BytesIO()
-            np.savez(buf, actions=actions.float().cpu().numpy())
+            np.savez(buf, actions=policy.infer(z["images"], z["state"]))
             send(out, b"N", buf.getvalue())
         except Exception as e:  # noqa: BLE001 - one line to the parent; the child stays up for the next request
             send(out, b"E", f"{type(e).__name__}: {(str(e).strip().splitlines() or [''])[0][:300]}".encode())
