@@ -24,10 +24,10 @@ def check(store: str | Path, scorer: str, criterion: str = "success", progress: 
     from sc3_jax.stats.interval import wilson
 
     real = labels.read([f"real={store}"])
-    missing = [e.episode for e in real if criterion not in e.outcomes]
+    missing = [e for e in real if criterion not in e.outcomes]
     if missing:
-        raise UserError(f"{missing[0]}: no label {criterion!r} (its labels: {sorted(real[0].outcomes)}); pass "
-                        "--criterion NAME")
+        raise UserError(f"{missing[0].episode}: no label {criterion!r} (its labels: {sorted(missing[0].outcomes)}); "
+                        "pass --criterion NAME")
     score = load_outcome_scorer(scorer)
     eps = EpisodeStore(store)
     said, truth, disagree = [], [], []
