@@ -40,3 +40,7 @@ def test_sigterm_saves_stops_with_143_and_the_same_command_resumes_to_the_end(tm
     assert again.returncode == 0 and f"done: step {end}" in again.stdout, (again.stdout, again.stderr)
     steps = [json.loads(line)["step"] for line in metrics.read_text().splitlines()]
     assert steps == list(range(1, end + 1))
+    # and once more: nothing left to train, said so (it printed "done: step None loss nan")
+    done = subprocess.run(cmd[:cmd.index("400")] + [str(end)] + cmd[cmd.index("400") + 1:], capture_output=True,
+                          text=True, cwd=tmp_path, timeout=300, env=os.environ)
+    assert done.returncode == 0 and "nothing to train" in done.stdout and "None" not in done.stdout, done.stdout

@@ -64,7 +64,10 @@ def main(argv: list[str]) -> int:
         print(f"stopped at step {last['step']} of {cfg.train.steps} (SIGTERM): its checkpoint is saved; rerun the "
               f"same command to resume -> {cfg.train.workdir}", flush=True)
         return PREEMPTED  # not "done", and the learned state is not trained on a half-trained model
-    print(f"done: step {last.get('step')} loss {last.get('loss', float('nan')):.4f} -> {cfg.train.workdir}")
+    if last.get("step") is None:  # resumed at or past --train.steps: the loop ran no step
+        print(f"done: {cfg.train.workdir} already holds --train.steps {cfg.train.steps}; nothing to train")
+    else:
+        print(f"done: step {last['step']} loss {last.get('loss', float('nan')):.4f} -> {cfg.train.workdir}")
     from sc3_jax.data.episodes import EpisodeStore
 
     has_state = (Path(cfg.data.path) / "dataset.json").is_file() and EpisodeStore(cfg.data.path).state_dim
