@@ -43,7 +43,7 @@ def main(argv=None) -> None:
     from sc3_jax.config import replace
     from sc3_jax.benchmarks.bussing import perception
     from sc3_jax.benchmarks.bussing.scorers import PerceptionScorer
-    from sc3_jax.benchmarks.bussing.model_workers import initial_observation
+    from sc3_jax.benchmarks.bussing.source import initial_observation
     from sc3_jax.benchmarks.bussing.sweep import SHIPPED_WORLD_MODEL, STATE_READER_FILE
     from sc3_jax.benchmarks.bussing.policy_eval import make_env
     from sc3_jax.benchmarks.bussing.tasks import make_initial_condition, task_id

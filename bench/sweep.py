@@ -4,14 +4,14 @@
 
 * real: the same real rollouts (two zoo policies, one per task, ``--real-seeds`` evaluation seeds each; MuJoCo at
   64x64, perception scoring) in one process with every rollout also read degraded (today) and in one worker process
-  per core (``evaluate.real_workers``), with and without the degraded readings: the new default reads them on the
+  per core (``evaluate.engine``), with and without the degraded readings: the new default reads them on the
   calibration conditions only (``SweepConfig.degradations``), so its cost is the two weighted by that share.
   Steady state: seconds per rollout after each worker's first one, so the workers' start (a spawned interpreter
   importing JAX and compiling, paid once per sweep) is left out; the start is printed.
 * online: the same batch of ``--batch`` initial conditions of one zoo policy inside the shipped world model, the
   first ``--chunks`` chunks (every chunk costs the same: static shapes), with today's sampler (8 forward Euler
   steps, 2 inverse re-read steps) in one process and the new default's (``SweepConfig``'s ``sample_steps`` /
-  ``inverse_steps``) in one single-threaded worker process per core (``evaluate.model_workers``), each running the
+  ``inverse_steps``) in one single-threaded worker process per core (``evaluate.engine``), each running the
   batch at the same time; each timed on its second call (compiled), scaled to a 12 s rollout.
 
 full_protocol_h: the full protocol (13 policies; 36 evaluation + 6 calibration + 36 ceiling real rollouts and 36 +
@@ -22,6 +22,7 @@ full_protocol_h: the full protocol (13 policies; 36 evaluation + 6 calibration +
 from __future__ import annotations
 
 import argparse
+import functools
 import math
 import tempfile
 import time
@@ -35,21 +36,24 @@ def real_cost(workers: int, n_seeds: int, root: str, degrade: bool) -> tuple[flo
     """(steady seconds per real rollout, seconds until the first records) for ``workers`` processes, with or without
     the perception scorer's reading of degraded copies."""
     from sc3_jax.benchmarks.bussing import perception
-    from sc3_jax.benchmarks.bussing.real_workers import RealJob, RealSetup, run_real_jobs
-    from sc3_jax.benchmarks.bussing.scorers import PerceptionScorer
-    from sc3_jax.benchmarks.bussing.sweep import _resolve, _zoo_names
-    from sc3_jax.benchmarks.bussing.policy_eval import make_env
+    from sc3_jax.benchmarks.bussing.hooks import named_policy
+    from sc3_jax.benchmarks.bussing.source import BussingSource
+    from sc3_jax.benchmarks.bussing.sweep import SweepConfig, _zoo_names
     from sc3_jax.benchmarks.bussing.zoo import ZOO
+    from sc3_jax.evaluate import engine
     specs = [next(n for n in _zoo_names() if ZOO[n].task == t) for t in ("bussing", "reverse")]
-    resolved = {s: _resolve(s) for s in specs}
-    jobs = [RealJob(s, resolved[s][0], resolved[s][1], 10_000_000 + i, degrade) for s in specs for i in range(n_seeds)]
-    setup = RealSetup(root, (64, 64), str(perception.DEFAULT_WEIGHTS), 240, 2)
-    env = make_env((64, 64))
-    scorer = PerceptionScorer(perception.load(perception.DEFAULT_WEIGHTS))
+    policies = engine.resolve_policies(specs, named_policy, need_task=True)
+    jobs = [engine.Job(p.spec, p.name, "real", "evaluation", (10_000_000 + i,), degraded=degrade) for p in policies
+            for i in range(n_seeds)]
+    make_source = functools.partial(BussingSource, {p.name: p.task for p in policies}, (64, 64),
+                                    str(perception.DEFAULT_WEIGHTS), 240, 2)
+    setup = engine.Setup(root, None, SweepConfig(), make_source, named_policy)
+    source = make_source()
     t0, arrivals = time.perf_counter(), []
-    for _ in run_real_jobs(jobs, setup, workers, {s: r[2] for s, r in resolved.items()}, env, scorer):
+    for _ in engine.run_jobs(jobs, setup, workers, lambda: engine.Runner(setup, {p.spec: p.policy for p in policies},
+                                                                         source), model=False):
         arrivals.append(time.perf_counter() - t0)
-    env.close()
+    source.close()
     w = max(workers, 1)  # each worker's first rollout includes its start (and its first compile)
     return (arrivals[-1] - arrivals[w - 1]) / (len(arrivals) - w), arrivals[w - 1]
 
@@ -62,7 +66,7 @@ def online_cost(fd: int, inv: int, chunks: int, batch: int, barrier=None) -> flo
     from sc3_jax import checkpoint, rollout
     from sc3_jax.config import replace
     from sc3_jax.benchmarks.bussing import perception
-    from sc3_jax.benchmarks.bussing.model_workers import initial_observation
+    from sc3_jax.benchmarks.bussing.source import initial_observation
     from sc3_jax.benchmarks.bussing.sweep import SHIPPED_WORLD_MODEL, STATE_READER_FILE
     from sc3_jax.benchmarks.bussing.policy_eval import make_env
     from sc3_jax.benchmarks.bussing.tasks import task_id
@@ -124,7 +128,7 @@ def main(argv=None) -> None:
     ap.add_argument("--batch", type=int, default=6)
     a = ap.parse_args(argv)
     import sc3_jax.benchmarks.bussing  # noqa: F401  (picks the GL backend before mujoco is imported)
-    from sc3_jax.benchmarks.bussing.real_workers import default_workers
+    from sc3_jax.evaluate.engine import default_workers
     from sc3_jax.benchmarks.bussing.sweep import SweepConfig
     new = SweepConfig()
     workers = new.workers or default_workers()
@@ -137,7 +141,7 @@ def main(argv=None) -> None:
     share = {"all": 1.0, "none": 0.0, "calibration": FULL["calibration"] / FULL["real"]}[new.degradations]
     real_new = share * real_degraded + (1 - share) * real_clean
     online_old = online_cost(8, 2, a.chunks, a.batch)
-    from sc3_jax.benchmarks.bussing.model_workers import in_workers
+    from sc3_jax.evaluate.engine import in_workers
     steps = (new.sample_steps or 8, new.inverse_steps or 8, a.chunks, a.batch)
     online_new = online_cost_workers(*steps, workers) if in_workers(workers, workers) else online_cost(*steps)
     online_one = online_cost(*steps)  # the new sampler in one process on every core: what the workers add

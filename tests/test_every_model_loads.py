@@ -38,7 +38,7 @@ def test_the_models_are_the_ones_the_docs_name():
 @pytest.mark.parametrize("path", MODELS, ids=lambda p: p.name)
 def test_every_shipped_and_exported_model_reads_its_robot_facts_from_its_own_directory(path, tmp_path, monkeypatch):
     from sc3_jax import rollout, state_head
-    from sc3_jax.evaluate.ic_sweep import _mesh
+    from sc3_jax.evaluate.engine import mesh_for as _mesh
 
     monkeypatch.chdir(tmp_path)  # nothing of the current directory is read (an empty one here)
     cfg = checkpoint.read_config(path)
@@ -87,7 +87,7 @@ class Still:
 def _one_chunk(path: Path, sample_steps: int | None = None) -> dict:
     """One chunk of the zero policy inside the model at ``path``, built as `sc3 sweep episodes` builds it."""
     from sc3_jax import rollout, rollout_io, state_head
-    from sc3_jax.evaluate.ic_sweep import _mesh
+    from sc3_jax.evaluate.engine import mesh_for as _mesh
     from sc3_jax.evaluate.world_model_defaults import Sampler, evaluation_config
 
     wcfg, stats, params = checkpoint.load(path)
@@ -202,7 +202,7 @@ def test_a_policy_of_the_commands_own_state_is_told_the_flag_that_hands_it_that_
     """`--policy zero` on an SO-101 model (a 14-D learned state) was refused naming both sizes and not the way out:
     --no-learned-state hands the policy the integrated commands, the state it reads."""
     from sc3_jax import rollout, state_head
-    from sc3_jax.evaluate.ic_sweep import _mesh
+    from sc3_jax.evaluate.engine import mesh_for as _mesh
     from sc3_jax.policies import simple
 
     path = ROOT / "exports" / "so101_v3_cpu"

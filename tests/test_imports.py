@@ -173,7 +173,7 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
                      "evaluate.diagnose_outcomes", "evaluate.diagnose_report", "evaluate.diagnose_table",
                      "evaluate.diagnose_kept", "evaluate.diagnose_follow", "evaluate.diagnose_headline",
                      "evaluate.rollout_summary", "plan", "plan_vae", "sizing")),
-    ("sweep", ("evaluate.worker_pool", "evaluate.ic_sweep", "evaluate.gym_env")),
+    ("sweep", ("evaluate.worker_pool", "evaluate.engine", "evaluate.ic_sweep", "evaluate.gym_env")),
     ("report", ("evaluate.report", "evaluate.report_html", "evaluate.calibrate", "evaluate.intervals", "evaluate.bootstrap",
                 "evaluate.merged", "evaluate.curve", "evaluate.report_episodes", "evaluate.report_figures",
                 "evaluate.eval_info")),

@@ -92,15 +92,20 @@ def test_websocket_server(server):
 
 def test_every_command_resolves_every_spelling(server, monkeypatch):
     """sc3 sweep bench (needs a task), sc3 serve-policy, sc3 sim eval and sc3 rollout all call ``resolve``."""
-    from sc3_jax.benchmarks.bussing import sweep
+    from sc3_jax.benchmarks.bussing.hooks import named_policy
+    from sc3_jax.benchmarks.bussing.tasks import TASKS
     from sc3_jax.commands import parse, serve_policy
+    from sc3_jax.evaluate import engine
     from sc3_jax.benchmarks.bussing import cli as sim_cli
     from sc3_jax.benchmarks.bussing import policy_eval
 
-    assert sweep._resolve("rev_confused")[:2] == ("rev_confused", "reverse")
-    assert sweep._resolve(f"{__name__}:make_policy@bussing")[:2] == (f"{__name__}:make_policy", "bussing")
+    def resolve(spec):
+        p = engine.resolve_policies([spec], named_policy, need_task=True, tasks=TASKS)[0]
+        return p.name, p.task
+    assert resolve("rev_confused") == ("rev_confused", "reverse")
+    assert resolve(f"{__name__}:make_policy@bussing") == (f"{__name__}:make_policy", "bussing")
     with pytest.raises(ValueError, match="needs its task"):
-        sweep._resolve("zero")
+        resolve("zero")
     for spec in ("zero", "rev_confused", f"{__name__}:make_policy"):
         s = serve_policy.build_server(parse(serve_policy.Args, ["--policy", spec, "--host", "127.0.0.1", "--port",
                                                                 "0", "--log-level", "WARNING"], "serve-policy"))

@@ -1,5 +1,5 @@
 """A results store knows what its rollouts came from: sweep.json records the world model's content hash and step,
-the scorer's and the policies' file hashes (evaluate/ic_sweep.py with_identity); resuming it against a changed
+the scorer's and the policies' file hashes (evaluate/engine.py with_identity); resuming it against a changed
 model, scorer or policy file is refused in one line naming both, and a store from before the hash resumes with a
 note, recording nothing new."""
 import json
@@ -10,7 +10,7 @@ import pytest
 
 from sc3_jax import checkpoint
 from sc3_jax.errors import UserError
-from sc3_jax.evaluate import ic_sweep
+from sc3_jax.evaluate import engine
 from test_any_robot import bimanual  # noqa: F401  (the fixture: imported store + trained tiny model)
 from test_ic_sweep import _conditions, _error, _sweep
 
@@ -30,27 +30,27 @@ IDENT = {"world_model_sha256": "a" * 64, "world_model_step": 120, "scorer_sha256
 def test_a_resumed_sweep_against_another_model_is_refused_naming_both(tmp_path):
     out = _store(tmp_path / "s", **IDENT)
     config = {"world_model": "wm", "scorer": "s:f"}
-    assert ic_sweep.with_identity(out, config, IDENT) == {**config, **IDENT}  # the same model: resumed
+    assert engine.with_identity(out, config, IDENT) == {**config, **IDENT}  # the same model: resumed
     trained_on = {**IDENT, "world_model_sha256": "b" * 64, "world_model_step": 240}
     with pytest.raises(UserError, match=r"world model wm \(step 120, sha256 a{16}\); wm is now step 240, sha256 b{16}"
                                         r": resuming would rank two models' rollouts together") as e:
-        ic_sweep.with_identity(out, config, trained_on)
+        engine.with_identity(out, config, trained_on)
     assert "\n" not in str(e.value)
     with pytest.raises(UserError, match=r"--scorer s:f with sha256 c{16}; its files are now sha256 e{16}"):
-        ic_sweep.with_identity(out, config, {**IDENT, "scorer_sha256": "e" * 64})
+        engine.with_identity(out, config, {**IDENT, "scorer_sha256": "e" * 64})
     with pytest.raises(UserError, match=r"policy 'p' with sha256 d{16}; its files are now sha256 f{16}"):
-        ic_sweep.with_identity(out, config, {**IDENT, "policies_sha256": {"p": "f" * 64}})
+        engine.with_identity(out, config, {**IDENT, "policies_sha256": {"p": "f" * 64}})
 
 
 def test_a_store_from_before_the_hash_resumes_with_a_note_recording_nothing_new(tmp_path, capsys):
     out = _store(tmp_path / "old")
     config = {"world_model": "wm", "scorer": "s:f"}
-    assert ic_sweep.with_identity(out, config, IDENT) == config
+    assert engine.with_identity(out, config, IDENT) == config
     assert "predates recording the world model's content hash" in capsys.readouterr().out
     # a new store, or one whose sweep failed before its first rollout, records the identity
-    assert ic_sweep.with_identity(tmp_path / "new", config, IDENT) == {**config, **IDENT}
+    assert engine.with_identity(tmp_path / "new", config, IDENT) == {**config, **IDENT}
     (out / "results.jsonl").write_text("")
-    assert ic_sweep.with_identity(out, config, IDENT) == {**config, **IDENT}
+    assert engine.with_identity(out, config, IDENT) == {**config, **IDENT}
 
 
 def test_a_models_identity_is_its_files_and_a_workdirs_step(bimanual, tmp_path):  # noqa: F811
@@ -75,7 +75,7 @@ def test_sc3_sweep_records_its_model_and_refuses_to_resume_into_another(bimanual
     assert _sweep(ic, wm, out, *args, policies=("hold",)) == 0
     saved = json.loads((out / "sweep.json").read_text())
     assert saved["world_model_sha256"] == checkpoint.identity(wm)["sha256"] and saved["world_model_step"] is None
-    assert saved["scorer_sha256"] == ic_sweep.spec_sha256("test_ic_sweep:score")
+    assert saved["scorer_sha256"] == engine.spec_sha256("test_ic_sweep:score")
     assert set(saved["policies_sha256"]) == {"hold"}
     capsys.readouterr()
     cfg, stats, params = checkpoint.load(wm)  # another model at the same path

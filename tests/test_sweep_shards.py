@@ -13,7 +13,7 @@ import pytest
 
 import sc3_jax.benchmarks.bussing  # noqa: F401  (picks the GL backend before mujoco is imported)
 from sc3_jax.errors import UserError
-from sc3_jax.evaluate import report
+from sc3_jax.evaluate import engine, report
 from sc3_jax.benchmarks.bussing import perception, sweep
 from sc3_jax.evaluate.merged import open_store
 from sc3_jax.evaluate.results import EVAL_MODES, ResultsStore, seed_blocks
@@ -46,7 +46,7 @@ def setup(tiny):
 
 def test_work_units_split_into_disjoint_shards_that_cover_the_sweep(tiny):
     _, cfg = tiny
-    units = sweep.work_units(len(POLICIES), seed_blocks(cfg), cfg.modes, cfg.batch)
+    units = engine.work_units(len(POLICIES), seed_blocks(cfg), cfg.modes, cfg.batch)
     shares = [units[i::3] for i in range(3)]
     assert sorted(map(repr, sum(shares, []))) == sorted(map(repr, units))
     # every (policy, seed, mode) exactly once; a batch of 3 evaluation seeds at batch 2 is two units
@@ -56,7 +56,7 @@ def test_work_units_split_into_disjoint_shards_that_cover_the_sweep(tiny):
                                                                                      (10_000_002,)]
     for bad in ("2/2", "1", "a/b", "-1/2"):
         with pytest.raises(ValueError, match="I/N"):
-            sweep.parse_shard(bad)
+            engine.parse_shard(bad)
 
 
 @pytest.mark.slow  # ~2 min: an unsharded sweep, then worker processes that each import JAX and compile

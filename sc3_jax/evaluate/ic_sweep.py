@@ -33,8 +33,8 @@ states, U). A rerun skips every rollout whose line exists; a killed run redoes a
 ``--real`` sources are written to ``real.json`` beside (not in) ``sweep.json``: they change the report, not the
 rollouts, so a store is re-reported against other real outcomes without rolling out again.
 
-``sweep.json`` also records what the rollouts came from (:func:`with_identity`, for this sweep and the simulated
-benchmark's): the world model's content hash and training step (``checkpoint.identity``: a path names a workdir
+The rollouts run on the sweep engine (``engine.py``), with this module's ``EpisodesSource``. ``sweep.json`` also
+records what the rollouts came from (``engine.with_identity``, for every sweep): the world model's content hash and training step (``checkpoint.identity``: a path names a workdir
 that may train on), and the content hash of the scorer and of each policy where they are files. Resuming against
 a changed one is refused in one line naming both; a store written before these were recorded resumes with a note
 and records none (nothing says what its first rollouts came from, so no later hash could vouch for them).
@@ -43,8 +43,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import math
-import time
 from pathlib import Path
 from typing import Annotated
 
@@ -54,7 +52,6 @@ import tyro
 from sc3_jax import atomic
 from sc3_jax.errors import UserError
 from sc3_jax.evaluate.world_model_defaults import Sampler
-from sc3_jax.evaluate.results import ResultsStore, check_policy_names, rollout_id, terminated_at
 
 KIND = "initial_conditions"
 REAL_FILE = "real.json"  # the --real sources the report reads by default
@@ -168,30 +165,6 @@ def families(cfg: ICSweepConfig) -> dict[str, tuple[str, str]]:
     return {n: chosen.get(n, chosen.get(None, ("native", "native"))) for n in served}
 
 
-def _resolve(specs: tuple[str, ...], chunk: int, mappings: dict, action_space, num_views: int, named=None
-             ) -> list[tuple[str, str, object]]:
-    """(name, spec, policy) per --policies entry; names unique. ``mappings``: name -> the ObsMapping of a mapped
-    ws:// policy; built-in policies (zero, random, linear) act in the world model's ``action_space``."""
-    from sc3_jax.policies.resolve import parse, resolve
-
-    out = []
-    for spec in specs:
-        try:
-            name, body, _ = parse(spec)
-            r = resolve(spec, chunk, mappings.get(name or body), action_space=action_space, num_views=num_views,
-                        named=named)
-        except UserError:
-            raise
-        except (ValueError, TypeError, ImportError, AttributeError, ConnectionError) as e:
-            raise UserError(f"--policies {spec!r}: {e}") from None
-        out.append((r.name, spec, r.policy))
-    names = [n for n, _, _ in out]
-    dup = sorted({n for n in names if names.count(n) > 1})
-    if dup:
-        raise UserError(f"--policies: the name(s) {dup} occur twice; name each as NAME=SPEC")
-    return out
-
-
 def trained_on(store, ids, train_path: str | Path | None) -> int | None:
     """How many of the episodes ``ids`` of ``store`` are in the world model's training store (``train_path``): all
     when it is the same store, else those imported from the same LeRobot dataset with the same episode_index (other
@@ -212,127 +185,52 @@ def trained_on(store, ids, train_path: str | Path | None) -> int | None:
     return sum(key(Path(store.root), e) in seen for e in ids)
 
 
-# sweep.json's record of what its rollouts came from (with_identity)
-IDENTITY_KEYS = ("world_model_sha256", "world_model_step", "scorer_sha256", "policies_sha256")
+class EpisodesSource:
+    """What a sweep of held-out episodes hands the engine (``engine.Source``): each episode's initial condition (as
+    a mapped openpi server sees it: its own prompt), the lab's ``--scorer`` on each cut a candidate tau makes, and
+    the records' episode id and block. No simulator: real outcomes come from labels (``--real``)."""
 
+    outcomes = "outcomes"  # {criterion: bool}
+    every_cut = False  # the scorer is the lab's code, called once per cut that some candidate tau makes
+    keeps = ("states",)  # the robot state the policy saw
 
-def identity(world_model: str | None, scorer: str | None, policies: list[tuple[str, str]]) -> dict:
-    """The identity fields of a sweep's ``sweep.json``: the world model's content hash and step
-    (``checkpoint.identity``; none when ``world_model`` is None, a sweep that reads no model), the ``scorer``
-    spec's hash and each (name, spec) of ``policies`` whose spec names files (:func:`spec_sha256`)."""
-    from sc3_jax import checkpoint
+    def __init__(self, cfg: ICSweepConfig, ids: list[str], ics, prompted, prompts: list[str], mapped: set[str],
+                 scorer, criteria: tuple[str, ...] | None):
+        self.cfg, self.ids, self.ics, self.prompted, self.prompts = cfg, ids, ics, prompted, prompts
+        self.mapped, self.scorer, self.criteria = mapped, scorer, criteria
+        self.block = {i: b for b, idx in blocks(cfg).items() for i in idx}
 
-    out = {}
-    if world_model is not None:
-        wm = checkpoint.identity(world_model)
-        out.update(world_model_sha256=wm["sha256"], world_model_step=wm["step"])
-    scored = spec_sha256(scorer) if scorer else None
-    if scored:
-        out["scorer_sha256"] = scored
-    acting = {name: spec_sha256(spec) for name, spec in policies}
-    if any(acting.values()):
-        out["policies_sha256"] = {n: h for n, h in acting.items() if h}
-    return out
+    def fields(self, job, seed: int) -> dict:
+        return {"episode": self.ids[seed], "block": self.block[seed]}
 
+    def conditions(self, job, spec):
+        return (self.prompted if job.name in self.mapped else self.ics).take(np.asarray(job.seeds))
 
-def spec_sha256(spec: str) -> str | None:
-    """The content hash of the files a --scorer / --policies spec names: a ``package.module:attr``'s source file, a
-    ``detector:DIR`` or ``lerobot:PATH`` directory; None for a server, a built-in or a benchmark's own name (those
-    are not files of the user's, or not files at all)."""
-    import importlib.util
+    def score(self, job, b: int, frames: np.ndarray, states: np.ndarray, cuts, keep: int) -> dict:
+        from sc3_jax.evaluate.scorers import RolloutView, check_outcomes
 
-    from sc3_jax import checkpoint
-    from sc3_jax.policies.resolve import parse
-
-    try:
-        body = parse(spec)[1]
-    except ValueError:
-        return None
-    for prefix in ("detector:", "lerobot:"):
-        if body.startswith(prefix):
-            root = Path(body[len(prefix):])
-            files = [root] if root.is_file() else sorted(f for f in root.rglob("*") if f.is_file())
-            return checkpoint.files_sha256([(str(f.relative_to(root)) if f != root else f.name, f) for f in files]) \
-                if files else None
-    if "://" in body or ":" not in body:
-        return None
-    try:  # imported already (the spec was resolved): its module's file
-        found = importlib.util.find_spec(body.partition(":")[0])
-    except (ImportError, ValueError):
-        return None
-    origin = Path(found.origin) if found is not None and found.origin else None
-    return checkpoint.files_sha256([(origin.name, origin)]) if origin is not None and origin.is_file() else None
-
-
-def with_identity(out: str | Path, config: dict, ident: dict) -> dict:
-    """``config`` (a sweep.json to be) with the identity fields ``ident`` (:func:`identity`), after checking them
-    against the store ``out`` already holds: a resume against another world model (its workdir trained on, or
-    another export at the same path), scorer or policy file is refused in one line naming the old and the new.
-    A store whose rollouts were recorded before sweep.json named their model is accepted with a note and
-    ``config`` returned as it is: it records nothing new (nothing says what its first rollouts came from)."""
-    from sc3_jax.evaluate.results import ResultsStore
-
-    path = Path(out) / "sweep.json"
-    if not path.is_file() or not ResultsStore(out)._holds_results():  # a new store (or one with no rollout yet)
-        return {**config, **ident}
-    old = atomic.read_json(path, "restore it from a copy, or use another --out")
-    if not isinstance(old, dict):
-        return {**config, **ident}  # not a sweep's record: the store refuses it in its own line
-    if "world_model_sha256" not in old:
-        print(f"note: {path} predates recording the world model's content hash: resumed as it was, with none "
-              "recorded (a changed model at the same path is not detected; a new --out records it)")
-        return config
-
-    def model(d):
-        step, sha = d.get("world_model_step"), str(d.get("world_model_sha256"))[:16]
-        return f"sha256 {sha}, an export" if step is None else f"step {step}, sha256 {sha}"
-    if ident.get("world_model_sha256") not in (None, old["world_model_sha256"]):
-        raise UserError(f"{out} holds rollouts of world model {old.get('world_model')} ({model(old)}); "
-                        f"{config.get('world_model')} is now {model(ident)}: resuming would rank two models' rollouts "
-                        "together; give the model it was swept with, or use another --out")
-    if old.get("scorer_sha256") != ident.get("scorer_sha256"):
-        raise UserError(f"{out} was scored by --scorer {old.get('scorer')} with sha256 "
-                        f"{str(old.get('scorer_sha256'))[:16]}; its files are now sha256 "
-                        f"{str(ident.get('scorer_sha256'))[:16]}: resuming would mix two scorers' outcomes; restore "
-                        "it, or use another --out")
-    was, now = old.get("policies_sha256") or {}, ident.get("policies_sha256") or {}
-    changed = sorted(n for n in set(was) & set(now) if was[n] != now[n])
-    if changed:
-        n = changed[0]
-        raise UserError(f"{out} holds rollouts of policy {n!r} with sha256 {was[n][:16]}; its files are now sha256 "
-                        f"{now[n][:16]}: resuming would rank two versions of it together; restore it, name the new "
-                        "one otherwise, or use another --out")
-    return {**config, **ident}
-
-
-def cut(u: np.ndarray, tau: float) -> int:
-    """Chunks a rollout with U_chunk ``u`` [N] keeps under threshold ``tau``: those before the first with U > tau
-    (``calibrate.cut``'s rule, which the report applies to the stored ``u`` / ``u_raw``)."""
-    first = int(terminated_at(np.asarray(u)[None], tau)[0])
-    return len(u) if first < 0 else first
-
-
-def _mesh(batch: int):
-    """A mesh over as many local devices as divide the batch: every device busy, no batch padded beyond it."""
-    import jax
-
-    from sc3_jax import sharding
-    from sc3_jax.config import MeshConfig
-
-    devices = jax.local_devices()
-    d = max(k for k in range(1, min(batch, len(devices)) + 1) if batch % k == 0)
-    return sharding.make_mesh(MeshConfig(-1, 1, 1), devices[:d])
+        i, rid = job.seeds[b], job.ids()[b]
+        by_cut = {}
+        for c in cuts:
+            n = 1 + c * keep
+            view = RolloutView(self.ids[i], frames[:, :n], state=states[:n], instruction=self.prompts[i])
+            try:
+                got = self.scorer(view)
+            except Exception as e:  # the user's code: its traceback, and which rollout it was reading
+                e.add_note(f"while --scorer {self.cfg.scorer} scored {rid} ({c} of {max(cuts)} chunks)")
+                raise
+            by_cut[c] = check_outcomes(self.cfg.scorer, got, rid, self.criteria)
+            self.criteria = self.criteria or tuple(sorted(by_cut[c]))
+        return by_cut
 
 
 def run(cfg: ICSweepConfig, named=None) -> Path:
     """Run (or resume) the sweep; returns the store's directory. See the module docstring. ``named``: a benchmark's
-    own policy names (``policies.resolve``'s; ``sc3 sweep episodes`` passes the simulated benchmark's zoo)."""
-    import jax
-    from tqdm import tqdm
-
-    from sc3_jax import checkpoint, rollout, rollout_io, state_head
-    from sc3_jax.evaluate.scorers import RolloutView, check_outcomes, load_outcome_scorer
-    from sc3_jax.evaluate.world_model_defaults import evaluation_config, warn_if_student_off_its_step
+    own policy names (``policies.resolve``'s; ``sc3 sweep episodes --benchmark NAME`` passes its)."""
+    from sc3_jax import checkpoint, rollout_io
+    from sc3_jax.evaluate import engine
+    from sc3_jax.evaluate.scorers import load_outcome_scorer
+    from sc3_jax.evaluate.world_model_defaults import warn_if_student_off_its_step
     from sc3_jax.policies.openpi_mappings import for_world_model
 
     _check(cfg)
@@ -341,13 +239,10 @@ def run(cfg: ICSweepConfig, named=None) -> Path:
     if cfg.real:
         from sc3_jax.evaluate import labels
         labels.read(cfg.real)  # unreadable real outcomes are refused before any rollout, not after hours of them
-    wcfg, stats, params = checkpoint.load(cfg.world_model)
-    wcfg = evaluation_config(wcfg, cfg)  # the sweep's sampler settings (sc3 rollout / diagnose share them)
+    setup = engine.Setup(cfg.out, cfg.world_model, cfg, named=named, learned_state=cfg.learned_state, pad=True)
+    ro, params = engine.load_world_model(setup)  # the sweep's sampler settings (sc3 rollout / diagnose share them)
+    wcfg, s = ro.cfg, ro.spec
     warn_if_student_off_its_step(wcfg)
-    fps = checkpoint.read_robot(cfg.world_model, wcfg).fps  # the frame rate the model was trained at (config.json)
-    ro = rollout.Rollout(wcfg, stats, mesh=_mesh(cfg.batch), data_fps=fps,
-                         head=state_head.load(cfg.world_model) if cfg.learned_state else None)
-    s = ro.spec
     want = cfg.episodes + cfg.calibration_episodes
     ids, ics, store = rollout_io.load_initial_conditions(cfg.initial_conditions, wcfg, s, want, cfg.start, cfg.task)
     if len(ids) < want:
@@ -368,77 +263,23 @@ def run(cfg: ICSweepConfig, named=None) -> Path:
         m = for_world_model(fam, tuple(wcfg.data.views), table, f"--family {entry}")
         if m is not None:
             mappings[n] = m
-    policies = _resolve(cfg.policies, wcfg.rollout.policy_chunk, mappings, stats.action_space, len(wcfg.data.views),
-                        named)
-    check_policy_names([n for n, _, _ in policies])
-    for name, spec, policy in policies:  # dimensions first: one line naming both sides, before any compile
+    policies = engine.resolve_policies(cfg.policies, named, mappings=mappings, chunk=wcfg.rollout.policy_chunk,
+                                       action_space=ro.spec.action_space, num_views=len(wcfg.data.views))
+    for p in policies:  # dimensions first: one line naming both sides, before any compile
         try:
-            ro.check_policy(policy)
+            ro.check_policy(p.policy)
         except UserError as e:
-            raise UserError(f"--policies {spec}: {e} (world model {cfg.world_model})") from None
-    config = with_identity(cfg.out, cfg.to_json(ids, [n for n, _, _ in policies]),
-                           identity(cfg.world_model, cfg.scorer, [(n, spec) for n, spec, _ in policies]))
-    results = ResultsStore(cfg.out, config, lock=True)
-    try:
+            raise UserError(f"--policies {p.spec}: {e} (world model {cfg.world_model})") from None
+    config = engine.with_identity(cfg.out, cfg.to_json(ids, [p.name for p in policies]),
+                                  engine.identity(cfg.world_model, cfg.scorer, [(p.name, p.spec) for p in policies]))
+    source = EpisodesSource(cfg, ids, ics, prompted, prompts, set(mappings), scorer, None)
+    # condition i's episode key is (rollout_seed, i): the calibration block's offset is the evaluation block's size
+    units = engine.work_units(len(policies), blocks(cfg), ("online",), cfg.batch,
+                              {"evaluation": (("online", 0),), "calibration": (("online", cfg.episodes),)})
+
+    def before(results):  # the store, open and locked
+        source.criteria = next((tuple(sorted(r["outcomes"])) for r in results.records()), None)  # every rollout's
         if cfg.real:
             atomic.write_json(results.root / REAL_FILE, {"real": list(cfg.real)})
-        done = results.done()
-        criteria = next((tuple(sorted(r["outcomes"])) for r in results.records()), None)
-        taus = [float(t) for t in cfg.taus] + [math.inf]
-        units = [(name, spec, policy, block, idx[g:g + cfg.batch]) for name, spec, policy in policies
-                 for block, idx in blocks(cfg).items() for g in range(0, len(idx), cfg.batch)]
-        total = len(policies) * want
-        bar = tqdm(total=total, initial=len(done), desc="sweep", unit="rollout", disable=not cfg.progress)
-        t0, ran = time.time(), 0
-        for name, spec, policy, block, idx in units:
-            rids = [rollout_id(name, i, "online") for i in idx]
-            if all(r in done for r in rids):
-                continue
-            sel = np.asarray(idx + [idx[-1]] * (cfg.batch - len(idx)))  # one shape for every batch: one compile
-            sub = (prompted if name in mappings else ics).take(sel)
-            keys = np.asarray(rollout.episode_keys(cfg.rollout_seed, len(sel), start=idx[0]))  # condition i: (seed, i)
-            try:
-                out = rollout_io.closed_loop(ro, params, policy, sub, keys, math.inf, len(sel), False)
-            except UserError as e:  # a host policy's chunks are checked as they arrive
-                raise UserError(f"--policies {spec}: {e} (world model {cfg.world_model})") from None
-            except Exception as e:  # the policy's code (or its server): its traceback, and which policy it was
-                e.add_note(f"while policy {name!r} ({spec}) acted in rollouts {rids[0]} .. {rids[-1]}")
-                raise
-            recs = []
-            for b, (i, rid) in enumerate(zip(idx, rids)):
-                frames = np.concatenate([out["initial_frames"][b][:, -1:], out["frames"][b]], 1)  # [V, 1 + N*l, ...]
-                # what the policy saw: the robot's learned state where the model has one, else the commands'
-                learned = "robot_states" in out
-                states = np.concatenate([np.asarray((sub.robot if learned else sub.state)[b], np.float32)[None],
-                                         out["robot_states" if learned else "states"][b]], 0)
-                u, u_raw = out["u"][b], out["u_raw"][b]
-                cuts = sorted({cut(u if cfg.tau_units == "normalised" else u_raw, t) for t in taus})
-                by_cut = {}
-                for c in cuts:
-                    n = 1 + c * s.keep
-                    view = RolloutView(ids[i], frames[:, :n], state=states[:n], instruction=prompts[i])
-                    try:
-                        got = scorer(view)
-                    except Exception as e:  # the user's code: its traceback, and which rollout it was reading
-                        e.add_note(f"while --scorer {cfg.scorer} scored {rid} ({c} of {s.num_chunks} chunks)")
-                        raise
-                    by_cut[str(c)] = check_outcomes(cfg.scorer, got, rid, criteria)
-                    criteria = criteria or tuple(sorted(by_cut[str(c)]))
-                results.save_arrays(rid, frames=frames, actions=out["actions"][b], states=states[1:], u=u, u_raw=u_raw)
-                recs.append({"id": rid, "mode": "online", "policy": name, "seed": i, "episode": ids[i], "block": block,
-                             "outcomes": by_cut[str(s.num_chunks)], "outcomes_by_cut": by_cut, "u": u.tolist(),
-                             "u_raw": u_raw.tolist(), "num_chunks": s.num_chunks, "frames_per_chunk": s.keep,
-                             "stride": s.stride})
-            results.append(recs)
-            ran += len(recs)
-            bar.update(len(recs))
-        bar.close()
-        for name, _, policy in policies:
-            if name in served:  # our side of the connection to an openpi server
-                policy.close()
-        atomic.write_json(results.root / "timing.json", {
-            "seconds_last_run": time.time() - t0, "rollouts_run": {"online": ran},
-            "devices": [str(d) for d in jax.local_devices()]})
-        return results.root
-    finally:
-        results.close()  # the lock: another sweep may take the store
+    return engine.run(setup, config, policies, units, source=source, progress=cfg.progress, model=(ro, params),
+                      before=before)

@@ -1,4 +1,4 @@
-"""The sweep's worker processes (``real_workers``, ``model_workers``): spawned, on the CPU, one thread each.
+"""The sweep engine's worker processes (``engine.run_jobs``): spawned, on the CPU, one thread each.
 
 *Spawned*: forking a process that has started JAX's thread pools is unsafe. *On the CPU*: on an accelerator machine the
 workers must not claim its memory. *One thread each*: the processes are the parallelism; a worker's XLA spreading its

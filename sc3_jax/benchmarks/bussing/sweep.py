@@ -1,4 +1,7 @@
-"""Evaluation sweep: policies x initial conditions x {real, offline, online}, into a resumable results store.
+"""The bussing benchmark's sweep: policies x initial conditions x {real, offline, online}, into a resumable results
+store. This module says what runs (the seed blocks, the policies, the modes, the options below); the sweep engine
+(``evaluate/engine.py``) runs it, with this benchmark's ``Source`` (``source.py``: the simulator's reset frames, its
+real rollouts and the perception scorer).
 
     real     the policy acts in the simulator; scored by physics (ground truth) and by the perception scorer
              (their agreement validates the scorer the imagined rollouts are judged by)
@@ -15,7 +18,7 @@ outcomes of the rollout cut after every chunk; a threshold tau keeps the chunks 
 U_chunk > tau, which are exactly the frames a rollout run with that tau would have produced.
 
 Results go to a results store (``results.py``: ``sweep.json``, ``results.jsonl``, one npz per rollout);
-``sweep.json`` records the world model's content hash and step (``evaluate/ic_sweep.py``'s ``with_identity``: a
+``sweep.json`` records the world model's content hash and step (``evaluate/engine.py``'s ``with_identity``: a
 resume against a changed model is refused, a store from before the hash resumes with a note). A killed
 sweep restarted with the same config skips every rollout whose line exists and redoes only the work in flight: one
 real rollout, or one world-model batch (``batch`` initial conditions are rolled out together, and a batch is always
@@ -32,18 +35,16 @@ import json
 import math
 import os
 import shutil
-import time
 from pathlib import Path
 from typing import Annotated
 
 import numpy as np
 import tyro
 
-from sc3_jax import atomic
 from sc3_jax.errors import UserError
 from sc3_jax.evaluate.world_model_defaults import Sampler
-from sc3_jax.evaluate.results import (EVAL_MODES, REAL_ONLY_STRIDE, SPLITS, ResultsStore, check_policy_names,
-                                      rollout_id, score_strides, seed_blocks)
+from sc3_jax.evaluate.results import (EVAL_MODES, REAL_ONLY_STRIDE, ResultsStore, rollout_id, score_strides,
+                                      seed_blocks)
 
 # the best shipped world model (docs/results.md's headline): README command 1 evaluates the zoo inside it
 SHIPPED_WORLD_MODEL = Path(__file__).resolve().parents[2] / "evaluate" / "shipped" / "bussing_latent_gpu"
@@ -129,22 +130,22 @@ class SweepConfig(Sampler):
 
 
 # ================================================================================================================
-# The sweep
+# The sweep: this benchmark's work and its Source, run by the engine (evaluate/engine.py)
 # ================================================================================================================
 def run_sweep(cfg: SweepConfig) -> Path:
     """Run (or resume) the sweep; returns the results directory. See the module docstring."""
-    import jax
-    from tqdm import tqdm
+    import functools
 
     from sc3_jax import checkpoint
     from sc3_jax import rollout as ro_mod
-    from sc3_jax.benchmarks.bussing import perception
-    from sc3_jax.benchmarks.bussing.rescore import weights_digest
-    from sc3_jax.benchmarks.bussing.model_workers import ModelJob, ModelRunner, ModelSetup, in_workers, run_model_jobs
-    from sc3_jax.benchmarks.bussing.real_workers import RealJob, RealSetup, default_workers, run_real_jobs
-    from sc3_jax.benchmarks.bussing.scorers import PerceptionScorer
-    from sc3_jax.benchmarks.bussing.policy_eval import make_env
-    from sc3_jax.evaluate.ic_sweep import identity, with_identity
+    from sc3_jax.evaluate import engine
+
+    from . import perception
+    from .hooks import named_policy
+    from .policy_eval import make_env
+    from .rescore import weights_digest
+    from .source import BussingSource, state_reader
+    from .tasks import TASKS
 
     cfg = dataclasses.replace(cfg, degradations=degradations_choice(cfg.degradations))
     bad = [m for m in cfg.modes if m not in EVAL_MODES]
@@ -157,17 +158,14 @@ def run_sweep(cfg: SweepConfig) -> Path:
     if cfg.real_from and ("real" not in cfg.modes or not cfg.episode_seconds):
         raise UserError("--real-from copies real rollouts: it needs 'real' in modes and an explicit "
                          "--episode-seconds (the length both stores' real rollouts ran for)")
-    cfg = dataclasses.replace(cfg, state_reader=default_state_reader(cfg), shard=shard_of(cfg))
-    index, count = parse_shard(cfg.shard)
-    out = shard_dir(cfg.out, cfg.shard)
+    cfg = dataclasses.replace(cfg, state_reader=default_state_reader(cfg), shard=engine.shard_of(cfg.shard))
+    index, count = engine.parse_shard(cfg.shard)
+    out = engine.shard_dir(cfg.out, cfg.shard)
     blocks = seed_blocks(cfg)
     weights = cfg.perception or perception.DEFAULT_WEIGHTS
     config = {**cfg.to_json(), "perception_sha256": weights_digest(weights)}
-    p_params = perception.load(weights)
-    scorer = PerceptionScorer(p_params)
-    specs = list(cfg.policies or _zoo_names(cfg.tasks))
-    policies = [_resolve(p) for p in specs]
-    check_policy_names([n for n, _, _ in policies])
+    policies = engine.resolve_policies(cfg.policies or _zoo_names(cfg.tasks), named_policy, need_task=True,
+                                       tasks=TASKS)
     wm_modes = [m for m in cfg.modes if m != "real"]
     spec = None
     if wm_modes:
@@ -180,76 +178,27 @@ def run_sweep(cfg: SweepConfig) -> Path:
     env = make_env(image_size)
     seconds = cfg.episode_seconds or (wcfg.rollout.episode_seconds if spec else 20.0)
     max_steps = int(round(seconds * env.control_hz))
-    units = work_units(len(policies), blocks, cfg.modes, cfg.batch)[index::count]
+    units = engine.work_units(len(policies), blocks, cfg.modes, cfg.batch)[index::count]
     real_seeds = sorted({(u.policy, s) for u in units if u.real for s in u.seeds})
-    degrade = {s for u in units if degraded_block(cfg.degradations, u.block) for s in u.seeds}
     # a refused --real-from source is refused before the store is created or written
-    copies = real_to_copy(cfg.real_from, config, {n: t for n, t, _ in policies},
-                          [(policies[p][0], s) for p, s in real_seeds], image_size, score_stride,
+    copies = real_to_copy(cfg.real_from, config, {p.name: p.task for p in policies},
+                          [(policies[p].name, s) for p, s in real_seeds], image_size, score_stride,
                           ResultsStore(out).done()) if cfg.real_from else []
-    # what the rollouts come from (ic_sweep.with_identity): a resume against a changed model is refused; the model
+    # what the rollouts come from (engine.with_identity): a resume against a changed model is refused; the model
     # is hashed whenever it is there to read, so a real-only resume cannot re-stamp another model's online rollouts
     reads_model = bool(wm_modes) or (Path(cfg.world_model) / "config.json").is_file()
-    config = with_identity(out, config, identity(cfg.world_model if reads_model else None, None,
-                                                 [(n, spec) for (n, _, _), spec in zip(policies, specs)]))
-    store = ResultsStore(out, config, lock=True)
-    try:
-        link_real(store, cfg.real_from, copies)
-        done = store.done()
-        total = sum(len(u.seeds) * (u.real + len(u.modes)) for u in units)
-        bar = tqdm(total=total, initial=len(done), desc="sweep", unit="rollout", disable=not cfg.progress)
-        timing = {"real": 0.0, "offline": 0.0, "online": 0.0}
-        count_run = {"real": 0, "offline": 0, "online": 0}
-        jobs = [RealJob(specs[p], *policies[p][:2], s, s in degrade) for p, s in real_seeds
-                if rollout_id(policies[p][0], s, "real") not in done]
-        setup = RealSetup(str(store.root), image_size, weights, max_steps, score_stride)
-        workers = cfg.workers or default_workers()
-        t0 = time.time()
-        for job, rec in run_real_jobs(jobs, setup, workers,
-                                      {specs[p]: policies[p][2] for p in range(len(specs))}, env, scorer):
-            store.append([{"id": rollout_id(job.name, job.seed, "real"), "mode": "real", "seed": job.seed,
-                           "policy": job.name, "task": job.task, "split": SPLITS[job.task], **rec}])
-            bar.update(1)
-        timing["real"], count_run["real"] = time.time() - t0, len(jobs)
-        model_jobs = [ModelJob(specs[u.policy], *policies[u.policy][:2], mode, u.seeds, offset + u.start)
-                      for u in units for mode, offset in u.modes
-                      if not all(rollout_id(policies[u.policy][0], s, mode) in done for s in u.seeds)]
-        model_setup = ModelSetup(str(store.root), cfg, str(weights))
-
-        def in_process():  # this process's runner, with its resolved policies, simulator and scorer
-            return ModelRunner(model_setup, {specs[p]: policies[p][2] for p in range(len(specs))}, env, scorer)
-
-        t1 = time.time()
-        for job, recs in run_model_jobs(model_jobs, model_setup, workers, in_process):
-            ids = [rollout_id(job.name, s, job.mode) for s in job.seeds]
-            store.append([{"id": i, "mode": job.mode, "seed": s, "policy": job.name, "task": job.task,
-                           "split": SPLITS[job.task], **r} for i, s, r in zip(ids, job.seeds, recs)])
-            timing[job.mode] += time.time() - t1  # the workers overlap: each mode's share of the wall time
-            count_run[job.mode] += len(ids)
-            bar.update(len(ids))
-            t1 = time.time()
-        bar.close()
-        env.close()
-        atomic.write_json(store.root / "timing.json", {
-            "seconds_last_run": time.time() - t0, "seconds_by_mode": timing, "rollouts_run": count_run,
-            "workers": workers, "model_workers": workers if in_workers(workers, len(model_jobs)) else 1,
-            "devices": [str(d) for d in jax.local_devices()]})
-        return store.root
-    finally:
-        store.close()  # the lock: another sweep may take the store
-
-
-@dataclasses.dataclass(frozen=True)
-class Unit:
-    """One share of a sweep's work: a batch of initial conditions of one policy and what runs on them (its real
-    rollouts, and the world-model modes of its seed block, with the block's episode-key offset). Batches are fixed
-    sets, so a unit's records do not depend on which process or shard runs it."""
-    policy: int
-    block: str
-    start: int  # index of the first seed within its block
-    seeds: tuple[int, ...]
-    real: bool
-    modes: tuple[tuple[str, int], ...]  # (world-model mode, fold-in offset of its episode keys)
+    config = engine.with_identity(out, config, engine.identity(cfg.world_model if reads_model else None, None,
+                                                               [(p.name, p.spec) for p in policies]))
+    make_source = functools.partial(BussingSource, {p.name: p.task for p in policies}, image_size, str(weights),
+                                    max_steps, score_stride)
+    setup = engine.Setup(str(out), cfg.world_model if wm_modes else None, cfg, make_source, named_policy,
+                         functools.partial(state_reader, cfg.state_reader or str(weights)))
+    source = make_source(env=env)
+    source.scorer  # noqa: B018  (unreadable perception weights are refused before the store is written)
+    return engine.run(setup, config, policies, units, source=source, progress=cfg.progress,
+                      workers=cfg.workers or engine.default_workers(),
+                      degraded=functools.partial(degraded_block, cfg.degradations),
+                      before=lambda store: link_real(store, cfg.real_from, copies))
 
 
 DEGRADATIONS = ("calibration", "all", "none")
@@ -266,53 +215,6 @@ def degradations_choice(value) -> str:
 def degraded_block(choice: str, block: str) -> bool:
     """Whether the real rollouts of seed ``block`` are also scored on degraded frames."""
     return choice == "all" or (choice == "calibration" and block == "calibration")
-
-
-# world-model modes per seed block, and the offset of the block's episode keys (blocks never share noise)
-WM_BLOCKS = {"evaluation": (("offline", 0), ("online", 0)), "calibration": (("online", 1 << 20),), "ceiling": ()}
-
-
-def work_units(n_policies: int, blocks: dict[str, list[int]], modes, batch: int) -> list[Unit]:
-    """Every unit of a sweep, in the order one process runs them (shard I of N takes units I, I + N, ...)."""
-    units = []
-    for p in range(n_policies):
-        for block, seeds in blocks.items():
-            wm = tuple((m, off) for m, off in WM_BLOCKS[block] if m in modes)
-            if not wm and "real" not in modes:
-                continue
-            for g in range(0, len(seeds), batch):
-                units.append(Unit(p, block, g, tuple(seeds[g:g + batch]), "real" in modes, wm))
-    return units
-
-
-def parse_shard(shard: str | None) -> tuple[int, int]:
-    """"I/N" -> (I, N); None -> (0, 1)."""
-    if shard is None:
-        return 0, 1
-    try:
-        i, n = (int(x) for x in shard.split("/"))
-    except ValueError:
-        i, n = -1, 0
-    if not 0 <= i < n:
-        raise UserError(f"--shard {shard!r}: expected I/N with 0 <= I < N, e.g. 0/4")
-    return i, n
-
-
-def shard_of(cfg: SweepConfig) -> str | None:
-    """The sweep's shard: ``cfg.shard``, else this process's share under ``jax.distributed``, else None (all)."""
-    if cfg.shard is not None:
-        parse_shard(cfg.shard)
-        return cfg.shard
-    import jax
-    return f"{jax.process_index()}/{jax.process_count()}" if jax.process_count() > 1 else None
-
-
-def shard_dir(out: str | Path, shard: str | None) -> Path:
-    """Where a shard's store lives: OUT/shard-I-of-N (OUT itself when unsharded)."""
-    if shard is None:
-        return Path(out)
-    i, n = parse_shard(shard)
-    return Path(out) / f"shard-{i}-of-{n}"
 
 
 def default_state_reader(cfg: SweepConfig) -> str | None:
@@ -393,22 +295,6 @@ def link_real(store: ResultsStore, source: str | Path, recs: list[dict]) -> None
             shutil.copy2(src.array_path(r["id"]), dst)  # another file system
     if recs:
         store.append(recs)
-
-
-def _resolve(spec: str):
-    """(name, task, policy) of a sweep policy: any spelling of ``policies.resolve``, with a task."""
-    from sc3_jax.benchmarks.bussing.hooks import named_policy
-    from sc3_jax.policies.resolve import TASKS, resolve
-    try:
-        r = resolve(spec, named=named_policy)
-    except UserError:
-        raise
-    except ValueError as e:  # an unknown name or a malformed spelling: the user's to fix
-        raise UserError(f"--policies {spec!r}: {e}") from None
-    if r.task is None:
-        raise UserError(f"policy {spec!r}: the sweep needs its task; expected NAME=SPEC@TASK (e.g. "
-                         f"NAME=ws://HOST:PORT@TASK) with TASK in {list(TASKS)}")
-    return r.name, r.task, r.policy
 
 
 def _zoo_names(tasks=None):
