@@ -12,6 +12,8 @@ from sc3_jax.benchmarks.bussing import sweep
 from sc3_jax.evaluate.results import ResultsStore, seed_blocks
 from sc3_jax.stats import correlation, interval, rank_violation, resample
 
+CRITERIA = ("language", "lifting", "placing")  # the simulated benchmark's, as its scorers name them
+
 
 # ---------------------------------------------------------------------------------------------------------------
 # bootstrap
@@ -55,11 +57,11 @@ def test_evaluator_rows_match_a_slow_reference_loop():
         for i in range(n):
             for store, q in ((real, p_ok[p]), (ev, p_ok[p] * .8)):
                 objs = [dict(object=f"o{j}", **{c: bool(rng.random() < q ** (k + 1))
-                                                for k, c in enumerate(metrics.CRITERIA)}) for j in range(3)]
+                                                for k, c in enumerate(CRITERIA)}) for j in range(3)]
                 store[p, i] = {"policy": p, "split": split_of[pols.index(p)], "seed": i, "objects": objs}
     seeds = list(range(n))
-    rows = intervals.evaluator_rows(intervals.grid(real, pols, seeds), {"online": intervals.grid(ev, pols, seeds)},
-                                    split_of, draws, seed=5)
+    rows = intervals.evaluator_rows(intervals.grid(real, pols, seeds, CRITERIA),
+                                    {"online": intervals.grid(ev, pols, seeds, CRITERIA)}, split_of, draws, seed=5)
     w = resample.multiplicities(n, draws, 5)
     splits = ("in_distribution", "overall")
     slow, minus_floor = {"pearson": [], "mmrv": []}, {(s, m): [] for s in splits for m in ("pearson", "mmrv")}
@@ -78,7 +80,7 @@ def test_evaluator_rows_match_a_slow_reference_loop():
         cell = rows["online"]["splits"]["overall"][m]
         assert (cell["lo"], cell["hi"]) == pytest.approx(tuple(np.nanpercentile(slow[m], [2.5, 97.5])))
     # versus(): against the reference itself as the other evaluator (r 1, MMRV 0 in every draw), on the same resamples
-    ref_grid, ev_grid = intervals.grid(real, pols, seeds), intervals.grid(ev, pols, seeds)
+    ref_grid, ev_grid = intervals.grid(real, pols, seeds, CRITERIA), intervals.grid(ev, pols, seeds, CRITERIA)
     self_diff = intervals.versus(ref_grid, ev_grid, ref_grid, split_of, draws, seed=5)["overall"]
     for m, perfect in (("pearson", 1.0), ("mmrv", 0.0)):
         want = np.nanpercentile(np.array(slow[m]) - perfect, [2.5, 97.5])
@@ -124,7 +126,7 @@ U_RAW = [0.01, 0.03, 0.06]  # cuts: inf/0.1/0.07 -> 3 chunks, 0.05 -> 2, 0.02 an
 def _objs(rng, q):
     out = []
     for j in range(3):
-        passed = {c: bool(rng.random() < q ** (k + 1)) for k, c in enumerate(metrics.CRITERIA)}
+        passed = {c: bool(rng.random() < q ** (k + 1)) for k, c in enumerate(CRITERIA)}
         out.append({"object": f"o{j}", "destination": "bin", **passed, "outcome": metrics.outcome_category(passed)})
     return out
 
@@ -179,7 +181,7 @@ def test_tau_is_chosen_on_calibration_seeds_only(tmp_path):
     cut = next(e for e in base["termination"] if e["tau"] == "0.05")["faithfulness"]["overall"]["pearson"]
     assert base["faithfulness"]["physics"]["online_tau"]["splits"]["overall"]["pearson"]["value"] == \
         pytest.approx(cut)
-    assert calibrate.choose_tau(base["tau"]["calibration"]) == 0.05  # a pure function of the calibration table
+    assert calibrate.choose_tau(base["tau"]["calibration"], "in_distribution") == 0.05  # a pure function of the calibration table
     with pytest.raises(ValueError, match="calibration"):
         calibrate.choose_tau([])
 
@@ -197,7 +199,7 @@ def test_report_prints_every_row_with_its_interval(tmp_path):
             for m in ("pearson", "mmrv"):
                 cell = rows["online"]["splits"][split][m]
                 assert cell["lo"] <= cell["hi"]
-            assert set(rows["online"]["per_criterion"][split]) == set(metrics.CRITERIA)
+            assert set(rows["online"]["per_criterion"][split]) == set(CRITERIA)
     assert "real_perception" in t["faithfulness"]["physics"]
     for name in ("noise ceiling", "policy-blind (floor)", "online (calibrated tau*)", "same instrument",
                  "end to end", "POST HOC", "(chosen)", "Better than a guess?"):

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from sc3_jax.evaluate.metrics import (
-    CATEGORIES,
-    CRITERIA,
+    categories,
+    criteria_of,
     cumulative_passes,
     faithfulness,
     group_by_split,
@@ -25,9 +25,16 @@ from sc3_jax.evaluate.metrics import (
 )
 
 
-def test_constants():
-    assert CRITERIA == ("language", "lifting", "placing")
-    assert CATEGORIES == ("language", "lifting", "placing", "no_failure")
+CRITERIA = ("language", "lifting", "placing")  # a benchmark's (the simulated one's), as its scorers name them
+
+
+def test_an_outcome_carries_its_criteria_in_their_order():
+    outcome = {"object": "cup", "destination": "bin", "language": True, "lifting": False, "placing": np.bool_(False),
+               "outcome": "lifting"}
+    assert criteria_of(outcome) == CRITERIA  # its booleans; the strings name the object and its category
+    assert categories(CRITERIA) == ("language", "lifting", "placing", "no_failure")
+    assert outcome_category(outcome) == "lifting" and cumulative_passes(outcome)["language"]
+    assert outcome_category({"touched": True, "moved": False}) == "moved"  # any benchmark's criteria
 
 
 # ---------------------------------------------------------------- Pearson
@@ -164,24 +171,26 @@ def test_mmrv_matches_literal_formula_with_ties():
     ({"language": True, "lifting": True, "placing": True, "policy": "x"}, "no_failure"),  # extra keys ignored
 ])
 def test_outcome_category(passed, expected):
-    assert outcome_category(passed) == expected
+    assert outcome_category(passed, CRITERIA) == expected
 
 
 def test_outcome_category_refuses_bad_input():
     with pytest.raises(ValueError, match="3 booleans"):
-        outcome_category((True, True))
+        outcome_category((True, True), CRITERIA)
     with pytest.raises(ValueError, match="missing criteria \\['placing'\\]"):
-        outcome_category({"language": True, "lifting": True})
+        outcome_category({"language": True, "lifting": True}, CRITERIA)
     with pytest.raises(ValueError, match="boolean"):
-        outcome_category(("False", True, True))  # a truthy string must not pass as True
+        outcome_category(("False", True, True), CRITERIA)  # a truthy string must not pass as True
     with pytest.raises(ValueError, match="boolean"):
-        outcome_category((True, 2, True))
+        outcome_category((True, 2, True), CRITERIA)
+    with pytest.raises(ValueError, match="criteria named"):
+        outcome_category((True, True, True))  # a sequence says nothing of which criteria it holds
 
 
 def test_cumulative_passes():
-    assert cumulative_passes((True, False, True)) == {"language": True, "lifting": False, "placing": False}
-    assert cumulative_passes((False, True, True)) == {"language": False, "lifting": False, "placing": False}
-    assert cumulative_passes((True, True, True)) == {"language": True, "lifting": True, "placing": True}
+    assert cumulative_passes((True, False, True), CRITERIA) == {"language": True, "lifting": False, "placing": False}
+    assert cumulative_passes((False, True, True), CRITERIA) == {"language": False, "lifting": False, "placing": False}
+    assert cumulative_passes((True, True, True), CRITERIA) == {"language": True, "lifting": True, "placing": True}
 
 
 def _rec(policy, split, episode, obj, lang, lift, place):
@@ -310,22 +319,23 @@ def test_faithfulness_end_to_end_from_records():
 def test_reproduction_rate():
     real = {1: "language", 2: "language", 3: "lifting", 4: "no_failure", 5: "placing"}
     ev = {1: "language", 2: "lifting", 3: "lifting", 4: "placing", 5: "placing"}
-    assert reproduction_rate(real, ev) == {"language": 0.5, "lifting": 1.0, "placing": 1.0, "no_failure": 0.0}
-    assert reproduction_counts(real, ev) == {"language": (1, 2), "lifting": (1, 1), "placing": (1, 1),
-                                             "no_failure": (0, 1)}
+    assert reproduction_rate(real, ev, CRITERIA) == {"language": 0.5, "lifting": 1.0, "placing": 1.0,
+                                                     "no_failure": 0.0}
+    assert reproduction_counts(real, ev, CRITERIA) == {"language": (1, 2), "lifting": (1, 1), "placing": (1, 1),
+                                                       "no_failure": (0, 1)}
     # the direction matters: per *real* category
-    assert reproduction_rate(ev, real) == {"language": 1.0, "lifting": 0.5, "placing": 0.5}
+    assert reproduction_rate(ev, real, CRITERIA) == {"language": 1.0, "lifting": 0.5, "placing": 0.5}
     # a category with no real case is absent
-    assert "placing" not in reproduction_rate({1: "lifting", 2: "lifting"}, {1: "lifting", 2: "placing"})
+    assert "placing" not in reproduction_rate({1: "lifting", 2: "lifting"}, {1: "lifting", 2: "placing"}, CRITERIA)
 
 
 def test_reproduction_rate_errors():
     with pytest.raises(ValueError, match="only in real: \\[2\\]"):
-        reproduction_rate({1: "language", 2: "lifting"}, {1: "language"})
+        reproduction_rate({1: "language", 2: "lifting"}, {1: "language"}, CRITERIA)
     with pytest.raises(ValueError, match="unknown category 'no failure'"):
-        reproduction_rate({1: "no failure"}, {1: "language"})
+        reproduction_rate({1: "no failure"}, {1: "language"}, CRITERIA)
     with pytest.raises(ValueError, match="no cases"):
-        reproduction_rate({}, {})
+        reproduction_rate({}, {}, CRITERIA)
 
 
 # ---------------------------------------------------------------- PSNR

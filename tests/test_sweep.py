@@ -26,6 +26,7 @@ from sc3_jax.errors import UserError
 from sc3_jax.evaluate.results import EVAL_MODES, ResultsStore, rollout_id, seed_blocks
 from sc3_jax.evaluate.scorers import RolloutView
 from sc3_jax.benchmarks.bussing.scorers import HumanScorer
+from sc3_jax.benchmarks.bussing.tasks import CRITERIA
 from sc3_jax.policies import resolve
 
 def _one_per_split():
@@ -78,7 +79,7 @@ def test_sweep_writes_every_rollout(setup):
                if "perception_degraded" in r)
     assert {r["split"] for r in recs} == {"in_distribution", "out_of_distribution"}
     for r in recs:
-        assert len(r["objects"]) == 3 and all(set(metrics.CRITERIA) <= set(o) for o in r["objects"])
+        assert len(r["objects"]) == 3 and all(set(CRITERIA) <= set(o) for o in r["objects"])
         arrays = ResultsStore(cfg.out).load_arrays(r["id"])
         if r["mode"] == "real":
             assert arrays["frames"].shape[:2] == (3, r["length"]) and r["length"] <= 32
@@ -227,7 +228,7 @@ def test_report_numbers_come_from_compute(setup, tmp_path):
     evaluation = set(seed_blocks(cfg)["evaluation"])
     recs = [r for r in ResultsStore(cfg.out).records() if r["seed"] in evaluation]
     rows = lambda mode: [{"policy": r["policy"], "split": r["split"], "episode": r["seed"], "object": o["object"],  # noqa: E731
-                          **{c: o[c] for c in metrics.CRITERIA}} for r in recs if r["mode"] == mode
+                          **{c: o[c] for c in CRITERIA}} for r in recs if r["mode"] == mode
                          for o in r["objects"]]
     real = metrics.success_rates_by_split(rows("real"))
     for mode in ("offline", "online"):
@@ -371,7 +372,7 @@ def _flip_first_object(store: Path, mode: str, split: str):
     i = next(k for k, line in enumerate(lines) if json.loads(line)["mode"] == mode
              and json.loads(line)["split"] == split)
     r = json.loads(lines[i])
-    r["objects"][0].update({c: not r["objects"][0][c] for c in metrics.CRITERIA})
+    r["objects"][0].update({c: not r["objects"][0][c] for c in CRITERIA})
     lines[i] = json.dumps(r)
     (store / "results.jsonl").write_text("\n".join(lines) + "\n")
 
@@ -479,7 +480,7 @@ def test_annotation_round_trip_reproduces_ground_truth(setup, tmp_path):
         rows = list(csv.DictReader(fh))
     for row in rows:
         o = next(o for o in recs[key[row["clip_id"]]["rollout"]]["objects"] if o["object"] == row["object"])
-        row.update({c: str(int(o[c])) for c in metrics.CRITERIA})
+        row.update({c: str(int(o[c])) for c in CRITERIA})
     write = lambda rs, path=csv_path: _write_csv(path, rs)  # noqa: E731
     write(rows)
     labels = annotation.import_annotations(csv_path, key_path)

@@ -5,8 +5,11 @@ faithfulness is best (App. "Early-termination threshold" and "Sweet spot at tau_
 out a *calibration* block of initial conditions (simulator seeds disjoint from the evaluation seeds) in the
 simulator and in the world model; :func:`choose_tau` reads only that block's results:
 
-    tau* = the candidate with the highest in-distribution Pearson r (calibration rollouts vs physics),
-           ties broken by lower in-distribution MMRV, then by the larger tau (terminate less).
+    tau* = the candidate with the highest Pearson r on the selection split (calibration rollouts vs the real ones),
+           ties broken by lower MMRV there, then by the larger tau (terminate less).
+
+The selection split is the benchmark's first (its in-distribution one: ``results.split_order``), else every split
+pooled.
 
 A candidate whose r is nan (a constant side) ranks below every finite r. The evaluation's early-termination table
 still lists every candidate, marked post hoc: reading a tau off that table would tune on the evaluation itself.
@@ -22,9 +25,7 @@ import math
 import numpy as np
 
 from sc3_jax.evaluate import metrics
-from sc3_jax.evaluate.results import SPLIT_ORDER, terminated_at
-
-SELECT_SPLIT = "in_distribution"
+from sc3_jax.evaluate.results import terminated_at
 
 
 def parse_tau(t) -> float:
@@ -32,9 +33,9 @@ def parse_tau(t) -> float:
 
 
 def object_rows(rec: dict, objects: list[dict]) -> list[dict]:
-    """Per-object rows of one rollout record, as ``metrics.success_rates`` takes them."""
+    """Per-object rows of one rollout record, as ``metrics.success_rates`` takes them (each outcome's criteria)."""
     return [{"policy": rec["policy"], "split": rec["split"], "episode": rec["seed"], "object": o["object"],
-             **{c: bool(o[c]) for c in metrics.CRITERIA}} for o in objects]
+             **{c: bool(o[c]) for c in metrics.criteria_of(o)}} for o in objects]
 
 
 def cut(rec: dict, tau: float, units: str) -> int:
@@ -45,16 +46,24 @@ def cut(rec: dict, tau: float, units: str) -> int:
     return len(u) if first < 0 else first
 
 
-def faith(ev_rows: list[dict], real_rows: list[dict]) -> dict:
-    """Point r / MMRV per split (and overall) of two sets of per-object rows."""
+def faith(ev_rows: list[dict], real_rows: list[dict], order=()) -> dict:
+    """Point r / MMRV per split (and overall) of two sets of per-object rows; splits in ``order`` (the store's:
+    ``results.split_order``), any other by name."""
     re = metrics.success_rates_by_split(real_rows)
-    out = metrics.faithfulness(metrics.success_rates_by_split(ev_rows), re, [s for s in SPLIT_ORDER if s in re])
-    return {s: out[s] for s in SPLIT_ORDER if s in out}
+    splits = ordered(re, order)
+    out = metrics.faithfulness(metrics.success_rates_by_split(ev_rows), re, splits)
+    return {s: out[s] for s in [*splits, metrics.OVERALL] if s in out}
 
 
-def tau_sweep(real: dict, online: dict, taus, units: str) -> list[dict]:
+def ordered(present, order) -> list:
+    """The splits of ``present``: those of ``order`` first, in its order, then the rest by name."""
+    return [s for s in order if s in present] + sorted(s for s in present if s not in order)
+
+
+def tau_sweep(real: dict, online: dict, taus, units: str, order=()) -> list[dict]:
     """For every tau: termination rate per split, r / MMRV of the cut online rollouts against physics, mean chunks
-    kept. ``real`` / ``online``: records keyed by (policy, seed); only keys in both are compared."""
+    kept. ``real`` / ``online``: records keyed by (policy, seed); only keys in both are compared. ``order``: the
+    splits' (:func:`faith`)."""
     cases = sorted(set(online) & set(real))
     if not cases:
         return []
@@ -64,23 +73,23 @@ def tau_sweep(real: dict, online: dict, taus, units: str) -> list[dict]:
         cuts = {k: cut(online[k], tau, units) for k in cases}
         ev_rows = [row for k in cases for row in object_rows(online[k], online[k]["objects_by_cut"][cuts[k]])]
         term = {}
-        for split in SPLIT_ORDER:
+        for split in [*ordered({real[k]["split"] for k in cases}, order), metrics.OVERALL]:
             ks = [k for k in cases if split == metrics.OVERALL or real[k]["split"] == split]
             if ks:
                 term[split] = float(np.mean([cuts[k] < online[k]["num_chunks"] for k in ks]))
-        out.append({"tau": str(tau), "termination_rate": term, "faithfulness": faith(ev_rows, re_rows),
+        out.append({"tau": str(tau), "termination_rate": term, "faithfulness": faith(ev_rows, re_rows, order),
                     "mean_chunks_kept": float(np.mean(list(cuts.values()))), "cases": len(cases)})
     return out
 
 
-def choose_tau(table: list[dict], split: str = SELECT_SPLIT) -> float:
-    """tau* from a :func:`tau_sweep` of the *calibration* rollouts (see the module docstring). Pure: the table is
-    all it reads."""
+def choose_tau(table: list[dict], split: str | None = None) -> float:
+    """tau* from a :func:`tau_sweep` of the *calibration* rollouts (see the module docstring), chosen on ``split``
+    (None, or a split the table lacks: every split pooled). Pure: the table is all it reads."""
     if not table:
         raise ValueError("choose_tau: no calibration results (run the sweep with --calibration-episodes N)")
 
     def key(e):
-        f = e["faithfulness"].get(split) or e["faithfulness"][metrics.OVERALL]
+        f = (e["faithfulness"].get(split) if split is not None else None) or e["faithfulness"][metrics.OVERALL]
         r = f["pearson"]
         return (-math.inf if math.isnan(r) else r, -f["mmrv"], parse_tau(e["tau"]))
     return parse_tau(max(table, key=key)["tau"])

@@ -25,9 +25,9 @@ from pathlib import Path
 
 from sc3_jax import atomic
 from sc3_jax.evaluate import intervals, report
-from sc3_jax.evaluate.results import SPLIT_ORDER, ResultsStore, seed_blocks
+from sc3_jax.evaluate.metrics import OVERALL
+from sc3_jax.evaluate.results import ResultsStore, seed_blocks, split_order
 
-_SPLITS = SPLIT_ORDER[:-1]  # a curve's columns are per split, never the pooled one
 FIELDS = ("label", "store", "steps", "batch", "device", "hours")
 
 
@@ -68,9 +68,10 @@ def _grids(store: str):
     seeds = seed_blocks(st.config())["evaluation"]
     recs = [r for r in st.records() if r["seed"] in set(seeds)]
     by = {m: {(r["policy"], r["seed"]): r for r in recs if r["mode"] == m} for m in ("real", "online")}
-    policies = report.policy_order(by["real"].values())
+    policies = report.policy_order(by["real"].values(), split_order(st.config(), recs))
     names = [p for p, _ in policies]
-    grid = lambda m: intervals.grid(by[m], names, seeds)  # noqa: E731
+    criteria = report.criteria_of(by["real"].values())
+    grid = lambda m: intervals.grid(by[m], names, seeds, criteria)  # noqa: E731
     return [s for _, s in policies], grid("real"), grid("online")
 
 
@@ -87,7 +88,8 @@ def compute(spec: dict, draws: int = 2000) -> dict:
             raise ValueError(f"{p['store']}: its real rollouts differ from {first}'s ({why}); sweep every point "
                              "against one real set (sc3 sweep bench --real-from)")
         t = report.compute(p["store"], draws=draws)
-        if not points:
+        if not points:  # a curve's columns are per split, never the pooled one
+            _SPLITS = list(dict.fromkeys(s for _, s in t["policies"]))
             rows = t["faithfulness"]["physics"]
             floor = {s: rows["policy_blind"]["splits"].get(s) for s in _SPLITS}
             ceiling = {s: rows["ceiling"]["splits"].get(s) for s in _SPLITS}
@@ -106,10 +108,11 @@ def compute(spec: dict, draws: int = 2000) -> dict:
         for p in points:
             p["vs_baseline"] = intervals.versus(real_grid, grids[p["label"]][2], base, split_of, draws, 0)
     return {"title": spec.get("title", "Faithfulness against training compute"), "points": points,
-            "floor": floor, "ceiling": ceiling, "draws": draws, "baseline": spec.get("baseline")}
+            "floor": floor, "ceiling": ceiling, "draws": draws, "baseline": spec.get("baseline"), "splits": _SPLITS}
 
 
 def markdown(c: dict) -> str:
+    _SPLITS = c["splits"]
     head = ["checkpoint", "device, hours", "training windows", "online rollouts", "gates failed"]
     head += [f"{s.replace('_', ' ')} {k}" for s in _SPLITS for k in ("r", "MMRV")]
     rows = []
@@ -133,10 +136,10 @@ def markdown(c: dict) -> str:
                                                 for k in ("pearson", "mmrv")]) + " |" for p in c["points"]]
     if c.get("baseline"):
         # here the pooled split too: "better than the baseline overall" is a question a curve's user asks
-        head = ["checkpoint"] + [f"{s.replace('_', ' ')} {k} - baseline" for s in SPLIT_ORDER for k in ("r", "MMRV")]
+        head = ["checkpoint"] + [f"{s.replace('_', ' ')} {k} - baseline" for s in [*_SPLITS, OVERALL] for k in ("r", "MMRV")]
         lines += ["", f"Paired difference to the baseline, {c['baseline']}, on the same resampled conditions (r > 0 "
                   "and MMRV < 0 favour the checkpoint):", "", "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-        lines += ["| " + " | ".join([p["label"]] + [report.ci(p["vs_baseline"].get(s, {}).get(k)) for s in SPLIT_ORDER
+        lines += ["| " + " | ".join([p["label"]] + [report.ci(p["vs_baseline"].get(s, {}).get(k)) for s in [*_SPLITS, OVERALL]
                                                     for k in ("pearson", "mmrv")]) + " |"
                   for p in c["points"] if p["label"] != c["baseline"]]
     return "\n".join(lines) + "\n"

@@ -53,11 +53,19 @@ def outcome(scorer, ep, ctx, pred, tgt, valid, steps_in: int) -> dict | None:
             "physics": physics if covered else None, "covered": covered}
 
 
+def _criteria(rows) -> tuple[str, ...]:
+    """The criteria of the rows' outcomes, in their order (``metrics.criteria_of``: the first object's)."""
+    from sc3_jax.evaluate.metrics import criteria_of
+    return next((criteria_of(o) for r in rows for k in ("physics", "imagined", "real_perception")
+                 for o in (r.get(k) or ())), ())
+
+
 def outcome_section(rows, note, seed: int = 0, draws: int = BOOTSTRAP_DRAWS) -> dict:
     """Per-criterion agreement of the imagined outcomes with physics and with the scorer on real frames; imagined vs
     physics also per outcome category with intervals (:func:`physics_reproduction`, seeded by ``seed``)."""
-    from sc3_jax.evaluate.metrics import CRITERIA, outcome_category
+    from sc3_jax.evaluate.metrics import outcome_category
     rows = [r for r in rows if r is not None]
+    CRITERIA = _criteria(rows)
     category = lambda o: outcome_category({c: o[c] for c in CRITERIA})  # noqa: E731  (sim spells "no failure")
     if not rows:
         return {"available": False, "note": note or "no episode has object labels (meta.labels / "
@@ -70,8 +78,9 @@ def outcome_section(rows, note, seed: int = 0, draws: int = BOOTSTRAP_DRAWS) -> 
             return None
         d = {c: float(np.mean([a[c] == b[c] for a, b in pairs])) for c in CRITERIA}
         d["outcome"] = float(np.mean([category(a) == category(b) for a, b in pairs]))
-        d["lifting_and_placing"] = float(np.mean([a["lifting"] == b["lifting"] and a["placing"] == b["placing"]
-                                                  for a, b in pairs]))
+        if len(CRITERIA) > 2:  # the last two together (e.g. lifting and placing: what a gripper's failures move)
+            a_, b_ = CRITERIA[-2:]
+            d[f"{a_}_and_{b_}"] = float(np.mean([a[a_] == b[a_] and a[b_] == b[b_] for a, b in pairs]))
         d["n_objects"] = len(pairs)
         return d
 
@@ -91,10 +100,12 @@ def physics_reproduction(rows, seed: int = 0, draws: int = BOOTSTRAP_DRAWS) -> d
     category -> imagined category -> objects). Intervals: percentile bootstrap resampling *episodes* (the objects of
     one episode share its rollout, so they are not independent draws), one set of ``draws`` resamplings shared by
     every figure, seeded; None with fewer than 2 episodes (nothing to resample)."""
-    from sc3_jax.evaluate.metrics import CATEGORIES, CRITERIA, outcome_category
+    from sc3_jax.evaluate.metrics import categories, outcome_category
     rows = [r for r in rows if r is not None and r["physics"] is not None]
     if not rows:
         return None
+    CRITERIA = _criteria(rows)
+    CATEGORIES = categories(CRITERIA)
     category = lambda o: outcome_category({c: o[c] for c in CRITERIA})  # noqa: E731  (sim spells "no failure")
     pairs = [[(a, b) for a, b in zip(r["imagined"], r["physics"], strict=True)] for r in rows]  # per episode
     E = len(rows)
@@ -132,7 +143,8 @@ def physics_reproduction(rows, seed: int = 0, draws: int = BOOTSTRAP_DRAWS) -> d
 def success_rates(outcomes: list[list[dict]]) -> dict[str, float]:
     """Per criterion the fraction of objects that pass it and every criterion before it (``metrics``' cumulative
     rule), pooled over rollouts; ``n_objects`` how many."""
-    from sc3_jax.evaluate.metrics import CRITERIA, cumulative_passes
+    from sc3_jax.evaluate.metrics import criteria_of, cumulative_passes
+    CRITERIA = next((criteria_of(o) for row in outcomes for o in row), ())
     objs = [cumulative_passes({c: o[c] for c in CRITERIA}) for row in outcomes for o in row]
     out = {c: float(np.mean([o[c] for o in objs])) if objs else float("nan") for c in CRITERIA}
     out["n_objects"] = len(objs)

@@ -29,15 +29,15 @@ import numpy as np
 
 from sc3_jax.errors import UserError
 from sc3_jax.evaluate import bootstrap, metrics
-from sc3_jax.evaluate.results import SPLIT_ORDER
 from sc3_jax.stats import correlation, floor, interval, rank_first, rank_violation, resample, split_half
 
 STATISTICS = (("pearson", correlation.pearson), ("mmrv", rank_violation.mmrv))  # each row's, in table order
 
 
-def grid(recs: dict, policies: list[str], seeds: list[int], outcomes=lambda r: r["objects"]):
-    """Records keyed (policy, seed) -> (passes [P, n, C] cumulative per criterion, counts [P, n]; 0 = missing)."""
-    passes = np.zeros((len(policies), len(seeds), len(metrics.CRITERIA)))
+def grid(recs: dict, policies: list[str], seeds: list[int], criteria, outcomes=lambda r: r["objects"]):
+    """Records keyed (policy, seed) -> (passes [P, n, C] cumulative per criterion of ``criteria``, counts [P, n];
+    0 = missing)."""
+    passes = np.zeros((len(policies), len(seeds), len(criteria)))
     counts = np.zeros((len(policies), len(seeds)))
     for p, pol in enumerate(policies):
         for i, seed in enumerate(seeds):
@@ -47,7 +47,8 @@ def grid(recs: dict, policies: list[str], seeds: list[int], outcomes=lambda r: r
             objs = outcomes(rec)
             counts[p, i] = len(objs)
             for o in objs:
-                passes[p, i] += [metrics.cumulative_passes(o)[c] for c in metrics.CRITERIA]
+                cum = metrics.cumulative_passes(o, criteria)
+                passes[p, i] += [cum[c] for c in criteria]
     return passes, counts
 
 
@@ -58,16 +59,20 @@ def _points(rates: np.ndarray, split_of: list[str], split: str, criterion: int |
     return (x if criterion is None else x[..., criterion:criterion + 1]).reshape(len(rates), -1)
 
 
-def compare(ev_point, re_point, ev_draws, re_draws, split_of: list[str], point_from_draws: bool = False) -> dict:
-    """r and MMRV with intervals, per split (all criteria pooled) and per (split, criterion).
+def split_order(split_of: list[str]) -> list[str]:
+    """The splits of ``split_of`` (each policy's, in the report's order) once each, then the pooled one."""
+    return [*dict.fromkeys(s for s in split_of if s != metrics.OVERALL), metrics.OVERALL]
+
+
+def compare(ev_point, re_point, ev_draws, re_draws, split_of: list[str], point_from_draws: bool = False,
+            criteria=()) -> dict:
+    """r and MMRV with intervals, per split (all criteria pooled) and per (split, criterion of ``criteria``).
 
     ev/re_point [1, P, C] (the full sample), ev/re_draws [B, P, C]. ``point_from_draws``: the value is the median
     of the draws (the split-half ceiling has no single full-sample value)."""
     out: dict = {"splits": {}, "per_criterion": {}}
-    for split in SPLIT_ORDER:
-        if split != metrics.OVERALL and split not in split_of:
-            continue
-        for c in (None,) + tuple(range(len(metrics.CRITERIA))):
+    for split in split_order(split_of):
+        for c in (None,) + tuple(range(len(criteria))):
             pts = [_points(x, split_of, split, c) for x in (ev_point, re_point, ev_draws, re_draws)]
             if pts[0].shape[1] < 2:
                 continue
@@ -79,7 +84,7 @@ def compare(ev_point, re_point, ev_draws, re_draws, split_of: list[str], point_f
             if c is None:
                 out["splits"][split] = cell
             else:
-                out["per_criterion"].setdefault(split, {})[metrics.CRITERIA[c]] = cell
+                out["per_criterion"].setdefault(split, {})[criteria[c]] = cell
     return out
 
 
@@ -87,9 +92,7 @@ def difference(a_point, b_point, re_point, a_draws, b_draws, re_draws, split_of:
     """Paired difference of two evaluators per split (all criteria pooled): r(a) - r(b) and MMRV(a) - MMRV(b), each
     against the reference, all on the very same resample of conditions in every draw. Rates [1 or B, P, C]."""
     out = {}
-    for split in SPLIT_ORDER:
-        if split != metrics.OVERALL and split not in split_of:
-            continue
+    for split in split_order(split_of):
         pts = [_points(x, split_of, split) for x in (a_point, b_point, re_point, a_draws, b_draws, re_draws)]
         if pts[0].shape[1] < 2:
             continue
@@ -122,12 +125,13 @@ def versus(reference, a, b, split_of: list[str], draws: int, seed: int) -> dict:
 
 
 def evaluator_rows(reference, evaluators: dict, split_of: list[str], draws: int, seed: int,
-                   ceiling=None, extra_vs_reference: dict | None = None) -> dict:
+                   ceiling=None, extra_vs_reference: dict | None = None, criteria=()) -> dict:
     """Every evaluator row against one reference (see the module docstring).
 
     reference: (passes, counts) of the real rollouts on the evaluation seeds, scored by the reference instrument;
     evaluators: {name: (passes, counts)} on the same seeds; ceiling: (passes, counts) of the second real set scored
-    by the same instrument, or None (split-half); extra_vs_reference: more rows compared like evaluators."""
+    by the same instrument, or None (split-half); extra_vs_reference: more rows compared like evaluators;
+    criteria: the names of the rates' last axis (each row's per-criterion cells)."""
     rp, rc = reference
     n = rc.shape[1]
     w = resample.multiplicities(n, draws, seed)
@@ -141,23 +145,23 @@ def evaluator_rows(reference, evaluators: dict, split_of: list[str], draws: int,
         (epm, ecm), (rpm, rcm) = ((x * both[..., None], c * both) for x, c in ((ep, ec), (rp, rc)))
         rates = [bootstrap.rates(epm, ecm, one), bootstrap.rates(rpm, rcm, one),
                  bootstrap.rates(epm, ecm, w), bootstrap.rates(rpm, rcm, w)]
-        rows[name] = compare(*rates, split_of)
+        rows[name] = compare(*rates, split_of, criteria=criteria)
         rows[name]["vs_floor"] = versus_floor(*rates, split_of)
     re_point, re_draws = bootstrap.rates(rp, rc, one), bootstrap.rates(rp, rc, w)
     rows["policy_blind"] = compare(floor.policy_blind(re_point, split_of), re_point,
-                                   floor.policy_blind(re_draws, split_of), re_draws, split_of)
+                                   floor.policy_blind(re_draws, split_of), re_draws, split_of, criteria=criteria)
     if ceiling is not None:
         cp, cc = ceiling
         w2 = resample.multiplicities(cc.shape[1], draws, seed + 1)
         rows["ceiling"] = compare(bootstrap.rates(cp, cc, np.ones((1, cc.shape[1]))), re_point,
-                                  bootstrap.rates(cp, cc, w2), re_draws, split_of)
+                                  bootstrap.rates(cp, cc, w2), re_draws, split_of, criteria=criteria)
         rows["ceiling"]["method"] = f"second real set, {cc.shape[1]} conditions per policy"
     else:
         if n < 2:
             raise UserError("the split-half noise ceiling needs at least 2 evaluation conditions per policy; sweep "
                             "more (--episodes) or a second real set (--ceiling-episodes)")
         a, b = (bootstrap.rates(rp, rc, h) for h in split_half.condition_halves(n, draws, seed + 2))
-        rows["ceiling"] = compare(a[:1], b[:1], a, b, split_of, point_from_draws=True)
+        rows["ceiling"] = compare(a[:1], b[:1], a, b, split_of, point_from_draws=True, criteria=criteria)
         rows["ceiling"]["method"] = f"split-half: {n // 2} vs {n // 2} evaluation conditions (conservative)"
     return rows
 

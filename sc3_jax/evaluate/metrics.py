@@ -10,15 +10,17 @@ Definitions follow SIMPLER (Li et al. 2024, "Evaluating Real-World Robot Manipul
 Both formulas live in ``sc3_jax/stats/`` (one definition for a point and for a batch of bootstrap draws); here they
 take checked per-split vectors.
 
-Criteria per object are ordered and cumulative: language following -> lifting -> placing. An object passes
-criterion ``c`` only if it passes ``c`` *and every criterion before it* (an object that was never lifted has not
-been placed, whatever a scorer says about placing). The outcome category of an object is its first violated
-criterion, or ``"no_failure"``.
+Criteria per object are a benchmark's, ordered and cumulative (e.g. the simulated benchmark's: following the
+instruction -> lifting -> placing). An object passes criterion ``c`` only if it passes ``c`` *and every criterion
+before it* (an object that was never lifted has not been placed, whatever a scorer says about placing). The outcome
+category of an object is its first violated criterion, or ``"no_failure"``. An outcome carries its own criteria:
+its boolean entries, in their order (:func:`criteria_of`); a per-object record, every field beyond its case's.
 
 Everything here is plain numpy / Python: metrics run on a handful of numbers, never inside a jitted graph.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Hashable, Iterable, Mapping, Sequence
 from typing import Any
@@ -27,14 +29,23 @@ import numpy as np
 
 from sc3_jax.stats import correlation, rank_violation
 
-CRITERIA: tuple[str, ...] = ("language", "lifting", "placing")
-CATEGORIES: tuple[str, ...] = ("language", "lifting", "placing", "no_failure")
 NO_FAILURE = "no_failure"
 OVERALL = "overall"
 
-# Fields every per-object record carries (a Mapping with these keys, or an object with these attributes).
-RECORD_FIELDS: tuple[str, ...] = ("policy", "split", "episode", "object") + CRITERIA
+# The fields that name a per-object record's case (a Mapping with these keys, or an object with these attributes);
+# its criteria follow them
 CASE_FIELDS: tuple[str, ...] = ("policy", "split", "episode", "object")
+
+
+def criteria_of(outcome: Mapping[str, Any]) -> tuple[str, ...]:
+    """The criteria of one object's outcome (a scorer's ``{criterion: bool, ...}``), in their order: its boolean
+    entries (the rest name the object, its destination, its category)."""
+    return tuple(k for k, v in outcome.items() if isinstance(v, (bool, np.bool_)))
+
+
+def categories(criteria: Sequence[str]) -> tuple[str, ...]:
+    """The outcome categories of ``criteria``: each criterion (the first one violated), then ``"no_failure"``."""
+    return (*criteria, NO_FAILURE)
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -97,40 +108,48 @@ def _as_bool(value: Any, what: str) -> bool:
     raise ValueError(f"{what}: expected a boolean (True/False or 0/1), got {value!r}")
 
 
-def _criteria_values(passed: Mapping[str, Any] | Sequence[Any], what: str = "passed") -> tuple[bool, ...]:
+def _criteria_values(passed: Mapping[str, Any] | Sequence[Any], criteria: Sequence[str] | None = None,
+                     what: str = "passed") -> tuple[tuple[str, ...], tuple[bool, ...]]:
+    """(criteria, their values) of ``passed``: a mapping (its boolean entries when ``criteria`` is None) or a
+    sequence of booleans in ``criteria`` order."""
     if isinstance(passed, Mapping):
-        missing = [c for c in CRITERIA if c not in passed]
-        if missing:
-            raise ValueError(f"{what}: missing criteria {missing} (need {list(CRITERIA)})")
-        return tuple(_as_bool(passed[c], f"{what}[{c!r}]") for c in CRITERIA)
+        criteria = tuple(criteria_of(passed) if criteria is None else criteria)
+        missing = [c for c in criteria if c not in passed]
+        if missing or not criteria:
+            raise ValueError(f"{what}: missing criteria {missing or 'all'} (need {list(criteria) or 'some'})")
+        return criteria, tuple(_as_bool(passed[c], f"{what}[{c!r}]") for c in criteria)
+    if criteria is None:
+        raise ValueError(f"{what}: a sequence of booleans needs its criteria named")
+    criteria = tuple(criteria)
     if isinstance(passed, (str, bytes)):
-        raise ValueError(f"{what}: expected a mapping or a sequence of {len(CRITERIA)} booleans, got {passed!r}")
+        raise ValueError(f"{what}: expected a mapping or a sequence of {len(criteria)} booleans, got {passed!r}")
     values = list(passed)
-    if len(values) != len(CRITERIA):
-        raise ValueError(f"{what}: expected {len(CRITERIA)} booleans {list(CRITERIA)}, got {len(values)}")
-    return tuple(_as_bool(v, f"{what}[{i}] ({CRITERIA[i]})") for i, v in enumerate(values))
+    if len(values) != len(criteria):
+        raise ValueError(f"{what}: expected {len(criteria)} booleans {list(criteria)}, got {len(values)}")
+    return criteria, tuple(_as_bool(v, f"{what}[{i}] ({criteria[i]})") for i, v in enumerate(values))
 
 
-def cumulative_passes(passed: Mapping[str, Any] | Sequence[Any]) -> dict[str, bool]:
+def cumulative_passes(passed: Mapping[str, Any] | Sequence[Any], criteria: Sequence[str] | None = None
+                      ) -> dict[str, bool]:
     """Cumulative criteria: criterion c counts as passed only if c and every criterion before it passed.
 
-    ``passed`` is a mapping with (at least) the keys of CRITERIA, or a sequence of 3 booleans in CRITERIA order.
-    E.g. (language=False, lifting=True, placing=True) -> all three False.
+    ``passed`` is an outcome (its boolean entries are its criteria, in order; or those of ``criteria``), or a
+    sequence of booleans in ``criteria`` order. E.g. (language=False, lifting=True, placing=True) -> all three False.
     """
     out: dict[str, bool] = {}
     ok = True
-    for c, v in zip(CRITERIA, _criteria_values(passed)):
+    for c, v in zip(*_criteria_values(passed, criteria)):
         ok = ok and v
         out[c] = ok
     return out
 
 
-def outcome_category(passed: Mapping[str, Any] | Sequence[Any]) -> str:
-    """The first violated criterion in CRITERIA order ("language", "lifting", "placing"), else "no_failure".
+def outcome_category(passed: Mapping[str, Any] | Sequence[Any], criteria: Sequence[str] | None = None) -> str:
+    """The first violated criterion in the criteria's order, else "no_failure".
 
     Criteria after the first failure are ignored (they count as failed, see ``cumulative_passes``).
     """
-    for c, v in zip(CRITERIA, _criteria_values(passed)):
+    for c, v in zip(*_criteria_values(passed, criteria)):
         if not v:
             return c
     return NO_FAILURE
@@ -146,44 +165,61 @@ def _field(record: Any, name: str, index: int) -> Any:
     return getattr(record, name)
 
 
-def _parse_records(records: Iterable[Any]) -> list[tuple[tuple[Hashable, ...], tuple[bool, ...]]]:
-    """[(case key (policy, split, episode, object), criteria bools)], refusing duplicate cases."""
+def record_criteria(record: Any) -> tuple[str, ...]:
+    """The criteria of a per-object record (a mapping or a dataclass): its fields beyond the case's
+    (``CASE_FIELDS``), in their order."""
+    if isinstance(record, Mapping):
+        names = list(record)
+    elif dataclasses.is_dataclass(record):
+        names = [f.name for f in dataclasses.fields(record)]
+    else:
+        raise ValueError(f"a {type(record).__name__} record: name its criteria (criteria=...)")
+    return tuple(k for k in names if k not in CASE_FIELDS)
+
+
+def _parse_records(records: Iterable[Any], criteria: Sequence[str] | None = None
+                   ) -> tuple[tuple[str, ...], list[tuple[tuple[Hashable, ...], tuple[bool, ...]]]]:
+    """(criteria, [(case key (policy, split, episode, object), criteria bools)]), refusing duplicate cases; the
+    criteria are ``criteria``, else the first record's (:func:`record_criteria`)."""
     parsed = []
     seen: dict[tuple[Hashable, ...], int] = {}
     for i, rec in enumerate(records):
+        if criteria is None:
+            criteria = record_criteria(rec)
         key = tuple(_field(rec, f, i) for f in CASE_FIELDS)
         if key in seen:
             raise ValueError(f"record {i}: duplicate case (policy, split, episode, object) = {key!r} "
                              f"(first seen at record {seen[key]})")
         seen[key] = i
-        values = _criteria_values({c: _field(rec, c, i) for c in CRITERIA}, what=f"record {i}")
+        _, values = _criteria_values({c: _field(rec, c, i) for c in criteria}, criteria, what=f"record {i}")
         parsed.append((key, values))
-    return parsed
+    return tuple(criteria or ()), parsed
 
 
-def success_rates(records: Iterable[Any]) -> dict[tuple[Hashable, str], float]:
+def success_rates(records: Iterable[Any], criteria: Sequence[str] | None = None) -> dict[tuple[Hashable, str], float]:
     """Success rate per (policy, criterion): the mean over all objects and episodes of the *cumulative* pass.
 
     Each record is one object in one episode: a Mapping (or an object with attributes) with fields
-    ``policy, split, episode, object, language, lifting, placing`` (criteria as booleans or 0/1). An object passes
-    criterion c only if it passes c and every criterion before it (see ``cumulative_passes``), so for every
-    policy rate(language) >= rate(lifting) >= rate(placing).
+    ``policy, split, episode, object`` and then its criteria (``criteria``, else the first record's further fields;
+    booleans or 0/1), e.g. ``language, lifting, placing``. An object passes criterion c only if it passes c and
+    every criterion before it (see ``cumulative_passes``), so for every policy rate(language) >= rate(lifting) >=
+    rate(placing).
 
     All records given are pooled (use ``success_rates_by_split`` for per-split rates). Returns a dict with keys
-    ``(policy, criterion)`` for every policy present and every criterion in CRITERIA. Raises ValueError for an
+    ``(policy, criterion)`` for every policy present and every criterion. Raises ValueError for an
     empty input, a missing field, a non-boolean criterion or a duplicate (policy, split, episode, object) case.
     """
-    parsed = _parse_records(records)
+    criteria, parsed = _parse_records(records, criteria)
     if not parsed:
         raise ValueError("success_rates: no records")
     passes: dict[Hashable, list[tuple[bool, ...]]] = {}
     for key, values in parsed:
-        cum = tuple(all(values[: k + 1]) for k in range(len(CRITERIA)))
+        cum = tuple(all(values[: k + 1]) for k in range(len(criteria)))
         passes.setdefault(key[0], []).append(cum)
     out: dict[tuple[Hashable, str], float] = {}
     for policy, rows in passes.items():
         arr = np.asarray(rows, dtype=np.float64)
-        for k, c in enumerate(CRITERIA):
+        for k, c in enumerate(criteria):
             out[(policy, c)] = float(arr[:, k].mean())
     return out
 
@@ -196,14 +232,17 @@ def group_by_split(records: Iterable[Any]) -> dict[Hashable, list[Any]]:
     return groups
 
 
-def success_rates_by_split(records: Iterable[Any]) -> dict[Hashable, dict[tuple[Hashable, str], float]]:
+def success_rates_by_split(records: Iterable[Any], criteria: Sequence[str] | None = None
+                           ) -> dict[Hashable, dict[tuple[Hashable, str], float]]:
     """``{split: success_rates(records of that split)}`` — the input ``faithfulness`` expects."""
-    return {split: success_rates(recs) for split, recs in group_by_split(records).items()}
+    return {split: success_rates(recs, criteria) for split, recs in group_by_split(records).items()}
 
 
-def outcome_categories(records: Iterable[Any]) -> dict[tuple[Hashable, ...], str]:
+def outcome_categories(records: Iterable[Any], criteria: Sequence[str] | None = None
+                       ) -> dict[tuple[Hashable, ...], str]:
     """``{(policy, split, episode, object): outcome category}`` for per-object records (see ``success_rates``)."""
-    return {key: outcome_category(values) for key, values in _parse_records(records)}
+    criteria, parsed = _parse_records(records, criteria)
+    return {key: outcome_category(values, criteria) for key, values in parsed}
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -267,29 +306,31 @@ def faithfulness(evaluator_rates: Mapping[Hashable, Mapping[Hashable, float]],
 # Failure-mode reproduction
 # --------------------------------------------------------------------------------------------------------------
 
-def _check_categories(categories: Mapping[Hashable, str], name: str) -> None:
-    for key, cat in categories.items():
-        if cat not in CATEGORIES:
-            raise ValueError(f"{name}[{key!r}]: unknown category {cat!r} (expected one of {list(CATEGORIES)})")
+def _check_categories(cats: Mapping[Hashable, str], known: Sequence[str], name: str) -> None:
+    for key, cat in cats.items():
+        if cat not in known:
+            raise ValueError(f"{name}[{key!r}]: unknown category {cat!r} (expected one of {list(known)})")
 
 
 def reproduction_counts(real_categories: Mapping[Hashable, str],
-                        evaluator_categories: Mapping[Hashable, str]) -> dict[str, tuple[int, int]]:
+                        evaluator_categories: Mapping[Hashable, str],
+                        criteria: Sequence[str]) -> dict[str, tuple[int, int]]:
     """``{real category: (cases the evaluator reproduced, cases with that real category)}``.
 
     Both arguments map a case id (e.g. ``(policy, split, episode, object)`` from ``outcome_categories``) to an
-    outcome category; their case ids must be identical (ValueError otherwise). Only categories that occur in
-    ``real_categories`` appear, in CATEGORIES order.
+    outcome category of ``criteria`` (:func:`categories`); their case ids must be identical (ValueError otherwise).
+    Only categories that occur in ``real_categories`` appear, in the categories' order.
     """
-    _check_categories(real_categories, "real_categories")
-    _check_categories(evaluator_categories, "evaluator_categories")
+    known = categories(criteria)
+    _check_categories(real_categories, known, "real_categories")
+    _check_categories(evaluator_categories, known, "evaluator_categories")
     only_re = [k for k in real_categories if k not in evaluator_categories]
     only_ev = [k for k in evaluator_categories if k not in real_categories]
     if only_re or only_ev:
         raise ValueError(f"case ids differ; only in real: {only_re}; only in evaluator: {only_ev}")
     if not real_categories:
         raise ValueError("reproduction_counts: no cases")
-    counts = {c: [0, 0] for c in CATEGORIES}
+    counts = {c: [0, 0] for c in known}
     for key, cat in real_categories.items():
         counts[cat][1] += 1
         counts[cat][0] += int(evaluator_categories[key] == cat)
@@ -297,7 +338,7 @@ def reproduction_counts(real_categories: Mapping[Hashable, str],
 
 
 def reproduction_rate(real_categories: Mapping[Hashable, str],
-                      evaluator_categories: Mapping[Hashable, str]) -> dict[str, float]:
+                      evaluator_categories: Mapping[Hashable, str], criteria: Sequence[str]) -> dict[str, float]:
     """Per real outcome category, the fraction of its cases whose evaluator category is the same.
 
     E.g. ``rate["lifting"]`` = (# cases that really failed at lifting and that the evaluator also scored as a
@@ -305,7 +346,7 @@ def reproduction_rate(real_categories: Mapping[Hashable, str],
     the result (the rate is undefined; a KeyError is louder than a nan). Same inputs and errors as
     ``reproduction_counts``.
     """
-    return {c: m / n for c, (m, n) in reproduction_counts(real_categories, evaluator_categories).items()}
+    return {c: m / n for c, (m, n) in reproduction_counts(real_categories, evaluator_categories, criteria).items()}
 
 
 # --------------------------------------------------------------------------------------------------------------

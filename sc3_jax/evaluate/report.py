@@ -28,7 +28,7 @@ from sc3_jax.evaluate.report_html import UNDEFINED, ci
 from sc3_jax.evaluate.report_html import fmt as _fmt
 from sc3_jax.evaluate.calibrate import object_rows as _object_rows
 from sc3_jax.evaluate.merged import open_store
-from sc3_jax.evaluate.results import EVAL_MODES, SPLIT_ORDER, ResultsStore, paired_frames, seed_blocks
+from sc3_jax.evaluate.results import EVAL_MODES, ResultsStore, paired_frames, seed_blocks, split_order
 from sc3_jax.safe_names import file_name
 from sc3_jax.stats import interval, resample
 from sc3_jax.stats.floor import policy_blind
@@ -48,9 +48,10 @@ def _policy_blind(real_rates: dict) -> dict:
     return out
 
 
-def _faith_rates(ev, re) -> dict:
-    out = metrics.faithfulness(ev, re, [s for s in SPLIT_ORDER if s in re])
-    return {s: out[s] for s in SPLIT_ORDER if s in out}
+def _faith_rates(ev, re, order=()) -> dict:
+    splits = calibrate.ordered(re, order)
+    out = metrics.faithfulness(ev, re, splits)
+    return {s: out[s] for s in [*splits, metrics.OVERALL] if s in out}
 
 
 def _rates(rows: list[dict]) -> dict:
@@ -71,9 +72,17 @@ def _agreement(real: dict) -> dict:
     return out
 
 
-def policy_order(real_records) -> list[tuple[str, str]]:
-    """(policy, split) of every real record, split by split: the order of every grid and table."""
-    return sorted({(r["policy"], r["split"]) for r in real_records}, key=lambda x: (x[1], x[0]))
+def policy_order(real_records, order=()) -> list[tuple[str, str]]:
+    """(policy, split) of every real record, split by split (those of ``order`` first, in its order; the rest by
+    name): the order of every grid and table."""
+    rank = {s: i for i, s in enumerate(order)}
+    return sorted({(r["policy"], r["split"]) for r in real_records},
+                  key=lambda x: (rank.get(x[1], len(rank)), x[1], x[0]))
+
+
+def criteria_of(records) -> tuple[str, ...]:
+    """The criteria of a store's per-object outcomes, in their order (``metrics.criteria_of``: the first object's)."""
+    return next((metrics.criteria_of(o) for r in records for o in r["objects"]), ())
 
 
 def compute(results, taus=None, draws: int = 2000, seed: int = 0, scene=None, real=None) -> dict:
@@ -112,9 +121,11 @@ def bench(results, taus=None, draws: int = 2000, seed: int = 0, scene=None) -> d
         raise UserError(f"{results}: no real rollouts on the evaluation seeds yet: faithfulness needs the "
                         "simulator's ground truth (run sc3 sweep bench --modes real into this store, or start it with "
                         "--real-from a store of the same protocol)")
-    policies = policy_order(real.values())
+    order = split_order(cfg, recs)
+    policies = policy_order(real.values(), order)
+    criteria = criteria_of(real.values())
     out: dict = {"config": cfg, "counts": {m: len(by["evaluation", m]) for m in EVAL_MODES},
-                 "policies": policies,
+                 "policies": policies, "criteria": list(criteria),
                  "protocol": {s: {"n": len(v), "seeds": [v[0], v[-1]] if v else [],
                                   "rollouts": {m: len(by[s, m]) for m in EVAL_MODES}} for s, v in sets.items()},
                  "bootstrap": {"draws": draws, "seed": seed, "level": 0.95,
@@ -127,11 +138,12 @@ def bench(results, taus=None, draws: int = 2000, seed: int = 0, scene=None) -> d
     # agreement is a property of the instrument, and the quick protocol's evaluation block alone is ~150 objects
     out["scorer_agreement"] = _agreement({(s, k): r for s in sets for k, r in by[s, "real"].items()})
     # tau: chosen on the calibration block only, then applied once to the evaluation
-    calib = calibrate.tau_sweep(by["calibration", "real"], by["calibration", "online"], cfg["taus"], units)
-    out["tau"] = {"units": units, "rule": "max in-distribution r on the calibration seeds (ties: lower MMRV, then "
-                  "larger tau)", "calibration": calib, "chosen": None}
+    calib = calibrate.tau_sweep(by["calibration", "real"], by["calibration", "online"], cfg["taus"], units, order)
+    select = order[0] if order else None
+    out["tau"] = {"units": units, "rule": f"max {(select or 'pooled').replace('_', '-')} r on the calibration seeds "
+                  "(ties: lower MMRV, then larger tau)", "calibration": calib, "chosen": None}
     if calib:
-        out["tau"]["chosen"] = str(calibrate.choose_tau(calib))
+        out["tau"]["chosen"] = str(calibrate.choose_tau(calib, select))
     # point estimates (metrics.faithfulness on per-object rows), the reproduction table, PSNR
     out["main"], out["reproduction"], out["cases"] = {}, {}, {}
     for mode in ("offline", "online"):
@@ -143,17 +155,18 @@ def bench(results, taus=None, draws: int = 2000, seed: int = 0, scene=None) -> d
         re_rows = [row for k in cases for row in _object_rows(real[k], real[k]["objects"])]
         out["cases"][mode] = len(cases)
         out["rates"][mode] = _rates(ev_rows)
-        out["main"][mode] = calibrate.faith(ev_rows, re_rows)
-        counts = metrics.reproduction_counts(metrics.outcome_categories(re_rows), metrics.outcome_categories(ev_rows))
+        out["main"][mode] = calibrate.faith(ev_rows, re_rows, order)
+        counts = metrics.reproduction_counts(metrics.outcome_categories(re_rows), metrics.outcome_categories(ev_rows),
+                                             criteria)
         out["reproduction"][mode] = {c: {"rate": m / n, "reproduced": m, "cases": n} for c, (m, n) in counts.items()}
     real_rates = metrics.success_rates_by_split(real_rows)
-    out["baselines"] = {"policy_blind": _faith_rates(_policy_blind(real_rates), real_rates)}
+    out["baselines"] = {"policy_blind": _faith_rates(_policy_blind(real_rates), real_rates, order)}
     # every evaluator row with paired bootstrap intervals, against physics and against perception-scored real
-    out["faithfulness"] = _with_intervals(by, sets, policies, out["tau"]["chosen"], units, draws, seed)
-    out["ranking"] = _ranking(by, policies, sets["evaluation"], draws, seed)
+    out["faithfulness"] = _with_intervals(by, sets, policies, criteria, out["tau"]["chosen"], units, draws, seed)
+    out["ranking"] = _ranking(by, policies, criteria, sets["evaluation"], draws, seed)
     if by["evaluation", "online"]:
         online = by["evaluation", "online"]
-        out["termination"] = calibrate.tau_sweep(real, online, cfg["taus"], units)  # post hoc: on evaluation seeds
+        out["termination"] = calibrate.tau_sweep(real, online, cfg["taus"], units, order)  # post hoc: evaluation seeds
         u = np.concatenate([r["u" if units == "normalised" else "u_raw"] for r in online.values()])
         out["u_quantiles"] = {q: float(np.quantile(u, float(q))) for q in ("0.1", "0.5", "0.9")}
     if by["evaluation", "offline"]:
@@ -162,7 +175,7 @@ def bench(results, taus=None, draws: int = 2000, seed: int = 0, scene=None) -> d
         split = np.array([r["split"] for r in recs])
         # the paper's PSNR table is split in / out of distribution
         out["psnr"] = {**_psnr(pv), "views": _views(cfg["world_model"], pv.shape[1]),
-                       "by_split": {s: _psnr(pv[split == s]) for s in SPLIT_ORDER[:-1] if (split == s).any()}}
+                       "by_split": {s: _psnr(pv[split == s]) for s in calibrate.ordered(set(split), order)}}
     if scene is not None and by["evaluation", "online"]:
         kept = _permanence(store, cfg, by["evaluation", "online"], scene, draws, seed)
         if kept:
@@ -191,30 +204,28 @@ def _permanence(store, cfg: dict, online: dict, scene, draws: int, seed: int) ->
                                  _views(cfg["world_model"], first[0].shape[0]), draws, seed)
 
 
-RANKED_BY = metrics.CRITERIA[-1]  # placing: the cumulative success of an object, what "success" means here
-
-
-def _ranking(by, policies, seeds, draws, seed) -> dict:
+def _ranking(by, policies, criteria, seeds, draws, seed) -> dict:
     """Per split, its policies best first inside the world model (online at tau = inf, else offline), by the rate of
-    ``RANKED_BY``, with rank intervals and P(best) over the same paired draws as the faithfulness rows, and each
-    policy's real rates beside."""
+    the last of ``criteria`` (cumulative: an object's success, e.g. placing), with rank intervals and P(best) over the
+    same paired draws as the faithfulness rows, and each policy's real rates beside."""
     mode = next((m for m in ("online", "offline") if by["evaluation", m]), None)
     if mode is None:
         return {}
     w, one = resample.multiplicities(len(seeds), draws, seed), np.ones((1, len(seeds)))
-    crit = list(metrics.CRITERIA)
+    crit = list(criteria)
+    ranked_by = crit[-1]
     out = {}
     for split in dict.fromkeys(s for _, s in policies):
         names = [p for p, s in policies if s == split]
-        ep, ec = intervals.grid(by["evaluation", mode], names, seeds)
-        rows = intervals.ranking(names, crit, RANKED_BY, bootstrap.rates(ep, ec, one), bootstrap.rates(ep, ec, w), ec)
-        rp, rc = intervals.grid(by["evaluation", "real"], names, seeds)
+        ep, ec = intervals.grid(by["evaluation", mode], names, seeds, crit)
+        rows = intervals.ranking(names, crit, ranked_by, bootstrap.rates(ep, ec, one), bootstrap.rates(ep, ec, w), ec)
+        rp, rc = intervals.grid(by["evaluation", "real"], names, seeds, crit)
         real_point, real_draws = bootstrap.rates(rp, rc, one), bootstrap.rates(rp, rc, w)
         for row in rows:
             p = names.index(row["policy"])
             row["real"] = {c: interval.summary(float(real_point[0, p, k]), real_draws[:, p, k])
                            for k, c in enumerate(crit)}
-        out[split] = {"mode": mode, "ranked_by": RANKED_BY, "policies": rows}
+        out[split] = {"mode": mode, "ranked_by": ranked_by, "policies": rows}
     return out
 
 
@@ -266,7 +277,7 @@ def degenerate(policies: list[tuple[str, str]]) -> list[str]:
     """Warnings for statistics that cannot mean anything with these (policy, split) pairs: with fewer than 2
     policies in a split every policy-blind guess is exact and r / MMRV compare one policy's criteria only."""
     out = []
-    for split in SPLIT_ORDER[:-1]:
+    for split in dict.fromkeys(s for _, s in policies):
         n = sum(s == split for _, s in policies)
         if n == 1:
             out.append(f"{split}: one policy only, so the policy-blind floor equals the real rates and floor, ceiling "
@@ -331,22 +342,22 @@ def _training_data_table(d: dict) -> tuple[str, list[str], list[list[str]]]:
             rows)
 
 
-def _with_intervals(by, sets, policies, chosen_tau, units, draws, seed) -> dict:
+def _with_intervals(by, sets, policies, criteria, chosen_tau, units, draws, seed) -> dict:
     names, split_of = [p for p, _ in policies], [s for _, s in policies]
     seeds = sets["evaluation"]
     real = by["evaluation", "real"]
-    g = lambda recs, key="objects", s=seeds: intervals.grid(recs, names, s, lambda r: r[key])  # noqa: E731
+    g = lambda recs, key="objects", s=seeds: intervals.grid(recs, names, s, criteria, lambda r: r[key])  # noqa: E731
     evaluators = {m: g(by["evaluation", m]) for m in ("offline", "online") if by["evaluation", m]}
     if chosen_tau is not None and by["evaluation", "online"]:
         tau = calibrate.parse_tau(chosen_tau)
-        evaluators["online_tau"] = intervals.grid(by["evaluation", "online"], names, seeds,
+        evaluators["online_tau"] = intervals.grid(by["evaluation", "online"], names, seeds, criteria,
                                                   lambda r: r["objects_by_cut"][calibrate.cut(r, tau, units)])
     second = by["ceiling", "real"]
     out = {}
     for ref, key in (("physics", "objects"), ("perception", "perception")):
         extra = {"real_perception": g(real, "perception")} if ref == "physics" else {}
         ceiling = g(second, key, sets["ceiling"]) if second else None
-        out[ref] = intervals.evaluator_rows(g(real, key), evaluators, split_of, draws, seed, ceiling, extra)
+        out[ref] = intervals.evaluator_rows(g(real, key), evaluators, split_of, draws, seed, ceiling, extra, criteria)
     return out
 
 
@@ -355,7 +366,8 @@ def _with_intervals(by, sets, policies, chosen_tau, units, draws, seed) -> dict:
 # ================================================================================================================
 def _splits(t: dict) -> list[str]:
     """The splits a report shows, in order: with one split, "overall" would repeat its numbers, so it is left out."""
-    have = [s for s in SPLIT_ORDER if s in t["faithfulness"]["physics"]["policy_blind"]["splits"]]
+    have = [s for s in [*dict.fromkeys(s for _, s in t["policies"]), metrics.OVERALL]
+            if s in t["faithfulness"]["physics"]["policy_blind"]["splits"]]
     return have if len(have) > 2 else [s for s in have if s != metrics.OVERALL] or have
 
 
@@ -402,7 +414,7 @@ def tables(t: dict) -> list[tuple[str, list[str], list[list[str]]]]:
     for ref, what in REFERENCES.items():
         f = t["faithfulness"][ref]
         rows = []
-        for c in metrics.CRITERIA:
+        for c in t["criteria"]:
             rows += [[c] + r for r in _interval_rows(f, lambda row, s: row["per_criterion"].get(s, {}).get(c), splits)]
         out.append((f"Per criterion, {what}. Points: the policies of a split. {how}.",
                     ["criterion", "evaluator"] + [f"{s} {k}" for s in splits for k in ("r", "MMRV")], rows))
@@ -432,7 +444,7 @@ def tables(t: dict) -> list[tuple[str, list[str], list[list[str]]]]:
                     ["tau"] + [f"{s} {k}" for s in splits for k in ("term. rate", "r", "MMRV")], rows))
     rows = [[c] + [(f"{_fmt(t['reproduction'][m][c]['rate'], 2)} ({t['reproduction'][m][c]['reproduced']}/"
                     f"{t['reproduction'][m][c]['cases']})") if c in t["reproduction"].get(m, {}) else "-"
-                   for m in modes] for c in metrics.CATEGORIES]
+                   for m in modes] for c in metrics.categories(t["criteria"])]
     out.append(("Outcome reproduction per real outcome category (objects)", ["category"] + modes, rows))
     if "psnr" in t:
         p = t["psnr"]
@@ -461,17 +473,17 @@ def tables(t: dict) -> list[tuple[str, list[str], list[list[str]]]]:
     out.append(("Perception scorer vs physics. Agreement per criterion on clean frames of every real rollout of the "
                 "sweep (evaluation, calibration and ceiling seeds), and on frames degraded the way generated frames "
                 "are, of the real rollouts the sweep read degraded (its `degradations`; 'objects' counts them).",
-                ["frames"] + list(metrics.CRITERIA) + ["outcome", "objects"],
-                [[k] + [_fmt(v[c]) for c in metrics.CRITERIA] + [_fmt(v["outcome"]), str(v["n_objects"])]
+                ["frames"] + list(t["criteria"]) + ["outcome", "objects"],
+                [[k] + [_fmt(v[c]) for c in t["criteria"]] + [_fmt(v["outcome"]), str(v["n_objects"])]
                  for k, v in a.items()]))
     rows = []
     for policy, split in t["policies"]:
         row = [policy, split]
         for m in ("real", "real_perception", "offline", "online"):
             r = t["rates"].get(m, {}).get(split, {})
-            row.append(" / ".join(_fmt(r.get(f"{policy}/{c}"), 2) for c in metrics.CRITERIA))
+            row.append(" / ".join(_fmt(r.get(f"{policy}/{c}"), 2) for c in t["criteria"]))
         rows.append(row)
-    out.append(("Success rates per policy. Language / lifting / placing, cumulative.",
+    out.append((f"Success rates per policy. {' / '.join(t['criteria']).capitalize()}, cumulative.",
                 ["policy", "split", "real", "real (perception)", "offline", "online"], rows))
     return out
 

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sc3_jax.evaluate import calibrate, metrics
+from sc3_jax.evaluate import calibrate
 from sc3_jax.evaluate.report_html import ci
 from sc3_jax.evaluate.results import ResultsStore, paired_frames, seed_blocks
 
@@ -22,10 +22,10 @@ def scatter(t: dict, path: Path, headline_split: str) -> None:
     import matplotlib.pyplot as plt
     splits = list(t["ranking"])
     fig, axes = plt.subplots(1, len(splits), figsize=(5.6 * len(splits), 5.2), squeeze=False)
-    colors = dict(zip(metrics.CRITERIA, ("tab:blue", "tab:orange", "tab:green")))
+    colors = {c: f"C{k}" for k, c in enumerate(t["criteria"])}  # matplotlib's cycle: tab:blue, tab:orange, ...
     for ax, split in zip(axes[0], splits):
         r = t["ranking"][split]
-        for k, c in enumerate(metrics.CRITERIA):
+        for k, c in enumerate(t["criteria"]):
             pts = [(x["real"][c], x["rates"][c], x["policy"]) for x in r["policies"]]
             xs, ys = [p[0]["value"] for p in pts], [p[1]["value"] for p in pts]
             err = lambda cells, v: np.abs(np.array([[q["lo"] for q in cells], [q["hi"] for q in cells]]) - v)  # noqa

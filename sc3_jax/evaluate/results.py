@@ -30,9 +30,14 @@ from sc3_jax.validate import is_finite_number, out_dir, regular_file
 from sc3_jax.evaluate.metrics import OVERALL
 
 EVAL_MODES = ("real", "offline", "online")
-SPLITS = {"bussing": "in_distribution", "reverse": "out_of_distribution"}  # task -> split
-# the order every report lists splits in, then the pooled one; derived so a new task's split cannot be missed
-SPLIT_ORDER = (*dict.fromkeys(SPLITS.values()), OVERALL)
+
+
+def split_order(config: Mapping, records=()) -> list[str]:
+    """The order a store's splits are reported in (the pooled one, ``metrics.OVERALL``, not among them): the
+    benchmark's, as its sweep recorded it in sweep.json (``"splits"``, its in-distribution split first: tau is chosen
+    there), then any other split of ``records`` by name (a store from before the record: every split by name)."""
+    order = [s for s in config.get("splits") or () if s != OVERALL]
+    return order + sorted({r["split"] for r in records if "split" in r} - set(order))
 
 
 def rollout_id(policy: str, seed: int, mode: str) -> str:
@@ -114,7 +119,7 @@ class ResultsStore:
         # modes may be added to a store (records are per mode); anything else that changes results may not.
         # real_from only says where identical real rollouts were copied from (the source may move later)
         keep = lambda d: {k: v for k, v in d.items()  # noqa: E731
-                          if k not in ("progress", "out", "modes", "perception_sha256", "real_from")}
+                          if k not in ("progress", "out", "modes", "perception_sha256", "real_from", "splits")}
         if cfg_path.exists() and self._holds_results():
             old = atomic.read_json(cfg_path, "restore it from a copy, or use another --out")
             # which perception weights scored the store (a store from before digests were kept: unknown, accepted)

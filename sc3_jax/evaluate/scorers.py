@@ -17,7 +17,7 @@ import numpy as np
 
 from sc3_jax import module_attr
 from sc3_jax.errors import UserError
-from sc3_jax.evaluate.metrics import CRITERIA, outcome_category
+from sc3_jax.evaluate.metrics import criteria_of
 
 
 @dataclasses.dataclass
@@ -40,11 +40,6 @@ class Scorer(Protocol):
     def score(self, rollout: RolloutView) -> list[dict]: ...  # one dict per object, in rollout.objects order
 
 
-def outcome(name: str, destination: str, language: bool, lifting: bool, placing: bool) -> dict:
-    passed = {"language": bool(language), "lifting": bool(lifting), "placing": bool(placing)}
-    return {"object": name, "destination": destination, **passed, "outcome": outcome_category(passed)}
-
-
 def first_run(p: np.ndarray, min_run: int) -> int | None:
     """Start of the first run of ``min_run`` consecutive True steps of the bool series ``p`` [T] (None: no run)."""
     run = 0
@@ -61,11 +56,12 @@ def held(p: np.ndarray, min_run: int) -> bool:
 
 
 def agreement(scored: list[list[dict]], truth: list[list[dict]]) -> dict[str, float]:
-    """Per criterion (and for the outcome category), the fraction of objects on which two scorers agree."""
+    """Per criterion (each object's: ``metrics.criteria_of``) and for the outcome category, the fraction of objects
+    on which two scorers agree."""
     pairs = [(a, b) for xs, ys in zip(scored, truth, strict=True) for a, b in zip(xs, ys, strict=True)]
     if not pairs:
         raise ValueError("agreement: no objects")
-    return {k: float(np.mean([a[k] == b[k] for a, b in pairs])) for k in CRITERIA + ("outcome",)} | \
+    return {k: float(np.mean([a[k] == b[k] for a, b in pairs])) for k in criteria_of(pairs[0][1]) + ("outcome",)} | \
         {"n_objects": len(pairs)}
 
 

@@ -20,8 +20,9 @@ from pathlib import Path
 import numpy as np
 
 from sc3_jax import atomic
-from sc3_jax.evaluate.metrics import CRITERIA
 from sc3_jax.evaluate.results import ResultsStore
+
+from .tasks import CRITERIA
 
 COLUMNS = ("clip_id", "instruction", "object") + CRITERIA
 

@@ -16,9 +16,8 @@ import dataclasses
 import numpy as np
 
 from .scene import CONTAINER_GEOM
-from .tasks import OBJECT_BY_NAME, InitialCondition
+from .tasks import CRITERIA, OBJECT_BY_NAME, InitialCondition
 
-CRITERIA = ("language", "lifting", "placing")
 OUTCOMES = ("language", "lifting", "placing", "no failure")
 LIFT_CLEARANCE = 0.03
 REST_SPEED = 0.25

@@ -219,7 +219,7 @@ def validate(results: str | Path, params: dict, score_stride: int = 2, degradati
 def majority_agreement(truth: list[list[dict]]) -> dict[str, float]:
     """``agreement``'s keys for a scorer that ignores the frames and gives each criterion (and the outcome) its most
     common verdict among ``truth``: how much agreement the base rates alone buy."""
-    from sc3_jax.evaluate.metrics import CRITERIA
+    from .tasks import CRITERIA
 
     objects = [o for rollout in truth for o in rollout]
     if not objects:

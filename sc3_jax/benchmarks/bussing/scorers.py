@@ -30,8 +30,16 @@ import dataclasses
 import numpy as np
 
 from sc3_jax.benchmarks.bussing import perception
-from sc3_jax.evaluate.metrics import CRITERIA
-from sc3_jax.evaluate.scorers import RolloutView, first_run, held, outcome
+from sc3_jax.evaluate.metrics import outcome_category
+from sc3_jax.evaluate.scorers import RolloutView, first_run, held
+
+from .tasks import CRITERIA
+
+
+def outcome(name: str, destination: str, language: bool, lifting: bool, placing: bool) -> dict:
+    """One object's outcome as the benchmark's scorers give it: its criteria in their order, and its category."""
+    passed = {"language": bool(language), "lifting": bool(lifting), "placing": bool(placing)}
+    return {"object": name, "destination": destination, **passed, "outcome": outcome_category(passed)}
 
 
 class SimScorer:

@@ -48,7 +48,7 @@ class BussingSource:
         return self._scorer
 
     def fields(self, job, seed: int) -> dict:
-        from sc3_jax.evaluate.results import SPLITS
+        from .tasks import SPLITS
         task = self.tasks[job.name]
         return {"task": task, "split": SPLITS[task]}
 

@@ -15,6 +15,8 @@ import dataclasses
 import numpy as np
 
 TASKS = ("bussing", "reverse")
+SPLITS = {"bussing": "in_distribution", "reverse": "out_of_distribution"}  # task -> split, in-distribution first
+CRITERIA = ("language", "lifting", "placing")  # per object, ordered and cumulative (``criteria.py``)
 CONTAINERS = ("bin", "can")  # utensil bin, trash can
 CLASSES = ("utensil", "trash")
 
