@@ -32,10 +32,11 @@ def parse_tau(t) -> float:
     return math.inf if str(t) in ("inf", "Infinity") else float(t)
 
 
-def object_rows(rec: dict, objects: list[dict]) -> list[dict]:
-    """Per-object rows of one rollout record, as ``metrics.success_rates`` takes them (each outcome's criteria)."""
+def object_rows(rec: dict, objects: list[dict], criteria=None) -> list[dict]:
+    """Per-object rows of one rollout record, as ``metrics.success_rates`` takes them: ``criteria`` in their order
+    (None: each outcome's own, ``metrics.criteria_of``)."""
     return [{"policy": rec["policy"], "split": rec["split"], "episode": rec["seed"], "object": o["object"],
-             **{c: bool(o[c]) for c in metrics.criteria_of(o)}} for o in objects]
+             **{c: bool(o[c]) for c in (criteria or metrics.criteria_of(o))}} for o in objects]
 
 
 def cut(rec: dict, tau: float, units: str) -> int:
@@ -60,18 +61,19 @@ def ordered(present, order) -> list:
     return [s for s in order if s in present] + sorted(s for s in present if s not in order)
 
 
-def tau_sweep(real: dict, online: dict, taus, units: str, order=()) -> list[dict]:
+def tau_sweep(real: dict, online: dict, taus, units: str, order=(), criteria=None) -> list[dict]:
     """For every tau: termination rate per split, r / MMRV of the cut online rollouts against physics, mean chunks
     kept. ``real`` / ``online``: records keyed by (policy, seed); only keys in both are compared. ``order``: the
-    splits' (:func:`faith`)."""
+    splits' (:func:`faith`); ``criteria``: the outcomes' (:func:`object_rows`)."""
     cases = sorted(set(online) & set(real))
     if not cases:
         return []
-    re_rows = [row for k in cases for row in object_rows(real[k], real[k]["objects"])]
+    re_rows = [row for k in cases for row in object_rows(real[k], real[k]["objects"], criteria)]
     out = []
     for tau in (parse_tau(t) for t in taus):
         cuts = {k: cut(online[k], tau, units) for k in cases}
-        ev_rows = [row for k in cases for row in object_rows(online[k], online[k]["objects_by_cut"][cuts[k]])]
+        ev_rows = [row for k in cases
+                   for row in object_rows(online[k], online[k]["objects_by_cut"][cuts[k]], criteria)]
         term = {}
         for split in [*ordered({real[k]["split"] for k in cases}, order), metrics.OVERALL]:
             ks = [k for k in cases if split == metrics.OVERALL or real[k]["split"] == split]

@@ -26,7 +26,7 @@ from pathlib import Path
 from sc3_jax import atomic
 from sc3_jax.evaluate import intervals, report
 from sc3_jax.evaluate.metrics import OVERALL
-from sc3_jax.evaluate.results import ResultsStore, seed_blocks, split_order
+from sc3_jax.evaluate.results import ResultsStore, criteria_order, seed_blocks, split_order
 
 FIELDS = ("label", "store", "steps", "batch", "device", "hours")
 
@@ -70,7 +70,7 @@ def _grids(store: str):
     by = {m: {(r["policy"], r["seed"]): r for r in recs if r["mode"] == m} for m in ("real", "online")}
     policies = report.policy_order(by["real"].values(), split_order(st.config(), recs))
     names = [p for p, _ in policies]
-    criteria = report.criteria_of(by["real"].values())
+    criteria = criteria_order(st.config(), by["real"].values())
     grid = lambda m: intervals.grid(by[m], names, seeds, criteria)  # noqa: E731
     return [s for _, s in policies], grid("real"), grid("online")
 
@@ -136,10 +136,11 @@ def markdown(c: dict) -> str:
                                                 for k in ("pearson", "mmrv")]) + " |" for p in c["points"]]
     if c.get("baseline"):
         # here the pooled split too: "better than the baseline overall" is a question a curve's user asks
-        head = ["checkpoint"] + [f"{s.replace('_', ' ')} {k} - baseline" for s in [*_SPLITS, OVERALL] for k in ("r", "MMRV")]
+        pooled = [*_SPLITS, OVERALL]
+        head = ["checkpoint"] + [f"{s.replace('_', ' ')} {k} - baseline" for s in pooled for k in ("r", "MMRV")]
         lines += ["", f"Paired difference to the baseline, {c['baseline']}, on the same resampled conditions (r > 0 "
                   "and MMRV < 0 favour the checkpoint):", "", "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-        lines += ["| " + " | ".join([p["label"]] + [report.ci(p["vs_baseline"].get(s, {}).get(k)) for s in [*_SPLITS, OVERALL]
+        lines += ["| " + " | ".join([p["label"]] + [report.ci(p["vs_baseline"].get(s, {}).get(k)) for s in pooled
                                                     for k in ("pearson", "mmrv")]) + " |"
                   for p in c["points"] if p["label"] != c["baseline"]]
     return "\n".join(lines) + "\n"

@@ -14,7 +14,8 @@ percent as ``pc_success``; ``stats.interval.wilson``) and an ``sc3`` entry sayin
      "sc3": {"policy", "mode", "criterion", "block", "store", "interval"}}
 
 An episode's success is its record's ``outcomes[criterion]`` (``sc3 sweep episodes`` / ``so101``), or for a record
-of per-object outcomes (``sc3 sweep bench``) every object passing ``criterion`` (e.g. "placing"); its reward is 1.0
+of per-object outcomes (``sc3 sweep bench``) every object passing ``criterion`` (by default the benchmark's last,
+cumulative one: ``results.criteria_order``, e.g. "placing"); its reward is 1.0
 on success, else 0 (what the gymnasium env, ``gym_env.py``, pays). Tasks: a record's ``split`` / ``task`` where it
 has them (the bussing benchmark's), else one task, the store's benchmark. Only the ``block`` (evaluation by default)
 counts: calibration episodes chose tau and are not ranked."""
@@ -25,7 +26,7 @@ from pathlib import Path
 
 from sc3_jax import atomic
 from sc3_jax.errors import UserError
-from sc3_jax.evaluate.results import ResultsStore, seed_blocks
+from sc3_jax.evaluate.results import ResultsStore, criteria_order, seed_blocks
 from sc3_jax.safe_names import join_inside
 from sc3_jax.stats.interval import wilson
 
@@ -102,14 +103,18 @@ def eval_info(records: list[dict], policy: str, mode: str = "online", criterion:
                     "interval": "Wilson score, 95%"}}
 
 
-def write(results: str | Path, out: str | Path | None = None, criterion: str = "success",
+def write(results: str | Path, out: str | Path | None = None, criterion: str | None = None,
           block: str = "evaluation") -> list[Path]:
     """Write ``OUT/<mode>/<policy>/eval_info.json`` for every policy and mode of the store ``results`` (``out``
-    None: ``RESULTS/report/eval_info``); returns the files written."""
+    None: ``RESULTS/report/eval_info``); returns the files written. ``criterion`` None: "success" for a store of
+    ``{criterion: bool}`` outcomes, the last criterion for one of per-object outcomes."""
     store = ResultsStore(results)
     records = store.records()
     out = Path(out) if out is not None else store.root / "report" / "eval_info"
     cfg = store.config()
+    if criterion is None:
+        per_object = criteria_order(cfg, records)
+        criterion = per_object[-1] if per_object else "success"
     try:
         blocks = seed_blocks(cfg)
     except (KeyError, TypeError):

@@ -34,10 +34,11 @@ states, U). A rerun skips every rollout whose line exists; a killed run redoes a
 rollouts, so a store is re-reported against other real outcomes without rolling out again.
 
 The rollouts run on the sweep engine (``engine.py``), with this module's ``EpisodesSource``. ``sweep.json`` also
-records what the rollouts came from (``engine.with_identity``, for every sweep): the world model's content hash and training step (``checkpoint.identity``: a path names a workdir
-that may train on), and the content hash of the scorer and of each policy where they are files. Resuming against
-a changed one is refused in one line naming both; a store written before these were recorded resumes with a note
-and records none (nothing says what its first rollouts came from, so no later hash could vouch for them).
+records what the rollouts came from (``engine.with_identity``, for every sweep): the world model's content hash and
+training step (``checkpoint.identity``: a path names a workdir that may train on), and the content hash of the scorer
+and of each policy where they are files. Resuming against a changed one is refused in one line naming both; a store
+written before these were recorded resumes with a note and records none (nothing says what its first rollouts came
+from, so no later hash could vouch for them).
 """
 from __future__ import annotations
 

@@ -14,7 +14,8 @@ Criteria per object are a benchmark's, ordered and cumulative (e.g. the simulate
 instruction -> lifting -> placing). An object passes criterion ``c`` only if it passes ``c`` *and every criterion
 before it* (an object that was never lifted has not been placed, whatever a scorer says about placing). The outcome
 category of an object is its first violated criterion, or ``"no_failure"``. An outcome carries its own criteria:
-its boolean entries, in their order (:func:`criteria_of`); a per-object record, every field beyond its case's.
+its boolean entries, in their order (:func:`criteria_of`; a results store writes them sorted, so its sweep records
+their order: ``results.criteria_order``); a per-object record, every field beyond its case's.
 
 Everything here is plain numpy / Python: metrics run on a handful of numbers, never inside a jitted graph.
 """

@@ -28,7 +28,8 @@ from sc3_jax.evaluate.report_html import UNDEFINED, ci
 from sc3_jax.evaluate.report_html import fmt as _fmt
 from sc3_jax.evaluate.calibrate import object_rows as _object_rows
 from sc3_jax.evaluate.merged import open_store
-from sc3_jax.evaluate.results import EVAL_MODES, ResultsStore, paired_frames, seed_blocks, split_order
+from sc3_jax.evaluate.results import (EVAL_MODES, ResultsStore, criteria_order, paired_frames, seed_blocks,
+                                      split_order)
 from sc3_jax.safe_names import file_name
 from sc3_jax.stats import interval, resample
 from sc3_jax.stats.floor import policy_blind
@@ -80,9 +81,7 @@ def policy_order(real_records, order=()) -> list[tuple[str, str]]:
                   key=lambda x: (rank.get(x[1], len(rank)), x[1], x[0]))
 
 
-def criteria_of(records) -> tuple[str, ...]:
-    """The criteria of a store's per-object outcomes, in their order (``metrics.criteria_of``: the first object's)."""
-    return next((metrics.criteria_of(o) for r in records for o in r["objects"]), ())
+
 
 
 def compute(results, taus=None, draws: int = 2000, seed: int = 0, scene=None, real=None) -> dict:
@@ -123,7 +122,7 @@ def bench(results, taus=None, draws: int = 2000, seed: int = 0, scene=None) -> d
                         "--real-from a store of the same protocol)")
     order = split_order(cfg, recs)
     policies = policy_order(real.values(), order)
-    criteria = criteria_of(real.values())
+    criteria = criteria_order(cfg, real.values())
     out: dict = {"config": cfg, "counts": {m: len(by["evaluation", m]) for m in EVAL_MODES},
                  "policies": policies, "criteria": list(criteria),
                  "protocol": {s: {"n": len(v), "seeds": [v[0], v[-1]] if v else [],
@@ -131,14 +130,16 @@ def bench(results, taus=None, draws: int = 2000, seed: int = 0, scene=None) -> d
                  "bootstrap": {"draws": draws, "seed": seed, "level": 0.95,
                                "resampled": "evaluation initial conditions, paired across policies and evaluators"}}
     # ground truth, the scorer's agreement with it (clean and degraded frames)
-    real_rows = [row for r in real.values() for row in _object_rows(r, r["objects"])]
+    real_rows = [row for r in real.values() for row in _object_rows(r, r["objects"], criteria)]
     out["rates"] = {"real": _rates(real_rows),
-                    "real_perception": _rates([row for r in real.values() for row in _object_rows(r, r["perception"])])}
+                    "real_perception": _rates([row for r in real.values()
+                                               for row in _object_rows(r, r["perception"], criteria)])}
     # every real rollout of the sweep (all three seed blocks are disjoint from the scorer's training seeds): the
     # agreement is a property of the instrument, and the quick protocol's evaluation block alone is ~150 objects
     out["scorer_agreement"] = _agreement({(s, k): r for s in sets for k, r in by[s, "real"].items()})
     # tau: chosen on the calibration block only, then applied once to the evaluation
-    calib = calibrate.tau_sweep(by["calibration", "real"], by["calibration", "online"], cfg["taus"], units, order)
+    calib = calibrate.tau_sweep(by["calibration", "real"], by["calibration", "online"], cfg["taus"], units, order,
+                                criteria)
     select = order[0] if order else None
     out["tau"] = {"units": units, "rule": f"max {(select or 'pooled').replace('_', '-')} r on the calibration seeds "
                   "(ties: lower MMRV, then larger tau)", "calibration": calib, "chosen": None}
@@ -151,8 +152,8 @@ def bench(results, taus=None, draws: int = 2000, seed: int = 0, scene=None) -> d
         if not cases:
             continue
         ev = by["evaluation", mode]
-        ev_rows = [row for k in cases for row in _object_rows(ev[k], ev[k]["objects"])]
-        re_rows = [row for k in cases for row in _object_rows(real[k], real[k]["objects"])]
+        ev_rows = [row for k in cases for row in _object_rows(ev[k], ev[k]["objects"], criteria)]
+        re_rows = [row for k in cases for row in _object_rows(real[k], real[k]["objects"], criteria)]
         out["cases"][mode] = len(cases)
         out["rates"][mode] = _rates(ev_rows)
         out["main"][mode] = calibrate.faith(ev_rows, re_rows, order)
@@ -166,7 +167,8 @@ def bench(results, taus=None, draws: int = 2000, seed: int = 0, scene=None) -> d
     out["ranking"] = _ranking(by, policies, criteria, sets["evaluation"], draws, seed)
     if by["evaluation", "online"]:
         online = by["evaluation", "online"]
-        out["termination"] = calibrate.tau_sweep(real, online, cfg["taus"], units, order)  # post hoc: evaluation seeds
+        # post hoc: on the evaluation seeds
+        out["termination"] = calibrate.tau_sweep(real, online, cfg["taus"], units, order, criteria)
         u = np.concatenate([r["u" if units == "normalised" else "u_raw"] for r in online.values()])
         out["u_quantiles"] = {q: float(np.quantile(u, float(q))) for q in ("0.1", "0.5", "0.9")}
     if by["evaluation", "offline"]:

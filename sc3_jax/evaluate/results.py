@@ -32,6 +32,16 @@ from sc3_jax.evaluate.metrics import OVERALL
 EVAL_MODES = ("real", "offline", "online")
 
 
+def criteria_order(config: Mapping, records=()) -> tuple[str, ...]:
+    """A store's per-object criteria in their (cumulative) order: the benchmark's, as its sweep recorded them in
+    sweep.json (``"criteria"``; a record's outcomes are written with sorted keys), else those of the first outcome of
+    ``records`` (``metrics.criteria_of``) by name."""
+    if config.get("criteria"):
+        return tuple(config["criteria"])
+    from sc3_jax.evaluate.metrics import criteria_of
+    return tuple(sorted(next((criteria_of(o) for r in records for o in r.get("objects") or ()), ())))
+
+
 def split_order(config: Mapping, records=()) -> list[str]:
     """The order a store's splits are reported in (the pooled one, ``metrics.OVERALL``, not among them): the
     benchmark's, as its sweep recorded it in sweep.json (``"splits"``, its in-distribution split first: tau is chosen
@@ -119,7 +129,8 @@ class ResultsStore:
         # modes may be added to a store (records are per mode); anything else that changes results may not.
         # real_from only says where identical real rollouts were copied from (the source may move later)
         keep = lambda d: {k: v for k, v in d.items()  # noqa: E731
-                          if k not in ("progress", "out", "modes", "perception_sha256", "real_from", "splits")}
+                          if k not in ("progress", "out", "modes", "perception_sha256", "real_from", "splits",
+                                        "criteria")}
         if cfg_path.exists() and self._holds_results():
             old = atomic.read_json(cfg_path, "restore it from a copy, or use another --out")
             # which perception weights scored the store (a store from before digests were kept: unknown, accepted)

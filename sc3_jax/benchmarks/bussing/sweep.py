@@ -145,7 +145,7 @@ def run_sweep(cfg: SweepConfig) -> Path:
     from .policy_eval import make_env
     from .rescore import weights_digest
     from .source import BussingSource, state_reader
-    from .tasks import SPLITS, TASKS
+    from .tasks import CRITERIA, SPLITS, TASKS
 
     cfg = dataclasses.replace(cfg, degradations=degradations_choice(cfg.degradations))
     bad = [m for m in cfg.modes if m not in EVAL_MODES]
@@ -163,9 +163,9 @@ def run_sweep(cfg: SweepConfig) -> Path:
     out = engine.shard_dir(cfg.out, cfg.shard)
     blocks = seed_blocks(cfg)
     weights = cfg.perception or perception.DEFAULT_WEIGHTS
-    # the benchmark's splits, in-distribution first (the report's order; tau is chosen on the first)
+    # the benchmark's splits, in-distribution first (the report's order; tau is chosen on the first), and criteria
     config = {**cfg.to_json(), "perception_sha256": weights_digest(weights),
-              "splits": list(dict.fromkeys(SPLITS.values()))}
+              "splits": list(dict.fromkeys(SPLITS.values())), "criteria": list(CRITERIA)}
     policies = engine.resolve_policies(cfg.policies or _zoo_names(cfg.tasks), named_policy, need_task=True,
                                        tasks=TASKS)
     wm_modes = [m for m in cfg.modes if m != "real"]
