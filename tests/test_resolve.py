@@ -45,8 +45,12 @@ def test_parse_splits_name_spec_and_task():
     assert R.parse("x=ws://h:1@reverse") == ("x", "ws://h:1", "reverse")
     assert R.parse("pkg.mod:attr@bussing") == (None, "pkg.mod:attr", "bussing")
     assert R.parse("ws://h:1/p?a=b") == (None, "ws://h:1/p?a=b", None)  # '=' inside a URL is not a name
+    assert R.parse("x=ws://h:1@any_task") == ("x", "ws://h:1", "any_task")  # a benchmark's sweep checks its tasks
     with pytest.raises(ValueError, match="NAME=ws://HOST:PORT@TASK"):
-        R.parse("x=ws://127.0.0.1:1@nowhere")  # refused before connecting
+        R.parse("x=ws://127.0.0.1:1@no where")
+    from sc3_jax.evaluate import engine
+    with pytest.raises(ValueError, match="NAME=ws://HOST:PORT@TASK"):  # refused before connecting
+        engine.resolve_policies(["x=ws://127.0.0.1:1@nowhere"], need_task=True, tasks=("bussing", "reverse"))
     with pytest.raises(ValueError, match="empty"):
         R.parse("x=")
 

@@ -20,14 +20,13 @@ import sc3_jax.benchmarks.bussing  # noqa: F401  (picks the GL backend before mu
 from sc3_jax import checkpoint, rollout, train
 from sc3_jax.config import load_config, replace
 from sc3_jax.data.norm_stats import NormStats
-from sc3_jax.evaluate import metrics, report
+from sc3_jax.evaluate import engine, metrics, report
 from sc3_jax.benchmarks.bussing import annotation, perception, sweep
 from sc3_jax.errors import UserError
 from sc3_jax.evaluate.results import EVAL_MODES, ResultsStore, rollout_id, seed_blocks
 from sc3_jax.evaluate.scorers import RolloutView
 from sc3_jax.benchmarks.bussing.scorers import HumanScorer
-from sc3_jax.benchmarks.bussing.tasks import CRITERIA
-from sc3_jax.policies import resolve
+from sc3_jax.benchmarks.bussing.tasks import CRITERIA, TASKS
 
 def _one_per_split():
     """The zoo's first policy of each task (names come from the zoo, which may change)."""
@@ -555,8 +554,8 @@ def test_remote_policy_over_the_openpi_protocol(setup, tmp_path):
     assert set(recs) == {"real", "online"} and recs["real"]["policy"] == "served"
     assert recs["real"]["objects"] == local["real"]["objects"]  # same policy, same simulator: same outcomes
     assert len(recs["online"]["u"]) == 2
-    with pytest.raises(ValueError, match="NAME=ws://HOST:PORT@TASK"):
-        resolve.resolve("x=ws://127.0.0.1:1@nowhere")
+    with pytest.raises(ValueError, match="NAME=ws://HOST:PORT@TASK"):  # not a task of the benchmark's: refused
+        engine.resolve_policies(["x=ws://127.0.0.1:1@nowhere"], need_task=True, tasks=TASKS)  # before connecting
 
 
 def test_degradations_choice_reads_legacy_booleans_and_refuses_others():

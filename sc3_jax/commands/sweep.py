@@ -76,7 +76,8 @@ def episodes(cfg: ICSweepConfig) -> int:
     from sc3_jax.evaluate import ic_sweep, report
 
     check_options(cfg)
-    out = ic_sweep.run(cfg, named=benchmark.get("bussing").named_policy)  # the simulated benchmark's zoo names
+    named = benchmark.get(cfg.benchmark).named_policy if cfg.benchmark else None  # a benchmark's own policy names
+    out = ic_sweep.run(cfg, named=named)
     md = report.render(out, out / "report", real=cfg.real or None)
     t = json.loads((out / "report" / "report.json").read_text())
     print(f"sweep: {len(cfg.policies)} policies x {cfg.episodes} held-out initial conditions (+ "

@@ -132,15 +132,19 @@ def resolve_policies(specs, named=None, *, need_task: bool = False, tasks=(), ma
     out = []
     for spec in specs:
         try:
-            name, body, _ = parse(spec)
+            name, body, task = parse(spec)
+            if need_task and task is not None and tasks and task not in tasks:  # before a server is connected to
+                raise UserError(f"policy {spec!r}: the sweep has no task {task!r}; expected NAME=SPEC@TASK (e.g. "
+                                f"NAME=ws://HOST:PORT@TASK) with TASK in {list(tasks)}")
             r = resolve(spec, family=(mappings or {}).get(name or body), named=named, **kw)
         except UserError:
             raise
         except (ValueError, TypeError, ImportError, AttributeError, ConnectionError, KeyError,
                 FileNotFoundError) as e:
             raise UserError(f"--policies {spec!r}: {e}") from None
-        if need_task and r.task is None:
-            raise UserError(f"policy {spec!r}: the sweep needs its task; expected NAME=SPEC@TASK (e.g. "
+        if need_task and (r.task is None or (tasks and r.task not in tasks)):
+            why = "needs its task" if r.task is None else f"has no task {r.task!r}"
+            raise UserError(f"policy {spec!r}: the sweep {why}; expected NAME=SPEC@TASK (e.g. "
                             f"NAME=ws://HOST:PORT@TASK) with TASK in {list(tasks)}")
         out.append(Policy(spec, r.name, r.task, r.policy))
     names = [p.name for p in out]

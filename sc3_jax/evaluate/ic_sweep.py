@@ -97,6 +97,9 @@ class ICSweepConfig(Sampler):
     """the openpi observation mapping the ws:// policies speak, FAMILY for all of them or NAME=FAMILY for one: native
     (our observation dict as is), droid, libero or aloha (sc3_jax/policies/openpi_mappings.py). A mapped server gets
     each held-out episode's own prompt"""
+    benchmark: str | None = None
+    """a benchmark whose own policy names --policies may use (its name, e.g. bussing for its zoo, or
+    package.module:attr; None: none, only the spellings above)"""
     learned_state: bool = True
     """hand the policies the world model's learned robot state where it has one (state_head.npz); --no-learned-state:
     the integrated commands (exact for absolute targets, or velocities of the recorded state)"""

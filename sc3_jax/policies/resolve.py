@@ -1,6 +1,7 @@
 """One way to name a policy, for every command that takes one (``sc3 rollout``, ``sc3 sweep``, ``sc3 serve-policy``).
 
-    bus_bc_full              a zoo policy (``benchmarks/bussing/zoo.py``; acts on its zoo entry's task)
+    NAME                     a benchmark's own policy (``named``; e.g. a zoo policy of the simulated benchmark,
+                             ``benchmarks/bussing/zoo.py``, acting on its zoo entry's task)
     zero | random | linear   a built-in JAX policy (``policies/simple.py``), built for the world model's action space
                              and views where the command passes them (else the benchmark's: 7-D delta_ee, 3 views)
     package.module:attr      a JaxPolicy / HostPolicy, or a zero-argument factory of one
@@ -8,9 +9,9 @@
     lerobot:PATH             a LeRobot pretrained_model directory, run by lerobot in its own environment
                              (``policies/lerobot_policy.py``; SC3_LEROBOT_PYTHON=VENV/bin/python)
     NAME=SPEC                any of the above, called NAME (the sweep's record and directory name)
-    SPEC@TASK                any of the above, acting on TASK ("bussing" or "reverse")
+    SPEC@TASK                any of the above, acting on TASK (one of the benchmark's tasks: its sweep checks)
 
-e.g. ``served=ws://10.0.0.2:8000@bussing``. The sweep needs a task for every policy but a zoo one.
+e.g. ``served=ws://10.0.0.2:8000@TASK``. A benchmark's sweep needs a task for every policy but its own named ones.
 """
 from __future__ import annotations
 
@@ -24,7 +25,6 @@ from sc3_jax.policies.openpi_mappings import ObsMapping
 if TYPE_CHECKING:
     from sc3_jax.policies.base import HostPolicy, JaxPolicy
 
-TASKS = ("bussing", "reverse")
 LEROBOT = "lerobot:"
 SPELLINGS = ("a zoo name, zero | random | linear, package.module:attr, ws://HOST:PORT or lerobot:PATH, as "
              "[NAME=]SPEC[@TASK]")
@@ -46,9 +46,9 @@ def parse(spec: str) -> tuple[str | None, str, str | None]:
     task = None
     if "@" in spec:
         spec, _, task = spec.rpartition("@")
-        if not spec or task not in TASKS:
+        if not spec or not task.replace("_", "").replace("-", "").isalnum():
             raise ValueError(f"policy {name + '=' if name else ''}{spec}@{task}: expected [NAME=]SPEC@TASK with "
-                             f"TASK in {list(TASKS)} (e.g. NAME=ws://HOST:PORT@TASK)")
+                             "TASK a word, one of the benchmark's tasks (e.g. NAME=ws://HOST:PORT@TASK)")
     if not spec:
         raise ValueError(f"policy {spec!r}: empty; expected {SPELLINGS}")
     return name, spec, task
