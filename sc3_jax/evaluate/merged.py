@@ -49,8 +49,11 @@ class MergedStore:
         configs = [s.config() for s in self.stores]
         strip = lambda c: {k: v for k, v in c.items() if k not in _PLACEMENT}  # noqa: E731
         for s, c in zip(self.stores[1:], configs[1:]):
+            # the benchmark's vocabulary (its splits' and criteria's order), recorded since a shard may have been
+            # written: compared where both record it
             diff = sorted(k for k in strip(c).keys() | strip(configs[0]).keys()
-                          if strip(c).get(k) != strip(configs[0]).get(k))
+                          if strip(c).get(k) != strip(configs[0]).get(k)
+                          and not (k in ("splits", "criteria") and None in (c.get(k), configs[0].get(k))))
             if diff:
                 raise UserError(f"{s.root} and {self.stores[0].root} are not shares of one sweep (they differ in "
                                  f"{', '.join(diff)}): report them separately")
