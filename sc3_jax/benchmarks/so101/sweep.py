@@ -73,10 +73,8 @@ class So101SweepConfig(SamplerSteps):
 def run(cfg: So101SweepConfig) -> Path:
     """Every stage (see the module docstring); returns OUT."""
     from sc3_jax import checkpoint
-    from sc3_jax.evaluate import ic_sweep
-    from sc3_jax.evaluate.results import check_policy_names
+    from sc3_jax.evaluate import engine, ic_sweep
     from sc3_jax.evaluate.scorers import DETECTOR_PREFIX, load_outcome_scorer
-    from sc3_jax.policies.resolve import resolve
 
     from .zoo import ZOO, named_policy
 
@@ -91,16 +89,13 @@ def run(cfg: So101SweepConfig) -> Path:
     seconds = cfg.episode_seconds or wcfg.rollout.episode_seconds
     steps = int(round(seconds * wcfg.rollout.control_hz))
     names = list(cfg.policies or ZOO)
-    for n in names:  # a wrong name: one line here, not a traceback from a simulator worker
-        try:
-            resolve(n, named=named_policy)
-        except (ValueError, KeyError, FileNotFoundError) as e:
-            raise UserError(f"--policies {n}: {e}") from None
+    # a wrong name: one line here, not a traceback from a simulator worker; each name a folder of real_frames/ and
+    # rollouts/ (the sweep engine's one resolution)
+    engine.resolve_policies(names, named_policy)
     seeds = [EVAL_SEED0 + i for i in range(cfg.episodes)]
     out.mkdir(parents=True, exist_ok=True)
     views, size = tuple(wcfg.data.views), tuple(wcfg.data.image_size)  # the world model's cameras, as it saw them
     write_conditions(out / IC_DIR, seeds, size, views)
-    check_policy_names([_name(n) for n in names])  # each a folder of real_frames/ and rollouts/
     real_outcomes(out, names, seeds, steps, size, views, scorer, cfg.workers, cfg.progress,
                   wcfg.rollout.control_hz)
     ic_cfg = ic_sweep.ICSweepConfig(
