@@ -183,15 +183,17 @@ def _inverse_lines(idr: dict) -> tuple[str, list[str]]:
 def _outcome_lines(oc: dict) -> tuple[str, list[str]]:
     if not oc.get("available"):
         return "", [f"not available: {oc.get('note')}"]
-    L = ["| comparison | objects | language | lifting | placing | lifting and placing | outcome category |",
-         "|---|---|---|---|---|---|---|"]
-    for k, label in (("imagined_vs_physics", "imagined vs physics"),
-                     ("imagined_vs_real_perception", "imagined vs perception(real)"),
-                     ("real_perception_vs_physics", "perception(real) vs physics (scorer ceiling)")):
-        r = oc[k]
-        if r:
-            L.append(f"| {label} | {r['n_objects']} | {_f(r['language'])} | {_f(r['lifting'])} | "
-                     f"{_f(r['placing'])} | {_f(r['lifting_and_placing'])} | {_f(r['outcome'])} |")
+    rows = [(label, oc[k]) for k, label in (("imagined_vs_physics", "imagined vs physics"),
+                                            ("imagined_vs_real_perception", "imagined vs perception(real)"),
+                                            ("real_perception_vs_physics", "perception(real) vs physics (scorer ceiling)"))
+            if oc[k]]
+    # the benchmark's criteria, in their order, then the last two together where there are more than two
+    cols = [k for k in (rows[0][1] if rows else {}) if k not in ("outcome", "n_objects")]
+    L = ["| comparison | objects | " + " | ".join(c.replace("_", " ") for c in cols) + " | outcome category |",
+         "|---|---|" + "---|" * (len(cols) + 1)]
+    for label, r in rows:
+        L.append(f"| {label} | {r['n_objects']} | " + " | ".join(_f(r.get(c)) for c in cols) +
+                 f" | {_f(r['outcome'])} |")
     if oc.get("physics_reproduction"):
         L += [""] + _reproduction_lines(oc["physics_reproduction"])
     return "", L

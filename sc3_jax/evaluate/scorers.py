@@ -1,8 +1,9 @@
-"""Scorers: a rollout -> one outcome per object (``language``, ``lifting``, ``placing`` booleans + category), or, for
+"""Scorers: a rollout -> one outcome per object (its benchmark's criteria as booleans, in order, + category; e.g. the
+simulated benchmark's ``language``, ``lifting``, ``placing``), or, for
 any robot, a rollout -> ``{criterion: bool}`` (the ``--scorer module:attr`` contract, at the end of this module).
 
-The evaluation core's side: what a scorer sees (:class:`RolloutView`), the :class:`Scorer` protocol, one outcome's
-form (:func:`outcome`), runs of a predicate (:func:`first_run`, :func:`held`), the agreement of two scorers, and any
+The evaluation core's side: what a scorer sees (:class:`RolloutView`), the :class:`Scorer` protocol, runs of a
+predicate (:func:`first_run`, :func:`held`), the agreement of two scorers, and any
 robot's ``--scorer module:attr``. A benchmark brings its own scorers (the simulated benchmark's physics, perception
 and human scorers: ``benchmarks/bussing/scorers.py``).
 """
