@@ -256,7 +256,8 @@ def cut(u: np.ndarray, tau: float) -> int:
 # ================================================================================================================
 class Runner:
     """World model, source and resolved policies of one process: ``runner(job)`` runs a job, writes its arrays
-    into the store and returns its records (without the fields the parent adds: :func:`record_head`)."""
+    into the store and returns its records (without the fields the parent adds: id, mode, seed, policy and the
+    source's own, :func:`run`)."""
 
     def __init__(self, setup: Setup, policies: dict | None = None, source: Source | None = None, model=None):
         self.setup, self.policies = setup, dict(policies or {})
