@@ -65,8 +65,8 @@ def outcome_section(rows, note, seed: int = 0, draws: int = BOOTSTRAP_DRAWS) -> 
     physics also per outcome category with intervals (:func:`physics_reproduction`, seeded by ``seed``)."""
     from sc3_jax.evaluate.metrics import outcome_category
     rows = [r for r in rows if r is not None]
-    CRITERIA = _criteria(rows)
-    category = lambda o: outcome_category({c: o[c] for c in CRITERIA})  # noqa: E731  (sim spells "no failure")
+    criteria = _criteria(rows)
+    category = lambda o: outcome_category({c: o[c] for c in criteria})  # noqa: E731  (sim spells "no failure")
     if not rows:
         return {"available": False, "note": note or "no episode has object labels (meta.labels / "
                                                     "meta.initial_condition)"}
@@ -76,10 +76,10 @@ def outcome_section(rows, note, seed: int = 0, draws: int = BOOTSTRAP_DRAWS) -> 
                  for a, b in zip(r[a_key], r[b_key], strict=True)]
         if not pairs:
             return None
-        d = {c: float(np.mean([a[c] == b[c] for a, b in pairs])) for c in CRITERIA}
+        d = {c: float(np.mean([a[c] == b[c] for a, b in pairs])) for c in criteria}
         d["outcome"] = float(np.mean([category(a) == category(b) for a, b in pairs]))
-        if len(CRITERIA) > 2:  # the last two together (e.g. lifting and placing: what a gripper's failures move)
-            a_, b_ = CRITERIA[-2:]
+        if len(criteria) > 2:  # the last two together (e.g. lifting and placing: what a gripper's failures move)
+            a_, b_ = criteria[-2:]
             d[f"{a_}_and_{b_}"] = float(np.mean([a[a_] == b[a_] and a[b_] == b[b_] for a, b in pairs]))
         d["n_objects"] = len(pairs)
         return d
@@ -104,9 +104,9 @@ def physics_reproduction(rows, seed: int = 0, draws: int = BOOTSTRAP_DRAWS) -> d
     rows = [r for r in rows if r is not None and r["physics"] is not None]
     if not rows:
         return None
-    CRITERIA = _criteria(rows)
-    CATEGORIES = categories(CRITERIA)
-    category = lambda o: outcome_category({c: o[c] for c in CRITERIA})  # noqa: E731  (sim spells "no failure")
+    criteria = _criteria(rows)
+    cats = categories(criteria)
+    category = lambda o: outcome_category({c: o[c] for c in criteria})  # noqa: E731  (sim spells "no failure")
     pairs = [[(a, b) for a, b in zip(r["imagined"], r["physics"], strict=True)] for r in rows]  # per episode
     E = len(rows)
     # weights[d, e]: how often resampling d draws episode e (E draws with replacement)
@@ -126,7 +126,7 @@ def physics_reproduction(rows, seed: int = 0, draws: int = BOOTSTRAP_DRAWS) -> d
                 out["ci95"] = [float(x) for x in np.percentile(boot, [2.5, 97.5])]
         return out
 
-    confusion = {c: {k: 0 for k in CATEGORIES} for c in CATEGORIES}
+    confusion = {c: {k: 0 for k in cats} for c in cats}
     for ep in pairs:
         for im, ph in ep:
             confusion[category(ph)][category(im)] += 1
@@ -134,9 +134,9 @@ def physics_reproduction(rows, seed: int = 0, draws: int = BOOTSTRAP_DRAWS) -> d
     return {"n_episodes": E, "n_objects": n, "draws": draws if weights is not None else 0, "seed": seed,
             "enough_objects": n >= MIN_OBJECTS, "min_objects": MIN_OBJECTS,
             "outcome": stat(lambda im, ph: category(im) == category(ph)),
-            "criteria": {c: stat(lambda im, ph, c=c: im[c] == ph[c]) for c in CRITERIA},
+            "criteria": {c: stat(lambda im, ph, c=c: im[c] == ph[c]) for c in criteria},
             "categories": {c: stat(lambda im, ph: category(im) == category(ph), lambda im, ph, c=c: category(ph) == c)
-                           for c in CATEGORIES},
+                           for c in cats},
             "confusion": confusion}
 
 
@@ -144,8 +144,8 @@ def success_rates(outcomes: list[list[dict]]) -> dict[str, float]:
     """Per criterion the fraction of objects that pass it and every criterion before it (``metrics``' cumulative
     rule), pooled over rollouts; ``n_objects`` how many."""
     from sc3_jax.evaluate.metrics import criteria_of, cumulative_passes
-    CRITERIA = next((criteria_of(o) for row in outcomes for o in row), ())
-    objs = [cumulative_passes({c: o[c] for c in CRITERIA}) for row in outcomes for o in row]
-    out = {c: float(np.mean([o[c] for o in objs])) if objs else float("nan") for c in CRITERIA}
+    criteria = next((criteria_of(o) for row in outcomes for o in row), ())
+    objs = [cumulative_passes({c: o[c] for c in criteria}) for row in outcomes for o in row]
+    out = {c: float(np.mean([o[c] for o in objs])) if objs else float("nan") for c in criteria}
     out["n_objects"] = len(objs)
     return out
