@@ -196,7 +196,8 @@ def test_the_lab_cameras_frame_the_arm_the_block_and_the_goal():
 def test_the_pixel_scorer_says_done_for_a_placed_block_and_not_for_a_faded_one():
     """`--scorer sc3_jax.benchmarks.so101.scorer:block_at_goal`: the clean controller's episode of seed 20000005
     (done in the simulator) reads done; the same frames with the block painted over from a third of the way (a
-    model that lets it fade) and an arm that never moves read not done."""
+    model that lets it fade) and an arm that never moves read not done. The estimated scorer agrees on the placed
+    and the still episode, and reads a closed jaw as not done."""
     from sc3_jax.benchmarks.so101.env import BLOCK_RGBA
     from sc3_jax.benchmarks.so101.rollouts import HOLD
     from sc3_jax.benchmarks.so101.scorer import block_at_goal
@@ -212,6 +213,14 @@ def test_the_pixel_scorer_says_done_for_a_placed_block_and_not_for_a_faded_one()
     view = lambda frames: RolloutView("x", np.moveaxis(frames, 1, 0))  # noqa: E731  [T, V, ...] -> [V, T, ...]
     assert block_at_goal(view(placed.frames)) == {"success": True}
     assert block_at_goal(view(still.frames)) == {"success": False}
+    # the estimated scorer (placed.py) on the same episodes, with their states; the jaw's command set closed: not done
+    from sc3_jax.benchmarks.so101.placed import GRIP, block_placed
+    with_state = lambda r, s: RolloutView("x", np.moveaxis(r.frames, 1, 0), state=s)  # noqa: E731
+    assert block_placed(with_state(placed, placed.states)) == {"success": True}
+    assert block_placed(with_state(still, still.states)) == {"success": False}
+    closed = placed.states.copy()
+    closed[:, GRIP] = -1.0
+    assert block_placed(with_state(placed, closed)) == {"success": False}
     faded = placed.frames.copy()
     rgb = faded.astype(np.float32)
     c = BLOCK_RGBA[:3] / BLOCK_RGBA[:3].sum()
