@@ -27,6 +27,7 @@ def test_the_anchor_tokens_sit_their_gap_before_the_first_context_frame():
     np.testing.assert_array_equal(anchored[:, first, 1:], plain[:, first, 1:])  # rows and columns unchanged
 
 
+@pytest.mark.slow  # 25-55 s: kept out of the default run's 15 minutes (CI runs -m slow too)
 def test_the_model_reads_where_in_time_the_anchor_sits():
     cfg = _cfg()
     params = _params(cfg)
@@ -46,6 +47,7 @@ def test_the_model_reads_where_in_time_the_anchor_sits():
     np.testing.assert_allclose(run(jnp.asarray([1, 1])), run(None), rtol=1e-6, atol=1e-6)
 
 
+@pytest.mark.slow  # 25-55 s: kept out of the default run's 15 minutes (CI runs -m slow too)
 def test_a_closed_loop_keeps_the_first_observation_at_a_growing_gap(monkeypatch):
     cfg = replace(_cfg(), data=dict(anchor=True))
     ro = rollout.Rollout(cfg, STATS, data_fps=FPS, num_chunks=3, cache=False)

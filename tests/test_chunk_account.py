@@ -40,6 +40,7 @@ def test_the_bound_fails_without_the_context_cache(cfg):
     assert a["ratio"] > 1.5 * BOUND  # every Euler step runs every token, an inverse one ~100x its noisy ones
 
 
+@pytest.mark.slow  # 25-55 s: kept out of the default run's 15 minutes (CI runs -m slow too)
 def test_the_inverse_sampler_extending_the_forward_samplers_context_cache_reads_the_same_actions(cfg):
     """What removed the account's one excess (the inverse encoding re-ran the context): exact up to float noise."""
     import jax

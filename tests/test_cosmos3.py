@@ -415,6 +415,7 @@ def _tiny_wan_tokenizer():
     return wt.WanTokenizer.random(vae, seed=0, patch_size=2)
 
 
+@pytest.mark.slow  # 25-55 s: kept out of the default run's 15 minutes (CI runs -m slow too)
 def test_training_drives_the_cosmos3_layout_on_time_compressed_latents(monkeypatch):
     """A Cosmos3-layout model trains on Wan-VAE tokens: 5 context + 8 future frames are 2 + 2 token frames with 8
     actions (4 per token frame), the train step fits one batch, and impossible bookkeeping is refused."""

@@ -756,6 +756,7 @@ def test_the_battery_catches_the_norm_stats_door_switched_off(pristine, monkeypa
     ("store files", ["sc3_jax.validate.regular_file", "sc3_jax.validate.npy_fits"]),
     ("episode sweep records", ["sc3_jax.evaluate.report_episodes.check_against_sweep", "sc3_jax.validate.out_dir"]),
 ])
+@pytest.mark.slow  # 25-55 s: kept out of the default run's 15 minutes (CI runs -m slow too)
 def test_the_battery_catches_the_store_doors_switched_off(pristine, monkeypatch, kind, targets):
     """The store's own regular files (no link out, no FIFO, no header larger than its file) and its records of its
     own sweep: each switched off, the battery fails on the kind that tests it."""

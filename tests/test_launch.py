@@ -84,6 +84,7 @@ TINY = ["--config", "tiny", "--model.dim", "32", "--model.depth", "1", "--model.
         "--train.no-progress"]
 
 
+@pytest.mark.slow  # 25-55 s: kept out of the default run's 15 minutes (CI runs -m slow too)
 def test_slurm_two_processes_train_and_checkpoint(tmp_path):
     from sc3_jax.data import synthetic
 

@@ -67,11 +67,12 @@ def test_parse_mesh_and_config_flags():
         16, "ring", (8, 8), False)
 
 
+# the child's own peak: VmHWM belongs to its address space, while getrusage's ru_maxrss survives exec and so holds the
+# forking pytest worker's peak (a failure in the full suite, though not alone)
 _PEAK_OF_PLAN = """
-import resource
 from sc3_jax.cli import main
 assert main(["plan", "--config", "paper", "--mesh", "data=4,fsdp=8", "--device", "gb200", "--mfu", "0.4"]) == 0
-print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)
+print(next(int(line.split()[1]) for line in open("/proc/self/status") if line.startswith("VmHWM:")))
 """
 
 
@@ -89,7 +90,7 @@ def test_paper_plan_from_abstract_shapes(capsys):
     assert p["params_bytes"] == pytest.approx(p["params"] * 4 / 8, rel=1e-3)  # fp32, split over fsdp=8
     assert p["step_seconds"] == pytest.approx(p["step_flops"] / (32 * 2.5e15 * 0.4))
     # nothing of the 8 GB (fp32) model was ever allocated: read in a process of its own, since this one's peak
-    # holds whatever tests ran before it on the same worker (7.3 GB in CI once)
+    # holds whatever tests ran before it on the same worker (7.3 GB in CI once); kB
     peak = subprocess.run([sys.executable, "-c", _PEAK_OF_PLAN], capture_output=True, text=True, check=True)
     assert int(peak.stdout.split()[-1]) * 1024 < 6e9, peak.stdout
     # the same 32 devices with the sequence split 4 ways by ring attention: same tokens per device, score blocks of

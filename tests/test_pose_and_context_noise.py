@@ -108,6 +108,7 @@ def test_noise_context_touches_only_context_frames():
     assert float(jnp.abs(out[1:, :, :K] - video[1:, :, :K]).min()) > 0
 
 
+@pytest.mark.slow  # 25-55 s: kept out of the default run's 15 minutes (CI runs -m slow too)
 def test_context_noise_never_reaches_a_loss_target(monkeypatch):
     """With context noise on, the model sees noised context frames, but every loss target is the clean frame (and
     clean future conditions -- CVI's kept view, ID's frames -- are never noised)."""

@@ -41,6 +41,7 @@ def _finished_checkpoints(workdir: Path) -> list[int]:
     return sorted(int(p.name) for p in d.iterdir() if p.name.isdigit()) if d.exists() else []
 
 
+@pytest.mark.slow  # 25-55 s: kept out of the default run's 15 minutes (CI runs -m slow too)
 def test_sigkill_then_resume_matches_uninterrupted(tmp_path):
     data = str(tmp_path / "episodes")
     synthetic.generate(data, 6, length=30, image_size=(8, 8), seed=0, progress=False)

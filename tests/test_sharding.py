@@ -56,6 +56,7 @@ def test_mesh_shape_errors():
         sharding.mesh_shape(MeshConfig(-1, -1, 1), 8)
 
 
+@pytest.mark.slow  # 25-55 s: kept out of the default run's 15 minutes (CI runs -m slow too)
 def test_gradient_accumulation_is_the_mean_of_micro_batch_gradients():
     """grad_accum = 2 on a 4-device data mesh: the update equals one computed by hand from the two micro-batches
     (samples 0, 2, 4, .. and 1, 3, 5, ..; noise keys fold_in(step key, i)) with the mean of their gradients."""
