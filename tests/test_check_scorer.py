@@ -50,3 +50,9 @@ def test_check_scorer_refuses_a_missing_criterion_a_folder_as_out_and_a_bad_scor
         assert main(["check-scorer", "--data", str(store), "--no-progress", *extra]) != 0
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and said in err[0], err
+
+
+def test_check_scorer_names_its_own_option_for_a_folder_that_is_no_store(tmp_path, capsys):
+    assert main(["check-scorer", "--data", str(tmp_path), "--scorer", f"{__name__}:bright", "--no-progress"]) != 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--data" in err[0] and "no dataset.json" in err[0] and "--real" not in err[0], err

@@ -23,6 +23,9 @@ def check(store: str | Path, scorer: str, criterion: str = "success", progress: 
     from sc3_jax.evaluate.scorers import RolloutView, check_outcomes, load_outcome_scorer
     from sc3_jax.stats.interval import wilson
 
+    if not (Path(store) / "dataset.json").is_file():  # said as this command's option, not as --real's
+        raise UserError(f"--data {store}: not an episode store (no dataset.json); import one with `sc3 data "
+                        "import-lerobot`")
     real = labels.read([f"real={store}"])
     missing = [e for e in real if criterion not in e.outcomes]
     if missing:
