@@ -123,3 +123,17 @@ def test_a_mapping_that_does_not_fit_the_space_is_one_line():
     d = ActionSpace("velocity", 4, targets=(3,), measured=(3, 4, 5, -1), gain=(0.25,) * 4).to_dict()
     assert ActionSpace.from_dict(d) == ActionSpace("velocity", 4, targets=(3,), measured=(3, 4, 5, -1),
                                                    gain=(0.25,) * 4)
+
+
+def test_a_fine_tune_from_a_model_that_integrated_from_zero_conditions_on_the_measured_state_in_its_action_units(
+        tmp_path):
+    from sc3_jax.train import reconditioned
+
+    store = _store(tmp_path / "s")
+    old = NormStats(np.full(4, 0.1), np.full(4, 2.0), action_space=SPACE)  # the pose from zero: nothing measured
+    new = reconditioned(old, store)
+    assert new.action_space.measured == (3, 4, 5, -1)  # the end effector the commands move, fitted from the store
+    np.testing.assert_array_equal(new.mean, old.mean)  # the params' action units stay
+    np.testing.assert_array_equal(new.std, old.std)
+    assert not np.allclose(new.pose_std, 1.0)  # the pose statistics are the measured entries'
+    assert reconditioned(new, store) is new  # a model already conditioned on the measured state keeps its own

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import multiprocessing as mp
 import os
+import signal
 
 SINGLE_THREAD = "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"  # added to XLA_FLAGS
 
@@ -22,10 +23,17 @@ def pool(processes: int, initializer, initargs: tuple):
     os.environ["JAX_PLATFORMS"] = "cpu"
     os.environ["XLA_FLAGS"] = f"{saved['XLA_FLAGS'] or ''} {SINGLE_THREAD}".strip()
     try:
-        return ctx.Pool(processes, initializer=initializer, initargs=initargs)
+        return ctx.Pool(processes, initializer=_deaf_to_ctrl_c, initargs=(initializer, *initargs))
     finally:
         for k, v in saved.items():
             if v is None:
                 os.environ.pop(k)
             else:
                 os.environ[k] = v
+
+
+def _deaf_to_ctrl_c(initializer, *initargs) -> None:
+    """A worker ignores SIGINT: Ctrl-C in a terminal reaches the whole process group, and the sweep's own process
+    answers it (one line, the pool terminated); a worker interrupted mid-rollout printed its own traceback."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    initializer(*initargs)
