@@ -49,6 +49,23 @@ class Lock:
         self.release()
 
 
+def held(directory: str | os.PathLike) -> bool:
+    """Whether a live writer holds ``directory``'s lock now. Asked without writing: a directory with no lock file has
+    no writer, and a reader's brief shared probe of an existing one creates and changes nothing."""
+    path = Path(directory) / LOCK_NAME
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:  # no lock file (never written by a writer), or none this reader may open
+        return False
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return True
+    finally:
+        os.close(fd)  # closing drops the probe's own lock
+    return False
+
+
 @contextlib.contextmanager
 def hold(directory: str | os.PathLike, what: str) -> Iterator[Lock]:
     """Hold ``directory``'s lock for the block (``what``: the kind of writer, for the message)."""

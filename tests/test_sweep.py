@@ -355,14 +355,35 @@ def test_reading_a_store_never_writes_and_its_sweep_repairs_a_cut_line(tmp_path)
     """A report or a --real-from reading a store while its sweep appends must not cut the line being written; the
     store's own sweep, resuming after a kill, truncates the cut line before appending."""
     cfg = sweep.SweepConfig(out=str(tmp_path / "s"))
-    store = ResultsStore(cfg.out, cfg.to_json())
+    store = ResultsStore(cfg.out, cfg.to_json(), lock=True)  # a running sweep holds its store's lock
     store.append([{"id": "a", "mode": "real"}])
     with open(store.path, "a") as fh:
         fh.write('{"id": "b", "mo')
     raw = store.path.read_bytes()
     assert [r["id"] for r in ResultsStore(cfg.out).records()] == ["a"] and store.path.read_bytes() == raw
+    store.close()  # the sweep was killed mid-line: a report would leave rollout b out without a word
+    with pytest.raises(UserError, match="its last line is cut .* no sweep is writing it: resume the sweep"):
+        ResultsStore(cfg.out).records()
+    assert store.path.read_bytes() == raw and ResultsStore(cfg.out).done() == {"a"}  # what a resume runs again
     ResultsStore(cfg.out, cfg.to_json())
     assert store.path.read_bytes() == raw[:raw.rfind(b"\n") + 1]
+    assert [r["id"] for r in ResultsStore(cfg.out).records()] == ["a"]
+
+
+def test_a_stores_records_and_sweep_json_linked_out_of_it_are_refused(tmp_path):
+    cfg = sweep.SweepConfig(out=str(tmp_path / "s"))
+    store = ResultsStore(cfg.out, cfg.to_json())
+    store.append([{"id": "a", "mode": "real"}])
+    for name in ("results.jsonl", "sweep.json"):
+        elsewhere = tmp_path / f"other_{name}"
+        elsewhere.write_bytes((store.root / name).read_bytes())
+        (store.root / name).rename(tmp_path / f"kept_{name}")
+        (store.root / name).symlink_to(elsewhere)
+        with pytest.raises(UserError, match="a link to a file outside"):
+            ResultsStore(cfg.out).records() if name == "results.jsonl" else ResultsStore(cfg.out).config()
+        (store.root / name).unlink()
+        (tmp_path / f"kept_{name}").rename(store.root / name)
+    assert [r["id"] for r in ResultsStore(cfg.out).records()] == ["a"]
 
 
 def _flip_first_object(store: Path, mode: str, split: str):

@@ -98,6 +98,19 @@ def terminated_at(u: np.ndarray, tau: float) -> np.ndarray:
     return np.where(above.any(-1), above.argmax(-1), -1).astype(np.int32)
 
 
+def _cut(path: Path) -> int:
+    """The bytes after the last newline of ``path`` (0: none, or no such file); reads only the file's end."""
+    try:
+        with open(path, "rb") as fh:
+            fh.seek(0, os.SEEK_END)
+            size = fh.tell()
+            fh.seek(max(0, size - 65536))
+            tail = fh.read()
+    except (FileNotFoundError, IsADirectoryError):
+        return 0
+    return 0 if not tail or tail.endswith(b"\n") else len(tail) - tail.rfind(b"\n") - 1
+
+
 class ResultsStore:
     """Append-only JSONL of rollout records + one npz of arrays per rollout."""
 
@@ -109,6 +122,7 @@ class ResultsStore:
         self.path = self.root / "results.jsonl"
         self._lock: locks.Lock | None = None
         self._locking = lock
+        self._reader = config is None  # a writer's resume drops a cut last line (``_repair``); a reader refuses it
         if config is not None:
             if self.archived:
                 raise UserError(f"{self.root} is an archived store (results.jsonl.gz, read-only): to add to it, copy "
@@ -177,15 +191,30 @@ class ResultsStore:
 
         fix = "restore it from a copy of the store"
         path = self.root / "sweep.json"
+        if path.exists() or path.is_symlink():  # the store's own: not another store's protocol through a link
+            regular_file(path, fix, inside=self.root)
         return json_object(atomic.read_json(path, fix), str(path), fix)
 
     def records(self) -> list[dict]:
         """Every complete line (a line cut by a kill, or still being written by a running sweep, is left out).
-        Reading never writes: a report or another sweep may read a store while its sweep runs."""
+        Reading never writes: a report or another sweep may read a store while its sweep runs. A store opened to
+        read (no ``config``) refuses a cut last line that no running sweep is writing."""
+        return self._read(strict=self._reader)
+
+    def _read(self, strict: bool) -> list[dict]:
         if self.archived:
             path, fix = self.root / "results.jsonl.gz", "restore the file"
         else:
             path, fix = self.path, "delete that line (resuming the sweep runs its rollout again) or restore the file"
+        if path.exists() or path.is_symlink():  # the store's own file: no link to another store's records, no FIFO
+            regular_file(path, "restore the file from a copy of the store", inside=self.root)
+        cut = strict and not self.archived and _cut(path)
+        if cut and not locks.held(self.root):
+            # a last line cut while no sweep writes it: a sweep killed mid-line, or a file cut short (half a store
+            # reads as a complete one); a report of it would silently leave rollouts out
+            raise UserError(f"{path}: its last line is cut ({cut} bytes without a newline) and no sweep is "
+                            "writing it: resume the sweep (it drops that line and runs its rollout again) or restore "
+                            "the file")
         records = atomic.read_jsonl(path, "a rollout record", fix)
         check_records(records, path, fix)
         return records
@@ -200,7 +229,8 @@ class ResultsStore:
         atomic.remove_stale(self.root, recursive=True)
 
     def done(self) -> set[str]:
-        return {r["id"] for r in self.records()}
+        """The ids of the rollouts kept (a cut last line is not one: the sweep that resumes runs it again)."""
+        return {r["id"] for r in self._read(strict=False)}
 
     def append(self, records: list[dict]):
         lines = []
