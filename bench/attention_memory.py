@@ -15,8 +15,8 @@ from __future__ import annotations
 import argparse
 import math
 
-from sc3_jax import plan
-from sc3_jax.config import MeshConfig, load_config, replace
+from sc3_jax.train import plan
+from sc3_jax.core.config import MeshConfig, load_config, replace
 from sc3_jax.model import tokenizer
 
 SIZES = {2020: (32, 56), 4036: (56, 64), 8068: (64, 112)}

@@ -19,8 +19,8 @@ from __future__ import annotations
 import argparse
 import time
 
-from sc3_jax import plan
-from sc3_jax.config import load_config
+from sc3_jax.train import plan
+from sc3_jax.core.config import load_config
 
 
 def table(a: dict) -> str:

@@ -39,8 +39,9 @@ def main(argv=None) -> None:
     ap.add_argument("--policy", default="bus_bc_full")
     a = ap.parse_args(argv)
 
-    from sc3_jax import checkpoint, rollout
-    from sc3_jax.config import replace
+    from sc3_jax.model import checkpoint
+    from sc3_jax.rollout import rollout
+    from sc3_jax.core.config import replace
     from sc3_jax.benchmarks.bussing import perception
     from sc3_jax.benchmarks.bussing.scorers import PerceptionScorer
     from sc3_jax.benchmarks.bussing.source import initial_observation
@@ -77,7 +78,7 @@ def main(argv=None) -> None:
     enc = jax.jit(jax.vmap(lambda c: fns.tok.encode(c)))
     latents = enc(carry.context)
 
-    from sc3_jax import flow
+    from sc3_jax.model import flow
     from sc3_jax.model import dit
     K, V, l = s.context, s.views, s.keep
     Kt, Tt = fns.window

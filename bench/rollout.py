@@ -20,8 +20,8 @@ import time
 import jax
 import numpy as np
 
-from sc3_jax import rollout
-from sc3_jax.config import MeshConfig, load_config, replace
+from sc3_jax.rollout import rollout
+from sc3_jax.core.config import MeshConfig, load_config, replace
 from sc3_jax.data.action_space import DELTA_EE
 from sc3_jax.data.norm_stats import NormStats
 from sc3_jax.model import dit

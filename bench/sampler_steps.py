@@ -16,9 +16,9 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from sc3_jax.evaluate import intervals
-from sc3_jax.evaluate.merged import open_store
-from sc3_jax.evaluate.results import seed_blocks
+from sc3_jax.evaluation import intervals
+from sc3_jax.evaluation.merged import open_store
+from sc3_jax.evaluation.results import seed_blocks
 
 
 def _by(store, mode: str, seeds: set[int]) -> dict:

@@ -40,7 +40,7 @@ def real_cost(workers: int, n_seeds: int, root: str, degrade: bool) -> tuple[flo
     from sc3_jax.benchmarks.bussing.source import BussingSource
     from sc3_jax.benchmarks.bussing.sweep import SweepConfig, _zoo_names
     from sc3_jax.benchmarks.bussing.zoo import ZOO
-    from sc3_jax.evaluate import engine
+    from sc3_jax.evaluation import engine
     specs = [next(n for n in _zoo_names() if ZOO[n].task == t) for t in ("bussing", "reverse")]
     policies = engine.resolve_policies(specs, named_policy, need_task=True)
     jobs = [engine.Job(p.spec, p.name, "real", "evaluation", (10_000_000 + i,), degraded=degrade) for p in policies
@@ -63,8 +63,9 @@ def online_cost(fd: int, inv: int, chunks: int, batch: int, barrier=None) -> flo
     with ``barrier``, the timed call starts when every worker beside this one has compiled."""
     import jax
 
-    from sc3_jax import checkpoint, rollout
-    from sc3_jax.config import replace
+    from sc3_jax.model import checkpoint
+    from sc3_jax.rollout import rollout
+    from sc3_jax.core.config import replace
     from sc3_jax.benchmarks.bussing import perception
     from sc3_jax.benchmarks.bussing.source import initial_observation
     from sc3_jax.benchmarks.bussing.sweep import SHIPPED_WORLD_MODEL, STATE_READER_FILE
@@ -110,7 +111,7 @@ def online_cost_workers(fd: int, inv: int, chunks: int, batch: int, workers: int
     running a batch each at the same time: the slowest one's time over every rollout they ran."""
     import multiprocessing as mp
 
-    from sc3_jax.evaluate import worker_pool
+    from sc3_jax.evaluation import worker_pool
     barrier = mp.get_context("spawn").Barrier(workers)
     with worker_pool.pool(workers, _init_worker, (barrier,)) as pool:
         times = pool.map(_online_in_worker, [(fd, inv, chunks, batch)] * workers, chunksize=1)
@@ -128,7 +129,7 @@ def main(argv=None) -> None:
     ap.add_argument("--batch", type=int, default=6)
     a = ap.parse_args(argv)
     import sc3_jax.benchmarks.bussing  # noqa: F401  (picks the GL backend before mujoco is imported)
-    from sc3_jax.evaluate.engine import default_workers
+    from sc3_jax.evaluation.engine import default_workers
     from sc3_jax.benchmarks.bussing.sweep import SweepConfig
     new = SweepConfig()
     workers = new.workers or default_workers()
@@ -141,7 +142,7 @@ def main(argv=None) -> None:
     share = {"all": 1.0, "none": 0.0, "calibration": FULL["calibration"] / FULL["real"]}[new.degradations]
     real_new = share * real_degraded + (1 - share) * real_clean
     online_old = online_cost(8, 2, a.chunks, a.batch)
-    from sc3_jax.evaluate.engine import in_workers
+    from sc3_jax.evaluation.engine import in_workers
     steps = (new.sample_steps or 8, new.inverse_steps or 8, a.chunks, a.batch)
     online_new = online_cost_workers(*steps, workers) if in_workers(workers, workers) else online_cost(*steps)
     online_one = online_cost(*steps)  # the new sampler in one process on every core: what the workers add

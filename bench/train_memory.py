@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sc3_jax.config import load_config, replace
+from sc3_jax.core.config import load_config, replace
 from sc3_jax.data.action_space import ActionSpace
 from sc3_jax.data.episodes import Episode, EpisodeStore
 from sc3_jax.model.tokenizer import tokens_per_sample

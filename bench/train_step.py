@@ -16,8 +16,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from sc3_jax import sharding, train
-from sc3_jax.config import MeshConfig, load_config, replace
+from sc3_jax.model import sharding
+from sc3_jax.train import train
+from sc3_jax.core.config import MeshConfig, load_config, replace
 from sc3_jax.model.tokenizer import tokens_per_sample
 
 

@@ -18,8 +18,8 @@ reproduction (0.25); no inverse dynamics trained; 3 gates fail, as the full reci
 inverse dynamics, not inpainting (``ablation_no_id`` is within 0.07 dB of it). Closed loop not measured (it needs an
 accelerator: ``CONFIG=ablation_forward_only:bussing_latent_gpu TRAIN=forward_only bash scripts/gpu_world_model.sh
 train RUN``, docs/world_model.md)."""
-from sc3_jax import modes
-from sc3_jax.config import load_config, replace
+from sc3_jax.model import modes
+from sc3_jax.core.config import load_config, replace
 
 
 def get_config(arg: str | None = None):

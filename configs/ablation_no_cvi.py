@@ -16,8 +16,8 @@ within the spread (-0.09 to +0.01 dB), open loop at 4 s +0.25 dB, inverse dynami
 what inpainting buys (re-rendering a view from the others) cannot show there. Closed loop not measured (it needs an
 accelerator: ``CONFIG=ablation_no_cvi:bussing_latent_gpu TRAIN=no_cvi bash scripts/gpu_world_model.sh train RUN``,
 docs/world_model.md)."""
-from sc3_jax import modes
-from sc3_jax.config import load_config, replace
+from sc3_jax.model import modes
+from sc3_jax.core.config import load_config, replace
 
 
 def get_config(arg: str | None = None):

@@ -16,7 +16,7 @@ true - shuffled actions -0.36 dB, open loop at 4 s -0.36 dB, the counterfactual 
 fail (+1). At equal steps it had ~20% less compute; whether equal wall time closes the gap is not measured. Closed
 loop not measured (it needs an accelerator: ``CONFIG=ablation_no_decouple:bussing_latent_gpu TRAIN=no_decouple bash
 scripts/gpu_world_model.sh train RUN``, docs/world_model.md)."""
-from sc3_jax.config import load_config, replace
+from sc3_jax.core.config import load_config, replace
 
 
 def get_config(arg: str | None = None):

@@ -16,8 +16,8 @@ frames, within 0.07 dB of forward only on every column; but no inverse dynamics,
 outcome reproduction 0.17 (-0.08, the seeds' spread); 3 gates fail, as the full recipe's. Closed loop not measured
 (it needs an accelerator: ``CONFIG=ablation_no_id:bussing_latent_gpu TRAIN=no_id bash scripts/gpu_world_model.sh
 train RUN``, docs/world_model.md)."""
-from sc3_jax import modes
-from sc3_jax.config import load_config, replace
+from sc3_jax.model import modes
+from sc3_jax.core.config import load_config, replace
 
 
 def get_config(arg: str | None = None):

@@ -26,7 +26,7 @@ parameters, 9,624 tokens a sample; fits 16 H100 at 47.96 GB a device; 9.7e16 FLO
 encode inside it: 15.4 s a step (at least 10.1 s more for the VAE), 4.27 days for 24,000 steps; one rollout chunk
 1.2e15 FLOPs, 3.1 s on one H100. ``:wan2.1``: 38,424 tokens, fits only with remat dots (45.6 days). Never trained:
 no quality measured; `sc3 plan`'s verdict line is the check."""
-from sc3_jax.config import Config, DataConfig, MeshConfig, ModelConfig, RolloutConfig, TrainConfig
+from sc3_jax.core.config import Config, DataConfig, MeshConfig, ModelConfig, RolloutConfig, TrainConfig
 
 VIEWS = ("cam_high", "cam_low", "cam_left_wrist", "cam_right_wrist")
 

@@ -22,7 +22,7 @@ inverse dynamics 0.045 against the floor's 1.47, offline outcome reproduction 0.
 compute"): in distribution r 0.849 [0.759, 0.892], MMRV 0.208 [0.156, 0.320] against the policy-blind floor's
 0.701 / 0.410. The shipped model, fine-tuned 1,500 more steps on failure-rich data, reads r 0.916 [0.873, 0.937],
 MMRV 0.153 [0.100, 0.192] in distribution at 72 conditions a policy (docs/results.md, "Current")."""
-from sc3_jax.config import load_config, replace
+from sc3_jax.core.config import load_config, replace
 
 
 def get_config(arg: str | None = None):

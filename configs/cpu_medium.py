@@ -10,7 +10,7 @@ Measured (docs/results.md, "Component measurements"; 292 tokens a sample at batc
 `sc3 plan`'s lowered FLOP count is within 0.25% of XLA's compiled one here (docs/plan.md). Expected: a benchmark
 config, never trained to a measured quality; check a run of it as any: `sc3 diagnose --world-model RUN --data HELDOUT` should read
 the moving pixels above copy-last and true actions above shuffled ones."""
-from sc3_jax.config import Config, DataConfig, ModelConfig, TrainConfig
+from sc3_jax.core.config import Config, DataConfig, ModelConfig, TrainConfig
 
 
 def get_config(arg: str | None = None) -> Config:

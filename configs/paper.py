@@ -16,7 +16,7 @@ days, on Wan latents); as configured it does not fit (1,736 GB of activations a 
 of its 32 layers: 4.05 s on one H200, 32.4 s scaled to full depth against the paper's 2.3 s on one GB200
 (docs/results.md, "GPU lease of 2026-11-28"). Never trained here: no faithfulness measured; `sc3 plan`'s verdict
 line is the check."""
-from sc3_jax.config import Config, DataConfig, MeshConfig, ModelConfig, RolloutConfig, TrainConfig
+from sc3_jax.core.config import Config, DataConfig, MeshConfig, ModelConfig, RolloutConfig, TrainConfig
 
 
 def get_config(arg: str | None = None) -> Config:

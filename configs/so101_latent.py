@@ -30,7 +30,7 @@ static frame); a world-model step ~2.5 s on the 2 cores alone (155 GFLOP). Expec
 steps the imagined world still fades (the first camera's model kept 0.35 of the objects at 4 s after 2,200 steps);
 the GPU playbook's SO-101 phase trains it on.
 """
-from sc3_jax.config import load_config, replace
+from sc3_jax.core.config import load_config, replace
 
 
 def get_config(arg: str | None = None):

@@ -16,7 +16,7 @@ asserts each margin); a train step runs at 0.21 of a matmul's FLOP/s, 13,950 tok
 Sized from a two-camera 96x128 store: 6.0 steps/s at 1.6 GB peak on 2 cores, start to a diagnosed model 5 min 23 s
 (docs/results.md, "A lab's first world model, sized from the data"). Expected: every `sc3 demo` check passes
 (each figure above beats its baseline)."""
-from sc3_jax.config import Config, DataConfig, FlowConfig, ModeConfig, ModelConfig, RolloutConfig, TrainConfig
+from sc3_jax.core.config import Config, DataConfig, FlowConfig, ModeConfig, ModelConfig, RolloutConfig, TrainConfig
 
 SHORTCUTS = dict(anchor_conditioning=True, action_to_frames=True, action_reads_frames=True)
 

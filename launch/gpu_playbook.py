@@ -60,7 +60,7 @@ from pathlib import Path
 from typing import Literal
 
 ROOT = Path(__file__).resolve().parents[1]
-SHIPPED = ROOT / "sc3_jax" / "evaluate" / "shipped" / "bussing_latent_gpu"
+SHIPPED = ROOT / "sc3_jax" / "evaluation" / "shipped" / "bussing_latent_gpu"
 ARCHIVE = ROOT / "docs" / "stores" / "sweep72_gpu"  # the shipped model's 72-condition sweep: protocol and real rollouts
 SHIPPED_WINDOWS = 128_000  # bussing_latent_gpu: 2,000 steps x 64 windows (docs/world_model.md)
 PART = 15 * 2**20  # a returned file may not exceed 16 MiB
@@ -386,7 +386,7 @@ def so101_from(a: Args) -> Path:
 def _so101_config(ctx: Ctx, src: Path) -> Path:
     """A config file that returns ``src``'s config.json (`sc3 train --config` takes a name or a .py file)."""
     path = ctx.run / "so101_config.py"
-    path.write_text("from sc3_jax import atomic\nfrom sc3_jax.config import config_from_dict\n\n\n"
+    path.write_text("from sc3_jax.core import atomic\nfrom sc3_jax.core.config import config_from_dict\n\n\n"
                     "def get_config(arg=None):\n"
                     f"    return config_from_dict(atomic.read_json({str(src / 'config.json')!r}))\n")
     return path
@@ -502,7 +502,7 @@ def export(ctx: Ctx, job: str = "train") -> dict:
         return res
     model = ctx.run / f"{EXPORT_NAMES[job][0]}_{step}"
     if not (model / "params.npz").exists():
-        code = ("import sys; from sc3_jax import checkpoint; cfg, stats, params = checkpoint.load(sys.argv[1], "
+        code = ("import sys; from sc3_jax.model import checkpoint; cfg, stats, params = checkpoint.load(sys.argv[1], "
                 "int(sys.argv[2])); checkpoint.save(sys.argv[3], cfg, stats, params, 'int8')")
         rc = call([sys.executable, "-c", code, str(W), str(step), str(model)], ctx.log("export"),
                   env={"JAX_PLATFORMS": "cpu"})  # beside the trainer on the GPU, or after it

@@ -10,7 +10,7 @@
 Without --coordinator/--num-processes/--process-id: SLURM's variables when present (SLURM_PROCID...), else JAX's
 own cluster auto-detection (TPU pods, ...). Every process feeds its own slice of the global batch (the grain pipeline
 shards by process) and the global batch is assembled with jax.make_array_from_process_local_data
-(sc3_jax/sharding.py)."""
+(sc3_jax/model/sharding.py)."""
 from __future__ import annotations
 
 import argparse

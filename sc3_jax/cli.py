@@ -82,7 +82,7 @@ def main(argv: list[str] | None = None) -> int:
     if cmd is None:
         print(f"sc3: unknown command {argv[0]!r}\n\n{usage()}", file=sys.stderr)
         return 2
-    from sc3_jax.errors import UserError
+    from sc3_jax.core.errors import UserError
 
     if own_process:
         _sigint(_raise_until_heard)

@@ -62,7 +62,7 @@ export)
   step=$(ls $W/checkpoints | grep -E '^[0-9]+$' | sort -n | tail -1)
   name=$([ $TRAIN = train ] && echo export || echo $TRAIN)_$step
   rm -rf $R/$name
-  JAX_PLATFORMS=cpu python3 -c "import numpy as np; from sc3_jax import checkpoint
+  JAX_PLATFORMS=cpu python3 -c "import numpy as np; from sc3_jax.model import checkpoint
 checkpoint.export('$W', '$R/$name', 'int8' if '$dtype' == 'int8' else np.float16)"
   tar cf - -C $R $name | split -b 15m -d - $dest/$name.tar.
   cp $W/metrics.jsonl $dest/${name}_metrics.jsonl

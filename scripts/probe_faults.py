@@ -304,7 +304,7 @@ def make_fixtures(fix: Path) -> None:
     code = textwrap.dedent(f"""
         import numpy as np, json, shutil, gzip
         from pathlib import Path
-        from sc3_jax import checkpoint
+        from sc3_jax.model import checkpoint
         fix = Path({str(fix)!r})
         cfg, stats, params = checkpoint.load(fix / "demo" / "train")
         checkpoint.save(fix / "export", cfg, stats, params, np.float32)
@@ -834,7 +834,7 @@ def _ic_for(model: Path, dest: Path) -> None:
     """One initial condition of ``model``'s views, size and context, zeros; its action size in state."""
     import numpy as np
     sys.path.insert(0, str(ROOT))
-    from sc3_jax import checkpoint
+    from sc3_jax.model import checkpoint
     cfg = checkpoint.read_config(model)
     h, w = cfg.data.image_size
     np.savez(dest, frames=np.full((1, cfg.model.num_views, cfg.data.context_frames, h, w, 3), 90, np.uint8),
@@ -844,7 +844,7 @@ def _ic_for(model: Path, dest: Path) -> None:
 def issue_cases() -> list[Case]:
     import numpy as np
     cases = []
-    models = sorted(p for p in [*(ROOT / "exports").iterdir(), *(ROOT / "sc3_jax/evaluate/shipped").iterdir()]
+    models = sorted(p for p in [*(ROOT / "exports").iterdir(), *(ROOT / "sc3_jax/evaluation/shipped").iterdir()]
                     if (p / "config.json").is_file())
     for m in models:
         def damage(case_dir: Path, m=m):

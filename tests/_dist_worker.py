@@ -12,7 +12,8 @@ jax.distributed.initialize(coordinator_address=f"127.0.0.1:{port}", num_processe
 sys.path.insert(0, os.path.dirname(__file__))
 from test_sharding import random_batch, small_config  # noqa: E402
 
-from sc3_jax import sharding, train  # noqa: E402
+from sc3_jax.model import sharding  # noqa: E402
+from sc3_jax.train import train
 
 cfg = small_config((8, 1, 1))
 mesh = sharding.make_mesh(cfg.mesh)

@@ -1,6 +1,6 @@
 """Checks shared by the training-switch tests: a stopped and resumed run logs what one uninterrupted run logs; a
 switch left off trains bit-identically."""
-from sc3_jax import train
+from sc3_jax.train import train
 
 
 def assert_resumed_like_straight(straight, resumed, metric: str, steps=(1, 2, 3, 4)) -> None:

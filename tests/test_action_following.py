@@ -1,4 +1,4 @@
-"""The action-following measures of ``sc3 diagnose`` (evaluate/action_following.py, tracking.py, moved.py) on a
+"""The action-following measures of ``sc3 diagnose`` (measures/action_following.py, tracking.py, moved.py) on a
 synthetic scene: a bright blob (the arm) drawn where the integrated velocity commands put it. A world model that
 ignores its actions reads a counterfactual cosine and gain of 0; an oracle that renders the commanded pose reads 1,
 through the arm's pixels and through a state head alike; replaying the real frames reads position error 0 and
@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from sc3_jax.data.action_space import ActionSpace
-from sc3_jax.evaluate import action_following as af
-from sc3_jax.evaluate import moved as mv
-from sc3_jax.evaluate import tracking
+from sc3_jax.measures import action_following as af
+from sc3_jax.measures import moved as mv
+from sc3_jax.measures import tracking
 
 SPACE = ActionSpace("velocity", 3, ("vx", "vy", "grip"), targets=(2,))
 DT, N, SIZE, SCALE = 0.1, 8, 48, 8.0  # s per model step, steps per chunk, image pixels, pixels per state unit
@@ -252,8 +252,8 @@ def test_a_sweep_report_shows_the_world_model_s_headline_rows_beside_it(tmp_path
     counterfactual cosine with its interval, against what an action-blind model and an exact follower read."""
     import json
 
-    from sc3_jax.evaluate import diagnose_headline as H
-    from sc3_jax.evaluate.diagnose_report import beside_sweep
+    from sc3_jax.evaluation import diagnose_headline as H
+    from sc3_jax.evaluation.diagnose_report import beside_sweep
 
     assert beside_sweep(str(tmp_path)) is None and H.report_table(None) is None  # not diagnosed: no table
     cos = {"value": 0.59, "lo": 0.49, "hi": 0.66, "n": 36}

@@ -10,8 +10,9 @@ import numpy as np
 import pytest
 from test_rollout import FPS, STATS, _cfg, _ics, _params
 
-from sc3_jax import flow, modes, rollout
-from sc3_jax.config import replace
+from sc3_jax.model import flow, modes
+from sc3_jax.rollout import rollout
+from sc3_jax.core.config import replace
 from sc3_jax.model import dit
 
 
@@ -101,7 +102,7 @@ def test_a_self_forced_window_keeps_the_anchor_and_moves_its_gap_with_the_chunk(
     shift x stride data frames (the rollout's next chunk), its context is the one-step prediction made with the
     anchor in view; an unpicked one is the first window with its gap unchanged."""
     from test_self_forcing import GRID, K, MCFG, T, V, _extended, _params
-    from sc3_jax.config import FlowConfig
+    from sc3_jax.core.config import FlowConfig
     B, shift = 6, 2
     params = _params(jax.random.key(0))
     video, actions, pose = _extended(jax.random.key(2), B, shift)
@@ -137,7 +138,7 @@ def test_a_self_forced_window_keeps_the_anchor_and_moves_its_gap_with_the_chunk(
 
 def test_a_train_step_self_forces_with_the_anchor():
     from test_self_forcing import random_batch, small
-    from sc3_jax import train
+    from sc3_jax.train import train
     cfg = replace(small(self_forcing=0.5), data=dict(anchor=True))
     batch = random_batch(cfg)
     assert batch["frames"].shape[2] == 1 + cfg.data.context_frames + cfg.data.future_frames + cfg.rollout.keep_frames

@@ -10,14 +10,14 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from sc3_jax import imagination_state, rollout
-from sc3_jax.config import load_config, replace
+from sc3_jax.rollout import imagination_state, rollout
+from sc3_jax.core.config import load_config, replace
 from sc3_jax.data import pipeline as P
 from sc3_jax.data.action_space import DELTA_EE, ActionSpace
 from sc3_jax.data.episodes import Episode, EpisodeStore
 from sc3_jax.data.norm_stats import NormStats
 from sc3_jax.data.shape import check_shape, explicit_fields, shape_from_dataset
-from sc3_jax.errors import UserError
+from sc3_jax.core.errors import UserError
 from sc3_jax.policies.base import JaxPolicy
 
 A = 14  # ALOHA: 2 x (6 joints + gripper)
@@ -185,7 +185,7 @@ def _lerobot(root):
 def bimanual(tmp_path_factory):
     """The LeRobot dataset, imported with its declaration, and the tiny config trained 2 steps on it with no shape
     flags (small widths for a cheap test: widths are not shape flags)."""
-    from sc3_jax import train
+    from sc3_jax.train import train
     from sc3_jax.data.lerobot import import_lerobot
 
     tmp = tmp_path_factory.mktemp("bimanual")
@@ -270,7 +270,7 @@ def _follow(params, obs, rng):
 
 
 def test_closed_loop_rollout_with_a_14d_policy(bimanual):
-    from sc3_jax import checkpoint
+    from sc3_jax.model import checkpoint
 
     tmp, _, _, _, store, _, _ = bimanual
     cfg, stats, params = checkpoint.load(tmp / "run")
@@ -293,7 +293,7 @@ def test_closed_loop_rollout_with_a_14d_policy(bimanual):
 
 
 def test_policy_and_initial_state_mismatches_are_one_line(bimanual):
-    from sc3_jax import checkpoint
+    from sc3_jax.model import checkpoint
     from sc3_jax.policies import simple
 
     tmp, _, _, _, store, _, _ = bimanual
@@ -374,7 +374,7 @@ def test_tau_default_follows_the_action_space():
 def test_builtin_policy_rolls_out_a_14d_model_without_stopping_at_its_first_chunk(bimanual):
     """`zero` named for the 14-D model acts in [chunk, 14]; with the default tau the rollout runs its chunks, where
     the benchmark's 0.02 (raw radians here) would stop it at the first one."""
-    from sc3_jax import checkpoint
+    from sc3_jax.model import checkpoint
     from sc3_jax.policies.resolve import resolve
 
     tmp, _, _, _, store, _, _ = bimanual
@@ -416,7 +416,7 @@ def test_one_camera_turns_cross_view_inpainting_off_unless_it_was_asked_for(tmp_
 def test_diagnose_takes_the_model_s_own_action_space(bimanual):
     """`sc3 diagnose` of a 14-D absolute-action model runs (it once built its window from the simulated benchmark's
     7-D default action space and refused every other robot's model)."""
-    from sc3_jax.evaluate import diagnose
+    from sc3_jax.evaluation import diagnose
 
     tmp, store = bimanual[0], bimanual[4]
     dc = diagnose.DiagnoseConfig(episodes=1, progress=False, batch=1)

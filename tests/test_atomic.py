@@ -10,12 +10,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from sc3_jax import atomic, checkpoint, train
+from sc3_jax.core import atomic
+from sc3_jax.model import checkpoint
+from sc3_jax.train import train
 from sc3_jax.cli import main
-from sc3_jax.config import load_config, replace
+from sc3_jax.core.config import load_config, replace
 from sc3_jax.data.norm_stats import NormStats
-from sc3_jax.errors import UserError
-from sc3_jax.evaluate.results import ResultsStore
+from sc3_jax.core.errors import UserError
+from sc3_jax.evaluation.results import ResultsStore
 
 SWEEP = {"modes": ["real"], "episodes": 2, "seed0": 0}
 

@@ -1,4 +1,4 @@
-"""Every file the package writes is written atomically (sc3_jax/atomic.py: a temporary, then a rename), so a kill
+"""Every file the package writes is written atomically (sc3_jax/core/atomic.py: a temporary, then a rename), so a kill
 leaves the old file or the new one, never half of one; and a damaged file it reads back is a one-line error.
 
 The scan below finds every raw write call in sc3_jax (``open(..., "w")``, ``Path.write_text``, ``np.save*``,
@@ -18,22 +18,22 @@ import numpy as np
 import pytest
 
 import sc3_jax
-from sc3_jax import atomic
-from sc3_jax.errors import UserError
+from sc3_jax.core import atomic
+from sc3_jax.core.errors import UserError
 
 PACKAGE = Path(sc3_jax.__file__).parent
 
 # (file under sc3_jax/, enclosing function, writer) -> why it is safe
 STAGED = "report.render passes a path inside its atomic.staged directory"
 ALLOWED = {
-    **{("evaluate/report_figures.py", fn, "savefig"): STAGED for fn in ("scatter", "u_plot", "filmstrip")},
-    ("evaluate/results.py", "ResultsStore.append", "open(a)"):
+    **{("evaluation/report_figures.py", fn, "savefig"): STAGED for fn in ("scatter", "u_plot", "filmstrip")},
+    ("evaluation/results.py", "ResultsStore.append", "open(a)"):
         "the append-only results.jsonl (flushed, fsynced); ResultsStore._repair drops a line cut by a kill",
-    ("train.py", "MetricsLog.write", "open(a)"):
+    ("train/train.py", "MetricsLog.write", "open(a)"):
         "the append-only metrics.jsonl; MetricsLog.__init__ drops a line cut by a kill (atomic.drop_cut_line)",
-    ("train.py", "MetricsLog.__init__", "SummaryWriter"):
+    ("train/train.py", "MetricsLog.__init__", "SummaryWriter"):
         "TensorBoard event files: a log for viewing, appended by tensorboardX, read by nothing here",
-    ("tokenizer_train.py", "train", "open(a)"):
+    ("train/tokenizer_train.py", "train", "open(a)"):
         "the append-only metrics.jsonl, flushed per line; atomic.drop_cut_line runs before it is reopened",
     ("benchmarks/bussing/sweep.py", "link_real", "shutil.copy2"):
         "arrays copied before their record is appended: a copy cut by a kill has no record, and is unlinked and "
@@ -44,7 +44,7 @@ ALLOWED = {
         "into the episode's temporary directory (mkdtemp in the store), renamed into place whole (os.replace)",
     ("data/episodes.py", "EpisodeStore.write", "write_text"):
         "into the episode's temporary directory (mkdtemp in the store), renamed into place whole (os.replace)",
-    ("convert_cli.py", "_write_atomically", "shutil.move"):
+    ("commands/convert_cli.py", "_write_atomically", "shutil.move"):
         "moves a finished temporary directory beside --to into place: a rename (same file system)",
     ("policies/lerobot_child.py", "main", "np.savez"):
         "into an in-memory buffer (io.BytesIO): a message on the pipe to the parent, no file",
@@ -120,7 +120,7 @@ def package_raw_writes() -> dict[tuple[str, str, str], list[int]]:
     out: dict[tuple[str, str, str], list[int]] = {}
     for path in sorted(PACKAGE.rglob("*.py")):
         rel = path.relative_to(PACKAGE).as_posix()
-        if rel == "atomic.py":  # where the temporaries are written and renamed
+        if rel == "core/atomic.py":  # where the temporaries are written and renamed
             continue
         for scope, writer, line in raw_writes(path.read_text()):
             out.setdefault((rel, scope, writer), []).append(line)
@@ -131,7 +131,7 @@ def test_the_scan_finds_raw_writes_and_passes_atomic_ones():
     src = textwrap.dedent('''
         import json, shutil
         import numpy as np
-        from sc3_jax import atomic
+        from sc3_jax.core import atomic
 
         def raw(path, fig, df):
             path.write_text("x")
@@ -165,7 +165,7 @@ def test_the_scan_finds_raw_writes_and_passes_atomic_ones():
 def test_the_package_writes_only_through_atomic_or_an_allowed_exception():
     found = package_raw_writes()
     new = {k: v for k, v in found.items() if k not in ALLOWED}
-    assert not new, ("raw writes (a kill mid-write leaves half a file): write through sc3_jax.atomic (write_text, "
+    assert not new, ("raw writes (a kill mid-write leaves half a file): write through sc3_jax.core.atomic (write_text, "
                      "write_json, save_npz, replacing(path) as tmp, staged(dir)), or add the call to ALLOWED with "
                      "why it is safe:\n" + "\n".join(f"  sc3_jax/{f}:{lines} in {s}: {w}"
                                                      for (f, s, w), lines in new.items()))
@@ -177,7 +177,7 @@ def test_the_package_writes_only_through_atomic_or_an_allowed_exception():
 # -- behaviour: a writer killed mid-write leaves the old file, and its temporary goes with the next writer ------
 KILL_AT_FSYNC = "import os; os.fsync = lambda fd: os._exit(9)\n"  # dies after writing, before the rename
 WRITERS = {  # (file name, code writing __V__ to __PATH__)
-    "diagnose result": ("diagnose.json", "from sc3_jax.evaluate.diagnose_report import save_result\n"
+    "diagnose result": ("diagnose.json", "from sc3_jax.evaluation.diagnose_report import save_result\n"
                                          "save_result({'v': __V__, 'nan': float('nan')}, __PATH__)"),
     "zoo weights": ("run.npz", "import numpy as np; from sc3_jax.benchmarks.bussing import zoo\n"
                                "zoo.save_params(__PATH__, {'head': {'w': np.full((2, 2), __V__)}})"),
@@ -204,7 +204,7 @@ def test_a_writer_killed_mid_write_leaves_the_old_file(tmp_path, what):
 
 
 def test_a_curve_that_fails_half_way_leaves_the_old_one_and_its_neighbours(tmp_path, monkeypatch):
-    from sc3_jax.evaluate import curve
+    from sc3_jax.evaluation import curve
 
     c = {"title": "t"}
     monkeypatch.setattr(curve, "read_spec", lambda p: {})
@@ -232,8 +232,8 @@ def test_a_curve_that_fails_half_way_leaves_the_old_one_and_its_neighbours(tmp_p
 def _damaged_readers(tmp_path: Path):
     import jax
 
-    from sc3_jax import rollout_io
-    from sc3_jax.evaluate import diagnose_report, diagnose_table
+    from sc3_jax.rollout import rollout_io
+    from sc3_jax.evaluation import diagnose_report, diagnose_table
     from sc3_jax.benchmarks.bussing import perception
     from sc3_jax.benchmarks.bussing import zoo, zoo_train
 
@@ -270,7 +270,7 @@ def test_a_damaged_file_read_back_is_one_line_naming_it(tmp_path):
 
 
 def test_a_diagnose_result_round_trips_its_non_finite_numbers(tmp_path):
-    from sc3_jax.evaluate import diagnose_report
+    from sc3_jax.evaluation import diagnose_report
     path = diagnose_report.save_result({"a": [float("inf"), float("nan")], "b": np.float32(0.5)}, tmp_path / "d.json")
     assert json.loads(path.read_text()) == {"a": ["inf", "nan"], "b": 0.5}
     a = diagnose_report.load_result(path)["a"]

@@ -9,8 +9,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from sc3_jax import flow, modes
-from sc3_jax.config import ModelConfig
+from sc3_jax.model import flow, modes
+from sc3_jax.core.config import ModelConfig
 from sc3_jax.model import attention, attention_impl, dit, layers, tokenizer
 
 

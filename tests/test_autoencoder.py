@@ -7,8 +7,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from sc3_jax import tokenizer_train as tt
-from sc3_jax.config import DataConfig, ModelConfig
+from sc3_jax.train import tokenizer_train as tt
+from sc3_jax.core.config import DataConfig, ModelConfig
 from sc3_jax.data import latent_cache, norm_stats, pipeline
 from sc3_jax.data import synthetic as S
 from sc3_jax.model import autoencoder as ae
@@ -144,8 +144,9 @@ def test_exported_world_model_carries_its_tokenizer(trained, tmp_path):
     """An exported conv_ae world model holds its tokenizer and finds it wherever the directory is moved."""
     import shutil
 
-    from sc3_jax import checkpoint, train
-    from sc3_jax.config import Config
+    from sc3_jax.model import checkpoint
+    from sc3_jax.train import train
+    from sc3_jax.core.config import Config
 
     _, work, _ = trained
     cfg = Config(model=ModelConfig(dim=32, depth=1, num_heads=2, num_kv_heads=1, head_dim=16, mlp_dim=64,
@@ -180,9 +181,9 @@ def test_the_tokenizer_trains_on_every_view_of_its_data_unless_told(tmp_path):
     """No robot's cameras are a default: a one-camera store (an SO-101's `front`) is sampled as it is."""
     from sc3_jax.data.action_space import ActionSpace
     from sc3_jax.data.episodes import Episode, EpisodeStore
-    from sc3_jax.errors import UserError
-    from sc3_jax.tokenizer_config import TokenizerTrainConfig
-    from sc3_jax.tokenizer_train import ImageSampler
+    from sc3_jax.core.errors import UserError
+    from sc3_jax.core.tokenizer_config import TokenizerTrainConfig
+    from sc3_jax.train.tokenizer_train import ImageSampler
 
     st = EpisodeStore(tmp_path / "s", views=["front"], fps=10, image_size=(8, 8), create=True,
                       action_space=ActionSpace("absolute", 2), has_pose=False)

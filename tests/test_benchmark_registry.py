@@ -1,4 +1,4 @@
-"""The benchmark registry (sc3_jax/benchmark.py): built-in names, aliases, one-line refusals, and a benchmark defined
+"""The benchmark registry (sc3_jax/evaluation/benchmark.py): built-in names, aliases, one-line refusals, and a benchmark defined
 outside the package (tests/toy_benchmark.py, named ``toy_benchmark:BENCHMARK``) that `sc3 sweep`, `sc3 report` and
 `sc3 diagnose` run end to end with no file of sc3_jax naming it, on test_any_robot.py's tiny bimanual model."""
 import json
@@ -10,10 +10,10 @@ from pathlib import Path
 import pytest
 
 import toy_benchmark
-from sc3_jax import benchmark
-from sc3_jax.benchmark import Benchmark
+from sc3_jax.evaluation import benchmark
+from sc3_jax.evaluation.benchmark import Benchmark
 from sc3_jax.cli import main
-from sc3_jax.errors import UserError
+from sc3_jax.core.errors import UserError
 from test_any_robot import bimanual  # noqa: F401  (the fixture: imported store + trained tiny model)
 
 TOY = "toy_benchmark:BENCHMARK"
@@ -43,7 +43,7 @@ def test_names_list_the_built_in_benchmarks_and_bench_is_bussing():
     ("nope", "unknown benchmark 'nope': known are bussing, so101, bench (= bussing), or package.module:attr"),
     ("no_such_module:BENCHMARK", "cannot import 'no_such_module'"),
     ("toy_benchmark:NOPE", "'toy_benchmark' has no attribute 'NOPE'"),
-    ("toy_benchmark:NOT_ONE", "object is not a sc3_jax.benchmark.Benchmark"),
+    ("toy_benchmark:NOT_ONE", "object is not a sc3_jax.evaluation.benchmark.Benchmark"),
     (":x", "expected package.module:attr")])
 def test_an_unknown_or_wrong_name_is_one_line(name, says):
     with pytest.raises(UserError) as e:
@@ -151,6 +151,6 @@ def test_a_subprocess_names_the_toy_by_pythonpath(tmp_path):
     """Outside pytest, tests/ is on the path only through PYTHONPATH, as a lab's package would be."""
     here = str(Path(__file__).parent)
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([here, os.environ.get("PYTHONPATH", "")])}
-    code = f"from sc3_jax import benchmark; print(benchmark.get({TOY!r}).name)"
+    code = f"from sc3_jax.evaluation import benchmark; print(benchmark.get({TOY!r}).name)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, env=env)
     assert out.stdout.strip() == "toy"

@@ -4,8 +4,8 @@ of one rollout chunk stay within 1.3x of the ideal count, which the sampler with
 does not."""
 import pytest
 
-from sc3_jax import plan
-from sc3_jax.config import MeshConfig, load_config, replace
+from sc3_jax.train import plan
+from sc3_jax.core.config import MeshConfig, load_config, replace
 from sc3_jax.data.action_space import DELTA_EE
 
 BOUND = 1.3
@@ -47,7 +47,7 @@ def test_the_inverse_sampler_extending_the_forward_samplers_context_cache_reads_
     import jax.numpy as jnp
     import numpy as np
 
-    from sc3_jax import flow, modes
+    from sc3_jax.model import flow, modes
     from sc3_jax.model import dit
     from sc3_jax.model.tokenizer import make_tokenizer
 

@@ -14,8 +14,8 @@ import tyro
 from sc3_jax import cli
 from sc3_jax.cli import main
 from sc3_jax.commands import flags
-from sc3_jax.errors import UserError
-from sc3_jax.evaluate.world_model_defaults import SamplerSteps
+from sc3_jax.core.errors import UserError
+from sc3_jax.evaluation.world_model_defaults import SamplerSteps
 
 # each shared idea: its one spelling, and what any option about it has in its name
 IDEAS = {"world model": (flags.WORLD_MODEL, re.compile(r"world-model|checkpoint|^--models?$|^--wm$")),
@@ -157,8 +157,8 @@ def test_the_sample_steps_default_is_the_same_everywhere(capsys, monkeypatch):
 
 def test_the_sampler_default_is_the_sweeps_and_none_reads_the_models_own():
     """2 forward steps and 1 inverse (the published sweeps', docs/sweep.md#sampler-steps); None: the model's own."""
-    from sc3_jax.config import load_config, replace
-    from sc3_jax.evaluate.world_model_defaults import Sampler, evaluation_config
+    from sc3_jax.core.config import load_config, replace
+    from sc3_jax.evaluation.world_model_defaults import Sampler, evaluation_config
 
     assert (SamplerSteps.sample_steps, SamplerSteps.inverse_steps) == (2, 1)
     own = replace(load_config("tiny"), sample=dict(steps=8, inverse_steps=None))
@@ -169,7 +169,7 @@ def test_the_sampler_default_is_the_sweeps_and_none_reads_the_models_own():
 def test_train_demo_and_plan_set_the_configs_data_and_batch(tmp_path):
     """--data and --batch are data.path and data.batch_size for the commands that build a config, read as given on
     the command line where the data decide a field; the planner's hints spell them the same way."""
-    from sc3_jax import plan
+    from sc3_jax.train import plan
     from sc3_jax.commands import demo, parse_with_config, train
 
     argv = ["--config", "tiny", "--data", str(tmp_path), "--batch", "4", "--data.image-size", "8", "8"]

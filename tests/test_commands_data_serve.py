@@ -11,7 +11,7 @@ import typing
 
 import pytest
 
-from sc3_jax import demo as demo_pieces
+from sc3_jax.commands import demo_run as demo_pieces
 from sc3_jax.cli import main as sc3
 from sc3_jax.commands import convert, data, demo, parse, parse_with_config, serve_policy
 from test_commands_help import _help_text, _leaves, _misplaced
@@ -81,7 +81,7 @@ def test_the_spellings_from_before_still_parse(where, argv, expected):
 
 def test_choices_are_the_librarys():
     """The choices spelled out in the Args (so that --help loads no library) are the library's own."""
-    from sc3_jax.convert_cli import DTYPES
+    from sc3_jax.commands.convert_cli import DTYPES
     from sc3_jax.policies.openpi_mappings import PRESETS
 
     def choices(args, field):
@@ -172,7 +172,7 @@ def test_serve_policy_prints_its_address_and_metadata(monkeypatch, capsys):
 def test_convert_says_what_it_passed_and_wrote(tmp_path, monkeypatch, capsys):
     """The command passes its options through and reports the library's answer (the real conversions:
     test_convert_round_trip_says_what_it_wrote, and tests/test_cosmos3.py)."""
-    from sc3_jax import convert_cli
+    from sc3_jax.commands import convert_cli
 
     calls = []
 
@@ -192,8 +192,8 @@ def test_convert_round_trip_says_what_it_wrote(tmp_path, capsys):
     pytest.importorskip("safetensors")
     import jax
 
-    from sc3_jax import checkpoint
-    from sc3_jax.config import Config
+    from sc3_jax.model import checkpoint
+    from sc3_jax.core.config import Config
     from sc3_jax.model import convert as mconvert
     from sc3_jax.model import dit
 

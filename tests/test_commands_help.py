@@ -18,7 +18,7 @@ import tyro
 from sc3_jax import cli
 from sc3_jax.cli import main
 from sc3_jax.commands import parse
-from sc3_jax.config import Config
+from sc3_jax.core.config import Config
 
 ROOT = Path(__file__).resolve().parents[1]
 # commands whose modules exist by now (cli.MODULES lists them all; the others still run their old code)
@@ -210,7 +210,7 @@ def test_no_module_uses_argparse_or_keeps_a_main_block():
 
 
 def test_libraries_whose_commands_moved_keep_no_main():
-    for lib in ("benchmarks.bussing.rescore", "evaluate.diagnose_table"):  # their commands are in sc3_jax/commands/
+    for lib in ("benchmarks.bussing.rescore", "evaluation.diagnose_table"):  # their commands are in sc3_jax/commands/
         assert not hasattr(importlib.import_module(f"sc3_jax.{lib}"), "main")
 
 

@@ -37,7 +37,7 @@ def _config(command: str, wm, *overrides: str):
 def wm(tmp_path_factory):
     """A tiny saved world model whose own sampler (3 steps, re-read in 3, 20 s) is not the sweep's."""
     path = _copy_last_model(tmp_path_factory.mktemp("commands"))
-    from sc3_jax import checkpoint
+    from sc3_jax.model import checkpoint
     own = checkpoint.read_config(path)
     sweep = SweepConfig()
     assert (own.sample.steps, own.sample.inverse_steps, own.rollout.episode_seconds) != \
@@ -60,11 +60,11 @@ def test_rollout_diagnose_and_sweep_sample_a_world_model_alike(wm, tmp_path, mon
     """The config `sc3 sweep bench` builds its rollouts from (caught where it constructs them) is the one both
     commands evaluate under: the same sampler steps, inverse re-read steps and U units; the horizon is the only
     difference (the benchmark's 12 s in the sweep, the world model's own in rollout and diagnose)."""
-    from sc3_jax import rollout
+    from sc3_jax.rollout import rollout
     from sc3_jax.benchmarks.bussing import sweep
     from sc3_jax.benchmarks.bussing.zoo import zoo_names
-    from sc3_jax.config import replace
-    from sc3_jax.evaluate.world_model_defaults import Sampler
+    from sc3_jax.core.config import replace
+    from sc3_jax.evaluation.world_model_defaults import Sampler
 
     class Built(Exception):
         pass
@@ -81,7 +81,7 @@ def test_rollout_diagnose_and_sweep_sample_a_world_model_alike(wm, tmp_path, mon
     assert (swept.sample.steps, swept.sample.inverse_steps, swept.rollout.episode_seconds,
             swept.rollout.tau_units) == (defaults.sample_steps, defaults.inverse_steps, SweepConfig().episode_seconds,
                                          defaults.tau_units)
-    from sc3_jax import checkpoint
+    from sc3_jax.model import checkpoint
     own = checkpoint.read_config(wm).rollout.episode_seconds
     for command in COMMANDS:
         cfg = _config(command, wm)
@@ -94,7 +94,7 @@ def test_the_sampler_steps_and_a_dotted_override_reach_the_config(command, wm):
     cfg = _config(command, wm, "--sample-steps", "8", "--rollout.tau", "0.05", "--rollout.episode-seconds", "6")
     assert (cfg.sample.steps, cfg.rollout.tau, cfg.rollout.episode_seconds) == (8, 0.05, 6.0)
     assert cfg.sample.inverse_steps == SweepConfig().inverse_steps  # what was not overridden keeps the sampler's
-    from sc3_jax import checkpoint
+    from sc3_jax.model import checkpoint
     own = checkpoint.read_config(wm).sample
     cfg = _config(command, wm, "--sample-steps", "None", "--inverse-steps", "None")  # the model's own
     assert (cfg.sample.steps, cfg.sample.inverse_steps) == (own.steps, own.inverse_steps)
@@ -146,13 +146,13 @@ def test_the_options_parse_into_their_fields(command, argv, expected):
 
 
 def test_the_libraries_keep_no_command_line():
-    from sc3_jax.evaluate import diagnose
-    assert importlib.util.find_spec("sc3_jax.rollout_cli") is None  # became sc3_jax/rollout_io.py
+    from sc3_jax.evaluation import diagnose
+    assert importlib.util.find_spec("sc3_jax.rollout_cli") is None  # became sc3_jax/rollout/rollout_io.py
     assert not hasattr(diagnose, "main")
 
 
 def test_u_summary_counts_the_chunks_run_and_the_episodes_stopped():
-    from sc3_jax.evaluate.rollout_summary import u_summary
+    from sc3_jax.evaluation.rollout_summary import u_summary
 
     u_raw = np.array([[0.01, 0.03, 0.5], [0.01, 0.01, 0.01], [0.09, 0.7, 0.7]])
     result = {"u_raw": u_raw, "u": 100 * u_raw, "terminated_at": np.array([1, -1, 0])}
@@ -167,13 +167,13 @@ def test_u_summary_counts_the_chunks_run_and_the_episodes_stopped():
 def test_success_estimate_scores_the_kept_frames_of_objects_the_store_names(tmp_path):
     """The perception scorer on the last context frame and the frames kept before termination (nothing after),
     with the recorded episodes' physics labels beside it; none, with the reason, where it cannot apply."""
-    from sc3_jax.config import load_config
+    from sc3_jax.core.config import load_config
     from sc3_jax.benchmarks.bussing import perception
-    from sc3_jax.evaluate.diagnose_outcomes import success_rates
-    from sc3_jax.evaluate.scorers import RolloutView
+    from sc3_jax.evaluation.diagnose_outcomes import success_rates
+    from sc3_jax.evaluation.scorers import RolloutView
     from sc3_jax.benchmarks.bussing.hooks import perception_scorer
     from sc3_jax.benchmarks.bussing.scorers import PerceptionScorer
-    from sc3_jax.evaluate.rollout_summary import success_estimate
+    from sc3_jax.evaluation.rollout_summary import success_estimate
 
     store = _tiny_store(tmp_path / "eps", n=1, steps=60)
     cfg = load_config("bussing_sim")  # left/right/wrist at 64x64: the scorer's frames

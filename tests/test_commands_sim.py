@@ -119,7 +119,7 @@ def test_demos_writes_the_store_and_explains_its_fractions(tmp_path, capsys):
 
 
 def test_demos_refuses_a_policy_that_is_not_a_bussing_zoo_policy(tmp_path):
-    from sc3_jax.errors import UserError
+    from sc3_jax.core.errors import UserError
 
     with pytest.raises(UserError, match="--policy rev_bc_full: not a bussing zoo policy"):
         sim.main(["demos", "--out", str(tmp_path / "d"), "--episodes", "1", "--policy", "rev_bc_full"])
@@ -173,7 +173,7 @@ def test_mixture_writes_and_demos_stats_sets_it_beside_the_zoo(tmp_path, capsys)
     (["demos-stats", "--data", "/nonexistent"], "--data /nonexistent: no such directory"),
 ])
 def test_mixture_and_stats_refuse_bad_options_in_one_line(argv, message, tmp_path):
-    from sc3_jax.errors import UserError
+    from sc3_jax.core.errors import UserError
 
     (tmp_path / "OUT").mkdir()
     with pytest.raises(UserError, match=re.escape(message)):

@@ -78,8 +78,8 @@ def test_plan_config_overrides_reach_the_config(monkeypatch, capsys):
         seen.update(cfg=cfg, mesh=mesh_cfg, device=device, chunk=chunk, robot=(action_space, data_fps))
         return {}
 
-    from sc3_jax import plan
-    from sc3_jax.config import MeshConfig
+    from sc3_jax.train import plan
+    from sc3_jax.core.config import MeshConfig
     monkeypatch.setattr(plan, "plan", fake_plan)
     monkeypatch.setattr(plan, "format_plan", lambda p: "verdict: stub")
     assert main(["plan", "--config", "tiny", "--mesh", "data=2,fsdp=4", "--batch", "64",
@@ -163,7 +163,7 @@ def test_perception_training_summary_gives_each_head_and_the_always_no_baseline(
 
 def test_majority_guess_and_validation_summary():
     from sc3_jax.benchmarks.bussing.perception_train import majority_agreement
-    from sc3_jax.evaluate.scorers import agreement
+    from sc3_jax.evaluation.scorers import agreement
 
     def obj(language, lifting, placing, outcome):
         return dict(language=language, lifting=lifting, placing=placing, outcome=outcome)
@@ -188,7 +188,7 @@ def test_majority_guess_and_validation_summary():
                   "--model.attention-impl ring)"),
 ])
 def test_plan_verdict_says_whether_it_fits_and_why(fits, fit, expected):
-    from sc3_jax.plan import verdict
+    from sc3_jax.train.plan import verdict
 
     total = 50e9 if fits else 100e9
     p = dict(fits=fits, fit=fit, hbm_bytes=80e9, devices=8, device="h100", mfu=0.4, total_bytes=total,

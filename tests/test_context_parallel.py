@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 from jax.sharding import NamedSharding, PartitionSpec as P
 
-from sc3_jax import flow, modes, sharding, train
-from sc3_jax.config import MeshConfig, ModelConfig, replace
+from sc3_jax.model import flow, modes, sharding
+from sc3_jax.train import train
+from sc3_jax.core.config import MeshConfig, ModelConfig, replace
 from sc3_jax.model import context_parallel as cp
 from sc3_jax.model import attention, dit, layers, tokenizer
 

@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 from conftest import optimised_env
-from sc3_jax.config import ModelConfig, available_configs, load_config
+from sc3_jax.core.config import ModelConfig, available_configs, load_config
 from sc3_jax.model import convert, cosmos3, dit
 
 TINY = {"hidden_size": 64, "num_hidden_layers": 2, "num_attention_heads": 4, "num_key_value_heads": 2,
@@ -67,7 +67,7 @@ def test_default_param_trees_unchanged():
         assert not {"text_layers", "text_norm", "embed_tokens", "lm_head"} & set(specs), name
     assert _spec_digest(ModelConfig(), 48, (4, 4)) == DEFAULT_SPECS_SHA256
     if jax.default_backend() == "cpu":  # the init values as a user's process compiles them (the suite uses -O0)
-        code = ("import jax, sys; from sc3_jax.config import ModelConfig; from sc3_jax.model import dit; "
+        code = ("import jax, sys; from sc3_jax.core.config import ModelConfig; from sc3_jax.model import dit; "
                 "sys.path.insert(0, 'tests'); from test_cosmos3 import _param_digest; "
                 "print(_param_digest(dit.init_params(ModelConfig(), 48, jax.random.key(0), (4, 4))))")
         out = subprocess.run([sys.executable, "-c", code], env=optimised_env(), check=True, capture_output=True,
@@ -383,8 +383,9 @@ def test_full_size_key_map_matches_diffusers_shapes():
 def test_sc3_convert_cli_round_trip(tiny_diffusers, tmp_path):
     """`sc3 convert --from diffusers` writes an orbax params checkpoint that training/rollouts read (the same
     params as the library import), `--from sc3` writes it back bit for bit, and an occupied --to is refused."""
-    from sc3_jax import checkpoint, cli
-    from sc3_jax.config import config_from_dict
+    from sc3_jax.model import checkpoint
+    from sc3_jax import cli
+    from sc3_jax.core.config import config_from_dict
     from sc3_jax.model.wan_vae_convert import read_safetensors
 
     _, src = tiny_diffusers
@@ -419,8 +420,8 @@ def _tiny_wan_tokenizer():
 def test_training_drives_the_cosmos3_layout_on_time_compressed_latents(monkeypatch):
     """A Cosmos3-layout model trains on Wan-VAE tokens: 5 context + 8 future frames are 2 + 2 token frames with 8
     actions (4 per token frame), the train step fits one batch, and impossible bookkeeping is refused."""
-    from sc3_jax import train
-    from sc3_jax.config import Config, DataConfig, FlowConfig, TrainConfig, replace
+    from sc3_jax.train import train
+    from sc3_jax.core.config import Config, DataConfig, FlowConfig, TrainConfig, replace
     from sc3_jax.model import tokenizer
 
     tok = _tiny_wan_tokenizer()
@@ -467,8 +468,9 @@ def test_rollout_on_time_compressed_latents(monkeypatch):
     """Algorithm 1 with a 4x time-compressing VAE: the context is kept as frames and tokenised every chunk, the
     model predicts t = 2 token frames (8 frames) from k = 2 (5 frames), the *decoded* frames 5..8 are kept. Chunk 0
     equals a hand-written reference; closed loop runs every chunk; bad windows are refused."""
-    from sc3_jax import flow, modes, rollout
-    from sc3_jax.config import Config, DataConfig, RolloutConfig, SampleConfig, replace
+    from sc3_jax.model import flow, modes
+    from sc3_jax.rollout import rollout
+    from sc3_jax.core.config import Config, DataConfig, RolloutConfig, SampleConfig, replace
     from sc3_jax.data.norm_stats import NormStats
     from sc3_jax.model.tokenizer import to_uint8
     from sc3_jax.policies import simple

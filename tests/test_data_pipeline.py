@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from sc3_jax.config import DataConfig
+from sc3_jax.core.config import DataConfig
 from sc3_jax.data import norm_stats
 from sc3_jax.data import pipeline as P
 from sc3_jax.data import rotations as R

@@ -1,4 +1,4 @@
-"""sc3 diagnose (sc3_jax/evaluate/diagnose*.py): the metric pieces on hand-built frames, and the whole table on a tiny
+"""sc3 diagnose (sc3_jax/evaluation/diagnose*.py): the metric pieces on hand-built frames, and the whole table on a tiny
 "copy the last frame" world model (residual prediction with zero output weights, i.e. an untrained one) over two
 short simulated episodes, where every model figure must equal its copy-last baseline exactly."""
 import contextlib
@@ -13,13 +13,14 @@ import numpy as np
 import pytest
 
 import sc3_jax.benchmarks.bussing  # noqa: F401  (picks the GL backend before mujoco is imported)
-from sc3_jax import checkpoint, train
-from sc3_jax.config import load_config, replace
+from sc3_jax.model import checkpoint
+from sc3_jax.train import train
+from sc3_jax.core.config import load_config, replace
 from sc3_jax.data.episodes import Episode, EpisodeStore
 from sc3_jax.data.norm_stats import NormStats
 from sc3_jax.cli import main as cli
-from sc3_jax.evaluate import diagnose as dg
-from sc3_jax.evaluate import diagnose_outcomes
+from sc3_jax.evaluation import diagnose as dg
+from sc3_jax.evaluation import diagnose_outcomes
 
 
 def test_moving_mask_and_pooled_psnr_on_a_constructed_pair():
@@ -198,7 +199,7 @@ def test_outcome_agreement_compares_criteria_not_category_spellings():
 
 
 def test_diagnose_table_compares_models_with_a_baseline(run, tmp_path, capsys):
-    from sc3_jax.evaluate import diagnose_table as dt
+    from sc3_jax.evaluation import diagnose_table as dt
 
     _, result, _ = run
     cfg = json.loads(Path(result["world_model"], "config.json").read_text())

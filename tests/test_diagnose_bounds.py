@@ -4,7 +4,7 @@ import pytest
 from test_diagnose import _copy_last_model
 
 from sc3_jax.cli import main as cli
-from sc3_jax.evaluate import diagnose as dg
+from sc3_jax.evaluation import diagnose as dg
 
 
 @pytest.fixture(scope="module")

@@ -8,14 +8,17 @@ import numpy as np
 import pytest
 
 import sc3_jax.benchmarks.bussing  # noqa: F401  (picks the GL backend before mujoco is imported)
-from sc3_jax import checkpoint, state_head, train
-from sc3_jax.benchmark import Locators
-from sc3_jax.config import load_config, replace
+from sc3_jax.model import checkpoint
+from sc3_jax.rollout import state_head
+from sc3_jax.train import train
+from sc3_jax.evaluation.benchmark import Locators
+from sc3_jax.core.config import load_config, replace
 from sc3_jax.data.action_space import ActionSpace
 from sc3_jax.data.episodes import Episode, EpisodeStore
 from sc3_jax.data.norm_stats import NormStats
-from sc3_jax.evaluate import diagnose as dg
-from sc3_jax.evaluate import diagnose_headline, locate
+from sc3_jax.evaluation import diagnose as dg
+from sc3_jax.evaluation import diagnose_headline
+from sc3_jax.measures import locate
 
 pytestmark = pytest.mark.slow  # a tiny world model compiled for two passes: over a minute on 2 cores
 

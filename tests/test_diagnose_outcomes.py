@@ -12,10 +12,10 @@ import pytest
 from test_diagnose import _copy_last_model, _tiny_store
 
 from sc3_jax.cli import main as cli
-from sc3_jax.errors import UserError
-from sc3_jax.evaluate import diagnose as dg
-from sc3_jax.evaluate import diagnose_outcomes as do
-from sc3_jax.evaluate.diagnose_report import NOT_RUN_NOTE, render_table, verdict
+from sc3_jax.core.errors import UserError
+from sc3_jax.evaluation import diagnose as dg
+from sc3_jax.evaluation import diagnose_outcomes as do
+from sc3_jax.evaluation.diagnose_report import NOT_RUN_NOTE, render_table, verdict
 
 # an object per outcome category (metrics.outcome_category: the first criterion it fails)
 CAT = {"language": (False, False, False), "lifting": (True, False, False), "placing": (True, True, False),
@@ -153,7 +153,7 @@ def test_a_stage_not_named_is_a_usage_error(open_loop_run, capsys):
 
 
 def test_report_reads_a_diagnose_json_with_skipped_stages(open_loop_run):
-    from sc3_jax.evaluate import report
+    from sc3_jax.evaluation import report
     wm, result, _ = open_loop_run
     d = report._diagnose_gates(str(wm))
     assert d["episodes"] == 2 and [g["pass"] for g in d["gates"]][:3] == [None, None, None]

@@ -11,12 +11,13 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from sc3_jax import checkpoint, distill, flow, modes, sharding, train
-from sc3_jax.config import Config, FlowConfig, MeshConfig, load_config, replace
+from sc3_jax.model import checkpoint, flow, modes, sharding
+from sc3_jax.train import distill, train
+from sc3_jax.core.config import Config, FlowConfig, MeshConfig, load_config, replace
 from sc3_jax.data import pipeline, synthetic
 from sc3_jax.data.episodes import EpisodeStore
 from sc3_jax.data.norm_stats import NormStats
-from sc3_jax.errors import UserError
+from sc3_jax.core.errors import UserError
 from sc3_jax.model import dit
 from sc3_jax.model.tokenizer import context_token_frames, make_tokenizer, token_geometry
 
@@ -288,7 +289,7 @@ def test_resume_is_exact_and_reads_the_teacher_again(teacher, monkeypatch):
 
 def test_a_student_sampled_at_other_than_1_step_is_warned_about():
     from sc3_jax.benchmarks.bussing.sweep import SweepConfig
-    from sc3_jax.evaluate.world_model_defaults import evaluation_config, warn_if_student_off_its_step
+    from sc3_jax.evaluation.world_model_defaults import evaluation_config, warn_if_student_off_its_step
 
     student = replace(load_config("tiny"), flow=dict(distill_teacher="teacher/"))
     with pytest.warns(UserWarning, match="trained for 1"):
@@ -301,7 +302,7 @@ def test_a_student_sampled_at_other_than_1_step_is_warned_about():
 
 
 def test_a_distilled_run_is_costed_before_it_starts_at_its_own_depth(tmp_path):
-    from sc3_jax import plan, sizing
+    from sc3_jax.train import plan, sizing
 
     cfg = tiny(tmp_path)
     deep = replace(cfg, model=dict(depth=3))

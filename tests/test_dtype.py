@@ -5,8 +5,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from sc3_jax import flow, train
-from sc3_jax.config import load_config, replace
+from sc3_jax.model import flow
+from sc3_jax.train import train
+from sc3_jax.core.config import load_config, replace
 from sc3_jax.model.tokenizer import make_tokenizer
 
 

@@ -1,4 +1,4 @@
-"""A sweep store's rates in lerobot-eval's eval_info.json shape (sc3_jax/evaluate/eval_info.py), with a Wilson 95%
+"""A sweep store's rates in lerobot-eval's eval_info.json shape (sc3_jax/evaluation/eval_info.py), with a Wilson 95%
 interval beside each rate (sc3_jax/stats/interval.py): the interval against published values, the shape against
 lerobot 0.6.1's keys, the counting on hand-made records of both record forms, and a shipped SO-101 store end to end."""
 import json
@@ -7,8 +7,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from sc3_jax.errors import UserError
-from sc3_jax.evaluate import eval_info
+from sc3_jax.core.errors import UserError
+from sc3_jax.evaluation import eval_info
 from sc3_jax.stats.interval import wilson
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -65,7 +65,7 @@ def test_per_object_records_group_by_split_and_task_and_need_every_object():
 
 
 def test_a_shipped_sweep_store_writes_one_file_per_policy_with_its_rate(tmp_path):
-    from sc3_jax.evaluate.results import ResultsStore
+    from sc3_jax.evaluation.results import ResultsStore
 
     src = ROOT / "docs" / "stores" / "so101_v3_sweep36"
     records = ResultsStore(src).records()

@@ -1,4 +1,4 @@
-"""Every world model the project ships (``sc3_jax/evaluate/shipped/``) or exports (``exports/``) is usable as it is
+"""Every world model the project ships (``sc3_jax/evaluation/shipped/``) or exports (``exports/``) is usable as it is
 committed: its robot facts read (checkpoint.read_robot, what `sc3 rollout` and `sc3 sweep` read) and, in the slow
 variant, a chunk rolls out inside it the way the sweeps build their rollout. A model made by `sc3 demo` records its
 data's facts; a model's facts never come from the current directory, and a damaged fact is one line."""
@@ -12,11 +12,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from sc3_jax import checkpoint
-from sc3_jax.errors import UserError
+from sc3_jax.model import checkpoint
+from sc3_jax.core.errors import UserError
 
 ROOT = Path(__file__).resolve().parents[1]
-MODELS = sorted([*(ROOT / "exports").iterdir(), *(ROOT / "sc3_jax" / "evaluate" / "shipped").iterdir()])
+MODELS = sorted([*(ROOT / "exports").iterdir(), *(ROOT / "sc3_jax" / "evaluation" / "shipped").iterdir()])
 MODELS = [p for p in MODELS if (p / "config.json").is_file()]
 STUDENT = ROOT / "exports" / "bussing_latent_gpu_student"
 # the robots they were trained on (docs/world_model.md, docs/so101.md): bussing's simulator records 20 fps and no
@@ -37,8 +37,8 @@ def test_the_models_are_the_ones_the_docs_name():
 
 @pytest.mark.parametrize("path", MODELS, ids=lambda p: p.name)
 def test_every_shipped_and_exported_model_reads_its_robot_facts_from_its_own_directory(path, tmp_path, monkeypatch):
-    from sc3_jax import rollout, state_head
-    from sc3_jax.evaluate.engine import mesh_for as _mesh
+    from sc3_jax.rollout import rollout, state_head
+    from sc3_jax.evaluation.engine import mesh_for as _mesh
 
     monkeypatch.chdir(tmp_path)  # nothing of the current directory is read (an empty one here)
     cfg = checkpoint.read_config(path)
@@ -46,7 +46,7 @@ def test_every_shipped_and_exported_model_reads_its_robot_facts_from_its_own_dir
     kind = _robot_of(path)
     assert (robot.fps, robot.state_dim) == (FPS[kind], STATE_DIM[kind])
     assert robot.action_dim == cfg.model.action_dim and len(set(robot.views)) == len(robot.views) == cfg.model.num_views
-    # the rollout `sc3 sweep episodes` builds (evaluate/ic_sweep.py), learned state included: its shapes check out
+    # the rollout `sc3 sweep episodes` builds (evaluation/ic_sweep.py), learned state included: its shapes check out
     head = state_head.load(path)
     ro = rollout.Rollout(cfg, checkpoint.read_norm_stats(path), mesh=_mesh(1), data_fps=robot.fps, head=head)
     assert ro.spec.stride == round(robot.fps / cfg.rollout.control_hz) >= 1
@@ -58,9 +58,9 @@ def test_the_students_documented_sweep_reads_its_facts_and_samples_in_its_one_st
     bussing sweep's loading path up to its rollout spec (benchmarks/bussing/sweep.py run_sweep), no warning."""
     import warnings
 
-    from sc3_jax import rollout
+    from sc3_jax.rollout import rollout
     from sc3_jax.benchmarks.bussing.sweep import SweepConfig
-    from sc3_jax.evaluate.world_model_defaults import evaluation_config, warn_if_student_off_its_step
+    from sc3_jax.evaluation.world_model_defaults import evaluation_config, warn_if_student_off_its_step
 
     assert "--world-model exports/bussing_latent_gpu_student --sample-steps 1" in (ROOT / "docs/results.md").read_text()
     cfg = SweepConfig(world_model=str(STUDENT), sample_steps=1)
@@ -86,9 +86,9 @@ class Still:
 
 def _one_chunk(path: Path, sample_steps: int | None = None) -> dict:
     """One chunk of the zero policy inside the model at ``path``, built as `sc3 sweep episodes` builds it."""
-    from sc3_jax import rollout, rollout_io, state_head
-    from sc3_jax.evaluate.engine import mesh_for as _mesh
-    from sc3_jax.evaluate.world_model_defaults import Sampler, evaluation_config
+    from sc3_jax.rollout import rollout, rollout_io, state_head
+    from sc3_jax.evaluation.engine import mesh_for as _mesh
+    from sc3_jax.evaluation.world_model_defaults import Sampler, evaluation_config
 
     wcfg, stats, params = checkpoint.load(path)
     wcfg = evaluation_config(wcfg, Sampler(sample_steps=sample_steps or 1, inverse_steps=1))
@@ -169,7 +169,7 @@ def test_a_view_named_twice_is_one_line(tmp_path):
 
 
 def test_sc3_demo_records_its_datas_frame_rate_in_the_model_it_makes(tmp_path):
-    from sc3_jax import demo
+    from sc3_jax.commands import demo_run as demo
     from sc3_jax.commands.demo import Args, _config
     from sc3_jax.data import synthetic
 
@@ -201,8 +201,8 @@ def test_a_measured_entry_past_the_recorded_state_is_one_line(tmp_path):
 def test_a_policy_of_the_commands_own_state_is_told_the_flag_that_hands_it_that_state():
     """`--policy zero` on an SO-101 model (a 14-D learned state) was refused naming both sizes and not the way out:
     --no-learned-state hands the policy the integrated commands, the state it reads."""
-    from sc3_jax import rollout, state_head
-    from sc3_jax.evaluate.engine import mesh_for as _mesh
+    from sc3_jax.rollout import rollout, state_head
+    from sc3_jax.evaluation.engine import mesh_for as _mesh
     from sc3_jax.policies import simple
 
     path = ROOT / "exports" / "so101_v3_cpu"

@@ -3,8 +3,8 @@ every loader, within half a quantisation step of the original, and smaller than 
 import jax
 import numpy as np
 
-from sc3_jax import checkpoint
-from sc3_jax.config import Config, DataConfig, ModelConfig
+from sc3_jax.model import checkpoint
+from sc3_jax.core.config import Config, DataConfig, ModelConfig
 from sc3_jax.data.norm_stats import NormStats
 from sc3_jax.model import dit
 

@@ -57,7 +57,7 @@ def _lerobot(root: Path) -> Path:
 def _world_model(root: Path) -> Path:
     from test_sweep import tiny_world_model
 
-    from sc3_jax import checkpoint
+    from sc3_jax.model import checkpoint
 
     wm = tiny_world_model(root)
     cfg, _, params = checkpoint.load(wm)
@@ -497,8 +497,8 @@ def test_every_damaged_file_kind_ends_in_one_line_and_changes_nothing_outside_ou
 def test_every_damaged_norm_stats_field_is_refused_where_the_model_is_read(pristine, data):
     """Not only one line from the command: the model's reader itself refuses each drawn fault (the command's line
     could come from a later check), so no rollout ever runs in statistics it cannot trust."""
-    from sc3_jax import checkpoint
-    from sc3_jax.errors import UserError
+    from sc3_jax.model import checkpoint
+    from sc3_jax.core.errors import UserError
 
     damage, _ = norm_stats(data)
     with tempfile.TemporaryDirectory() as tmp:
@@ -719,11 +719,11 @@ def _off(*_a, **_k):
 # each door of issue 66, switched off, and a fault the battery must then catch: (what is switched off, the attack)
 PLANTED = {
     "rollout bounds": (["sc3_jax.commands.rollout.check_options"], "rollout --episodes -1"),
-    "train bounds": (["sc3_jax.validate.train_config"], "train --batch 0"),
+    "train bounds": (["sc3_jax.core.validate.train_config"], "train --batch 0"),
     "import bounds": (["sc3_jax.data.lerobot.check_options"], "import --image-size 0 -5"),
     "scorer signature": (["inspect.Signature.bind"], "sweep --scorer os:getcwd"),
-    "import --out": (["sc3_jax.validate.out_dir"], "import --out FILE/x"),
-    "report --out": (["sc3_jax.validate.out_dir"], "report --out FILE"),
+    "import --out": (["sc3_jax.core.validate.out_dir"], "import --out FILE/x"),
+    "report --out": (["sc3_jax.core.validate.out_dir"], "report --out FILE"),
 }
 
 
@@ -753,8 +753,8 @@ def test_the_battery_catches_the_norm_stats_door_switched_off(pristine, monkeypa
 
 
 @pytest.mark.parametrize("kind, targets", [
-    ("store files", ["sc3_jax.validate.regular_file", "sc3_jax.validate.npy_fits"]),
-    ("episode sweep records", ["sc3_jax.evaluate.report_episodes.check_against_sweep", "sc3_jax.validate.out_dir"]),
+    ("store files", ["sc3_jax.core.validate.regular_file", "sc3_jax.core.validate.npy_fits"]),
+    ("episode sweep records", ["sc3_jax.evaluation.report_episodes.check_against_sweep", "sc3_jax.core.validate.out_dir"]),
 ])
 @pytest.mark.slow  # 25-55 s: kept out of the default run's 15 minutes (CI runs -m slow too)
 def test_the_battery_catches_the_store_doors_switched_off(pristine, monkeypatch, kind, targets):

@@ -25,14 +25,15 @@ import pytest
 
 import sc3_jax.benchmarks.bussing  # noqa: F401  (picks the GL backend before mujoco is imported)
 from conftest import FAST_COMPILE
-from sc3_jax import atomic, checkpoint
-from sc3_jax.config import load_config, replace
+from sc3_jax.core import atomic
+from sc3_jax.model import checkpoint
+from sc3_jax.core.config import load_config, replace
 from sc3_jax.data import synthetic
 from sc3_jax.data.norm_stats import NormStats
 from sc3_jax.benchmarks.bussing import perception
-from sc3_jax.evaluate.results import ResultsStore
+from sc3_jax.evaluation.results import ResultsStore
 from sc3_jax.model import autoencoder as ae
-from sc3_jax.train import read_metrics
+from sc3_jax.train.train import read_metrics
 from test_atomic import snapshot
 from test_sweep import tiny_world_model
 
@@ -216,7 +217,7 @@ def model_files(d: Path) -> dict:
 @pytest.mark.slow  # ~1.5 min: seven to thirteen export processes (each imports JAX) on a ~10M-parameter model
 def test_export_killed_at_random_moments_leaves_the_old_model_or_the_new_one_whole(tmp_path):
     src = big_model(tmp_path)
-    code = "import sys; from sc3_jax import checkpoint; checkpoint.export(sys.argv[1], sys.argv[2], 'int8')"
+    code = "import sys; from sc3_jax.model import checkpoint; checkpoint.export(sys.argv[1], sys.argv[2], 'int8')"
     env, log, rng = one_device_env(), tmp_path / "export.log", np.random.default_rng(2)
     writing_ref = lambda: any(tmp_path.glob(".ref.*.tmp"))  # noqa: E731  (the new directory is being written)
     began, ended = run_watching([sys.executable, "-c", code, str(src), str(tmp_path / "ref")], env, log, writing_ref)
@@ -304,7 +305,7 @@ def test_tokenizer_training_killed_at_random_moments_resumes_bit_for_bit(tokeniz
 
 
 def test_tokenizer_log_survives_a_line_cut_by_a_kill(tmp_path):
-    from sc3_jax import tokenizer_train as tt
+    from sc3_jax.train import tokenizer_train as tt
     synthetic.generate(tmp_path / "episodes", num_episodes=2, length=8, image_size=(16, 16), seed=2, progress=False)
     cfg = tt.TokenizerTrainConfig(data=str(tmp_path / "episodes"), workdir=str(tmp_path / "w"), steps=2,
                                   batch_size=2, ckpt_every=1, warmup_steps=1, progress=False)

@@ -10,9 +10,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from sc3_jax import flow, modes, train
+from sc3_jax.model import flow, modes
+from sc3_jax.train import train
 from sc3_jax.commands import parse_with_config
-from sc3_jax.config import Config, DataConfig, FlowConfig, ModelConfig, TrainConfig, config_from_dict, load_config
+from sc3_jax.core.config import Config, DataConfig, FlowConfig, ModelConfig, TrainConfig, config_from_dict, load_config
 from sc3_jax.model import dit
 
 K, T = 2, 3  # context and future frames
@@ -272,8 +273,8 @@ def test_a_few_train_steps_with_a_lever_on_are_finite_and_learn(lever):
 def test_a_distillation_teacher_must_flow_from_the_students_source(tmp_path):
     """Teacher and student sample from one source: a teacher saved with another flow.from_present is a one-line
     error before training, and flow.distill_loss refuses the mismatch."""
-    from sc3_jax import distill
-    from sc3_jax.errors import UserError
+    from sc3_jax.train import distill
+    from sc3_jax.core.errors import UserError
     teacher = Config(model=ModelConfig(**SMALL), flow=FlowConfig(from_present=0.1))
     (tmp_path / "teacher").mkdir()
     (tmp_path / "teacher" / "config.json").write_text(json.dumps(dataclasses.asdict(teacher)))

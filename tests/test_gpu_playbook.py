@@ -54,9 +54,10 @@ def tiny_so101_start(root: Path) -> Path:
     import jax
     import numpy as np
 
-    from sc3_jax import checkpoint, train
+    from sc3_jax.model import checkpoint
+    from sc3_jax.train import train
     from sc3_jax.benchmarks.so101.collect import action_space
-    from sc3_jax.config import load_config, replace
+    from sc3_jax.core.config import load_config, replace
     from sc3_jax.data.action_space import ActionSpace
     from sc3_jax.data.norm_stats import NormStats
 
@@ -83,7 +84,7 @@ def test_so101_trains_the_cpu_export_in_its_own_config_at_batch_64(tmp_path):
     assert opt == {"--train.init-from": str(start), "--batch": "64",
                    "--data": str(tmp_path / "so101_data" / "train"), "--train.workdir": str(tmp_path / "so101")}
     assert "--train.lr" not in cmd  # the start's own schedule: it is far from trained
-    from sc3_jax.config import load_config
+    from sc3_jax.core.config import load_config
     assert load_config(cmd[cmd.index("--config") + 1]).model.dim == 32  # the start's config, not so101_latent's
     flags = [c for c in cmd if c.startswith("--")]
     assert len(flags) == len(set(flags)), "an option given twice"

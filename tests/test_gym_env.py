@@ -1,4 +1,4 @@
-"""The world model as a gymnasium vector env (sc3_jax/evaluate/gym_env.py) on test_any_robot.py's tiny bimanual
+"""The world model as a gymnasium vector env (sc3_jax/evaluation/gym_env.py) on test_any_robot.py's tiny bimanual
 model: a policy driven through the env's step loop, one action per step as LeRobot's select_action pops its queue,
 imagines exactly what `sc3 sweep episodes` imagines for the same conditions, seeds and policy (frames, states, U,
 outcomes); its spaces and seeding pass gymnasium's env_checker-style checks; chunking and refusals as documented."""
@@ -10,7 +10,7 @@ import pytest
 pytest.importorskip("gymnasium")
 
 from sc3_jax.cli import main  # noqa: E402
-from sc3_jax.errors import UserError  # noqa: E402
+from sc3_jax.core.errors import UserError  # noqa: E402
 from test_any_robot import A, CAMS, bimanual  # noqa: E402, F401  (the fixture: imported store + trained tiny model)
 from test_ic_sweep import _conditions  # noqa: E402
 
@@ -63,7 +63,7 @@ def setup(bimanual, tmp_path_factory):  # noqa: F811
 
 
 def _env(setup, n=2, **kw):
-    from sc3_jax.evaluate.gym_env import WorldModelVecEnv
+    from sc3_jax.evaluation.gym_env import WorldModelVecEnv
 
     run, ic = setup
     kw.setdefault("episode_seconds", 0.6)
@@ -83,7 +83,7 @@ def _episode(env, policy, seed):
 
 
 def test_imagined_outcomes_through_the_env_equal_the_sweeps(setup, tmp_path):
-    from sc3_jax.evaluate.results import ResultsStore
+    from sc3_jax.evaluation.results import ResultsStore
 
     run, ic = setup
     out = tmp_path / "sweep"

@@ -14,8 +14,8 @@ import pytest
 from sc3_jax.cli import main
 from sc3_jax.data.action_space import ActionSpace
 from sc3_jax.data.episodes import Episode, EpisodeStore
-from sc3_jax.errors import UserError
-from sc3_jax.evaluate import labels
+from sc3_jax.core.errors import UserError
+from sc3_jax.evaluation import labels
 from sc3_jax.policies.openpi_mappings import ALOHA_CAMERAS, for_world_model, resize_with_pad
 from test_any_robot import CAMS, A, H, W, bimanual  # noqa: F401  (the fixture: imported store + trained tiny model)
 

@@ -1,4 +1,4 @@
-"""No import cycle between the modules of ``sc3_jax/``, and no import against the layer order of docs/architecture.md.
+"""No import cycle between the modules of ``sc3_jax/``, and no import that climbs a floor: the folders are the floors.
 
 The graph is read from the source (``ast``), not by importing: every ``import x`` / ``from x import y`` statement
 counts, *including those inside functions*. A function-level import is still a dependency (it runs on the first
@@ -6,9 +6,10 @@ call), and the loops this guards against were all lazy ones (sim/zoo -> demos ->
 that only exists to dodge a cycle is the smell, not the fix. Imports under ``if TYPE_CHECKING:`` never run and are
 skipped. ``from pkg import name`` is an edge to ``pkg.name`` when that is a module, else to ``pkg``.
 
-The layers live here as data (``LAYERS``), not parsed out of the doc's table: the table's cells are prose for
-readers (``(+ ...)``, paths relative to the row), and a parser of them would be the fragile part. The doc and this
-list are tied by ``test_layers_match_the_documented_stages`` (same stage names, same order).
+The floors are the folders of ``sc3_jax/``, lowest first in ``FLOORS`` (only their order is data here): a module's
+floor is its folder's, and the few modules loose at ``sc3_jax/`` (``LOOSE``) stand above them all. A new folder fails
+until it is placed. docs/architecture.md's table has one row per floor, tied to the list by
+``test_floors_match_the_documented_stages`` (same names, same order).
 """
 from __future__ import annotations
 
@@ -104,7 +105,7 @@ def find_cycle(graph: dict[str, set[str]]) -> list[str] | None:
 
 def test_sc3_jax_has_no_import_cycle():
     graph = import_graph(ROOT / "sc3_jax")
-    assert len(graph) > 50 and "sc3_jax.rollout" in graph["sc3_jax.benchmarks.bussing.sweep"]  # the walk sees the package
+    assert len(graph) > 50 and "sc3_jax.rollout.rollout" in graph["sc3_jax.benchmarks.bussing.sweep"]  # the walk sees the package
     cycle = find_cycle(graph)
     assert cycle is None, "import cycle: " + " -> ".join(cycle)
 
@@ -143,97 +144,88 @@ def test_type_checking_imports_and_acyclic_graphs_pass(tmp_path, closing):
     assert find_cycle(graph) is None
 
 
-# docs/architecture.md "Modules in data-flow order", lowest first: a module may import its own layer and those above
-# it in this list. Entries are module prefixes under sc3_jax; the longest one that matches places a module.
-LAYERS: list[tuple[str, tuple[str, ...]]] = [
-    ("stats", ("stats",)),  # the bottom floor: the statistics import no other sc3_jax module
-    ("utilities", ("errors", "atomic", "xla_cost", "safe_names", "locks", "validate", "module_attr")),
-    ("video", ("video",)),
-    ("metrics", ("evaluate.metrics", "evaluate.permanence", "evaluate.locate", "evaluate.moved",
-                 "evaluate.action_following", "evaluate.tracking")),
-    ("episodes", ("data",)),
-    ("normalisation", ("data.norm_stats",)),
-    ("pipeline", ("data.pipeline", "data.latent_cache")),
-    ("config", ("config", "tokenizer_config")),
-    ("tokenizer", ("model.tokenizer", "model.autoencoder", "model.wan_tokenizer", "model.wan_vae",
-                   "model.wan_vae_convert", "model.shapes")),
-    ("model", ("model",)),
-    ("training modes, flow", ("modes", "flow")),
-    ("named configs", ("configs",)),
-    ("checkpoint", ("checkpoint",)),
-    ("train", ("train", "sharding", "tokenizer_train", "distill")),
-    ("policies", ("policies",)),
-    ("policy names", ("policies.resolve",)),
-    ("rollout", ("rollout", "imagination_state", "state_head", "rollout_io")),
-    ("results", ("evaluate.results",)),
-    ("scoring", ("evaluate.scorers", "evaluate.degrade", "evaluate.labels", "evaluate.success_detector",
-                 "evaluate.scorer_check")),
-    ("diagnostics", ("evaluate.world_model", "evaluate.world_model_defaults", "evaluate.diagnose",
-                     "evaluate.diagnose_config", "evaluate.diagnose_video", "evaluate.diagnose_actions",
-                     "evaluate.diagnose_outcomes", "evaluate.diagnose_report", "evaluate.diagnose_table",
-                     "evaluate.diagnose_kept", "evaluate.diagnose_follow", "evaluate.diagnose_headline",
-                     "evaluate.rollout_summary", "plan", "plan_vae", "sizing")),
-    ("sweep", ("evaluate.worker_pool", "evaluate.engine", "evaluate.ic_sweep", "evaluate.gym_env")),
-    ("report", ("evaluate.report", "evaluate.report_html", "evaluate.calibrate", "evaluate.intervals", "evaluate.bootstrap",
-                "evaluate.merged", "evaluate.curve", "evaluate.report_episodes", "evaluate.report_figures",
-                "evaluate.eval_info")),
-    ("benchmarks", ("benchmark", "benchmarks")),  # the interface and its registry (by name: it imports none), then each
-    ("commands", ("cli", "commands", "convert_cli", "demo")),
-]
+# The floors, lowest first: the folders of sc3_jax/ (docs/architecture.md "Modules in data-flow order", one row
+# each). A module's floor is its folder's index: it may import its own folder and those below it, never one above.
+FLOORS: list[str] = ["core", "stats", "measures", "data", "model", "policies", "rollout", "train", "evaluation",
+                     "benchmarks", "commands"]
+# The modules loose at sc3_jax/ (at most MAX_LOOSE): above every folder, so no folder imports one.
+LOOSE: list[str] = ["cli"]  # the console entry point (`sc3`), dispatching to commands/ by name
+MAX_LOOSE = 5
 
 
-def layer_of(mod: str, layers=LAYERS, top: str = "sc3_jax") -> tuple[int, str] | None:
-    """(index, stage) of the longest prefix in ``layers`` matching ``mod``; None for packages' bare ``__init__``."""
-    rel = mod[len(top) + 1:] if mod.startswith(top + ".") else None
-    best = None
-    for i, (stage, prefixes) in enumerate(layers):
-        for p in prefixes:
-            if rel is not None and (rel == p or rel.startswith(p + ".")) and (best is None or len(p) > best[0]):
-                best = (len(p), i, stage)
-    return best and best[1:]
+def floor_of(mod: str, graph, floors=FLOORS, top: str = "sc3_jax") -> tuple[int, str] | None:
+    """(index, name) of ``mod``'s floor: its folder's, or ``(len(floors), "loose")`` for a module loose at the top of
+    the package; None for the package's own ``__init__`` and for a folder that is no floor."""
+    parts = mod.split(".")
+    if parts[0] != top or len(parts) < 2:
+        return None
+    if parts[1] in floors:
+        return floors.index(parts[1]), parts[1]
+    is_folder = any(m.startswith(f"{top}.{parts[1]}.") for m in graph)
+    return None if is_folder or len(parts) > 2 else (len(floors), "loose")
 
 
-def layer_violations(graph: dict[str, set[str]], layers=LAYERS, top: str = "sc3_jax") -> list[str]:
-    """Every import from a lower layer to a higher one, and every module no layer places."""
+def layer_violations(graph: dict[str, set[str]], floors=FLOORS, top: str = "sc3_jax") -> list[str]:
+    """Every import from a lower floor to a higher one, and every module no floor places (a folder not in ``floors``)."""
     out = []
     for mod in sorted(graph):
-        if mod in (top, f"{top}.evaluate", f"{top}.benchmarks"):
-            continue  # empty package __init__s: nothing to place (the others match their package's prefix)
-        if (lm := layer_of(mod, layers, top)) is None:
-            out.append(f"{mod}: in no layer (add it to LAYERS and docs/architecture.md)")
+        if mod == top:
+            continue  # the package's own __init__: nothing to place
+        if (lm := floor_of(mod, graph, floors, top)) is None:
+            out.append(f"{mod}: in no floor (add its folder to FLOORS and docs/architecture.md)")
             continue
         for dep in sorted(graph[mod]):
-            ld = layer_of(dep, layers, top)
+            ld = floor_of(dep, graph, floors, top)
             if ld is not None and ld[0] > lm[0]:
-                out.append(f"{mod} (layer {lm[1]!r}) imports {dep} (higher layer {ld[1]!r})")
+                out.append(f"{mod} (floor {lm[1]!r}) imports {dep} (higher floor {ld[1]!r})")
     return out
 
 
-def test_sc3_jax_imports_follow_the_documented_layers():
+def loose_modules(pkg_dir: Path) -> list[str]:
+    return sorted(p.stem for p in pkg_dir.glob("*.py") if p.stem != "__init__")
+
+
+def test_sc3_jax_imports_follow_the_floors():
     problems = layer_violations(import_graph(ROOT / "sc3_jax"))
-    assert not problems, "imports against docs/architecture.md's order:\n" + "\n".join(problems)
+    assert not problems, "imports against the floors (FLOORS, docs/architecture.md):\n" + "\n".join(problems)
 
 
-def test_layers_match_the_documented_stages():
+def test_every_folder_is_a_floor_and_few_modules_are_loose():
+    pkg = ROOT / "sc3_jax"
+    folders = sorted(p.name for p in pkg.iterdir() if (p / "__init__.py").is_file())
+    assert folders == sorted(FLOORS), "the folders of sc3_jax/ are the floors: add a new one to FLOORS"
+    assert loose_modules(pkg) == sorted(LOOSE) and len(LOOSE) <= MAX_LOOSE, \
+        f"modules loose at sc3_jax/: {loose_modules(pkg)} (named in LOOSE, at most {MAX_LOOSE}; put one in a folder)"
+
+
+def test_floors_match_the_documented_stages():
     text = (ROOT / "docs" / "architecture.md").read_text()
     table = text.split("## Modules in data-flow order", 1)[1].split("\n## ", 1)[0]
     stages = [m.group(1).strip() for m in re.finditer(r"^\|([^|]+)\|", table, re.M)][2:]  # past header, rule
-    assert stages == [s for s, _ in LAYERS]
+    assert stages == [f"{f}/" for f in FLOORS] + [f"{m}.py" for m in LOOSE]
 
 
-def test_an_import_against_the_layers_is_reported(tmp_path):
+def test_an_import_against_the_floors_is_reported(tmp_path):
     pkg = _write(tmp_path, {
         "pkg/__init__.py": "",
-        "pkg/low.py": "def f():\n    from pkg.high import g\n",  # function-level, still an edge
-        "pkg/high.py": "from pkg import low\n\ndef g():\n    pass\n",
-        "pkg/stray.py": "",
+        "pkg/low/__init__.py": "",
+        "pkg/low/a.py": "def f():\n    from pkg.high.b import g\n",  # function-level, still an edge
+        "pkg/high/__init__.py": "",
+        "pkg/high/b.py": "from pkg.low import a\nfrom pkg import top\n\ndef g():\n    pass\n",
+        "pkg/stray/__init__.py": "",
+        "pkg/stray/c.py": "",
+        "pkg/top.py": "from pkg.high import b\n",
     })
-    layers = [("bottom", ("low",)), ("top", ("high",))]
+    floors = ["low", "high"]
     assert find_cycle(graph := import_graph(pkg)) is not None  # (and a cycle, which the other test reports)
-    assert layer_violations(graph, layers, "pkg") == [
-        "pkg.low (layer 'bottom') imports pkg.high (higher layer 'top')",
-        "pkg.stray: in no layer (add it to LAYERS and docs/architecture.md)"]
-    assert layer_violations({"pkg.low": set(), "pkg.high": {"pkg.low"}}, layers, "pkg") == []
+    assert layer_violations(graph, floors, "pkg") == [
+        "pkg.high.b (floor 'high') imports pkg.top (higher floor 'loose')",
+        "pkg.low.a (floor 'low') imports pkg.high.b (higher floor 'high')",
+        "pkg.stray: in no floor (add its folder to FLOORS and docs/architecture.md)",
+        "pkg.stray.c: in no floor (add its folder to FLOORS and docs/architecture.md)"]
+    assert loose_modules(pkg) == ["top"]
+    assert layer_violations({"pkg.low.a": set(), "pkg.high.b": {"pkg.low.a"}, "pkg.top": {"pkg.high.b"}},
+                            floors, "pkg") == []
 
 
 def folder_violations(graph: dict[str, set[str]], top: str = "sc3_jax") -> list[str]:
@@ -266,8 +258,8 @@ def test_nothing_below_the_commands_imports_a_benchmark():
 
 
 def test_the_folder_check_catches_the_core_importing_a_benchmark():
-    graph = {"sc3_jax.evaluate.report": {"sc3_jax.benchmarks.bussing.zoo"},
-             "sc3_jax.benchmarks.so101.zoo": {"sc3_jax.benchmarks.bussing.zoo", "sc3_jax.evaluate.results"},
+    graph = {"sc3_jax.evaluation.report": {"sc3_jax.benchmarks.bussing.zoo"},
+             "sc3_jax.benchmarks.so101.zoo": {"sc3_jax.benchmarks.bussing.zoo", "sc3_jax.evaluation.results"},
              "sc3_jax.commands.sweep": {"sc3_jax.benchmarks.bussing.sweep"},
              "sc3_jax.benchmarks.bussing.zoo": {"sc3_jax.commands.sim"}}
     assert len(folder_violations(graph)) == 3
@@ -287,12 +279,12 @@ def test_the_benchmarks_hooks_load_no_simulator_for_a_labs_robot():
 
 
 def test_the_benchmark_registry_imports_no_benchmark():
-    """``sc3_jax/benchmark.py`` names the benchmarks by "module:attr" strings, imported on lookup: neither its source
+    """``sc3_jax/evaluation/benchmark.py`` names the benchmarks by "module:attr" strings, imported on lookup: neither its source
     nor importing it loads ``sc3_jax.benchmarks``."""
     import subprocess
     import sys
     graph = import_graph(ROOT / "sc3_jax")
-    assert not {d for d in graph["sc3_jax.benchmark"] if d.startswith("sc3_jax.benchmarks")}
-    code = "import sys, sc3_jax.benchmark; print(sorted(m for m in sys.modules if m.startswith('sc3_jax.benchmarks')))"
+    assert not {d for d in graph["sc3_jax.evaluation.benchmark"] if d.startswith("sc3_jax.benchmarks")}
+    code = "import sys, sc3_jax.evaluation.benchmark; print(sorted(m for m in sys.modules if m.startswith('sc3_jax.benchmarks')))"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]", out

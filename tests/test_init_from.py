@@ -7,8 +7,9 @@ import jax
 import numpy as np
 import pytest
 
-from sc3_jax import checkpoint, sharding, train
-from sc3_jax.config import Config, DataConfig, ModelConfig, TrainConfig, replace
+from sc3_jax.model import checkpoint, sharding
+from sc3_jax.train import train
+from sc3_jax.core.config import Config, DataConfig, ModelConfig, TrainConfig, replace
 from sc3_jax.data import synthetic
 from sc3_jax.data.norm_stats import NormStats
 

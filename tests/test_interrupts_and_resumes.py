@@ -12,8 +12,8 @@ from pathlib import Path
 
 import pytest
 
-from sc3_jax import train
-from sc3_jax.config import load_config, replace
+from sc3_jax.train import train
+from sc3_jax.core.config import load_config, replace
 from sc3_jax.data import synthetic
 
 SMALL = dict(dim=32, depth=1, num_heads=2, num_kv_heads=1, mlp_dim=64)  # a cheap tiny model: widths only
@@ -86,7 +86,7 @@ def test_ctrl_c_while_a_sweeps_workers_run_exits_130_in_one_line(tmp_path, ctrl_
     lines = [x for x in err.strip().splitlines() if x.strip()]
     assert lines[-1] == ("sc3 sweep: interrupted; nothing half-written is left; the same command resumes it "
                          "(finished rollouts are kept)") and "Traceback" not in err, err[-3000:]
-    from sc3_jax.evaluate.results import ResultsStore
+    from sc3_jax.evaluation.results import ResultsStore
     assert ResultsStore(out).records()  # whole records kept, readable
 
 
@@ -141,7 +141,7 @@ def test_serving_a_policy_lets_ctrl_c_through_after_shutting_down():
 
 def test_a_resumed_tokenizer_logs_each_step_once(tmp_path):
     """The tokenizer's metrics.jsonl, like the world model's, drops the rows past the checkpoint it resumes from."""
-    from sc3_jax import atomic
+    from sc3_jax.core import atomic
 
     log = tmp_path / "metrics.jsonl"
     log.write_text("".join(json.dumps({"step": i}) + "\n" for i in range(1, 8)) + "not json\n")

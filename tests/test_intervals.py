@@ -7,9 +7,10 @@ import math
 import numpy as np
 import pytest
 
-from sc3_jax.evaluate import bootstrap, calibrate, degrade, intervals, metrics, report
+from sc3_jax.evaluation import bootstrap, calibrate, degrade, intervals, report
+from sc3_jax.measures import metrics
 from sc3_jax.benchmarks.bussing import sweep
-from sc3_jax.evaluate.results import ResultsStore, seed_blocks
+from sc3_jax.evaluation.results import ResultsStore, seed_blocks
 from sc3_jax.stats import correlation, interval, rank_violation, resample
 
 CRITERIA = ("language", "lifting", "placing")  # the simulated benchmark's, as its scorers name them
@@ -235,7 +236,7 @@ def test_degradations_are_seeded_and_change_frames():
 
 def test_a_store_without_real_rollouts_gets_no_report_and_its_sweep_keeps_them(tmp_path, monkeypatch, capsys):
     from sc3_jax.commands import sweep as sweep_cmd
-    from sc3_jax.errors import UserError
+    from sc3_jax.core.errors import UserError
 
     root = _store(tmp_path / "s", good_cut_calib=2, eval_variant=0)
     online_only = [r for r in ResultsStore(root).records() if r["mode"] == "online"]
@@ -252,7 +253,7 @@ def test_a_store_without_real_rollouts_gets_no_report_and_its_sweep_keeps_them(t
 
 def test_the_closing_line_says_worse_when_an_interval_excludes_0_on_the_wrong_side():
     """The archived SO-101 sweep: MMRV difference [+0.052, +0.349] is worse than the guess, not indistinguishable."""
-    from sc3_jax.evaluate.report_episodes import against_floor as verdict
+    from sc3_jax.evaluation.report_episodes import against_floor as verdict
 
     worse = verdict({"pearson": {"lo": -0.9, "hi": 0.5}, "mmrv": {"lo": 0.052, "hi": 0.349}})
     assert "worse than a policy-blind guess on MMRV" in worse and "better" not in worse

@@ -115,8 +115,9 @@ def test_slurm_two_processes_train_and_checkpoint(tmp_path):
     # the checkpoint restores in this (single, 8-device) process when the target carries this process's shardings
     import jax
 
-    from sc3_jax import sharding, train
-    from sc3_jax.config import config_from_dict
+    from sc3_jax.model import sharding
+    from sc3_jax.train import train
+    from sc3_jax.core.config import config_from_dict
 
     cfg = config_from_dict(json.loads((workdir / "config.json").read_text()))
     assert (cfg.model.depth, cfg.data.batch_size) == (1, 8)

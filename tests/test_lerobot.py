@@ -331,9 +331,9 @@ def test_a_one_value_feature_is_written_as_lerobot_does_and_read_back(tmp_path, 
 
 def test_import_keeps_next_success_as_the_real_outcome(tmp_path):
     """next.success becomes each episode's meta labels (any frame's, even one the import's fps skips), which
-    `sc3 sweep episodes --real NAME=STORE` (evaluate/labels.py) reads with the LeRobot source gone."""
+    `sc3 sweep episodes --real NAME=STORE` (evaluation/labels.py) reads with the LeRobot source gone."""
     from sc3_jax.data.episodes import EpisodeStore
-    from sc3_jax.evaluate import labels
+    from sc3_jax.evaluation import labels
 
     write_lerobot(tmp_path / "lr", _labelled(), FPS, image_dtype="image")  # ep 0: success only on frame 11
     want = {0: True, 1: False, 2: True}
@@ -353,7 +353,7 @@ def test_episodes_split_one_dataset_into_a_training_and_a_held_out_store(dataset
     initial conditions its world model trained on (all of a training store's, none of the held-out one's)."""
     from sc3_jax.cli import main
     from sc3_jax.data.episodes import EpisodeStore
-    from sc3_jax.evaluate.ic_sweep import trained_on
+    from sc3_jax.evaluation.ic_sweep import trained_on
 
     root = datasets("v3.0")
     common = ["--image-size", "16", "24", "--allow-missing-pose"]

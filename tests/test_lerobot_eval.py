@@ -162,7 +162,7 @@ def test_lerobot_eval_runs_an_act_inside_the_world_model_as_the_sweep_does(biman
                  "act=test_lerobot_eval:act", "--scorer", "test_lerobot_eval:score", "--episodes", "2",
                  "--calibration-episodes", "0", "--batch", "2", "--episode-seconds", "0.6", "--taus", "inf",
                  "--out", str(sweep), "--no-progress"]) == 0
-    from sc3_jax.evaluate.results import ResultsStore
+    from sc3_jax.evaluation.results import ResultsStore
 
     store = ResultsStore(sweep)
     recs = {r["seed"]: r for r in store.records()}

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from sc3_jax.cli import main
-from sc3_jax.errors import UserError
+from sc3_jax.core.errors import UserError
 from sc3_jax.policies.lerobot_policy import PYTHON_ENV, LeRobotPolicy
 from sc3_jax.policies.resolve import resolve
 from test_any_robot import CAMS, A, H, W, bimanual  # noqa: F401  (the fixture: imported store + trained tiny model)

@@ -6,9 +6,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from sc3_jax.config import TrainConfig
-from sc3_jax.errors import UserError
-from sc3_jax.train import check_schedule, lr_schedule, warmup_of
+from sc3_jax.core.config import TrainConfig
+from sc3_jax.core.errors import UserError
+from sc3_jax.train.train import check_schedule, lr_schedule, warmup_of
 
 
 @settings(max_examples=60, deadline=None)

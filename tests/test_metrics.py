@@ -6,7 +6,7 @@ import warnings
 import numpy as np
 import pytest
 
-from sc3_jax.evaluate.metrics import (
+from sc3_jax.measures.metrics import (
     categories,
     criteria_of,
     cumulative_passes,

@@ -5,8 +5,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from sc3_jax import flow, modes
-from sc3_jax.config import ModelConfig, load_config
+from sc3_jax.model import flow, modes
+from sc3_jax.core.config import ModelConfig, load_config
 from sc3_jax.model import dit, layers, tokenizer
 
 B, V, K, T, H = 2, 3, 2, 4, 16

@@ -3,8 +3,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from sc3_jax import flow, modes
-from sc3_jax.config import ModelConfig
+from sc3_jax.model import flow, modes
+from sc3_jax.core.config import ModelConfig
 from sc3_jax.model import dit, tokenizer
 
 V, K, T = 3, 2, 4
@@ -106,7 +106,7 @@ def test_residual_model_starts_as_copy_last_frame():
 def test_ablation_configs_change_only_their_mode_or_horizon():
     """Each named ablation applied to a base keeps the base and changes only what the paper's ablation removes; the
     remaining modes keep the base's ratio (bussing_latent draws FD / CVI / ID 0.7 / 0.1 / 0.2)."""
-    from sc3_jax.config import load_config
+    from sc3_jax.core.config import load_config
 
     expected = {"paper": {"ablation_no_id": (8 / 9, 1 / 9, 0.0), "ablation_no_cvi": (8 / 9, 0.0, 1 / 9)},
                 "bussing_latent": {"ablation_no_id": (0.875, 0.125, 0.0), "ablation_no_cvi": (7 / 9, 0.0, 2 / 9)}}

@@ -14,7 +14,7 @@ import msgpack
 import numpy as np
 import pytest
 
-from sc3_jax.errors import UserError
+from sc3_jax.core.errors import UserError
 from sc3_jax.policies import msgpack_numpy as mn
 from sc3_jax.policies.base import HostPolicy, JaxPolicy, as_host, check_dims
 from sc3_jax.policies.openpi_client import (PolicyConnectionError, PolicyServerError, PolicyTimeoutError,

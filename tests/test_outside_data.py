@@ -10,10 +10,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from sc3_jax import atomic, validate
+from sc3_jax.core import atomic, validate
 from sc3_jax.cli import main
-from sc3_jax.errors import UserError
-from sc3_jax.evaluate.results import check_records
+from sc3_jax.core.errors import UserError
+from sc3_jax.evaluation.results import check_records
 from sc3_jax.stats.rank_first import p_first
 
 
@@ -32,7 +32,7 @@ def test_p_best_sums_to_the_share_of_scored_draws_and_splits_ties(scores):
 
 
 def test_two_policies_at_zero_each_rank_first_in_half_the_draws_and_are_said_tied():
-    from sc3_jax.evaluate import intervals, report_episodes
+    from sc3_jax.evaluation import intervals, report_episodes
 
     point, draws = np.zeros((1, 2, 1)), np.zeros((50, 2, 1))
     rows = intervals.ranking(["a", "b"], ["success"], "success", point, draws, np.ones((2, 4)))
@@ -130,7 +130,7 @@ def test_an_out_that_is_a_file_or_under_one_is_refused(tmp_path, where):
 def test_every_named_config_passes_the_training_door():
     import dataclasses
 
-    from sc3_jax.config import available_configs, load_config
+    from sc3_jax.core.config import available_configs, load_config
 
     for name in available_configs():
         cfg = load_config(name)
@@ -148,7 +148,7 @@ def test_rollout_and_diagnose_read_benchmark_none_alike():
 
 
 def test_an_edited_policy_names_or_a_foreign_record_is_refused_naming_the_store(tmp_path):
-    from sc3_jax.evaluate.report_episodes import check_against_sweep
+    from sc3_jax.evaluation.report_episodes import check_against_sweep
 
     cfg = {"policies": ["a=zero", "b"], "policy_names": ["a", "b"], "conditions": ["e0", "e1"]}
     recs = [{"id": "a/0_online", "policy": "a", "seed": 0, "episode": "e0"}]
@@ -162,7 +162,7 @@ def test_an_edited_policy_names_or_a_foreign_record_is_refused_naming_the_store(
 
 
 def test_a_sweep_whose_out_is_a_file_is_refused_before_its_first_rollout(tmp_path):
-    from sc3_jax.evaluate.results import ResultsStore
+    from sc3_jax.evaluation.results import ResultsStore
 
     (tmp_path / "f").write_text("x")
     with pytest.raises(UserError, match="--out .*is under .*a file, not a directory"):

@@ -1,12 +1,13 @@
-"""Object permanence (evaluate/permanence.py): how much of the objects imagined frames keep against real ones, in
+"""Object permanence (measures/permanence.py): how much of the objects imagined frames keep against real ones, in
 the sweep report (a synthetic store whose imagined objects vanish reads low, one whose objects stay reads 1) and
 with the simulated benchmark's measure (its objects' colours, shading-invariant)."""
 import numpy as np
 import pytest
 
 from sc3_jax.benchmarks.bussing.hooks import object_pixels
-from sc3_jax.evaluate import permanence, report
-from sc3_jax.evaluate.results import ResultsStore, rollout_id
+from sc3_jax.measures import permanence
+from sc3_jax.evaluation import report
+from sc3_jax.evaluation.results import ResultsStore, rollout_id
 
 TABLE = (205, 180, 145)  # beige, as the benchmark's table
 RED = (230, 31, 31)  # the benchmark's red cup, lit

@@ -10,14 +10,16 @@ import jax
 import numpy as np
 import pytest
 
-from sc3_jax import plan, plan_vae, sharding, train, xla_cost
+from sc3_jax.train import plan, plan_vae, train
+from sc3_jax.model import sharding
+from sc3_jax.core import xla_cost
 from sc3_jax.cli import main
 from sc3_jax.commands import parse_with_config
 from sc3_jax.commands.plan import Args as PlanArgs
 from sc3_jax.commands.plan import config_of as plan_config
-from sc3_jax.config import MeshConfig, load_config, replace
+from sc3_jax.core.config import MeshConfig, load_config, replace
 from sc3_jax.data.action_space import ActionSpace
-from sc3_jax.errors import UserError
+from sc3_jax.core.errors import UserError
 
 
 def test_tiny_flops_match_bench_cost_analysis():
@@ -177,7 +179,7 @@ def test_plan_any_robot_pixel_tokens():
         [3, 5], 8 * 8 * 3, 14, 14, "absolute")
     assert p["tokens_per_sample"] == 4 * (2 + 4) * 3 * 5 + 4
     assert p["chunk_flops"] > 0 and p["step_flops"] > 0 and p["vae"] is None and p["tokenizer_bytes"] == 0
-    from sc3_jax import checkpoint
+    from sc3_jax.model import checkpoint
 
     shapes = checkpoint.param_shapes(cfg)
     assert shapes["action_in"]["w"].shape[1] == 14 and shapes["view_embed"].shape[0] == 4

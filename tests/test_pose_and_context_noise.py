@@ -5,8 +5,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from sc3_jax import flow, imagination_state, modes
-from sc3_jax.config import DataConfig, FlowConfig, ModelConfig
+from sc3_jax.model import flow, modes
+from sc3_jax.rollout import imagination_state
+from sc3_jax.core.config import DataConfig, FlowConfig, ModelConfig
 from sc3_jax.data import norm_stats
 from sc3_jax.data import pipeline as P
 from sc3_jax.data import synthetic as S

@@ -9,13 +9,13 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from sc3_jax import imagination_state, rollout
-from sc3_jax.config import load_config, replace
+from sc3_jax.rollout import imagination_state, rollout
+from sc3_jax.core.config import load_config, replace
 from sc3_jax.data import pipeline as P
 from sc3_jax.data.action_space import ActionSpace, fit_measured
 from sc3_jax.data.episodes import Episode, EpisodeStore
 from sc3_jax.data.norm_stats import NormStats
-from sc3_jax.errors import UserError
+from sc3_jax.core.errors import UserError
 
 FPS = 10.0
 SPACE = ActionSpace("velocity", 4, ("dx", "dy", "dz", "gripper"), (3,))  # SO-101's: the gripper a target
@@ -127,7 +127,7 @@ def test_a_mapping_that_does_not_fit_the_space_is_one_line():
 
 def test_a_fine_tune_from_a_model_that_integrated_from_zero_conditions_on_the_measured_state_in_its_action_units(
         tmp_path):
-    from sc3_jax.train import reconditioned
+    from sc3_jax.train.train import reconditioned
 
     store = _store(tmp_path / "s")
     old = NormStats(np.full(4, 0.1), np.full(4, 2.0), action_space=SPACE)  # the pose from zero: nothing measured

@@ -4,8 +4,8 @@ import json
 
 import pytest
 
-from sc3_jax import xla_cost
-from sc3_jax.evaluate import report
+from sc3_jax.core import xla_cost
+from sc3_jax.evaluation import report
 
 
 def _stats(episodes=4, tasks=("bussing",)):

@@ -48,7 +48,7 @@ def test_parse_splits_name_spec_and_task():
     assert R.parse("x=ws://h:1@any_task") == ("x", "ws://h:1", "any_task")  # a benchmark's sweep checks its tasks
     with pytest.raises(ValueError, match="NAME=ws://HOST:PORT@TASK"):
         R.parse("x=ws://127.0.0.1:1@no where")
-    from sc3_jax.evaluate import engine
+    from sc3_jax.evaluation import engine
     with pytest.raises(ValueError, match="NAME=ws://HOST:PORT@TASK"):  # refused before connecting
         engine.resolve_policies(["x=ws://127.0.0.1:1@nowhere"], need_task=True, tasks=("bussing", "reverse"))
     with pytest.raises(ValueError, match="empty"):
@@ -99,7 +99,7 @@ def test_every_command_resolves_every_spelling(server, monkeypatch):
     from sc3_jax.benchmarks.bussing.hooks import named_policy
     from sc3_jax.benchmarks.bussing.tasks import TASKS
     from sc3_jax.commands import parse, serve_policy
-    from sc3_jax.evaluate import engine
+    from sc3_jax.evaluation import engine
     from sc3_jax.benchmarks.bussing import cli as sim_cli
     from sc3_jax.benchmarks.bussing import policy_eval
 

@@ -10,12 +10,12 @@ from pathlib import Path
 import pytest
 
 from sc3_jax.data import synthetic
-from sc3_jax.train import read_metrics
+from sc3_jax.train.train import read_metrics
 
 STEPS = 150
 
 CONFIG = '''
-from sc3_jax.config import Config, DataConfig, ModelConfig, TrainConfig
+from sc3_jax.core.config import Config, DataConfig, ModelConfig, TrainConfig
 def get_config(arg=None):
     return Config(model=ModelConfig(dim=32, depth=1, num_heads=2, num_kv_heads=1, head_dim=16, mlp_dim=64,
                                     rope_axes_dim=(2, 3, 3)),

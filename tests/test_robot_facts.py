@@ -28,16 +28,16 @@ EXCLUDED = ("sc3_jax.benchmarks",)  # a benchmark's own facts are its to state
 
 # (qualified name, parameter) -> why its default is not a robot fact. Keep short: each entry is a debt or a reason.
 ALLOWED = {
-    ("sc3_jax.config.DataConfig", "views"):
+    ("sc3_jax.core.config.DataConfig", "views"):
         "debt: the synthetic demo data's views, which data-less configs (tiny, paper, bussing_sim, bussing_latent, "
         "cpu_medium) size from; `sc3 train` replaces it from dataset.json (data/shape.py). () breaks those configs, "
         "convert_cli's Config(model=...), and tests building DataConfig without views (data_pipeline, init_from, "
         "sharding, autoencoder, self_forcing, flow_levers, pose_and_context_noise, ...)",
-    ("sc3_jax.config.ModelConfig", "fps"):
+    ("sc3_jax.core.config.ModelConfig", "fps"):
         "cosmos3 layout's time-position scale (a model hyperparameter fixed at training; read back from config.json)",
-    ("sc3_jax.config.ModelConfig", "base_fps"):
+    ("sc3_jax.core.config.ModelConfig", "base_fps"):
         "cosmos3 layout's time-position scale (a model hyperparameter fixed at training; read back from config.json)",
-    ("sc3_jax.config.RolloutConfig", "control_hz"):
+    ("sc3_jax.core.config.RolloutConfig", "control_hz"):
         "the rollout's model frame rate, an evaluation setting (the paper's 10 Hz protocol: stride = data fps / "
         "control_hz, checked against the model's data fps in rollout.make_spec; saved in config.json), not a fact of "
         "the robot. None as 'the data's fps' would change what it means (stride 1, not 2, on 20 Hz data) and need "
@@ -155,13 +155,14 @@ def test_a_saved_model_records_its_robot_facts_and_a_rollout_reads_them(tmp_path
 
     import jax
 
-    from sc3_jax import checkpoint, rollout, rollout_io
-    from sc3_jax.config import load_config, replace
+    from sc3_jax.model import checkpoint
+    from sc3_jax.rollout import rollout, rollout_io
+    from sc3_jax.core.config import load_config, replace
     from sc3_jax.data import synthetic
     from sc3_jax.data.episodes import EpisodeStore
     from sc3_jax.data.norm_stats import NormStats
     from sc3_jax.data.shape import shape_from_dataset
-    from sc3_jax.errors import UserError
+    from sc3_jax.core.errors import UserError
     from sc3_jax.model import dit
     from sc3_jax.model.tokenizer import make_tokenizer
 

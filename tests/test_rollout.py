@@ -1,4 +1,4 @@
-"""Closed-loop rollout engine (sc3_jax/rollout.py): scan vs host loop, U_chunk, termination, context caching, offline
+"""Closed-loop rollout engine (sc3_jax/rollout/rollout.py): scan vs host loop, U_chunk, termination, context caching, offline
 replay, batching/sharding and the CLI. Tiny random-parameter models: semantics, not learning."""
 import dataclasses
 import math
@@ -8,13 +8,13 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from sc3_jax import imagination_state, rollout
-from sc3_jax.config import config_from_dict, load_config, replace
+from sc3_jax.rollout import imagination_state, rollout
+from sc3_jax.core.config import config_from_dict, load_config, replace
 from sc3_jax.data import rotations
 from sc3_jax.data.action_space import DELTA_EE
 from sc3_jax.data.norm_stats import NormStats
-from sc3_jax.evaluate import results
-from sc3_jax.evaluate.metrics import psnr, psnr_by_view, termination_rate
+from sc3_jax.evaluation import results
+from sc3_jax.measures.metrics import psnr, psnr_by_view, termination_rate
 from sc3_jax.model import dit
 from sc3_jax.model.tokenizer import make_tokenizer, to_uint8
 from sc3_jax.policies import simple
@@ -290,7 +290,7 @@ def test_offline_replay_with_recorded_actions(tmp_path, setup):
                              rollout.make_spec(cfg, store.fps, num_chunks=7, action_space=DELTA_EE))
     out = ro.run_offline(params, ics, actions, rollout.episode_keys(0, B))
     np.testing.assert_allclose(out["actions"], actions[:, :, :3].reshape(B, N * 3, 7))
-    assert "psnr" not in out  # scoring is the caller's (evaluate.metrics)
+    assert "psnr" not in out  # scoring is the caller's (measures.metrics)
     per_frame, per_view = psnr_by_view(out["frames"], targets, out["frame_valid"])
     assert per_frame.shape == (B, 3, N * 3) and np.all(np.isfinite(per_frame))
     np.testing.assert_allclose(per_frame, psnr(out["frames"], targets), rtol=1e-5)
@@ -307,7 +307,7 @@ def test_cli_writes_arrays_and_videos(tmp_path, setup, capsys):
 
     import cv2
 
-    from sc3_jax import train
+    from sc3_jax.train import train
     from sc3_jax.cli import main
     from sc3_jax.benchmarks.bussing.sweep import SweepConfig
 

@@ -7,7 +7,7 @@ import pytest
 
 from sc3_jax.benchmarks.bussing import perception
 from sc3_jax.benchmarks.bussing.scorers import PerceptionScorer, SimScorer, criteria_from_predicates
-from sc3_jax.evaluate.scorers import RolloutView, agreement, first_run, held
+from sc3_jax.evaluation.scorers import RolloutView, agreement, first_run, held
 from sc3_jax.benchmarks.bussing.criteria import evaluate_object
 
 DEST = {"cup": "bin", "bag": "can"}

@@ -5,11 +5,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from sc3_jax import flow, modes, sharding, train
-from sc3_jax.config import (Config, DataConfig, FlowConfig, MeshConfig, ModelConfig, RolloutConfig, TrainConfig,
+from sc3_jax.model import flow, modes, sharding
+from sc3_jax.train import train
+from sc3_jax.core.config import (Config, DataConfig, FlowConfig, MeshConfig, ModelConfig, RolloutConfig, TrainConfig,
                             replace)
 from sc3_jax.data import synthetic
-from sc3_jax.errors import UserError
+from sc3_jax.core.errors import UserError
 from sc3_jax.model import dit
 
 from _training_checks import assert_resumed_like_straight, assert_same_training
@@ -63,7 +64,7 @@ def _extended(key, B, shift):
 def _loss_without_self_forcing(params, cfg, video, actions, stride, rng, probs, grid, fcfg=FlowConfig(),
                                context_frames=None, pose=None, **_):
     """flow.loss as it was before self-forcing existed (verbatim): the reference the off switch must equal."""
-    from sc3_jax.flow import draw_t, masked_loss, noise_context, noise_inputs, predict
+    from sc3_jax.model.flow import draw_t, masked_loss, noise_context, noise_inputs, predict
     B, V, F = video.shape[:3]
     T = actions.shape[1]
     K = F - T if context_frames is None else context_frames

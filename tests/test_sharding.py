@@ -3,8 +3,9 @@ import jax
 import numpy as np
 import pytest
 
-from sc3_jax import sharding, train
-from sc3_jax.config import Config, DataConfig, MeshConfig, ModelConfig, TrainConfig
+from sc3_jax.model import sharding
+from sc3_jax.train import train
+from sc3_jax.core.config import Config, DataConfig, MeshConfig, ModelConfig, TrainConfig
 
 
 def small_config(mesh=(1, 1, 1)) -> Config:
@@ -62,8 +63,8 @@ def test_gradient_accumulation_is_the_mean_of_micro_batch_gradients():
     (samples 0, 2, 4, .. and 1, 3, 5, ..; noise keys fold_in(step key, i)) with the mean of their gradients."""
     import optax
 
-    from sc3_jax import flow
-    from sc3_jax.config import replace
+    from sc3_jax.model import flow
+    from sc3_jax.core.config import replace
     from sc3_jax.model.tokenizer import make_tokenizer
 
     cfg = replace(small_config((4, 1, 1)), train=dict(grad_accum=2))

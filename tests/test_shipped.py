@@ -6,7 +6,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from sc3_jax import checkpoint, rollout
+from sc3_jax.model import checkpoint
+from sc3_jax.rollout import rollout
 from sc3_jax.benchmarks.bussing import perception, sweep
 
 
@@ -53,6 +54,7 @@ def test_the_distilled_student_is_its_teachers_architecture_in_its_units_with_tr
     assert (student / "norm_stats.json").read_text() == (sweep.SHIPPED_WORLD_MODEL / "norm_stats.json").read_text()
     tok = "tokenizer/ae_params.npz"
     assert (student / tok).read_bytes() == (sweep.SHIPPED_WORLD_MODEL / tok).read_bytes()
+    # the teacher as recorded when the student was distilled (before sc3_jax/evaluate/ became evaluation/)
     assert cfg.flow.distill_teacher == "sc3_jax/evaluate/shipped/bussing_latent_gpu" and cfg.flow.distill_steps == 2
     leaves, tleaves = jax.tree_util.tree_leaves(params), jax.tree_util.tree_leaves(tparams)
     assert all(np.all(np.isfinite(np.asarray(v, np.float32))) for v in leaves)

@@ -1,4 +1,4 @@
-"""Configs sized from the data (sc3_jax/sizing.py): a named config's token budget per frame picks the patch on any
+"""Configs sized from the data (sc3_jax/train/sizing.py): a named config's token budget per frame picks the patch on any
 image size and camera count, its batch keeps the step near the cost it has on the shape it was written for, and
 `sc3 train` says the cost before anything compiles."""
 import dataclasses
@@ -8,9 +8,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from sc3_jax import plan, sizing
+from sc3_jax.train import plan, sizing
 from sc3_jax.cli import main
-from sc3_jax.config import load_config
+from sc3_jax.core.config import load_config
 from sc3_jax.data import synthetic
 
 # (image size, cameras): our benchmark's, a lab's SO-101, small and large frames, one to four cameras
@@ -82,7 +82,7 @@ def test_a_config_without_a_budget_is_left_alone():
 def test_train_prints_its_cost_before_it_compiles(tmp_path, capsys, monkeypatch):
     """The cost line (tokens a frame and a sample, GFLOP, seconds and GB) comes before the compiled step runs: the
     trainer is stopped at its first call, after the line was printed."""
-    from sc3_jax import train
+    from sc3_jax.train import train
 
     store = tmp_path / "s"
     synthetic.generate(store, 2, length=12, progress=False)
@@ -131,7 +131,7 @@ def test_a_resumed_run_keeps_the_size_it_started_with(tmp_path):
 
 def test_an_image_size_no_patch_can_fit_is_one_line_naming_the_fix():
     """97 x 128 has no common divisor but 1: thousands of 1-pixel tokens a frame would be a silent cost."""
-    from sc3_jax.errors import UserError
+    from sc3_jax.core.errors import UserError
 
     declared = load_config("tiny")
     with pytest.raises(UserError, match="--image-size H W"):

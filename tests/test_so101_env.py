@@ -14,7 +14,7 @@ from sc3_jax.benchmarks.so101.controllers import ScriptedSo101  # noqa: E402
 from sc3_jax.benchmarks.so101.env import So101Env  # noqa: E402
 from sc3_jax.benchmarks.so101.rollouts import Job, Setup, run_episode, run_episodes, run_policy_episode  # noqa: E402
 from sc3_jax.cli import main  # noqa: E402
-from sc3_jax.errors import UserError  # noqa: E402
+from sc3_jax.core.errors import UserError  # noqa: E402
 
 SIZE = (24, 32)  # the arm's meshes, not the pixels, set the render time: small frames are barely cheaper
 
@@ -201,7 +201,7 @@ def test_the_pixel_scorer_says_done_for_a_placed_block_and_not_for_a_faded_one()
     from sc3_jax.benchmarks.so101.env import BLOCK_RGBA
     from sc3_jax.benchmarks.so101.rollouts import HOLD
     from sc3_jax.benchmarks.so101.scorer import block_at_goal
-    from sc3_jax.evaluate.scorers import RolloutView
+    from sc3_jax.evaluation.scorers import RolloutView
 
     e = So101Env((80, 80))
     try:

@@ -7,8 +7,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from sc3_jax.benchmarks.so101.placed import LIFT_Z, RADIUS, REST_Z, block_placed, placed_frames
-from sc3_jax.errors import UserError
-from sc3_jax.evaluate.scorers import RolloutView
+from sc3_jax.core.errors import UserError
+from sc3_jax.evaluation.scorers import RolloutView
 
 GOAL = np.array([0.25, 0.05])
 

@@ -75,7 +75,7 @@ def test_the_report_compares_the_imagined_ranking_with_the_simulator(swept):
         f"seed{20_000_000 + i}.npz" for i in range(2)]
     assert set(t["permanence"]) == {"1 s", "2 s"} and all(e["rollouts"] == 4 for e in t["permanence"].values())
     assert "Objects kept (object permanence), closed loop" in (tmp / "sweep" / "report" / "report.md").read_text()
-    # the benchmark's name, for `sc3 report` to read its scene measure with (sc3_jax/benchmark.py)
+    # the benchmark's name, for `sc3 report` to read its scene measure with (sc3_jax/evaluation/benchmark.py)
     assert json.loads((tmp / "sweep" / "benchmark.json").read_text()) == {"benchmark": "so101"}
     check = json.loads((tmp / "sweep" / "scorer_check.json").read_text())
     assert check["all"]["n"] == 4 and 0 <= check["agreement"] <= 1

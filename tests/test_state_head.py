@@ -1,10 +1,10 @@
-"""The learned robot state (sc3_jax/state_head.py): a two-link arm driven by end-effector deltas records its joint
+"""The learned robot state (sc3_jax/rollout/state_head.py): a two-link arm driven by end-effector deltas records its joint
 angles, so the state is not the integral of the actions; the head learns it from the episodes and, unrolled over
 held-out episodes as a rollout unrolls it, beats holding the first state and integrating the commands by half."""
 import numpy as np
 import pytest
 
-from sc3_jax import state_head
+from sc3_jax.rollout import state_head
 from sc3_jax.data.action_space import ActionSpace
 from sc3_jax.data.episodes import Episode, EpisodeStore
 
@@ -79,7 +79,7 @@ def test_the_learned_state_halves_the_error_of_holding_or_integrating(stores):
 
 
 def test_a_store_without_a_state_has_nothing_to_learn(tmp_path):
-    from sc3_jax.errors import UserError
+    from sc3_jax.core.errors import UserError
 
     store = EpisodeStore(tmp_path / "s", ["front"], fps=10.0, image_size=(SIZE, SIZE), create=True,
                          action_space=SPACE, has_pose=False)

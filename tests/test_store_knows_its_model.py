@@ -1,5 +1,5 @@
 """A results store knows what its rollouts came from: sweep.json records the world model's content hash and step,
-the scorer's and the policies' file hashes (evaluate/engine.py with_identity); resuming it against a changed
+the scorer's and the policies' file hashes (evaluation/engine.py with_identity); resuming it against a changed
 model, scorer or policy file is refused in one line naming both, and a store from before the hash resumes with a
 note, recording nothing new."""
 import json
@@ -8,9 +8,9 @@ import jax
 import numpy as np
 import pytest
 
-from sc3_jax import checkpoint
-from sc3_jax.errors import UserError
-from sc3_jax.evaluate import engine
+from sc3_jax.model import checkpoint
+from sc3_jax.core.errors import UserError
+from sc3_jax.evaluation import engine
 from test_any_robot import bimanual  # noqa: F401  (the fixture: imported store + trained tiny model)
 from test_ic_sweep import _conditions, _error, _sweep
 

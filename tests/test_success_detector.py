@@ -9,8 +9,8 @@ import pytest
 from sc3_jax.cli import main
 from sc3_jax.data.action_space import ActionSpace
 from sc3_jax.data.episodes import Episode, EpisodeStore
-from sc3_jax.evaluate.scorers import RolloutView, load_outcome_scorer
-from sc3_jax.evaluate.success_detector import decide
+from sc3_jax.evaluation.scorers import RolloutView, load_outcome_scorer
+from sc3_jax.evaluation.success_detector import decide
 
 
 def _store(root, n=20, labels=True):
@@ -55,6 +55,6 @@ def test_a_store_without_labels_or_a_missing_detector_is_one_line(tmp_path, caps
                  "--no-progress"]) == 2
     err = capsys.readouterr().err.strip()
     assert "no episode has a boolean labels.success" in err and "\n" not in err
-    from sc3_jax.errors import UserError
+    from sc3_jax.core.errors import UserError
     with pytest.raises(UserError, match="no detector.json"):
         load_outcome_scorer(f"detector:{tmp_path / 'nothing'}")

@@ -17,14 +17,17 @@ import numpy as np
 import pytest
 
 import sc3_jax.benchmarks.bussing  # noqa: F401  (picks the GL backend before mujoco is imported)
-from sc3_jax import checkpoint, rollout, train
-from sc3_jax.config import load_config, replace
+from sc3_jax.model import checkpoint
+from sc3_jax.rollout import rollout
+from sc3_jax.train import train
+from sc3_jax.core.config import load_config, replace
 from sc3_jax.data.norm_stats import NormStats
-from sc3_jax.evaluate import engine, metrics, report
+from sc3_jax.evaluation import engine, report
+from sc3_jax.measures import metrics
 from sc3_jax.benchmarks.bussing import annotation, perception, sweep
-from sc3_jax.errors import UserError
-from sc3_jax.evaluate.results import EVAL_MODES, ResultsStore, rollout_id, seed_blocks
-from sc3_jax.evaluate.scorers import RolloutView
+from sc3_jax.core.errors import UserError
+from sc3_jax.evaluation.results import EVAL_MODES, ResultsStore, rollout_id, seed_blocks
+from sc3_jax.evaluation.scorers import RolloutView
 from sc3_jax.benchmarks.bussing.scorers import HumanScorer
 from sc3_jax.benchmarks.bussing.tasks import CRITERIA, TASKS
 
@@ -93,7 +96,7 @@ def test_sweep_writes_every_rollout(setup):
 
 def test_validate_rescores_real_rollouts_as_the_sweep_scored_them(setup):
     from sc3_jax.benchmarks.bussing.perception_train import validate
-    from sc3_jax.evaluate.scorers import agreement
+    from sc3_jax.evaluation.scorers import agreement
     root, cfg = setup
     real = [r for r in ResultsStore(cfg.out).records() if r["mode"] == "real"]
     robot = checkpoint.read_robot(cfg.world_model)
@@ -103,7 +106,7 @@ def test_validate_rescores_real_rollouts_as_the_sweep_scored_them(setup):
     truth = [r["objects"] for r in real]
     assert got["clean"] == agreement([r["perception"] for r in real], truth)
     # the sweep read degraded copies of the calibration rollouts only: rescored, they are what it recorded
-    from sc3_jax.evaluate.scorers import RolloutView
+    from sc3_jax.evaluation.scorers import RolloutView
     from sc3_jax.benchmarks.bussing.scorers import PerceptionScorer
     from sc3_jax.benchmarks.bussing.tasks import make_initial_condition
     scorer = PerceptionScorer(perception.load(root / "perception.npz"))
@@ -118,7 +121,7 @@ def test_validate_rescores_real_rollouts_as_the_sweep_scored_them(setup):
 
 
 def test_report_shows_the_world_models_diagnose_gates(setup):
-    from sc3_jax.evaluate import diagnose
+    from sc3_jax.evaluation import diagnose
     root, cfg = setup
     gate_rows = lambda t: [x[2] for x in report.tables(t) if x[0].startswith("World-model checkpoint gates")]  # noqa: E731
     t = report.compute(cfg.out, draws=20)
@@ -402,7 +405,7 @@ def test_compute_curve_over_sweeps_sharing_one_real_set(setup, tmp_path):
     points whose real rollouts differ are refused."""
     import shutil
 
-    from sc3_jax.evaluate import curve
+    from sc3_jax.evaluation import curve
     _, cfg = setup
     second = dataclasses.replace(cfg, out=str(tmp_path / "second"), modes=("real", "online"), real_from=cfg.out)
     sweep.run_sweep(second)
@@ -551,7 +554,7 @@ def test_chunk_actions_compose_pairs_and_hold_still_after_the_end():
 
 
 def sweep_spec():
-    from sc3_jax import rollout
+    from sc3_jax.rollout import rollout
     from sc3_jax.data.action_space import DELTA_EE
     return rollout.make_spec(load_config("bussing_sim"), 20.0, num_chunks=2, action_space=DELTA_EE)  # its data: 20 fps
 
@@ -580,7 +583,7 @@ def test_remote_policy_over_the_openpi_protocol(setup, tmp_path):
 
 
 def test_degradations_choice_reads_legacy_booleans_and_refuses_others():
-    from sc3_jax.errors import UserError
+    from sc3_jax.core.errors import UserError
     assert [sweep.degradations_choice(v) for v in (True, False, "calibration", "all", "none")] == \
         ["all", "none", "calibration", "all", "none"]
     with pytest.raises(UserError, match="choose from"):

@@ -12,11 +12,11 @@ import numpy as np
 import pytest
 
 import sc3_jax.benchmarks.bussing  # noqa: F401  (picks the GL backend before mujoco is imported)
-from sc3_jax.errors import UserError
-from sc3_jax.evaluate import engine, report
+from sc3_jax.core.errors import UserError
+from sc3_jax.evaluation import engine, report
 from sc3_jax.benchmarks.bussing import perception, sweep
-from sc3_jax.evaluate.merged import open_store
-from sc3_jax.evaluate.results import EVAL_MODES, ResultsStore, seed_blocks
+from sc3_jax.evaluation.merged import open_store
+from sc3_jax.evaluation.results import EVAL_MODES, ResultsStore, seed_blocks
 from test_sweep import POLICIES, tiny_world_model
 
 

@@ -19,14 +19,14 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from sc3_jax import atomic, locks
+from sc3_jax.core import atomic, locks
 from sc3_jax.cli import main
 from sc3_jax.data.action_space import ActionSpace
 from sc3_jax.data.episodes import Episode, EpisodeStore
-from sc3_jax.errors import UserError
-from sc3_jax.evaluate import labels, report_html
-from sc3_jax.evaluate.results import ResultsStore
-from sc3_jax.safe_names import file_name, join_inside
+from sc3_jax.core.errors import UserError
+from sc3_jax.evaluation import labels, report_html
+from sc3_jax.evaluation.results import ResultsStore
+from sc3_jax.core.safe_names import file_name, join_inside
 from test_any_robot import A, bimanual  # noqa: F401  (the fixture: imported 14-D store + trained tiny model)
 from test_atomic import snapshot
 from test_ic_sweep import CHUNK, _conditions, score  # noqa: F401  (score: the sweep's scorer, by name)
@@ -305,7 +305,7 @@ def test_the_policy_server_listens_on_this_machine_only_by_default():
 
 
 # -- one writer per store and per workdir ---------------------------------------------------------------------------
-HOLDER = ("import sys, time; from sc3_jax import locks; lock = locks.Lock(sys.argv[1], 'sweep'); "
+HOLDER = ("import sys, time; from sc3_jax.core import locks; lock = locks.Lock(sys.argv[1], 'sweep'); "
           "print('held', flush=True); time.sleep(600)")
 
 
@@ -340,7 +340,8 @@ def test_a_second_trainer_on_one_workdir_is_refused(bimanual, tmp_path, capsys):
 
 
 def test_a_failed_start_leaves_no_run_and_the_corrected_command_trains(bimanual, tmp_path, monkeypatch):  # noqa: F811
-    from sc3_jax import config, train
+    from sc3_jax.core import config
+    from sc3_jax.train import train
 
     cfg = config.replace(bimanual[5], train=dict(workdir=str(tmp_path / "run"), steps=1, ckpt_every=1))
 
@@ -435,7 +436,7 @@ def test_a_truncated_store_is_one_line_in_train_and_leaves_no_run(tmp_path, caps
 
 
 def test_a_start_killed_before_its_first_step_is_undone_by_the_retry(tmp_path):
-    from sc3_jax import train
+    from sc3_jax.train import train
 
     workdir = tmp_path / "run"
     workdir.mkdir()
@@ -448,7 +449,8 @@ def test_a_start_killed_before_its_first_step_is_undone_by_the_retry(tmp_path):
 
 
 def test_a_batch_the_machine_cannot_hold_is_refused_before_anything_is_written(tmp_path):
-    from sc3_jax import config, train
+    from sc3_jax.core import config
+    from sc3_jax.train import train
 
     cfg = config.replace(config.load_config("tiny"), data=dict(batch_size=10**9, path=str(tmp_path / "none")),
                          train=dict(workdir=str(tmp_path / "run")))
@@ -488,7 +490,7 @@ def test_a_record_whose_outcome_is_not_true_or_false_is_one_line(tmp_path, outco
 
 @pytest.mark.parametrize("value", [np.nan, np.inf, 1e30])
 def test_sc3_rollout_refuses_non_finite_actions_and_their_u_before_writing(value):
-    from sc3_jax.evaluate import rollout_summary
+    from sc3_jax.evaluation import rollout_summary
 
     actions = np.zeros((2, 4, A), np.float32)
     actions[1, 2, 0] = value
@@ -502,7 +504,7 @@ def test_sc3_rollout_refuses_non_finite_actions_and_their_u_before_writing(value
 
 @pytest.mark.parametrize("seconds", [-1, 0, 1e9, float("inf"), float("nan")])
 def test_rollout_seconds_outside_what_a_run_can_hold_are_one_line(seconds):
-    from sc3_jax import rollout_io
+    from sc3_jax.rollout import rollout_io
 
     with pytest.raises(UserError, match="--rollout.episode-seconds"):
         rollout_io.check_seconds(seconds)
@@ -550,7 +552,7 @@ def test_a_lerobot_info_json_naming_files_outside_or_unknown_placeholders_is_one
 
 
 def test_a_world_model_config_with_a_retyped_field_is_one_line_naming_it(tmp_path):
-    from sc3_jax import checkpoint
+    from sc3_jax.model import checkpoint
     from test_sweep import tiny_world_model
 
     wm = tiny_world_model(tmp_path)

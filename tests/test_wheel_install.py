@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from sc3_jax import config
+from sc3_jax.core import config
 
 ROOT = Path(__file__).resolve().parents[1]
 NAMES = {"ablation_forward_only", "ablation_no_cvi", "ablation_no_decouple", "ablation_no_id", "aloha_wan",
@@ -85,7 +85,7 @@ def test_a_wheel_lists_every_config_and_trains_tiny(tmp_path):
         return subprocess.run([sys.executable, *args], env=env, cwd=tmp_path, capture_output=True, text=True,
                               check=check)
 
-    where = python("-c", "import sc3_jax, sc3_jax.configs; from sc3_jax.config import configs_dir; "
+    where = python("-c", "import sc3_jax, sc3_jax.configs; from sc3_jax.core.config import configs_dir; "
                    "print(sc3_jax.__file__); print(configs_dir())").stdout.split()
     assert all(w.startswith(str(site)) for w in where), f"imported {where}, not the wheel's in {site}"
     listed = python("-m", "sc3_jax.cli", "configs")

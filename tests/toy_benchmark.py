@@ -2,7 +2,7 @@
 of sc3_jax names it, and ``sc3 sweep`` / ``sc3 report`` / ``sc3 diagnose`` use it through the registry alone.
 
 Its "robot" is test_any_robot.py's bimanual one (14-D absolute joint targets); its sweep is the core engine's
-(``evaluate/ic_sweep.py``) on held-out episodes, with a toy real-outcome table (``real.csv``) and the held-out
+(``evaluation/ic_sweep.py``) on held-out episodes, with a toy real-outcome table (``real.csv``) and the held-out
 episodes' own frames kept as the real frames of the report's objects-kept row; its scene measure is the fraction of
 bright pixels; its scorer returns ``{criterion: bool}`` from the imagined state; its policies are named ``hold`` and
 ``reach`` (an offset from the state they observe)."""
@@ -14,8 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
-from sc3_jax.benchmark import Benchmark
-from sc3_jax.evaluate.world_model_defaults import SamplerSteps
+from sc3_jax.evaluation.benchmark import Benchmark
+from sc3_jax.evaluation.world_model_defaults import SamplerSteps
 
 CALLS = {"scene": 0, "scorer": 0, "named": []}  # what the commands called, for the test to check
 OFFSETS = {"hold": 0.0, "reach": 0.3}
@@ -77,10 +77,12 @@ def dark(frames: np.ndarray) -> np.ndarray:
 
 
 def run_sweep(cfg: ToySweepConfig) -> Path:
-    from sc3_jax import atomic, checkpoint
+    from sc3_jax.core import atomic
+    from sc3_jax.model import checkpoint
     from sc3_jax.data.episodes import EpisodeStore
-    from sc3_jax.evaluate import ic_sweep, permanence
-    from sc3_jax.evaluate.report_episodes import REAL_FRAMES
+    from sc3_jax.evaluation import ic_sweep
+    from sc3_jax.measures import permanence
+    from sc3_jax.evaluation.report_episodes import REAL_FRAMES
 
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -1,7 +1,7 @@
 """A second toy benchmark defined outside the package, named as ``toy_objects:BENCHMARK`` (tests/ is on the path), with
 what the simulated benchmark has and the first toy lacks: a simulator of its own (real rollouts in the sweep's store),
 per-object criteria and two splits. No file of sc3_jax names it; it runs through the one sweep engine
-(``evaluate/engine.py``), the report of a simulated benchmark and its tau calibration.
+(``evaluation/engine.py``), the report of a simulated benchmark and its tau calibration.
 
 Its "robot" is test_any_robot.py's bimanual one (14-D absolute joint targets). Its objects are the two arms, each
 scored on two ordered criteria, ``reached`` (moved > 0.1 on average) then ``held`` (> 0.25), from the robot's state
@@ -18,8 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
-from sc3_jax.benchmark import Benchmark
-from sc3_jax.evaluate.world_model_defaults import Sampler
+from sc3_jax.evaluation.benchmark import Benchmark
+from sc3_jax.evaluation.world_model_defaults import Sampler
 
 ARMS = {"left": slice(0, 7), "right": slice(7, 14)}  # its objects
 CRITERIA = {"reached": 0.1, "held": 0.25}  # ordered, cumulative: mean joint displacement of an arm above each
@@ -85,7 +85,7 @@ def named_policy(name: str):
 
 def outcomes(states: np.ndarray) -> list[dict]:
     """One outcome per arm from the robot's states [T, 14]: its criteria in their order, and its category."""
-    from sc3_jax.evaluate.metrics import outcome_category
+    from sc3_jax.measures.metrics import outcome_category
 
     out = []
     for arm, sl in ARMS.items():
@@ -107,7 +107,8 @@ class ObjectsSource:
 
     def _conditions(self, spec):
         if self._ics is None:
-            from sc3_jax import checkpoint, rollout_io
+            from sc3_jax.model import checkpoint
+            from sc3_jax.rollout import rollout_io
             wcfg = checkpoint.read_config(self.cfg.world_model)
             self._ics = rollout_io.load_initial_conditions(self.cfg.data, wcfg, spec, None, 0, 0)[1]
         return self._ics
@@ -128,8 +129,9 @@ class ObjectsSource:
         """The toy simulator: every step each joint moves halfway to its commanded target; the policy is asked for a
         chunk every ``keep`` steps (as inside the world model). Frames: the condition's last context frame, at the
         data's rate."""
-        from sc3_jax import checkpoint, rollout
-        from sc3_jax.evaluate.world_model_defaults import evaluation_config
+        from sc3_jax.model import checkpoint
+        from sc3_jax.rollout import rollout
+        from sc3_jax.evaluation.world_model_defaults import evaluation_config
         wcfg = evaluation_config(checkpoint.read_config(self.cfg.world_model), self.cfg)  # the sweep's horizon
         fps = checkpoint.read_robot(self.cfg.world_model, wcfg).fps
         spec = rollout.make_spec(wcfg, fps, action_space=checkpoint.read_norm_stats(self.cfg.world_model).action_space)
@@ -151,8 +153,8 @@ class ObjectsSource:
 
 
 def run_sweep(cfg: ObjectsSweepConfig) -> Path:
-    from sc3_jax.evaluate import engine
-    from sc3_jax.evaluate.results import seed_blocks
+    from sc3_jax.evaluation import engine
+    from sc3_jax.evaluation.results import seed_blocks
 
     policies = engine.resolve_policies(cfg.policies, named_policy, need_task=True, tasks=tuple(SPLITS))
     tasks = {p.name: p.task for p in policies}

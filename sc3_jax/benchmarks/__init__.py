@@ -1,4 +1,4 @@
-"""Benchmarks: each a plug-in of the evaluation core (sc3_jax/evaluate), which never imports one. A benchmark
+"""Benchmarks: each a plug-in of the evaluation core (sc3_jax/evaluation), which never imports one. A benchmark
 supplies initial conditions from its seeds, real rollouts from its simulator, a scorer and its policies.
 
 Both simulators render headless with MuJoCo; ``pick_gl_backend`` is the choice every benchmark package makes on

@@ -36,7 +36,7 @@ def parse_with_config(args: type[T], argv: list[str], command: str, base: Callab
     ``base(parsed args)`` (the named config, or the config of the world model the command loads). One spelling of
     config overrides for every command; an unknown option is refused by the second parse, naming it, and a spelling
     from before the shared options' (``flags.OLD``: ``--data.path`` is ``--data``) before either."""
-    from sc3_jax.config import Config
+    from sc3_jax.core.config import Config
 
     refuse_old_spellings(command, argv, args)
     a, rest = tyro.cli(args, args=argv, prog=f"sc3 {command}", return_unknown_args=True,
@@ -52,8 +52,8 @@ def parse_evaluated(args: type[T], argv: list[str], command: str):
     ``world_model_defaults.SamplerSteps``): its config under the evaluation sampler (``--sample-steps`` and
     ``--inverse-steps``, whose defaults are the sweeps'), then the ``--SECTION.FIELD`` overrides; a distilled student
     sampled off its one step is warned about."""
-    from sc3_jax import checkpoint
-    from sc3_jax.evaluate.world_model_defaults import Sampler, evaluation_config, warn_if_student_off_its_step
+    from sc3_jax.model import checkpoint
+    from sc3_jax.evaluation.world_model_defaults import Sampler, evaluation_config, warn_if_student_off_its_step
 
     a, cfg = parse_with_config(args, argv, command, lambda a: evaluation_config(
         checkpoint.read_config(a.world_model), Sampler(sample_steps=a.sample_steps, inverse_steps=a.inverse_steps)))

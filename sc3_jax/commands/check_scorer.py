@@ -1,13 +1,13 @@
 """``sc3 check-scorer --data STORE --scorer SPEC``: a scorer's agreement with the real outcomes of a store's labelled
-episodes, on their real frames (``sc3_jax/evaluate/scorer_check.py``) -- the check before a sweep trusts it."""
+episodes, on their real frames (``sc3_jax/evaluation/scorer_check.py``) -- the check before a sweep trusts it."""
 from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
 
-from sc3_jax import atomic
+from sc3_jax.core import atomic
 from sc3_jax.commands import parse
-from sc3_jax.errors import UserError
+from sc3_jax.core.errors import UserError
 
 SUMMARY = "a scorer's agreement with the labels of real episodes, on their frames"  # the line `sc3 --help` shows
 
@@ -31,7 +31,7 @@ class Args:
 
 
 def main(argv: list[str]) -> int:
-    from sc3_jax.evaluate import scorer_check
+    from sc3_jax.evaluation import scorer_check
 
     a = parse(Args, argv, "check-scorer")
     if a.out is not None:  # said before the episodes are scored, not after

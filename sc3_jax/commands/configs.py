@@ -15,11 +15,11 @@ class Args:
 
 def main(argv: list[str]) -> int:
     parse(Args, argv, "configs")  # no options; --help, and a stray argument is an error
-    from sc3_jax import checkpoint
-    from sc3_jax.config import available_configs, load_config
+    from sc3_jax.model import checkpoint
+    from sc3_jax.core.config import available_configs, load_config
     from sc3_jax.model import dit
     from sc3_jax.model.tokenizer import tokens_per_sample
-    from sc3_jax.plan_vae import shape_only_vae
+    from sc3_jax.train.plan_vae import shape_only_vae
 
     print("named configs (sc3_jax/configs; --config NAME, or --config PATH to a file of your own):")
     for name in available_configs():

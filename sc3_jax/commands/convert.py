@@ -1,5 +1,5 @@
 """``sc3 convert --from diffusers DIR --to OUT | --from sc3 RUN --to DIR``: Cosmos3 transformer weights between
-diffusers and sc3_jax (sc3_jax/convert_cli.py; docs/cosmos3.md)."""
+diffusers and sc3_jax (sc3_jax/commands/convert_cli.py; docs/cosmos3.md)."""
 from __future__ import annotations
 
 import dataclasses
@@ -8,7 +8,7 @@ from typing import Annotated, Literal
 import tyro
 
 from sc3_jax.commands import parse
-from sc3_jax.errors import UserError
+from sc3_jax.core.errors import UserError
 
 SUMMARY = "Cosmos3 transformer weights between diffusers and sc3_jax"  # the line `sc3 --help` shows
 
@@ -32,7 +32,7 @@ class Args:
 
 def main(argv: list[str]) -> int:
     a = parse(Args, argv, "convert")
-    from sc3_jax import convert_cli
+    from sc3_jax.commands import convert_cli
 
     try:
         if a.src_kind == "diffusers":

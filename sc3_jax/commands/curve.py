@@ -13,7 +13,7 @@ SUMMARY = "faithfulness against training compute over several sweeps"  # the lin
 @dataclasses.dataclass(frozen=True)
 class Args:
     """Faithfulness against training compute: one table and one plot over several checkpoints' sweeps
-    (sc3_jax/evaluate/curve.py)."""
+    (sc3_jax/evaluation/curve.py)."""
 
     spec: tyro.conf.Positional[str]
     """JSON: {"title": ..., "points": [{"label", "store", "steps", "batch", "device", "hours"}, ...]}"""
@@ -25,7 +25,7 @@ class Args:
 
 def main(argv: list[str]) -> int:
     a = parse(Args, argv, "curve")
-    from sc3_jax.evaluate import curve
+    from sc3_jax.evaluation import curve
 
     print(f"curve: {curve.render(a.spec, a.out, a.draws)}")
     return 0

@@ -17,7 +17,7 @@ from typing import Annotated, Literal
 import tyro
 
 from sc3_jax.commands import run_group
-from sc3_jax.errors import UserError
+from sc3_jax.core.errors import UserError
 
 SUMMARY = "LeRobot datasets to and from our episode store"  # the line `sc3 --help` shows
 
@@ -159,7 +159,7 @@ def _export(a: ExportLerobot) -> int:
     from sc3_jax.data.episodes import EpisodeStore
     from sc3_jax.data.lerobot_write import export_store
 
-    from sc3_jax.validate import in_range, out_dir
+    from sc3_jax.core.validate import in_range, out_dir
 
     if a.crf is not None:  # h264's scale is 0-51, av1's 0-63: ffmpeg's own error would come after the first frames
         in_range("--crf", a.crf, 0, 51 if a.codec == "h264" else 63, f"{a.codec} quality, lower is better")

@@ -1,5 +1,5 @@
 """``sc3 demo [--out runs/demo] [--steps N]``: the whole training side on a CPU in minutes, ending with a verdict per
-held-out check (sc3_jax/demo.py)."""
+held-out check (sc3_jax/commands/demo_run.py)."""
 from __future__ import annotations
 
 import dataclasses
@@ -31,7 +31,7 @@ class Args:
 
 
 def _config(a: Args):
-    from sc3_jax.config import load_config, replace
+    from sc3_jax.core.config import load_config, replace
 
     base = load_config(a.config)
     out = Path(a.out)
@@ -41,10 +41,11 @@ def _config(a: Args):
 
 def main(argv: list[str]) -> int:
     a, cfg = parse_with_config(Args, argv, "demo", _config)
-    from sc3_jax import atomic, demo
+    from sc3_jax.core import atomic
+    from sc3_jax.commands import demo_run as demo
     from sc3_jax.data import synthetic
 
-    from sc3_jax.validate import in_range, out_dir
+    from sc3_jax.core.validate import in_range, out_dir
 
     in_range("--episodes", a.episodes, 1, 1_000_000, "synthetic training episodes")
     if a.steps is not None:  # 0 fell back to the config's 1,500 steps without a word

@@ -1,5 +1,5 @@
 """``sc3 diagnose --world-model WM --data HELDOUT_STORE [--SECTION.FIELD VALUE ...]``: the checks that gate a
-world-model checkpoint, on held-out episodes (sc3_jax/evaluate/diagnose.py, docs/world_model.md#diagnostics)."""
+world-model checkpoint, on held-out episodes (sc3_jax/evaluation/diagnose.py, docs/world_model.md#diagnostics)."""
 from __future__ import annotations
 
 import dataclasses
@@ -7,8 +7,8 @@ import math
 from pathlib import Path
 
 from sc3_jax.commands import parse_evaluated
-from sc3_jax.evaluate.diagnose import DiagnoseConfig, Stage
-from sc3_jax.evaluate.world_model_defaults import SamplerSteps
+from sc3_jax.evaluation.diagnose import DiagnoseConfig, Stage
+from sc3_jax.evaluation.world_model_defaults import SamplerSteps
 
 SUMMARY = "the checks that gate a world-model checkpoint, on held-out episodes"  # the line `sc3 --help` shows
 
@@ -19,7 +19,7 @@ D = DiagnoseConfig()  # the library's defaults, one home
 class Args(SamplerSteps):
     """Diagnostics that gate a world-model checkpoint on held-out episodes: PSNR against copy-last / temporal-median
     baselines, drift, true vs shuffled and counterfactual actions, inverse dynamics, offline outcome reproduction,
-    then the gates' verdicts. Sampled as `sc3 sweep` samples (sc3_jax/evaluate/world_model_defaults.py;
+    then the gates' verdicts. Sampled as `sc3 sweep` samples (sc3_jax/evaluation/world_model_defaults.py;
     --sample-steps None: the model's own); every field of the world model's config is an option: --SECTION.FIELD
     VALUE, e.g. --rollout.episode-seconds 6 (the list: `sc3 train --help`)."""
 
@@ -56,7 +56,7 @@ class Args(SamplerSteps):
     progress: bool = D.progress
     """a progress bar on stderr (--no-progress: none, for batch logs)"""
     benchmark: str = "bussing"
-    """whose measures the passes read: a benchmark's name (sc3_jax/benchmark.py: bussing, the simulated benchmark's
+    """whose measures the passes read: a benchmark's name (sc3_jax/evaluation/benchmark.py: bussing, the simulated benchmark's
     perception outcome scorer, its objects' pixels and positions; so101, the block's and the goal marker's pixels,
     the arm's and the block's image positions, what its actions move in its state, no outcome scorer), any
     benchmark as package.module:attr, or none"""
@@ -70,7 +70,7 @@ def main(argv: list[str]) -> int:
     a, cfg = parse_evaluated(Args, argv, "diagnose")
     strips = a.filmstrips or (str(Path(a.out).with_suffix("")) + "_filmstrips" if a.out else None)
     check(a, strips)  # at the door: a bad bound or an unwritable path is one line before any rollout
-    from sc3_jax.evaluate import diagnose
+    from sc3_jax.evaluation import diagnose
 
     fields = {f.name for f in dataclasses.fields(DiagnoseConfig)}
     dc = DiagnoseConfig(**{k: v for k, v in dataclasses.asdict(a).items() if k in fields})
@@ -91,7 +91,7 @@ def main(argv: list[str]) -> int:
 def check(a: Args, strips: str | None) -> None:
     """One-line UserErrors for the options that would fail later (a traceback, or a write after the whole
     diagnosis): counts below 1, non-finite or non-positive amounts, an output under a file or onto a folder."""
-    from sc3_jax.errors import UserError
+    from sc3_jax.core.errors import UserError
 
     def positive(flag, x, what, most=None):
         if not (isinstance(x, (int, float)) and math.isfinite(x) and x > 0):
@@ -121,13 +121,13 @@ def check(a: Args, strips: str | None) -> None:
         _under_a_folder(flag, Path(strips))
         if Path(strips).exists() and not Path(strips).is_dir():
             raise UserError(f"{flag} {strips}: is a file, not a folder for the filmstrips")
-        from sc3_jax.validate import out_dir
+        from sc3_jax.core.validate import out_dir
         out_dir(strips, flag)  # a link there: nothing is written through it
 
 
 def _under_a_folder(flag: str, path: Path) -> None:
     """The nearest existing ancestor of ``path`` must be a folder (else nothing can be written there)."""
-    from sc3_jax.errors import UserError
+    from sc3_jax.core.errors import UserError
     for up in path.absolute().parents:
         if up.exists():
             if not up.is_dir():
@@ -137,10 +137,10 @@ def _under_a_folder(flag: str, path: Path) -> None:
 
 def benchmark_hooks(name: str):
     """(outcome scorer factory or None, scene measures by name) of the benchmark ``name`` (``--benchmark``: a
-    registered name or package.module:attr, ``sc3_jax.benchmark.get``; "none": neither)."""
+    registered name or package.module:attr, ``sc3_jax.evaluation.benchmark.get``; "none": neither)."""
     if name == "none":
         return None, {}
-    from sc3_jax import benchmark
+    from sc3_jax.evaluation import benchmark
 
     bm = benchmark.get(name)
     return bm.outcome_scorer, dict(bm.measures)
@@ -151,5 +151,5 @@ def benchmark_locators(name: str):
     benchmark without them: the arm is then read by the median rule)."""
     if name == "none":
         return None
-    from sc3_jax import benchmark
+    from sc3_jax.evaluation import benchmark
     return benchmark.get(name).locators

@@ -1,12 +1,12 @@
 """``sc3 diagnose-table --world-model DIR ... [--baseline NAME]``: several models' ``sc3 diagnose`` results side by side
-(sc3_jax/evaluate/diagnose_table.py)."""
+(sc3_jax/evaluation/diagnose_table.py)."""
 from __future__ import annotations
 
 import dataclasses
 from typing import Annotated
 
 from sc3_jax.commands import one_or_more, parse
-from sc3_jax.errors import UserError
+from sc3_jax.core.errors import UserError
 
 SUMMARY = "several models' diagnostics side by side"  # the line `sc3 --help` shows
 
@@ -28,8 +28,8 @@ def main(argv: list[str]) -> int:
     a = parse(Args, argv, "diagnose-table")
     if not a.world_model:  # tyro takes a positional tuple as zero or more; argparse asked for one at least
         raise UserError("give at least one world-model directory")
-    from sc3_jax import atomic
-    from sc3_jax.evaluate import diagnose_table
+    from sc3_jax.core import atomic
+    from sc3_jax.evaluation import diagnose_table
 
     rows = {}
     for m in a.world_model:

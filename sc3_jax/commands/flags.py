@@ -31,7 +31,7 @@ import typing
 
 import tyro
 
-from sc3_jax.errors import UserError
+from sc3_jax.core.errors import UserError
 
 WORLD_MODEL, DATA, BATCH, SAMPLE_STEPS, INVERSE_STEPS = (
     "--world-model", "--data", "--batch", "--sample-steps", "--inverse-steps")
@@ -178,7 +178,7 @@ def respell(argv: list[str]) -> list[str]:
 
 def onto_config(cfg, data: str | None, batch: int | None):
     """``cfg`` with ``--data`` / ``--batch`` of sc3 train, demo or plan set (``CONFIG_FIELDS``); None: the config's."""
-    from sc3_jax.config import replace
+    from sc3_jax.core.config import replace
 
     given = {field.split(".")[1]: v for field, v in ((CONFIG_FIELDS[DATA], data), (CONFIG_FIELDS[BATCH], batch))
              if v is not None}

@@ -8,9 +8,9 @@ from typing import Literal
 
 from sc3_jax.commands import parse_with_config
 from sc3_jax.commands.flags import onto_config
-from sc3_jax.errors import UserError
-from sc3_jax.evaluate.world_model_defaults import Sampler, SamplerSteps, evaluation_config
-from sc3_jax.plan import DEVICES, config_flag  # plan.py imports jax only inside its functions
+from sc3_jax.core.errors import UserError
+from sc3_jax.evaluation.world_model_defaults import Sampler, SamplerSteps, evaluation_config
+from sc3_jax.train.plan import DEVICES, config_flag  # plan.py imports jax only inside its functions
 
 SUMMARY = "what a config costs on a mesh of accelerators (memory, FLOPs, step time)"  # the line `sc3 --help` shows
 
@@ -71,13 +71,13 @@ def _refuse_old_spellings(argv: list[str]) -> None:
 def main(argv: list[str]) -> int:
     import tyro
 
-    from sc3_jax.config import Config
+    from sc3_jax.core.config import Config
 
     _refuse_old_spellings(argv)
     a, cfg = parse_with_config(Args, argv, "plan", config_of)
     if a.help_config:
         tyro.cli(Config, default=cfg, args=["--help"], prog=f"sc3 plan --config {a.config}")
-    from sc3_jax import plan
+    from sc3_jax.train import plan
 
     # the rollout chunk as the sweeps sample it (the config's own sample.steps where --sample-steps None)
     cfg = evaluation_config(cfg, Sampler(sample_steps=a.sample_steps, inverse_steps=a.inverse_steps,
@@ -94,7 +94,7 @@ def main(argv: list[str]) -> int:
 
 def config_of(a: Args):
     """The named config with --data and --batch set (before the --SECTION.FIELD overrides)."""
-    from sc3_jax.config import load_config
+    from sc3_jax.core.config import load_config
 
     return onto_config(load_config(a.config), a.data, a.batch)
 

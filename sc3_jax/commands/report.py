@@ -8,9 +8,9 @@ from typing import Annotated
 
 import tyro
 
-from sc3_jax import atomic
+from sc3_jax.core import atomic
 from sc3_jax.commands import one_or_more, parse
-from sc3_jax.errors import UserError
+from sc3_jax.core.errors import UserError
 
 SUMMARY = "tables, plots and videos from a sweep's results store"  # the line `sc3 --help` shows
 
@@ -43,7 +43,7 @@ MAX_DRAWS = 100_000  # a paired bootstrap's intervals settle long before; 2e8 dr
 
 def check_options(a: Args) -> None:
     """Each numeric option within what the report can use, in one line (``--draws 0`` was a traceback)."""
-    from sc3_jax import validate
+    from sc3_jax.core import validate
 
     validate.in_range("--draws", a.draws, 10, MAX_DRAWS, "paired bootstrap draws")
     if a.videos is not None:
@@ -57,9 +57,9 @@ def scene_of(results: str, name: str | None = None):
     name; a package.module:attr there is refused, as the store is data and may come from anyone, until
     ``--benchmark`` names it; from before it, ``real_frames/scene.json``, one of the built-in names), else the
     bussing benchmark's. None when that benchmark has no scene measure."""
-    from sc3_jax import benchmark
-    from sc3_jax.evaluate.report_episodes import REAL_FRAMES
-    from sc3_jax.validate import json_object
+    from sc3_jax.evaluation import benchmark
+    from sc3_jax.evaluation.report_episodes import REAL_FRAMES
+    from sc3_jax.core.validate import json_object
 
     if name is None:
         name = benchmark.recorded(results)
@@ -83,12 +83,12 @@ def main(argv: list[str]) -> int:
     if not a.results:  # tyro takes a positional tuple as zero or more; argparse asked for one at least
         raise UserError("give at least one RESULTS store")
     check_options(a)
-    from sc3_jax.evaluate import report  # after parsing: --help and a typo need not load plotting
+    from sc3_jax.evaluation import report  # after parsing: --help and a typo need not load plotting
 
     md = report.render(list(a.results), a.out, a.videos, a.taus, a.draws, scene=scene_of(a.results[0], a.benchmark),
                        real=a.real)
     t = json.loads((md.parent / "report.json").read_text())
-    from sc3_jax.evaluate import eval_info  # LeRobot's format beside ours, so a lab's dashboards read the sweep
+    from sc3_jax.evaluation import eval_info  # LeRobot's format beside ours, so a lab's dashboards read the sweep
 
     infos = [f for r in a.results for f in eval_info.write(r, md.parent / "eval_info" / (Path(r).name if
                                                                                          len(a.results) > 1 else ""))]

@@ -1,8 +1,8 @@
 """``sc3 rollout --world-model WM --policy P --data IC --out DIR [--SECTION.FIELD VALUE ...]``:
 closed-loop (and optionally offline) rollouts of a policy inside a trained world model -> arrays, videos and a
-summary (sc3_jax/rollout_io.py, sc3_jax/evaluate/rollout_summary.py, docs/rollout.md).
+summary (sc3_jax/rollout/rollout_io.py, sc3_jax/evaluation/rollout_summary.py, docs/rollout.md).
 
-Writes ``OUT/rollout.npz`` (every array of ``Rollout.run``, see sc3_jax/rollout.py), ``OUT/summary.json``, one
+Writes ``OUT/rollout.npz`` (every array of ``Rollout.run``, see sc3_jax/rollout/rollout.py), ``OUT/summary.json``, one
 ``OUT/<episode>_<view>.mp4`` per episode and view (context frames, then the kept frames up to termination) and, with
 ``--offline`` (episode stores only), ``OUT/offline.npz`` with PSNR per frame and view against the recorded frames."""
 from __future__ import annotations
@@ -12,7 +12,7 @@ import math
 from pathlib import Path
 
 from sc3_jax.commands import parse_evaluated
-from sc3_jax.evaluate.world_model_defaults import SamplerSteps
+from sc3_jax.evaluation.world_model_defaults import SamplerSteps
 
 SUMMARY = "closed-loop and offline rollouts of a policy inside a world model"  # the line `sc3 --help` shows
 
@@ -20,7 +20,7 @@ SUMMARY = "closed-loop and offline rollouts of a policy inside a world model"  #
 @dataclasses.dataclass(frozen=True)
 class Args(SamplerSteps):
     """Closed-loop rollouts of a policy inside a trained world model, sampled as `sc3 sweep` samples it (its sampler
-    steps, horizon and U units: sc3_jax/evaluate/world_model_defaults.py; --sample-steps None: the model's own). Every
+    steps, horizon and U units: sc3_jax/evaluation/world_model_defaults.py; --sample-steps None: the model's own). Every
     field of the world model's config is an option: --SECTION.FIELD VALUE, e.g. --rollout.tau 0.05
     --rollout.episode-seconds 6 (the list: `sc3 train --help`)."""
 
@@ -61,7 +61,7 @@ class Args(SamplerSteps):
     """perception weights for the success estimate (None: the shipped ones)"""
     benchmark: str = "bussing"
     """whose outcome scorer makes the success estimate and whose policy names --policy takes: a benchmark's name
-    (sc3_jax/benchmark.py: bussing, the simulated benchmark's perception and zoo; so101) or package.module:attr"""
+    (sc3_jax/evaluation/benchmark.py: bussing, the simulated benchmark's perception and zoo; so101) or package.module:attr"""
     learned_state: bool = True
     """hand the policy the world model's learned robot state where it has one (state_head.npz); --no-learned-state:
     the integrated commands (exact for absolute targets, or velocities of the recorded state)"""
@@ -82,7 +82,7 @@ BOUNDS = {"episodes": (1, 10**6, "initial conditions"), "start": (0, 10**7, "a f
 def check_options(a: Args) -> None:
     """Every numeric option within ``BOUNDS`` (``--episodes -1`` ran 15 of 16 episodes, ``--start -5`` started at
     frame 75), and --out a directory it can make, before anything loads."""
-    from sc3_jax import validate
+    from sc3_jax.core import validate
 
     for name, (low, high, what) in BOUNDS.items():
         value = getattr(a, name)
@@ -94,7 +94,7 @@ def check_options(a: Args) -> None:
 def benchmark_of(name: str):
     """The benchmark ``--benchmark`` names; "none": one with no scorer and no policy names, as sc3 diagnose reads
     it (its success estimate then says there is none)."""
-    from sc3_jax import benchmark
+    from sc3_jax.evaluation import benchmark
 
     return benchmark.Benchmark(name="none") if name == "none" else benchmark.get(name)
 
@@ -104,10 +104,12 @@ def main(argv: list[str]) -> int:
     check_options(a)
     import numpy as np
 
-    from sc3_jax import atomic, checkpoint, rollout, rollout_io, state_head
-    from sc3_jax.errors import UserError
-    from sc3_jax.evaluate import rollout_summary
-    from sc3_jax.evaluate.diagnose_outcomes import no_scorer
+    from sc3_jax.core import atomic
+    from sc3_jax.model import checkpoint
+    from sc3_jax.rollout import rollout, rollout_io, state_head
+    from sc3_jax.core.errors import UserError
+    from sc3_jax.evaluation import rollout_summary
+    from sc3_jax.evaluation.diagnose_outcomes import no_scorer
     from sc3_jax.policies.openpi_mappings import for_world_model, get_mapping
     from sc3_jax.policies.resolve import resolve
 

@@ -12,7 +12,7 @@ from typing import Annotated, Any, Callable, Literal
 import tyro
 
 from sc3_jax.commands import parse
-from sc3_jax.errors import UserError
+from sc3_jax.core.errors import UserError
 
 SUMMARY = "serve one of our policies over openpi's websocket protocol"  # the line `sc3 --help` shows
 
@@ -107,7 +107,7 @@ def build_server(a: Args, resolve: Callable[[str], Any] | None = None):
         if a.task_prompt:
             changes["prompts"] = _prompts(a.task_prompt)
         mapping = mapping.replace(**changes)
-    from sc3_jax.validate import in_range
+    from sc3_jax.core.validate import in_range
 
     in_range("--port", a.port, 0, 65535, "0: any free port")
     if a.num_views is not None:

@@ -19,7 +19,7 @@ from typing import Annotated, Literal
 import tyro
 
 from sc3_jax.commands import run_group
-from sc3_jax.errors import UserError
+from sc3_jax.core.errors import UserError
 
 SUMMARY = "the simulated table-bussing benchmark"  # the line `sc3 --help` shows
 

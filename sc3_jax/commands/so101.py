@@ -114,7 +114,7 @@ def _collect(a: Collect) -> int:
 
 def _controllers(a: Controllers) -> int:
     from sc3_jax.benchmarks.so101.collect import measure_controllers
-    from sc3_jax.errors import UserError
+    from sc3_jax.core.errors import UserError
 
     if a.episodes < 1 or not 0 <= a.seed < 100:
         raise UserError(f"--episodes {a.episodes} --seed {a.seed}: at least 1 episode, a seed of 0-99")
@@ -135,7 +135,7 @@ def _zoo_train(a: ZooTrain) -> int:
     from sc3_jax.benchmarks.so101.zoo import ZOO_DIR
     from sc3_jax.benchmarks.so101.zoo_train import train_zoo
 
-    from sc3_jax.errors import UserError
+    from sc3_jax.core.errors import UserError
 
     out = a.out or ZOO_DIR
     try:
@@ -160,7 +160,7 @@ def _zoo_eval(a: ZooEval) -> int:
     from sc3_jax.benchmarks.so101.zoo import ZOO
 
     from sc3_jax.benchmarks.so101.zoo import named_policy
-    from sc3_jax.errors import UserError
+    from sc3_jax.core.errors import UserError
     from sc3_jax.policies.resolve import resolve
 
     names = list(a.policies or ZOO)

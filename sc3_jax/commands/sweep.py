@@ -1,9 +1,9 @@
 """``sc3 sweep BENCHMARK|episodes [--OPTION VALUE ...]``: policies x initial conditions inside the world model, then
-the report. ``BENCHMARK``: a benchmark's own sweep, looked up by name (``sc3_jax/benchmark.py``: ``bussing``, alias
+the report. ``BENCHMARK``: a benchmark's own sweep, looked up by name (``sc3_jax/evaluation/benchmark.py``: ``bussing``, alias
 ``bench``, the simulated benchmark's seeds, real rollouts in its simulator and its scorer; ``so101``, the SO-101
 simulator's outcomes and a success detector on the imagined frames; or ``package.module:attr`` naming any
 ``Benchmark``); the store records its name (``benchmark.json``) for ``sc3 report``. ``episodes``: held-out episodes
-of any robot, a lab's scorer and (``--real``) real outcomes from labels (sc3_jax/evaluate/ic_sweep.py,
+of any robot, a lab's scorer and (``--real``) real outcomes from labels (sc3_jax/evaluation/ic_sweep.py,
 docs/your_robot.md). One store format and one report."""
 from __future__ import annotations
 
@@ -11,11 +11,11 @@ import json
 from functools import partial
 from pathlib import Path
 
-from sc3_jax import benchmark
+from sc3_jax.evaluation import benchmark
 from sc3_jax.commands import parse, run_group
 from sc3_jax.commands.flags import respell
-from sc3_jax.errors import UserError
-from sc3_jax.evaluate.ic_sweep import ICSweepConfig
+from sc3_jax.core.errors import UserError
+from sc3_jax.evaluation.ic_sweep import ICSweepConfig
 
 SUMMARY = "policies x initial conditions inside the world model, then the report"  # the line `sc3 --help` shows
 # the registered benchmarks' sweeps (bench: bussing's, as README command 1 and the golden records name it), then the
@@ -37,7 +37,7 @@ BOUNDS = {"episodes": (1, 100_000, "initial conditions per policy"),
 
 def check_options(cfg) -> None:
     """``cfg``'s numeric options within ``BOUNDS`` and its taus non-negative (inf: never stop)."""
-    from sc3_jax import validate
+    from sc3_jax.core import validate
 
     for name, (low, high, what) in BOUNDS.items():
         value = getattr(cfg, name, None)
@@ -49,7 +49,7 @@ def check_options(cfg) -> None:
 def sweep(name: str, cfg) -> int:
     """The sweep of the benchmark ``name`` (a registered name or package.module:attr), then its report, read with the
     benchmark's scene measure; the store records the name for ``sc3 report``."""
-    from sc3_jax.evaluate import report
+    from sc3_jax.evaluation import report
 
     bm = benchmark.get(name)
     check_options(cfg)
@@ -73,7 +73,7 @@ def sweep(name: str, cfg) -> int:
 
 
 def episodes(cfg: ICSweepConfig) -> int:
-    from sc3_jax.evaluate import ic_sweep, report
+    from sc3_jax.evaluation import ic_sweep, report
 
     check_options(cfg)
     named = benchmark.get(cfg.benchmark).named_policy if cfg.benchmark else None  # a benchmark's own policy names

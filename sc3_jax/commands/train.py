@@ -34,17 +34,17 @@ class Args:
 def main(argv: list[str]) -> int:
     import tyro
 
-    from sc3_jax.config import Config
+    from sc3_jax.core.config import Config
 
     a, cfg = parse_with_config(Args, argv, "train", config_of)
     if a.help_config:
         tyro.cli(Config, default=cfg, args=["--help"], prog=f"sc3 train --config {a.config}")
-    from sc3_jax import validate
+    from sc3_jax.core import validate
 
     validate.train_config(cfg)  # every numeric field in bounds, the workdir a directory: before anything is read
     import jax
 
-    from sc3_jax import sizing, train
+    from sc3_jax.train import sizing, train
     from sc3_jax.data.shape import shape_from_dataset
 
     # views, image size and action dimension come from the dataset unless given here (then they are checked)
@@ -73,7 +73,7 @@ def main(argv: list[str]) -> int:
     has_state = (Path(cfg.data.path) / "dataset.json").is_file() and EpisodeStore(cfg.data.path).state_dim
     if has_state:  # the robot records its state: the policies acting inside the world model will read it
         from sc3_jax.commands import train_state
-        from sc3_jax.state_head import FitConfig
+        from sc3_jax.rollout.state_head import FitConfig
 
         print(train_state.describe(*train_state.train(cfg.train.workdir, None, FitConfig(), cfg.train.progress)))
     return 0
@@ -81,7 +81,7 @@ def main(argv: list[str]) -> int:
 
 def config_of(a: Args):
     """The named config with --data and --batch set (before the --SECTION.FIELD overrides)."""
-    from sc3_jax.config import load_config
+    from sc3_jax.core.config import load_config
 
     return onto_config(load_config(a.config), a.data, a.batch)
 
@@ -90,7 +90,7 @@ def _check_tokenizer(cfg) -> None:
     """A learned-tokenizer config without its tokenizer: the one command that makes it, not a traceback."""
     m = cfg.model
     if m.tokenizer == "conv_ae" and not (m.tokenizer_path and (Path(m.tokenizer_path) / "ae.json").is_file()):
-        from sc3_jax.errors import UserError
+        from sc3_jax.core.errors import UserError
         raise UserError(
             f"--config {cfg.name} reads frames through a trained tokenizer, and model.tokenizer_path={m.tokenizer_path}"
             f" holds none: train it first (sc3 train-tokenizer --data {cfg.data.path} --workdir TOK), then add "
@@ -105,7 +105,7 @@ def _sized(cfg, declared, explicit):
     """The config sized from its data (``sizing.size_from_data``), printing what changed; a resumed run keeps the
     size its workdir was started with (the sizing reads a lowered step's FLOPs, which need not land on the same side
     of its threshold on another machine; a run must resume with the config it started with)."""
-    from sc3_jax import sizing
+    from sc3_jax.train import sizing
 
     old = _saved_config(cfg)
     if old is not None:
@@ -118,8 +118,8 @@ def _sized(cfg, declared, explicit):
 
 def _saved_config(cfg) -> dict | None:
     """The workdir's config.json (a run to resume) as a dict, or None for a fresh run."""
-    from sc3_jax import atomic
-    from sc3_jax.validate import json_object
+    from sc3_jax.core import atomic
+    from sc3_jax.core.validate import json_object
 
     saved = Path(cfg.train.workdir) / "config.json"
     if not saved.is_file():
@@ -130,7 +130,7 @@ def _saved_config(cfg) -> dict | None:
 def _keep(cfg, old: dict, fields, explicit):
     """``cfg`` with ``fields`` ((section, field) pairs) as the saved run has them, unless the command line names them
     (a field the saved run predates keeps its default)."""
-    from sc3_jax.config import replace
+    from sc3_jax.core.config import replace
 
     for sec, f in fields:
         if f"{sec}.{f}" not in explicit:
@@ -148,7 +148,7 @@ def _memory_plan(cfg, explicit):
     the plan its workdir was started with (free memory changes between runs; its config must not)."""
     import jax
 
-    from sc3_jax import plan
+    from sc3_jax.train import plan
 
     old = _saved_config(cfg)
     if old is not None:

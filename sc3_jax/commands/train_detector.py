@@ -1,11 +1,11 @@
 """``sc3 train-detector --data STORE --out DIR``: a success detector learnt from a lab's own labelled episodes
-(``sc3_jax/evaluate/success_detector.py``), to score imagined rollouts: ``sc3 sweep episodes --scorer detector:DIR``."""
+(``sc3_jax/evaluation/success_detector.py``), to score imagined rollouts: ``sc3 sweep episodes --scorer detector:DIR``."""
 from __future__ import annotations
 
 import dataclasses
 
 from sc3_jax.commands import parse
-from sc3_jax.evaluate.success_detector import DetectorConfig
+from sc3_jax.evaluation.success_detector import DetectorConfig
 
 SUMMARY = "a success detector from labelled episodes, to score imagined rollouts"  # the line `sc3 --help` shows
 
@@ -24,7 +24,7 @@ class Args(DetectorConfig):
 
 
 def main(argv: list[str]) -> int:
-    from sc3_jax.evaluate import success_detector
+    from sc3_jax.evaluation import success_detector
 
     a = parse(Args, argv, "train-detector")
     cfg = DetectorConfig(**{f.name: getattr(a, f.name) for f in dataclasses.fields(DetectorConfig)})

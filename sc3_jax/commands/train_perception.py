@@ -9,7 +9,7 @@ from typing import Annotated
 import tyro
 
 from sc3_jax.commands import parse
-from sc3_jax.errors import UserError
+from sc3_jax.core.errors import UserError
 
 SUMMARY = "train the perception scorer, or check its weights against physics"  # the line `sc3 --help` shows
 

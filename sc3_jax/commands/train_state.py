@@ -1,5 +1,5 @@
 """``sc3 train-state --world-model WM [--data STORE] [--steps N ...]``: the learned robot state of a world model
-(``sc3_jax/state_head.py``): what the robot's sensors would read inside its imagined rollouts, for the policies
+(``sc3_jax/rollout/state_head.py``): what the robot's sensors would read inside its imagined rollouts, for the policies
 that act there. ``sc3 train`` runs it after training on a store that records a state; run it for a world model
 trained before, or on more data of the same robot."""
 from __future__ import annotations
@@ -7,7 +7,7 @@ from __future__ import annotations
 import dataclasses
 
 from sc3_jax.commands import parse
-from sc3_jax.state_head import FitConfig
+from sc3_jax.rollout.state_head import FitConfig
 
 SUMMARY = "train the learned robot state a world model hands its policies"  # the line `sc3 --help` shows
 
@@ -33,7 +33,7 @@ def main(argv: list[str]) -> int:
 
 
 def train(world_model: str, data: str | None, fit: FitConfig, progress: bool):
-    from sc3_jax import state_head
+    from sc3_jax.rollout import state_head
     return state_head.train_for(world_model, data, fit, progress)
 
 

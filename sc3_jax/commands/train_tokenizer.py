@@ -1,5 +1,5 @@
 """``sc3 train-tokenizer --data STORE --workdir DIR [--heldout STORE] [--ae.FIELD VALUE ...]``: the learned latent
-tokenizer (conv autoencoder, ``sc3_jax/tokenizer_train.py``)."""
+tokenizer (conv autoencoder, ``sc3_jax/train/tokenizer_train.py``)."""
 from __future__ import annotations
 
 import dataclasses
@@ -8,7 +8,7 @@ from typing import Annotated
 import tyro
 
 from sc3_jax.commands import parse
-from sc3_jax.tokenizer_config import AEConfig, TokenizerTrainConfig
+from sc3_jax.core.tokenizer_config import AEConfig, TokenizerTrainConfig
 
 SUMMARY = "train the learned latent tokenizer (a conv autoencoder)"  # the line `sc3 --help` shows
 
@@ -31,7 +31,7 @@ class Args(TokenizerTrainConfig):
 
 def main(argv: list[str]) -> int:
     a = parse(Args, argv, "train-tokenizer")  # an architecture AEConfig refuses is tyro's usage error
-    from sc3_jax import tokenizer_train as tt
+    from sc3_jax.train import tokenizer_train as tt
 
     cfg = TokenizerTrainConfig(**{f.name: getattr(a, f.name) for f in dataclasses.fields(TokenizerTrainConfig)})
     check_options(cfg)
@@ -54,7 +54,7 @@ BOUNDS = [("steps", "--steps", 1, 10**9, "optimizer steps"), ("batch_size", "--b
 def check_options(cfg) -> None:
     """One line for an option out of its range, or a --workdir that is a file, under one or a link, before any
     data is read."""
-    from sc3_jax.validate import in_range, out_dir
+    from sc3_jax.core.validate import in_range, out_dir
 
     for field, option, low, high, what in BOUNDS:
         in_range(option, getattr(cfg, field), low, high, what)

@@ -1,5 +1,5 @@
 """What a robot's actions mean: the action space a dataset declares (``dataset.json`` ``"action_space"``) and the few
-operations that depend on it. Numpy only; ``sc3_jax/imagination_state.py`` holds the jnp twins rollouts run.
+operations that depend on it. Numpy only; ``sc3_jax/rollout/imagination_state.py`` holds the jnp twins rollouts run.
 
 Kinds (``kind``):
 
@@ -35,7 +35,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from sc3_jax.data import rotations
-from sc3_jax.errors import UserError
+from sc3_jax.core.errors import UserError
 
 KINDS = ("delta_ee", "absolute", "velocity")
 DELTA_EE_NAMES = ("dx", "dy", "dz", "rx", "ry", "rz", "gripper")

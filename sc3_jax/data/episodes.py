@@ -38,11 +38,11 @@ from typing import Any
 
 import numpy as np
 
-from sc3_jax import atomic
+from sc3_jax.core import atomic
 from sc3_jax.data.action_space import ActionSpace
-from sc3_jax.errors import UserError
-from sc3_jax.safe_names import check_name, join_inside
-from sc3_jax.validate import is_count, is_finite_number, json_object, load_npy, numeric, regular_file
+from sc3_jax.core.errors import UserError
+from sc3_jax.core.safe_names import check_name, join_inside
+from sc3_jax.core.validate import is_count, is_finite_number, json_object, load_npy, numeric, regular_file
 
 FORMAT = "sc3-episodes"
 VERSION = 1

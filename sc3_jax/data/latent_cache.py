@@ -17,9 +17,9 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from sc3_jax import atomic
+from sc3_jax.core import atomic
 from sc3_jax.data.episodes import EpisodeStore
-from sc3_jax.errors import UserError
+from sc3_jax.core.errors import UserError
 
 
 def tokenizer_digest(path: str | Path) -> str:

@@ -31,10 +31,10 @@ from pathlib import Path
 
 import numpy as np
 
-from sc3_jax import locks
-from sc3_jax.errors import UserError
-from sc3_jax.safe_names import ALLOWED, is_safe, join_inside
-from sc3_jax.validate import is_count, is_finite_number, json_object, regular_file
+from sc3_jax.core import locks
+from sc3_jax.core.errors import UserError
+from sc3_jax.core.safe_names import ALLOWED, is_safe, join_inside
+from sc3_jax.core.validate import is_count, is_finite_number, json_object, regular_file
 
 try:
     import pyarrow as pa
@@ -46,7 +46,7 @@ SUPPORTED_VERSIONS = ("v2.0", "v2.1", "v3.0")
 IMAGE_PREFIX = "observation.images."
 # info.json key of our action-space declaration (LeRobot has none): our export writes it, import reads it back
 INFO_ACTION_SPACE = "sc3_action_space"
-SUCCESS_KEY = "next.success"  # LeRobot's per-frame success feature (evaluate/labels.py: LEROBOT_SUCCESS)
+SUCCESS_KEY = "next.success"  # LeRobot's per-frame success feature (evaluation/labels.py: LEROBOT_SUCCESS)
 MIN_EPISODE_FRAMES = 2  # an imported episode shorter than this is skipped (said): nothing can be learnt from it
 LABELS_FIELD = "labels"  # an imported episode's meta.json {criterion: bool}, what `sc3 sweep episodes --real STORE` reads
 _OPTIONAL = object()  # sentinel: "use observation.state if the dataset has it"
@@ -64,7 +64,7 @@ class LeRobotError(UserError):
 def read_info(path: Path) -> dict:
     """A LeRobot dataset's ``meta/info.json``, checked where it enters: its rate, features and path templates have
     the types the reader needs (a retyped one is one line naming it, not a TypeError where it is first used)."""
-    from sc3_jax import atomic
+    from sc3_jax.core import atomic
 
     fix = "restore it from the dataset's source"
     info = json_object(atomic.read_json(path, fix), str(path), fix)
@@ -306,7 +306,7 @@ class LeRobotEpisodes:
         state = tab[self.state_key][s].astype(np.float32) if self.state_key else None
         pose = tab[self.pose_key][s].astype(np.float32) if self.pose_key else None
         # over every recorded frame, not only those kept at self.fps: success is often marked on the last one alone
-        # (LeRobot's evaluation reduces it with any, as evaluate/labels.py does)
+        # (LeRobot's evaluation reduces it with any, as evaluation/labels.py does)
         success = bool(np.asarray(tab[SUCCESS_KEY]).astype(bool).any()) if SUCCESS_KEY in tab else None
         return LeRobotEpisode(self, i, int(ep["episode_index"]), tab["timestamp"][s],
                               tab[self.action_key][s].astype(np.float32), state, prompt, tasks, pose, success)
@@ -452,7 +452,7 @@ def check_options(out, fps: float | None, image_size) -> None:
     """The numeric options of an import and its --out, in one line each before anything is read or written (``--fps
     0`` was a ZeroDivisionError, ``--image-size 0 -5`` a cv2 traceback after the store's dataset.json was written,
     which then refused the corrected rerun)."""
-    from sc3_jax.validate import in_range, out_dir
+    from sc3_jax.core.validate import in_range, out_dir
 
     if fps is not None:
         in_range("--fps", fps, 1e-3, 10_000, "frames per second")
@@ -643,7 +643,7 @@ def _check_same_source(store, source: str, prefix: str, indices: set[int]) -> No
     "already there" (their ids are episode indices) and keep A's; importing A again under another prefix would hold
     its episodes twice. Both refused, naming the store's source and prefix: duplicates are found by what was
     imported (source and episode_index), not by their names."""
-    from sc3_jax import atomic
+    from sc3_jax.core import atomic
 
     held = []  # (id prefix, LeRobot root, episode_index, id) of every imported episode of the store
     for eid in store.episode_ids():

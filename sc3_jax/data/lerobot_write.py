@@ -33,7 +33,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from sc3_jax import atomic
+from sc3_jax.core import atomic
 from .action_space import DELTA_EE_NAMES
 from .action_space import POSE_NAMES as _POSE_NAMES
 from .lerobot import IMAGE_PREFIX, INFO_ACTION_SPACE

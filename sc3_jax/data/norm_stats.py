@@ -16,9 +16,9 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from sc3_jax import atomic
+from sc3_jax.core import atomic
 from sc3_jax.data.action_space import ActionSpace
-from sc3_jax.errors import UserError
+from sc3_jax.core.errors import UserError
 
 if TYPE_CHECKING:
     from sc3_jax.data.episodes import EpisodeStore
@@ -131,7 +131,7 @@ class NormStats:
         positive, and an action space (``ActionSpace.from_dict``: measured entries, gains, range) of that
         dimension; anything else is one line naming the field (a retyped or cut field was a traceback, a negative
         or NaN std a model quietly run in other units)."""
-        from sc3_jax.validate import json_object
+        from sc3_jax.core.validate import json_object
 
         fix = "restore it from the model it came with (`sc3 train` writes it)"
         d = json_object(atomic.read_json(path, fix), str(path), fix)

@@ -44,7 +44,7 @@ import numpy as np
 from sc3_jax.data.action_space import DELTA_EE, ActionSpace
 from sc3_jax.data.episodes import Episode, EpisodeStore
 from sc3_jax.data.norm_stats import NormStats
-from sc3_jax.errors import UserError
+from sc3_jax.core.errors import UserError
 
 _OPEN_LOCK = threading.Lock()
 

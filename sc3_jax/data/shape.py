@@ -22,7 +22,7 @@ import os
 from collections.abc import Collection, Iterable
 
 from sc3_jax.data.episodes import EpisodeStore
-from sc3_jax.errors import UserError
+from sc3_jax.core.errors import UserError
 
 # the fields this module fills (``section.field``), in the order they are decided
 SHAPE_FIELDS = ("data.views", "model.num_views", "data.image_size", "model.action_dim", "data.pseudo_action_prob",

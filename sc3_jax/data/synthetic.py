@@ -27,7 +27,7 @@ import numpy as np
 
 from sc3_jax.data import rotations
 from sc3_jax.data.episodes import Episode, EpisodeStore
-from sc3_jax.errors import UserError
+from sc3_jax.core.errors import UserError
 
 VIEWS = ("left", "right", "wrist")
 FPS = 20

@@ -2,7 +2,7 @@
 blockwise / fused (``attention.py``) or sharded over the mesh's context axis (``context_parallel.py``)."""
 from __future__ import annotations
 
-from sc3_jax.config import ATTENTION_IMPLS as IMPLS
+from sc3_jax.core.config import ATTENTION_IMPLS as IMPLS
 from sc3_jax.model import attention, context_parallel, layers
 
 

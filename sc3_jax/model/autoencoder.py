@@ -27,7 +27,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from sc3_jax.tokenizer_config import AEConfig  # the architecture; ae.AEConfig for callers
+from sc3_jax.core.tokenizer_config import AEConfig  # the architecture; ae.AEConfig for callers
 
 
 # -- layers -------------------------------------------------------------------------------------------------------
@@ -170,7 +170,7 @@ def save(directory: str | Path, cfg: AEConfig, image_size, params: dict, stats: 
     flat = {k: v.astype(dtype) for k, v in _flatten(params).items()}
     flat["stats/mean"] = np.asarray(stats["mean"], np.float32)
     flat["stats/std"] = np.asarray(stats["std"], np.float32)
-    from sc3_jax import atomic  # ae.json last: a directory with it holds whole params
+    from sc3_jax.core import atomic  # ae.json last: a directory with it holds whole params
     atomic.save_npz(d / "ae_params.npz", compressed=False, **flat)
     atomic.write_json(d / "ae.json", {"config": dataclasses.asdict(cfg), "image_size": list(image_size)})
 
@@ -181,7 +181,7 @@ def load(directory: str | Path) -> tuple[AEConfig, tuple[int, int], dict, dict]:
     d = Path(directory)
     if not (d / "ae.json").exists():
         raise FileNotFoundError(f"{d}: no ae.json (train one with `sc3 train-tokenizer`)")
-    from sc3_jax import atomic
+    from sc3_jax.core import atomic
     meta = atomic.read_json(d / "ae.json", "train the tokenizer again (`sc3 train-tokenizer`)")
     cfg = AEConfig(**meta["config"])
     with atomic.open_npz(d / "ae_params.npz", "train the tokenizer again (`sc3 train-tokenizer`)") as z:

@@ -24,7 +24,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from sc3_jax.config import ModelConfig
+from sc3_jax.core.config import ModelConfig
 from sc3_jax.model import dit
 from sc3_jax.model.shapes import check_shapes
 from sc3_jax.model.wan_vae_convert import read_diffusers_dir, write_diffusers_dir

@@ -26,7 +26,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from sc3_jax.config import ModelConfig
+from sc3_jax.core.config import ModelConfig
 from sc3_jax.model import layers
 
 

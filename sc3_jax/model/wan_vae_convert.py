@@ -17,7 +17,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from sc3_jax import atomic
+from sc3_jax.core import atomic
 from sc3_jax.model.shapes import check_shapes
 from sc3_jax.model.wan_vae import ParamSpec, WanVAEConfig, param_specs
 

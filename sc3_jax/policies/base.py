@@ -25,7 +25,7 @@ from typing import Any, Callable, Protocol, runtime_checkable
 import jax
 import numpy as np
 
-from sc3_jax.errors import UserError
+from sc3_jax.core.errors import UserError
 
 
 @dataclasses.dataclass(frozen=True)

@@ -8,7 +8,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from sc3_jax import atomic
+from sc3_jax.core import atomic
 
 
 def conv_init(key, k, cin, cout):

@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sc3_jax.errors import UserError
+from sc3_jax.core.errors import UserError
 
 PREFIX = "lerobot:"
 PYTHON_ENV = "SC3_LEROBOT_PYTHON"  # the Python of an environment with lerobot installed

@@ -25,7 +25,7 @@ import websockets
 import websockets.exceptions
 import websockets.sync.client
 
-from sc3_jax.errors import UserError
+from sc3_jax.core.errors import UserError
 from sc3_jax.policies import msgpack_numpy
 from sc3_jax.policies.openpi_mappings import ObsMapping, fit_rows, get_mapping
 

@@ -21,7 +21,7 @@ action dims to the family's (8 DROID, 14 ALOHA, 7 LIBERO). So the presets send r
 family's actions unchanged.
 
 Dimension mismatches (a 7-D model with the 14-D ALOHA preset, 3 views for its 4 cameras, a 7-entry state) are a
-one-line :class:`~sc3_jax.errors.UserError` naming both sides (:meth:`ObsMapping.check_dims`).
+one-line :class:`~sc3_jax.core.errors.UserError` naming both sides (:meth:`ObsMapping.check_dims`).
 """
 from __future__ import annotations
 
@@ -30,7 +30,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from sc3_jax.errors import UserError
+from sc3_jax.core.errors import UserError
 
 __all__ = ["ViewField", "StateField", "ActionMap", "ObsMapping", "DROID", "LIBERO", "ALOHA", "ALOHA_CAMERAS",
            "PRESETS", "DEFAULT_PROMPTS", "get_mapping", "for_world_model", "resize_with_pad"]

@@ -22,7 +22,7 @@ from websockets.frames import CloseCode
 from sc3_jax.policies import msgpack_numpy
 from sc3_jax.policies.base import HostPolicy, JaxAsHost, JaxPolicy, as_host
 from sc3_jax.policies.openpi_mappings import ObsMapping, get_mapping
-from sc3_jax.validate import mask_paths
+from sc3_jax.core.validate import mask_paths
 
 __all__ = ["PolicyServer", "serve", "serve_until_interrupted", "MAX_MESSAGE_BYTES", "API_KEY_ENV"]
 

@@ -18,7 +18,7 @@ from __future__ import annotations
 import dataclasses
 from typing import TYPE_CHECKING, Any
 
-from sc3_jax import module_attr
+from sc3_jax.core import module_attr
 from sc3_jax.data.action_space import ActionSpace
 from sc3_jax.policies.openpi_mappings import ObsMapping
 

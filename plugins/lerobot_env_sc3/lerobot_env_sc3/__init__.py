@@ -2,8 +2,8 @@
 ``register_third_party_plugins`` because this distribution is named ``lerobot_env_sc3``.
 
 The features LeRobot builds a policy's inputs from (``env_to_policy_features``) are read from the saved world model
-(``sc3_jax.checkpoint.read_robot``: cameras, image size, action and state sizes, frame rate), so the config names no
-robot. The env is ``sc3_jax.evaluate.gym_env.WorldModelVecEnv`` with the raw-env keys (``pixels/<camera>``,
+(``sc3_jax.model.checkpoint.read_robot``: cameras, image size, action and state sizes, frame rate), so the config names no
+robot. The env is ``sc3_jax.evaluation.gym_env.WorldModelVecEnv`` with the raw-env keys (``pixels/<camera>``,
 ``agent_pos``) that lerobot-eval's ``preprocess_observation`` renames to ``observation.images.<camera>`` and
 ``observation.state``; its ``num_envs`` episodes are batched in one world-model call, so ``use_async_envs`` (worker
 processes, one env each) does not apply and is ignored."""
@@ -43,8 +43,8 @@ class SC3WorldModelEnv(EnvConfig):
     def __post_init__(self):
         if not self.world_model:  # `lerobot-eval --help`, or a config built before its fields are set
             return
-        from sc3_jax import checkpoint
-        from sc3_jax.errors import UserError
+        from sc3_jax.model import checkpoint
+        from sc3_jax.core.errors import UserError
 
         try:
             cfg = checkpoint.read_config(self.world_model)
@@ -69,7 +69,7 @@ class SC3WorldModelEnv(EnvConfig):
                     episode_seconds=self.episode_seconds)
 
     def create_envs(self, n_envs: int, use_async_envs: bool = False):
-        from sc3_jax.evaluate.gym_env import WorldModelVecEnv
+        from sc3_jax.evaluation.gym_env import WorldModelVecEnv
 
         missing = [f"--env.{k}" for k in ("world_model", "initial_conditions", "scorer") if not getattr(self, k)]
         if missing:
@@ -82,6 +82,6 @@ def _has_head(world_model: str) -> bool:
     """Whether the world model has a learned robot state (what the env hands the policy then)."""
     from pathlib import Path
 
-    from sc3_jax import state_head
+    from sc3_jax.rollout import state_head
 
     return (Path(world_model) / state_head.FILE).is_file()

@@ -19,8 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
-from sc3_jax import atomic
-from sc3_jax.evaluate.results import ResultsStore
+from sc3_jax.core import atomic
+from sc3_jax.evaluation.results import ResultsStore
 
 from .tasks import CRITERIA
 
@@ -45,7 +45,7 @@ def export_blinded(results: str | Path, out: str | Path, key_path: str | Path | 
     """Write ``out/clips/<id>.mp4``, ``out/annotations.csv`` (template) and the key (default ``<out>_key.json``,
     outside ``out``). Returns (csv path, key path)."""
     from sc3_jax.benchmarks.bussing.tasks import make_initial_condition
-    from sc3_jax.video import write_mp4
+    from sc3_jax.core.video import write_mp4
     store = ResultsStore(results)
     recs = store.records()
     if not recs:

@@ -1,11 +1,11 @@
-"""The simulated table-bussing benchmark as the commands look it up (``sc3_jax.benchmark.get("bussing")``, alias
+"""The simulated table-bussing benchmark as the commands look it up (``sc3_jax.evaluation.benchmark.get("bussing")``, alias
 "bench"): its sweep (``sweep.py``: real rollouts in its simulator, offline and online ones inside the world model,
 scored by its perception network), its scene measure (its objects' pixels: its arm is grey like its floor, so no
 colour tells the arm apart) and outcome scorer, and its zoo's policy names (``hooks.py``). Importing this loads
 neither MuJoCo nor the perception network."""
 from __future__ import annotations
 
-from sc3_jax.benchmark import Benchmark
+from sc3_jax.evaluation.benchmark import Benchmark
 
 from .hooks import locators, named_policy, object_pixels, perception_scorer
 from .sweep import SweepConfig

@@ -19,7 +19,7 @@ def demos(out: str, episodes: int = 100, seed: int = 0, grasp_noise: float = 0.0
 
 def eval(policy: str, task: str = "bussing", episodes: int = 36, out: str | None = None, videos: bool = True,
          image_size: tuple[int, int] = (64, 64), progress: bool = True) -> dict:  # noqa: A001 (CLI verb)
-    from sc3_jax.errors import UserError
+    from sc3_jax.core.errors import UserError
     from sc3_jax.policies.resolve import resolve  # any spelling; a command may import above the simulator
     from sc3_jax.benchmarks.bussing.hooks import named_policy
     from .policy_eval import evaluate_policy

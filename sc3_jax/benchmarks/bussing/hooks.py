@@ -32,10 +32,10 @@ def perception_scorer(views, image_size, weights: str | None = None):
 
 
 def object_pixels(frames: np.ndarray) -> np.ndarray:
-    """The benchmark's scene measure (``evaluate/permanence.py``): the fraction of pixels of its objects' colours
+    """The benchmark's scene measure (``measures/permanence.py``): the fraction of pixels of its objects' colours
     (``tasks.OBJECTS``), frames uint8 [V, T, H, W, 3] -> [V, T]."""
     from sc3_jax.benchmarks.bussing.tasks import OBJECTS
-    from sc3_jax.evaluate.permanence import pixels_of
+    from sc3_jax.measures.permanence import pixels_of
     return pixels_of(frames, np.array([o.rgba[:3] for o in OBJECTS]))
 
 
@@ -45,13 +45,13 @@ def object_position(name: str):
     the wrist view and where too few show. Its arm has no colour of its own: the arm is left to the median rule."""
     def locate(frames: np.ndarray, views) -> np.ndarray:
         from sc3_jax.benchmarks.bussing.tasks import OBJECT_BY_NAME
-        from sc3_jax.evaluate.locate import centroid, colour_mask, masked_views
+        from sc3_jax.measures.locate import centroid, colour_mask, masked_views
         return masked_views(centroid(colour_mask(frames, np.array([OBJECT_BY_NAME[name].rgba[:3]]))), views)
     return locate
 
 
 def locators():
     """Its ``benchmark.Locators``: each object by its colour; the arm by the median rule (no colour of its own)."""
-    from sc3_jax.benchmark import Locators
+    from sc3_jax.evaluation.benchmark import Locators
     from sc3_jax.benchmarks.bussing.tasks import OBJECT_NAMES
     return Locators(objects={n: object_position(n) for n in OBJECT_NAMES})

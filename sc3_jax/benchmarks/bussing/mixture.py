@@ -38,7 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sc3_jax import atomic
+from sc3_jax.core import atomic
 
 from .expert import ExpertKnobs, ScriptedExpert
 from .tasks import CONTAINERS, OBJECTS, destination

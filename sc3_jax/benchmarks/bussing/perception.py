@@ -21,7 +21,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from sc3_jax import atomic
+from sc3_jax.core import atomic
 from sc3_jax.benchmarks.bussing.convnet import init_trunk, trunk_features
 from sc3_jax.policies.convnet import dense_init, mlp
 from sc3_jax.benchmarks.bussing.criteria import LIFT_CLEARANCE, inside_container

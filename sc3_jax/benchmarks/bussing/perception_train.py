@@ -37,7 +37,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from sc3_jax.errors import UserError
+from sc3_jax.core.errors import UserError
 from sc3_jax.benchmarks.bussing import perception
 from sc3_jax.benchmarks.bussing.perception import PREDICATES, WIDTH_SCALE, apply, predicate_labels, predict
 
@@ -196,9 +196,9 @@ def validate(results: str | Path, params: dict, score_stride: int = 2, degradati
     scores them (every ``score_stride``-th frame and the last; the same seeded degradations): {frames kind:
     agreement per criterion}, and under "majority_guess" the agreement of a scorer that gives every object each
     criterion's most common verdict (the floor)."""
-    from sc3_jax.evaluate.scorers import RolloutView, agreement
+    from sc3_jax.evaluation.scorers import RolloutView, agreement
     from sc3_jax.benchmarks.bussing.scorers import PerceptionScorer
-    from sc3_jax.evaluate.results import ResultsStore
+    from sc3_jax.evaluation.results import ResultsStore
     from sc3_jax.benchmarks.bussing.tasks import make_initial_condition
     store = ResultsStore(results)
     real = [r for r in store.records() if r["mode"] == "real"]

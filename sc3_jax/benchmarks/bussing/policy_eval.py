@@ -16,9 +16,9 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from sc3_jax import atomic
+from sc3_jax.core import atomic
 from sc3_jax.policies.base import JaxAsHost, JaxPolicy, as_host
-from sc3_jax.video import write_mp4
+from sc3_jax.core.video import write_mp4
 from .criteria import ObjectOutcome, inside_container, success_rates
 from .env import BussingEnv
 from .expert import MAX_STEPS_20HZ, EpisodeResult, finish

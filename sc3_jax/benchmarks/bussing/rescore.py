@@ -20,9 +20,9 @@ import hashlib
 import json
 from pathlib import Path
 
-from sc3_jax import atomic
-from sc3_jax.errors import UserError
-from sc3_jax.evaluate.results import ResultsStore, score_strides
+from sc3_jax.core import atomic
+from sc3_jax.core.errors import UserError
+from sc3_jax.evaluation.results import ResultsStore, score_strides
 
 
 def weights_digest(path: str | Path) -> str:
@@ -37,7 +37,7 @@ def rescore(results: str | Path, weights: str | Path | None = None, state_reader
     from tqdm import tqdm
 
     from sc3_jax.benchmarks.bussing import perception
-    from sc3_jax.evaluate.scorers import RolloutView
+    from sc3_jax.evaluation.scorers import RolloutView
     from sc3_jax.benchmarks.bussing.scorers import PerceptionScorer
     from sc3_jax.benchmarks.bussing.tasks import make_initial_condition
     store = ResultsStore(results)

@@ -1,5 +1,5 @@
 """The simulated benchmark's scorers (the protocol, ``RolloutView`` and the outcome form are the evaluation core's:
-``evaluate/scorers.py``).
+``evaluation/scorers.py``).
 
 One interface, three kinds, interchangeable in a sweep of the simulated benchmark:
 
@@ -30,8 +30,8 @@ import dataclasses
 import numpy as np
 
 from sc3_jax.benchmarks.bussing import perception
-from sc3_jax.evaluate.metrics import outcome_category
-from sc3_jax.evaluate.scorers import RolloutView, first_run, held
+from sc3_jax.measures.metrics import outcome_category
+from sc3_jax.evaluation.scorers import RolloutView, first_run, held
 
 from .tasks import CRITERIA
 
@@ -89,7 +89,7 @@ class PerceptionScorer:
         every ``stride``-th frame and the last (the world model's frame rate, so real and imagined rollouts are read
         alike); with ``degradations`` also on the seeded degraded copies (``degrade.py``). Returns (outcomes,
         {kind: outcomes})."""
-        from sc3_jax.evaluate import degrade
+        from sc3_jax.evaluation import degrade
         scored = np.concatenate([view.frames[:, :-1:stride], view.frames[:, -1:]], 1)
         clean = dataclasses.replace(view, frames=scored)
         kinds = degrade.all_kinds(scored, seed) if degradations else {}

@@ -1,4 +1,4 @@
-"""What the bussing benchmark hands the sweep engine (``evaluate/engine.py``'s ``Source``): its initial conditions
+"""What the bussing benchmark hands the sweep engine (``evaluation/engine.py``'s ``Source``): its initial conditions
 (the simulator's reset frames and end-effector pose per seed and task), its real rollouts (the simulator, scored
 by physics and by the perception scorer) and its outcome scorer on imagined frames (one outcome per object, for the
 rollout cut after every chunk). Built once per process that rolls out; the simulator and the perception network
@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from sc3_jax.evaluate.results import rollout_id
+from sc3_jax.evaluation.results import rollout_id
 
 
 def initial_observation(env, seed: int, task: str):
@@ -55,7 +55,7 @@ class BussingSource:
     def conditions(self, job, spec):
         """The reset frames, repeated over the world model's ``spec.context`` frames (the scene at rest), and the
         end-effector pose."""
-        from sc3_jax import rollout
+        from sc3_jax.rollout import rollout
 
         from .tasks import task_id
         task = self.tasks[job.name]
@@ -74,7 +74,7 @@ class BussingSource:
         """One simulated rollout, scored by physics and by perception (on every ``score_stride``-th frame and the
         last); with ``job.degraded`` also by perception on degraded copies of the frames (``degrade.py``: how the
         scorer reads generated-looking frames)."""
-        from sc3_jax.evaluate.scorers import RolloutView
+        from sc3_jax.evaluation.scorers import RolloutView
 
         from .policy_eval import run_policy_episode
         from .scorers import SimScorer

@@ -1,6 +1,6 @@
 """The bussing benchmark's sweep: policies x initial conditions x {real, offline, online}, into a resumable results
 store. This module says what runs (the seed blocks, the policies, the modes, the options below); the sweep engine
-(``evaluate/engine.py``) runs it, with this benchmark's ``Source`` (``source.py``: the simulator's reset frames, its
+(``evaluation/engine.py``) runs it, with this benchmark's ``Source`` (``source.py``: the simulator's reset frames, its
 real rollouts and the perception scorer).
 
     real     the policy acts in the simulator; scored by physics (ground truth) and by the perception scorer
@@ -18,7 +18,7 @@ outcomes of the rollout cut after every chunk; a threshold tau keeps the chunks 
 U_chunk > tau, which are exactly the frames a rollout run with that tau would have produced.
 
 Results go to a results store (``results.py``: ``sweep.json``, ``results.jsonl``, one npz per rollout);
-``sweep.json`` records the world model's content hash and step (``evaluate/engine.py``'s ``with_identity``: a
+``sweep.json`` records the world model's content hash and step (``evaluation/engine.py``'s ``with_identity``: a
 resume against a changed model is refused, a store from before the hash resumes with a note). A killed
 sweep restarted with the same config skips every rollout whose line exists and redoes only the work in flight: one
 real rollout, or one world-model batch (``batch`` initial conditions are rolled out together, and a batch is always
@@ -41,13 +41,13 @@ from typing import Annotated
 import numpy as np
 import tyro
 
-from sc3_jax.errors import UserError
-from sc3_jax.evaluate.world_model_defaults import Sampler
-from sc3_jax.evaluate.results import (EVAL_MODES, REAL_ONLY_STRIDE, ResultsStore, rollout_id, score_strides,
+from sc3_jax.core.errors import UserError
+from sc3_jax.evaluation.world_model_defaults import Sampler
+from sc3_jax.evaluation.results import (EVAL_MODES, REAL_ONLY_STRIDE, ResultsStore, rollout_id, score_strides,
                                       seed_blocks)
 
 # the best shipped world model (docs/results.md's headline): README command 1 evaluates the zoo inside it
-SHIPPED_WORLD_MODEL = Path(__file__).resolve().parents[2] / "evaluate" / "shipped" / "bussing_latent_gpu"
+SHIPPED_WORLD_MODEL = Path(__file__).resolve().parents[2] / "evaluation" / "shipped" / "bussing_latent_gpu"
 # a world model may ship the gripper-state reader its published sweeps used (see default_state_reader)
 STATE_READER_FILE = "state_reader.npz"
 
@@ -130,15 +130,15 @@ class SweepConfig(Sampler):
 
 
 # ================================================================================================================
-# The sweep: this benchmark's work and its Source, run by the engine (evaluate/engine.py)
+# The sweep: this benchmark's work and its Source, run by the engine (evaluation/engine.py)
 # ================================================================================================================
 def run_sweep(cfg: SweepConfig) -> Path:
     """Run (or resume) the sweep; returns the results directory. See the module docstring."""
     import functools
 
-    from sc3_jax import checkpoint
-    from sc3_jax import rollout as ro_mod
-    from sc3_jax.evaluate import engine
+    from sc3_jax.model import checkpoint
+    from sc3_jax.rollout import rollout as ro_mod
+    from sc3_jax.evaluation import engine
 
     from . import perception
     from .hooks import named_policy
@@ -171,7 +171,7 @@ def run_sweep(cfg: SweepConfig) -> Path:
     wm_modes = [m for m in cfg.modes if m != "real"]
     spec = None
     if wm_modes:
-        from sc3_jax.evaluate.world_model_defaults import evaluation_config, warn_if_student_off_its_step
+        from sc3_jax.evaluation.world_model_defaults import evaluation_config, warn_if_student_off_its_step
         wcfg = evaluation_config(checkpoint.read_config(cfg.world_model), cfg)
         warn_if_student_off_its_step(wcfg)
         robot = checkpoint.read_robot(cfg.world_model, wcfg)  # the model's data's frame rate and action space

@@ -14,7 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from sc3_jax import atomic
+from sc3_jax.core import atomic
 from sc3_jax.data.episodes import EpisodeStore
 from .demos import _expert_runner, write_episodes
 from .expert import ExpertKnobs

@@ -1,4 +1,4 @@
-"""The SO-101 pick-and-place benchmark as the commands look it up (``sc3_jax.benchmark.get("so101")``): its sweep
+"""The SO-101 pick-and-place benchmark as the commands look it up (``sc3_jax.evaluation.benchmark.get("so101")``): its sweep
 (``sweep.py``: the simulator's outcomes beside the imagined ones, scored by a detector or a scorer), its scene
 measures (the block and the goal marker; the arm: ``hooks.py``) and its zoo's policy names. No outcome scorer of
 imagined frames for ``sc3 diagnose`` / ``sc3 rollout`` (its sweep names one: ``--detector`` or ``--scorer``).
@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from sc3_jax.benchmark import Benchmark
+from sc3_jax.evaluation.benchmark import Benchmark
 
 from .hooks import arm_pixels, locators, named_policy, object_pixels
 from .sweep import So101SweepConfig
@@ -21,7 +21,7 @@ def run_sweep(cfg: So101SweepConfig) -> Path:
 
 def describe_sweep(cfg: So101SweepConfig, out: Path) -> list[str]:
     """What ran and how far the scorer agrees with the simulator on the real episodes (``scorer_check.json``)."""
-    from sc3_jax.atomic import read_json
+    from sc3_jax.core.atomic import read_json
 
     from .sweep import CHECK_FILE
     c = read_json(out / CHECK_FILE)

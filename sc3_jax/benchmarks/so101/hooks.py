@@ -40,7 +40,7 @@ def arm_mask(frames: np.ndarray) -> np.ndarray:
 
 
 def object_pixels(frames: np.ndarray) -> np.ndarray:
-    """The benchmark's scene measure (``evaluate/permanence.py``): the fraction of the block's and the goal marker's
+    """The benchmark's scene measure (``measures/permanence.py``): the fraction of the block's and the goal marker's
     pixels, frames uint8 [V, T, H, W, 3] -> [V, T]."""
     return (block_mask(frames) | goal_mask(frames)).mean((-2, -1))
 
@@ -53,7 +53,7 @@ def arm_pixels(frames: np.ndarray) -> np.ndarray:
 def arm_position(frames: np.ndarray, views) -> np.ndarray:
     """The arm's image position (``benchmark.Locators.arm``): the centroid of its yellow parts, frames [V, T, H, W, 3]
     -> (row, col) [V, T, 2] in pixels; nan in the wrist view (it moves with the arm) and where too few show."""
-    from sc3_jax.evaluate.locate import centroid, masked_views
+    from sc3_jax.measures.locate import centroid, masked_views
     return masked_views(centroid(arm_mask(frames)), views)
 
 
@@ -61,7 +61,7 @@ def block_position(frames: np.ndarray, views) -> np.ndarray:
     """The block's image position: the centroid of its purple pixels (red and blue over green), in pixels, in the
     views that stay put (the workspace camera; nan in the wrist view, where the block is a blur that moves with the
     camera) -> [V, T, 2]."""
-    from sc3_jax.evaluate.locate import centroid, masked_views
+    from sc3_jax.measures.locate import centroid, masked_views
     return masked_views(centroid(block_mask(frames)), views)
 
 
@@ -72,7 +72,7 @@ MOVES = {"dx": "ee_x", "dy": "ee_y", "dz": "ee_z"}
 
 def locators():
     """Its ``benchmark.Locators``: the arm, the block (pixels of the workspace view), what the actions move."""
-    from sc3_jax.benchmark import Locators
+    from sc3_jax.evaluation.benchmark import Locators
     return Locators(arm=arm_position, objects={"block": block_position}, moves=MOVES)
 
 

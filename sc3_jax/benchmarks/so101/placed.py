@@ -18,7 +18,7 @@ import functools
 
 import numpy as np
 
-from sc3_jax.errors import UserError
+from sc3_jax.core.errors import UserError
 
 CRITERION = "success"
 RADIUS = 0.03  # m: the simulator's success radius (the block's centre within it of the goal's)

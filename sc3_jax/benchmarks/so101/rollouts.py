@@ -10,7 +10,7 @@ A policy gets ``{"images": uint8 [V, H, W, 3] (the env's views), "state": float3
 chunk float32 [chunk, 4] of raw actions; the first ``execute`` are applied, then it observes again. A JaxPolicy's rng
 is ``fold_in(key(0), seed)`` (split once per chunk), so an episode depends only on (policy, seed).
 
-Workers: spawned single-threaded processes (``evaluate/worker_pool``), each with its own simulator, running whole
+Workers: spawned single-threaded processes (``evaluation/worker_pool``), each with its own simulator, running whole
 episodes; results come back in job order, and an episode depends only on its job (the simulator resets every state
 with the seed), so results do not depend on the number of workers.
 """
@@ -200,7 +200,7 @@ def run_episodes(jobs: list[Job], setup: Setup = Setup(), workers: int = 1) -> I
         finally:
             runner.close()
         return
-    from sc3_jax.evaluate import worker_pool
+    from sc3_jax.evaluation import worker_pool
 
     with worker_pool.pool(min(workers, len(jobs)), _init, (setup,)) as pool:
         yield from pool.imap(_work, jobs, chunksize=1)

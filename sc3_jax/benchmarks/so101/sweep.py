@@ -9,8 +9,8 @@ floor and a split-half real-vs-real ceiling: ``report_episodes.py``).
     OUT/real.csv              per policy and seed, the simulator's success (``info["succeed"]``) within the horizon
     OUT/scorer_check.json     the scorer's verdict on those real episodes' frames against the simulator's
     OUT/real_frames/          per policy and seed, the real frames at the times the report's "objects kept" row
-                              reads (evaluate/permanence.py), so that it compares them with the imagined ones
-    OUT/results.jsonl ...     the imagined rollouts (``evaluate/ic_sweep.py``'s store), OUT/report/
+                              reads (measures/permanence.py), so that it compares them with the imagined ones
+    OUT/results.jsonl ...     the imagined rollouts (``evaluation/ic_sweep.py``'s store), OUT/report/
 
 Initial conditions are identical: the simulator is reset at seed ``EVAL_SEED0 + i`` and stepped once with ``HOLD``;
 the real episode starts there, and those two frames are the imagined one's context. Both run ``episode_seconds``
@@ -27,9 +27,9 @@ from pathlib import Path
 
 import numpy as np
 
-from sc3_jax import atomic
-from sc3_jax.errors import UserError
-from sc3_jax.evaluate.world_model_defaults import SamplerSteps
+from sc3_jax.core import atomic
+from sc3_jax.core.errors import UserError
+from sc3_jax.evaluation.world_model_defaults import SamplerSteps
 
 EVAL_SEED0 = 20_000_000  # as `sc3 so101 zoo-eval`: neither the collection's training nor held-out seeds
 HOLD_STEPS = 1  # one step from the reset gives the world model's second context frame (and opens the gripper)
@@ -41,7 +41,7 @@ BENCHMARK = "so101"  # whose scene measure `sc3 report` reads the kept real fram
 class So101SweepConfig(SamplerSteps):
     """The SO-101 policies in the simulator and inside the world model from the same seeds, then the report
     (docs/so101.md). Resumable: rerun the same command. Sampled as every sweep samples (--sample-steps,
-    --inverse-steps: sc3_jax/evaluate/world_model_defaults.py)."""
+    --inverse-steps: sc3_jax/evaluation/world_model_defaults.py)."""
 
     world_model: str
     """an SO-101 world model: a `sc3 train --config so101_latent` run or its export"""
@@ -72,9 +72,9 @@ class So101SweepConfig(SamplerSteps):
 
 def run(cfg: So101SweepConfig) -> Path:
     """Every stage (see the module docstring); returns OUT."""
-    from sc3_jax import checkpoint
-    from sc3_jax.evaluate import engine, ic_sweep
-    from sc3_jax.evaluate.scorers import DETECTOR_PREFIX, load_outcome_scorer
+    from sc3_jax.model import checkpoint
+    from sc3_jax.evaluation import engine, ic_sweep
+    from sc3_jax.evaluation.scorers import DETECTOR_PREFIX, load_outcome_scorer
 
     from .zoo import ZOO, named_policy
 
@@ -182,9 +182,9 @@ def keep_real_frames(out: Path, policy: str, episode: str, frames: np.ndarray, h
     """``OUT/real_frames/POLICY/EPISODE.npz``: the real episode's frames [V, n, H, W, 3] at the report's times
     (``at``: model steps after the last context frame; past the episode's end, its last frame: the simulator ends an
     episode on success and the scene then stays as it is)."""
-    from sc3_jax.evaluate import permanence
-    from sc3_jax.evaluate.report_episodes import REAL_FRAMES
-    from sc3_jax.safe_names import join_inside
+    from sc3_jax.measures import permanence
+    from sc3_jax.evaluation.report_episodes import REAL_FRAMES
+    from sc3_jax.core.safe_names import join_inside
 
     at = np.array(sorted(set(permanence.times(hz).values())), np.int64)
     sel = np.moveaxis(frames[np.minimum(at, len(frames) - 1)], 1, 0)
@@ -205,6 +205,6 @@ def _name(spec: str) -> str:
 def _says_done(scorer, frames: np.ndarray, states: np.ndarray, seed: int) -> bool:
     """The scorer's verdict on a real episode's frames [T, V, H, W, 3] and states [T, 14] (any criterion done: the
     task's one)."""
-    from sc3_jax.evaluate.scorers import RolloutView
+    from sc3_jax.evaluation.scorers import RolloutView
 
     return any(scorer(RolloutView(f"seed{seed}", np.moveaxis(frames, 1, 0), state=states)).values())

@@ -13,7 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from sc3_jax import atomic
+from sc3_jax.core import atomic
 from .zoo import ZOO, ZOO_DIR, estimator_loss, init_estimator, save_params
 
 ENV_STATE = "observation.environment_state"
