@@ -1,6 +1,6 @@
-"""The benchmark registry (sc3_jax/evaluation/benchmark.py): built-in names, aliases, one-line refusals, and a benchmark defined
-outside the package (tests/toy_benchmark.py, named ``toy_benchmark:BENCHMARK``) that `sc3 sweep`, `sc3 report` and
-`sc3 diagnose` run end to end with no file of sc3_jax naming it, on test_any_robot.py's tiny bimanual model."""
+"""The benchmark registry (sc3_jax/evaluation/benchmark.py): built-in names, aliases, one-line refusals, and a benchmark
+defined outside the package (tests/toy_benchmark.py, named ``toy_benchmark:BENCHMARK``) that `sc3 sweep`, `sc3 report`
+and `sc3 diagnose` run end to end with no file of sc3_jax naming it, on test_any_robot.py's tiny bimanual model."""
 import json
 import os
 import subprocess

@@ -754,7 +754,8 @@ def test_the_battery_catches_the_norm_stats_door_switched_off(pristine, monkeypa
 
 @pytest.mark.parametrize("kind, targets", [
     ("store files", ["sc3_jax.core.validate.regular_file", "sc3_jax.core.validate.npy_fits"]),
-    ("episode sweep records", ["sc3_jax.evaluation.report_episodes.check_against_sweep", "sc3_jax.core.validate.out_dir"]),
+    ("episode sweep records", ["sc3_jax.evaluation.report_episodes.check_against_sweep",
+                               "sc3_jax.core.validate.out_dir"]),
 ])
 @pytest.mark.slow  # 25-55 s: kept out of the default run's 15 minutes (CI runs -m slow too)
 def test_the_battery_catches_the_store_doors_switched_off(pristine, monkeypatch, kind, targets):

@@ -105,7 +105,8 @@ def find_cycle(graph: dict[str, set[str]]) -> list[str] | None:
 
 def test_sc3_jax_has_no_import_cycle():
     graph = import_graph(ROOT / "sc3_jax")
-    assert len(graph) > 50 and "sc3_jax.rollout.rollout" in graph["sc3_jax.benchmarks.bussing.sweep"]  # the walk sees the package
+    # the walk sees the package
+    assert len(graph) > 50 and "sc3_jax.rollout.rollout" in graph["sc3_jax.benchmarks.bussing.sweep"]
     cycle = find_cycle(graph)
     assert cycle is None, "import cycle: " + " -> ".join(cycle)
 
@@ -166,7 +167,8 @@ def floor_of(mod: str, graph, floors=FLOORS, top: str = "sc3_jax") -> tuple[int,
 
 
 def layer_violations(graph: dict[str, set[str]], floors=FLOORS, top: str = "sc3_jax") -> list[str]:
-    """Every import from a lower floor to a higher one, and every module no floor places (a folder not in ``floors``)."""
+    """Every import from a lower floor to a higher one, and every module no floor places (a folder
+    not in ``floors``)."""
     out = []
     for mod in sorted(graph):
         if mod == top:
@@ -279,12 +281,13 @@ def test_the_benchmarks_hooks_load_no_simulator_for_a_labs_robot():
 
 
 def test_the_benchmark_registry_imports_no_benchmark():
-    """``sc3_jax/evaluation/benchmark.py`` names the benchmarks by "module:attr" strings, imported on lookup: neither its source
-    nor importing it loads ``sc3_jax.benchmarks``."""
+    """``sc3_jax/evaluation/benchmark.py`` names the benchmarks by "module:attr" strings, imported on lookup: neither
+    its source nor importing it loads ``sc3_jax.benchmarks``."""
     import subprocess
     import sys
     graph = import_graph(ROOT / "sc3_jax")
     assert not {d for d in graph["sc3_jax.evaluation.benchmark"] if d.startswith("sc3_jax.benchmarks")}
-    code = "import sys, sc3_jax.evaluation.benchmark; print(sorted(m for m in sys.modules if m.startswith('sc3_jax.benchmarks')))"
+    code = ("import sys, sc3_jax.evaluation.benchmark; "
+            "print(sorted(m for m in sys.modules if m.startswith('sc3_jax.benchmarks')))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]", out

@@ -1,5 +1,5 @@
-"""Closed-loop rollout engine (sc3_jax/rollout/rollout.py): scan vs host loop, U_chunk, termination, context caching, offline
-replay, batching/sharding and the CLI. Tiny random-parameter models: semantics, not learning."""
+"""Closed-loop rollout engine (sc3_jax/rollout/rollout.py): scan vs host loop, U_chunk, termination, context caching,
+offline replay, batching/sharding and the CLI. Tiny random-parameter models: semantics, not learning."""
 import dataclasses
 import math
 

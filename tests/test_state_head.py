@@ -1,5 +1,5 @@
-"""The learned robot state (sc3_jax/rollout/state_head.py): a two-link arm driven by end-effector deltas records its joint
-angles, so the state is not the integral of the actions; the head learns it from the episodes and, unrolled over
+"""The learned robot state (sc3_jax/rollout/state_head.py): a two-link arm driven by end-effector deltas records its
+joint angles, so the state is not the integral of the actions; the head learns it from the episodes and, unrolled over
 held-out episodes as a rollout unrolls it, beats holding the first state and integrating the commands by half."""
 import numpy as np
 import pytest

@@ -22,7 +22,8 @@ import numpy as np
 
 from sc3_jax.core import atomic
 from sc3_jax.core.errors import UserError
-from sc3_jax.evaluation import bootstrap, calibrate, diagnose_headline, diagnose_report, intervals, report_episodes, report_figures, report_html
+from sc3_jax.evaluation import (bootstrap, calibrate, diagnose_headline, diagnose_report, intervals, report_episodes,
+                                report_figures, report_html)
 from sc3_jax.measures import metrics, permanence
 from sc3_jax.evaluation.report_html import UNDEFINED, ci
 from sc3_jax.evaluation.report_html import fmt as _fmt

@@ -2,8 +2,8 @@
 ``register_third_party_plugins`` because this distribution is named ``lerobot_env_sc3``.
 
 The features LeRobot builds a policy's inputs from (``env_to_policy_features``) are read from the saved world model
-(``sc3_jax.model.checkpoint.read_robot``: cameras, image size, action and state sizes, frame rate), so the config names no
-robot. The env is ``sc3_jax.evaluation.gym_env.WorldModelVecEnv`` with the raw-env keys (``pixels/<camera>``,
+(``sc3_jax.model.checkpoint.read_robot``: cameras, image size, action and state sizes, frame rate), so the config names
+no robot. The env is ``sc3_jax.evaluation.gym_env.WorldModelVecEnv`` with the raw-env keys (``pixels/<camera>``,
 ``agent_pos``) that lerobot-eval's ``preprocess_observation`` renames to ``observation.images.<camera>`` and
 ``observation.state``; its ``num_envs`` episodes are batched in one world-model call, so ``use_async_envs`` (worker
 processes, one env each) does not apply and is ignored."""

@@ -1,5 +1,5 @@
-"""The simulated table-bussing benchmark as the commands look it up (``sc3_jax.evaluation.benchmark.get("bussing")``, alias
-"bench"): its sweep (``sweep.py``: real rollouts in its simulator, offline and online ones inside the world model,
+"""The simulated table-bussing benchmark as the commands look it up (``sc3_jax.evaluation.benchmark.get("bussing")``,
+alias "bench"): its sweep (``sweep.py``: real rollouts in its simulator, offline and online ones inside the world model,
 scored by its perception network), its scene measure (its objects' pixels: its arm is grey like its floor, so no
 colour tells the arm apart) and outcome scorer, and its zoo's policy names (``hooks.py``). Importing this loads
 neither MuJoCo nor the perception network."""

@@ -1,5 +1,5 @@
-"""The SO-101 pick-and-place benchmark as the commands look it up (``sc3_jax.evaluation.benchmark.get("so101")``): its sweep
-(``sweep.py``: the simulator's outcomes beside the imagined ones, scored by a detector or a scorer), its scene
+"""The SO-101 pick-and-place benchmark as the commands look it up (``sc3_jax.evaluation.benchmark.get("so101")``): its
+sweep (``sweep.py``: the simulator's outcomes beside the imagined ones, scored by a detector or a scorer), its scene
 measures (the block and the goal marker; the arm: ``hooks.py``) and its zoo's policy names. No outcome scorer of
 imagined frames for ``sc3 diagnose`` / ``sc3 rollout`` (its sweep names one: ``--detector`` or ``--scorer``).
 Importing this loads no simulator."""
