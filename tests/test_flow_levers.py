@@ -1,7 +1,7 @@
-"""Two training-recipe levers of the rectified flow, both off by default: flow from the present (flow.from_present:
-a noisy future frame flows from its view's last context frame plus scaled noise, not from pure noise) and per-frame
-noise levels (flow.per_frame_t, diffusion forcing: each future frame and its action draw their own t in training).
-Off, the loss is exactly what it was."""
+"""Training-recipe levers of the rectified flow, all off by default: flow from the present (flow.from_present: a
+noisy future frame flows from its view's last context frame plus scaled noise, not from pure noise), per-frame noise
+levels (flow.per_frame_t, diffusion forcing: each future frame and its action draw their own t in training) and a
+video loss weighted toward what moves (flow.moving_weight). Off, the loss is exactly what it was."""
 import dataclasses
 import json
 
@@ -9,6 +9,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from sc3_jax.model import flow, modes
 from sc3_jax.train import train
@@ -85,14 +87,14 @@ def test_off_the_loss_is_bit_identical_to_before(prediction):
     code before the levers, bit for bit; off, the sampler's source is the noise itself."""
     cfg = dataclasses.replace(MCFG, prediction=prediction)
     fcfg = FlowConfig(context_noise_max=0.3)
-    assert (fcfg.from_present, fcfg.per_frame_t) == (0.0, False)
+    assert (fcfg.from_present, fcfg.per_frame_t, fcfg.moving_weight) == (0.0, False, 0.0)
     params = _perturbed(cfg)
     video, actions, stride = _tokens(16)
     rng = jax.random.key(3)
     now, spelled, before = jax.jit(lambda p: (
         flow.loss(p, cfg, video, actions, stride, rng, PROBS, GRID, fcfg),
         flow.loss(p, cfg, video, actions, stride, rng, PROBS, GRID,
-                  dataclasses.replace(fcfg, from_present=0.0, per_frame_t=False)),
+                  dataclasses.replace(fcfg, from_present=0.0, per_frame_t=False, moving_weight=0.0)),
         _loss_before(p, cfg, video, actions, stride, rng, PROBS, GRID, fcfg)))(params)
     for got in (now, spelled):
         assert got[1].keys() == before[1].keys()
@@ -226,6 +228,33 @@ def test_from_present_must_be_finite_and_not_negative():
     for bad in (-0.1, float("nan"), float("inf")):
         with pytest.raises(ValueError, match="from_present"):
             FlowConfig(from_present=bad)
+        with pytest.raises(ValueError, match="moving_weight"):
+            FlowConfig(moving_weight=bad)
+
+
+@settings(max_examples=25, deadline=None)
+@given(weight=st.floats(0.5, 20.0), mover=st.integers(0, P_ - 1), seed=st.integers(0, 1000))
+def test_moving_weight_counts_an_error_on_the_token_that_moves_more_than_one_on_a_still_token(weight, mover, seed):
+    """One token of every future frame moves away from the last context frame, the others stay: the same squared
+    error costs more on the mover than on a still token, by the weights' ratio; equal weights give the plain mean."""
+    rng = np.random.default_rng(seed)
+    clean = np.repeat(rng.normal(size=(1, V, 1, P_, D)), K + T, axis=2).astype(np.float32)
+    clean[:, :, K:, mover] += 3.0  # the mover
+    w = flow.moving_token_weights(jnp.asarray(clean), K, weight)
+    assert w.shape == (1, V, T, P_)
+    still = (mover + 1) % P_
+    np.testing.assert_allclose(w[..., still], 1.0, atol=1e-5)
+    np.testing.assert_allclose(w[..., mover], 1.0 + weight * P_, rtol=1e-4)  # its change over the frame's mean
+    target, noisy = jnp.zeros((1, V, T, P_, D)), jnp.ones((1, V, T), bool)
+    actions, no_actions = jnp.zeros((1, T, 4)), jnp.zeros((1, T), bool)
+    err = lambda tok: jnp.zeros((1, V, T, P_, D)).at[:, :, :, tok].set(1.0)  # noqa: E731
+    on_mover, _ = flow.masked_loss(err(mover), actions, target, actions, noisy, no_actions, token_weights=w)
+    on_still, _ = flow.masked_loss(err(still), actions, target, actions, noisy, no_actions, token_weights=w)
+    np.testing.assert_allclose(float(on_mover) / float(on_still), 1.0 + weight * P_, rtol=1e-4)
+    plain, _ = flow.masked_loss(err(mover), actions, target, actions, noisy, no_actions)
+    equal, _ = flow.masked_loss(err(mover), actions, target, actions, noisy, no_actions,
+                                token_weights=jnp.ones((1, V, T, P_)))
+    np.testing.assert_allclose(float(equal), float(plain), rtol=1e-6)
 
 
 def test_the_levers_are_options_and_saved_with_the_model():
@@ -255,7 +284,7 @@ def _random_batch(cfg, seed=0):
     return out
 
 
-@pytest.mark.parametrize("lever", [dict(from_present=0.1), dict(per_frame_t=True)])
+@pytest.mark.parametrize("lever", [dict(from_present=0.1), dict(per_frame_t=True), dict(moving_weight=4.0)])
 def test_a_few_train_steps_with_a_lever_on_are_finite_and_learn(lever):
     cfg = Config(model=ModelConfig(**SMALL), data=DataConfig(image_size=(8, 8), context_frames=K, future_frames=T,
                                                                batch_size=8),

@@ -280,10 +280,17 @@ class FlowConfig:
     (logit-normal, as t_logit_mean) instead of one per sample, so the model learns futures whose frames are
     unequally noisy; sampling is unchanged (one level for all noisy tokens). One action per future token frame
     only (not the time-compressed Cosmos3 layout). False: off (one level per sample)"""
+    moving_weight: float = 0.0
+    """weight the video loss toward what moves: within each future frame a token's squared error weighs 1 +
+    moving_weight x (its change from the same view's last clean context frame, over the frame's mean change), a
+    weighted mean over the frame's tokens, so a frame's loss keeps its scale. A small object the gripper carries
+    (a few tokens of a frame) then counts as much as the static table the uniform mean is dominated by. 0: off"""
 
     def __post_init__(self):
         if not 0.0 <= self.from_present < float("inf"):
             raise ValueError(f"flow.from_present must be a finite number >= 0 (0: off), got {self.from_present!r}")
+        if not 0.0 <= self.moving_weight < float("inf"):
+            raise ValueError(f"flow.moving_weight must be a finite number >= 0 (0: off), got {self.moving_weight!r}")
 
 
 @dataclasses.dataclass(frozen=True)

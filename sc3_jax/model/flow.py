@@ -93,16 +93,33 @@ def predict(params, cfg: ModelConfig, inp: dit.Inputs, grid, context_kv=None, co
     return ((xt_v - x0_v) / safe(tv), (xt_a - x0_a) / safe(ta)), (x0_v, x0_a)
 
 
-def masked_loss(pred_v, pred_a, target_v, target_a, video_noisy_future, action_noisy, weights=(1.0, 1.0)):
+def masked_loss(pred_v, pred_a, target_v, target_a, video_noisy_future, action_noisy, weights=(1.0, 1.0),
+                token_weights=None):
     """Per-sample (weighted) mean squared error over noisy tokens only, then the batch mean. Also returns the
-    per-sample losses. ``weights``: (video, action) loss weights."""
-    se_v = jnp.mean(jnp.square(pred_v - target_v), axis=(-2, -1))  # [B, V, T] per frame (mean over its tokens)
+    per-sample losses. ``weights``: (video, action) loss weights. ``token_weights`` [B, V, T, N] (None: equal): a
+    frame's error is the weighted mean over its N tokens (``moving_token_weights``)."""
+    if token_weights is None:
+        se_v = jnp.mean(jnp.square(pred_v - target_v), axis=(-2, -1))  # [B, V, T] per frame (mean over its tokens)
+    else:
+        se_tok = jnp.mean(jnp.square(pred_v - target_v), axis=-1)  # [B, V, T, N]
+        w = token_weights.astype(se_tok.dtype)
+        se_v = jnp.sum(se_tok * w, axis=-1) / jnp.maximum(jnp.sum(w, axis=-1), 1e-6)
     se_a = jnp.mean(jnp.square(pred_a - target_a), axis=-1)  # [B, T]
     mv, ma = video_noisy_future.astype(jnp.float32), action_noisy.astype(jnp.float32)
     total = weights[0] * jnp.sum(se_v * mv, axis=(1, 2)) + weights[1] * jnp.sum(se_a * ma, axis=1)
     count = jnp.sum(mv, axis=(1, 2)) + jnp.sum(ma, axis=1)
     per_sample = total / jnp.maximum(count, 1.0)
     return jnp.mean(per_sample), per_sample
+
+
+def moving_token_weights(clean, K: int, moving_weight: float):
+    """[B, V, F - K, N] loss weights of the future tokens of clean video tokens [B, V, F, N, D]: 1 + moving_weight x
+    each token's RMS change from the same view's last context frame (token frame K - 1) over the frame's mean change
+    (scale-free: latents of any scale; a frame where nothing moves weighs its tokens about equally)."""
+    future = clean[:, :, K:].astype(jnp.float32)
+    change = jnp.sqrt(jnp.mean(jnp.square(future - clean[:, :, K - 1:K].astype(jnp.float32)), axis=-1))
+    rel = change / (jnp.mean(change, axis=-1, keepdims=True) + 1e-6)
+    return jax.lax.stop_gradient(1.0 + moving_weight * rel)
 
 
 def draw_t(rng, batch: int, fcfg: FlowConfig, frames: int | None = None) -> jax.Array:
@@ -203,8 +220,9 @@ def loss(params, cfg: ModelConfig, video, actions, stride, rng, probs, grid, fcf
         preds, targets = (v_v, v_a), (src_v[:, :, K:] - clean[:, :, K:], eps_a - actions)
     else:
         preds, targets = (x0_v, x0_a), (clean[:, :, K:], actions)
+    weights = moving_token_weights(clean, K, fcfg.moving_weight) if fcfg.moving_weight else None
     total, per_sample = masked_loss(*preds, *targets, video_noisy[:, :, K:], action_noisy,
-                                    (fcfg.video_loss_weight, fcfg.action_loss_weight))
+                                    (fcfg.video_loss_weight, fcfg.action_loss_weight), weights)
     metrics = {"loss": total}
     for m, name in enumerate(modes_lib.NAMES):
         sel = (mode == m).astype(jnp.float32)
