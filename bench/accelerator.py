@@ -4,7 +4,7 @@
 
 * Train step: on a GPU / TPU a mid-size model (dim 1024, 16 layers, ~250M parameters, bf16, 5,764 tokens per
   sample, memory-efficient attention ("fused": cuDNN where it applies, else blockwise), remat "dots"); on a CPU a
-  tiny one (and it says so). MFU = XLA cost-analysis FLOPs of the step (``plan.train_step_flops``: the same
+  tiny one (and it says so). MFU = XLA cost-analysis FLOPs of the step (``flops.train_step_flops``: the same
   program with the layer scan unrolled, lowered) / step time / peak. The peak is the vendor dense-BF16 figure of
   the device (``plan.DEVICES``, matched by device kind); on a CPU, or an unknown device, the measured rate of a
   plain jitted square matmul stands in for it (printed as such).
@@ -30,6 +30,7 @@ import numpy as np
 
 from sc3_jax.model import flow, sharding
 from sc3_jax.train import plan, train
+from sc3_jax.train.flops import train_step_flops
 from sc3_jax.rollout import rollout
 from sc3_jax.core.config import MeshConfig, load_config, replace
 from sc3_jax.data.action_space import DELTA_EE
@@ -171,7 +172,7 @@ def main(argv=None) -> int:
               "numbers say only that the bench runs")
 
     cfg = train_config(size)
-    flops = plan.train_step_flops(cfg)
+    flops = train_step_flops(cfg)
     sec = train_step_seconds(cfg, args.repeats)
     n_params = dit.count_params(jax.eval_shape(lambda: train.init_state(cfg)["params"]))
     mfu = flops / sec / peak

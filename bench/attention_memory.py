@@ -1,5 +1,5 @@
 """Compiled train-step temp memory of dense vs blockwise attention at ~2k / 4k / 8k tokens per sample, next to
-``plan.activation_estimate`` (small width, one sample, this machine's first device; nothing is run, only compiled).
+``memory.activation_estimate`` (small width, one sample, this machine's first device; nothing is run, only compiled).
 
     python bench/attention_memory.py [--impls dense:none blockwise:none blockwise:dots blockwise:block]
 
@@ -15,7 +15,7 @@ from __future__ import annotations
 import argparse
 import math
 
-from sc3_jax.train import plan
+from sc3_jax.train import memory
 from sc3_jax.core.config import MeshConfig, load_config, replace
 from sc3_jax.model import tokenizer
 
@@ -61,8 +61,8 @@ def main(argv=None) -> int:
             impl, remat = spec.split(":")
             cfg = config(image, impl, remat)
             assert tokenizer.tokens_per_sample(cfg) == n
-            m = plan.compiled_memory(cfg, mesh).temp_size_in_bytes
-            e = plan.activation_estimate(cfg, mesh)
+            m = memory.compiled_memory(cfg, mesh).temp_size_in_bytes
+            e = memory.activation_estimate(cfg, mesh)
             measured[n, impl, remat] = m
             print(f"| {n:,} | {impl} | {remat} | {m / 1e6:,.0f} MB | {e / 1e6:,.0f} MB | {m / e:.2f} |", flush=True)
     growth = {}

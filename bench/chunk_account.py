@@ -3,10 +3,10 @@ run (abstract inputs: nothing of the model is allocated):
 
     python bench/chunk_account.py [--config paper] [--depths 2 3] [--uncached]
 
-Per part of the chunk (``plan.chunk_programs``: the tokenizer's encode of the context and decode of the kept frames,
+Per part of the chunk (``flops.chunk_programs``: the tokenizer's encode of the context and decode of the kept frames,
 the context's keys/values, each forward-dynamics Euler step, every frame's keys/values for the inverse read, each
 inverse-dynamics step, the policy call): XLA's compiled cost analysis (FLOPs, bytes accessed) and memory analysis
-(temp bytes), beside the ideal FLOPs (``plan.chunk_ideal_flops``: each Euler step runs only its noisy tokens against
+(temp bytes), beside the ideal FLOPs (``flops.chunk_ideal_flops``: each Euler step runs only its noisy tokens against
 cached keys/values, every clean token's keys/values are computed once, every frame is encoded and decoded once), and
 the ratio. The chunk total is the whole compiled model step (S = 1) plus the other Euler steps and the policy; the
 sum of the parts beside it is its check. Counted with the layers unrolled and dense attention (XLA counts a loop
@@ -19,7 +19,7 @@ from __future__ import annotations
 import argparse
 import time
 
-from sc3_jax.train import plan
+from sc3_jax.train import flops
 from sc3_jax.core.config import load_config
 
 
@@ -53,7 +53,7 @@ def main(argv=None) -> int:
     out = {}
     for cache in (True, False) if args.uncached else (True,):
         t0 = time.perf_counter()
-        a = out[cache] = plan.chunk_account(cfg, tuple(args.depths), cache, **robot)
+        a = out[cache] = flops.chunk_account(cfg, tuple(args.depths), cache, **robot)
         counted = (f"compiled at depth {a['counted_depths'][0]}" if len(a["counted_depths"]) == 1 else
                    f"compiled at depths {a['counted_depths'][0]} and {a['counted_depths'][1]}, extrapolated "
                    f"linearly per layer to {a['depth']}")

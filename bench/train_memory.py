@@ -8,7 +8,7 @@ For each (views, attention kernel): a store of 3 random episodes of that many ca
 the kernel's VmHWM) with the kernel given as ``--model.attention-impl``, killed after ``--max-seconds`` (the steps
 done by then count); steps/s is the median
 over the logged steps after the first (compilation). A config that ``sc3 train`` refuses before compiling (it would
-not fit this machine: ``plan.fit_to_memory``) reads "refused". Prints a
+not fit this machine: ``memory.fit_to_memory``) reads "refused". Prints a
 markdown table, then one line per row: ``train_memory <config> views=<v> <impl>: peak_gb=<x> steps_per_s=<y>
 tokens=<n>``, and last the ratio of the dense to the blockwise peak at the largest view count."""
 from __future__ import annotations

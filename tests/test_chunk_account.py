@@ -1,10 +1,10 @@
-"""The chunk account (bench/chunk_account.py, ``plan.chunk_account``) at a small size with the paper config's
+"""The chunk account (bench/chunk_account.py, ``flops.chunk_account``) at a small size with the paper config's
 structure (3 views, K = 4, l' = 24, causal context attention, pixel patches, 10 + 10 Euler steps): the compiled FLOPs
 of one rollout chunk stay within 1.3x of the ideal count, which the sampler without the context cache
 does not."""
 import pytest
 
-from sc3_jax.train import plan
+from sc3_jax.train import flops
 from sc3_jax.core.config import MeshConfig, load_config, replace
 from sc3_jax.data.action_space import DELTA_EE
 
@@ -20,7 +20,7 @@ def cfg():
 
 
 def test_a_chunk_compiles_to_within_1_3x_of_the_ideal_flops(cfg):
-    a = plan.chunk_account(cfg, action_space=DELTA_EE, data_fps=20.0)
+    a = flops.chunk_account(cfg, action_space=DELTA_EE, data_fps=20.0)
     parts = a["parts"]
     assert a["counted_depths"] == (2,) and a["steps"] == (10, 10)
     assert parts["forward step"]["runs"] == 10 and parts["inverse step"]["runs"] == 10
@@ -35,7 +35,7 @@ def test_a_chunk_compiles_to_within_1_3x_of_the_ideal_flops(cfg):
 
 
 def test_the_bound_fails_without_the_context_cache(cfg):
-    a = plan.chunk_account(cfg, cache=False, action_space=DELTA_EE, data_fps=20.0)
+    a = flops.chunk_account(cfg, cache=False, action_space=DELTA_EE, data_fps=20.0)
     assert a["parts"]["context encoding"]["flops"] == 0 and a["parts"]["inverse encoding"]["flops"] == 0
     assert a["ratio"] > 1.5 * BOUND  # every Euler step runs every token, an inverse one ~100x its noisy ones
 

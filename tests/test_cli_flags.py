@@ -169,7 +169,7 @@ def test_the_sampler_default_is_the_sweeps_and_none_reads_the_models_own():
 def test_train_demo_and_plan_set_the_configs_data_and_batch(tmp_path):
     """--data and --batch are data.path and data.batch_size for the commands that build a config, read as given on
     the command line where the data decide a field; the planner's hints spell them the same way."""
-    from sc3_jax.train import plan
+    from sc3_jax.train.config_flag import config_flag
     from sc3_jax.commands import demo, parse_with_config, train
 
     argv = ["--config", "tiny", "--data", str(tmp_path), "--batch", "4", "--data.image-size", "8", "8"]
@@ -178,7 +178,7 @@ def test_train_demo_and_plan_set_the_configs_data_and_batch(tmp_path):
     assert flags.explicit_fields(argv) == {"data.path", "data.batch_size", "data.image_size"}
     _, cfg = parse_with_config(demo.Args, ["--out", str(tmp_path), "--batch", "3"], "demo", demo._config)
     assert cfg.data.batch_size == 3 and cfg.data.path == str(tmp_path / "episodes")
-    assert {plan.config_flag(field, 7) for field in flags.CONFIG_FIELDS.values()} == \
+    assert {config_flag(field, 7) for field in flags.CONFIG_FIELDS.values()} == \
         {f"{option} 7" for option in flags.CONFIG_FIELDS}
 
 

@@ -87,7 +87,7 @@ def test_plan_config_overrides_reach_the_config(monkeypatch, capsys):
     cfg = seen["cfg"]
     assert (cfg.name, cfg.data.batch_size, cfg.model.attention_impl) == ("tiny", 64, "blockwise")
     assert seen["mesh"] == MeshConfig(2, 4, 1, 1) and seen["device"] == "v5p" and seen["chunk"] is False
-    assert seen["robot"] == (None, None)  # no --data: no robot facts assumed (plan.cost_robot's stand-ins)
+    assert seen["robot"] == (None, None)  # no --data: no robot facts assumed (shape_check.cost_robot's stand-ins)
     assert capsys.readouterr().out.strip() == "verdict: stub"
 
 

@@ -302,7 +302,7 @@ def test_a_student_sampled_at_other_than_1_step_is_warned_about():
 
 
 def test_a_distilled_run_is_costed_before_it_starts_at_its_own_depth(tmp_path):
-    from sc3_jax.train import plan, sizing
+    from sc3_jax.train import flops, sizing
 
     cfg = tiny(tmp_path)
     deep = replace(cfg, model=dict(depth=3))
@@ -311,7 +311,7 @@ def test_a_distilled_run_is_costed_before_it_starts_at_its_own_depth(tmp_path):
     on = replace(deep, flow=dict(distill_teacher=str(path)), train=dict(init_from=str(path)))
     # lowered at 1 and 2 layers and extrapolated (sc3 train's cost line): the teacher's passes counted, its params
     # never read, and the same count as the whole step lowered at its own depth
-    assert sizing.step_flops(on) == pytest.approx(plan.train_step_flops(on), rel=1e-5)
+    assert sizing.step_flops(on) == pytest.approx(flops.train_step_flops(on), rel=1e-5)
     assert sizing.step_flops(on) > 1.5 * sizing.step_flops(replace(deep, train=dict(init_from=str(path))))
     with pytest.raises(UserError, match=r"model\.depth is 3, this run's 2"):
         sizing.step_flops(replace(on, model=dict(depth=2)))

@@ -10,7 +10,8 @@ import jax
 import numpy as np
 import pytest
 
-from sc3_jax.train import plan, plan_vae, train
+from sc3_jax.train import flops, memory, plan, plan_vae, shape_check, train
+from sc3_jax.train.config_flag import config_flag
 from sc3_jax.model import sharding
 from sc3_jax.core import xla_cost
 from sc3_jax.cli import main
@@ -38,14 +39,14 @@ def test_tiny_flops_match_bench_cost_analysis():
     cost = counted.lower(state, batch).compile().cost_analysis()
     bench_flops = float((cost[0] if isinstance(cost, (list, tuple)) else cost)["flops"])
 
-    assert plan.train_step_flops(cfg, compiled=True) == pytest.approx(bench_flops, rel=1e-9)  # --compile: exact
-    assert plan.train_step_flops(cfg) == pytest.approx(bench_flops, rel=0.05)  # lowered (the default): a few %
+    assert flops.train_step_flops(cfg, compiled=True) == pytest.approx(bench_flops, rel=1e-9)  # --compile: exact
+    assert flops.train_step_flops(cfg) == pytest.approx(bench_flops, rel=0.05)  # lowered (the default): a few %
 
 
 def test_state_bytes_match_real_shardings():
     cfg = load_config("tiny")
     mesh_cfg = MeshConfig(data=2, fsdp=2, tensor=2)
-    got = plan.state_bytes(cfg, mesh_cfg)
+    got = memory.state_bytes(cfg, mesh_cfg)
     abstract, shards = train.state_shardings(cfg, sharding.make_mesh(mesh_cfg))
     real = {"params": 0, "opt_state": 0}
     for key in real:
@@ -61,8 +62,8 @@ def test_parse_mesh_and_config_flags():
         with pytest.raises(UserError, match="--mesh"):
             plan.parse_mesh(bad)
     # the overrides the plan suggests are options the command parses, into the fields they name
-    flags = [plan.config_flag("data.batch_size", 16), plan.config_flag("model.attention_impl", "ring"),
-             plan.config_flag("data.image_size", (8, 8)), plan.config_flag("model.scan_layers", False)]
+    flags = [config_flag("data.batch_size", 16), config_flag("model.attention_impl", "ring"),
+             config_flag("data.image_size", (8, 8)), config_flag("model.scan_layers", False)]
     assert flags[:2] == ["--batch 16", "--model.attention-impl ring"]
     _, cfg = parse_with_config(PlanArgs, " ".join(flags).split(), "plan", plan_config)
     assert (cfg.data.batch_size, cfg.model.attention_impl, cfg.data.image_size, cfg.model.scan_layers) == (
@@ -103,13 +104,13 @@ def test_paper_plan_from_abstract_shapes(capsys):
 
 
 def test_chunk_flops_tiny():
-    c = plan.chunk_flops(load_config("tiny"), action_space=None, data_fps=None)
+    c = flops.chunk_flops(load_config("tiny"), action_space=None, data_fps=None)
     assert c["steps"] == 10 and c["per_step"] > 0
     assert c["total"] == pytest.approx(c["first_step"] + 9 * c["per_step"])
 
 
 def _free_bytes(cfg, mesh_cfg, device):
-    state = plan.state_bytes(cfg, mesh_cfg)
+    state = memory.state_bytes(cfg, mesh_cfg)
     return 0.9 * plan.DEVICES[device][1] - (2 * state["params"] + state["optimizer"] + state["other"])
 
 
@@ -122,15 +123,15 @@ def test_paper_plan_fits_with_memory_efficient_attention(mesh_cfg, device, impl)
     memory-efficient kernel, a remat policy and micro-batches, all within 90% of HBM."""
     cfg = replace(load_config("paper"), mesh=mesh_cfg)
     free = _free_bytes(cfg, mesh_cfg, device)
-    assert plan.activation_estimate(cfg, mesh_cfg) > free
-    fit = plan.fitting_plan(cfg, mesh_cfg, device, free)
+    assert memory.activation_estimate(cfg, mesh_cfg) > free
+    fit = memory.fitting_plan(cfg, mesh_cfg, device, free)
     assert fit is not None and fit["attention_impl"] == impl and fit["activations_bytes"] <= free
     assert fit["remat"] in ("none", "dots", "block") and fit["cfg"].train.grad_accum == fit["microbatches"]
     # no lighter remat fits at any number of micro-batches
     for lighter in ("none", "dots", "block")[:("none", "dots", "block").index(fit["remat"])]:
         c = replace(cfg, model=dict(attention_impl=impl, remat=lighter),
                     train=dict(grad_accum=cfg.data.batch_size // (mesh_cfg.data * mesh_cfg.fsdp)))
-        assert plan.activation_estimate(c, mesh_cfg) > free
+        assert memory.activation_estimate(c, mesh_cfg) > free
 
 
 @pytest.mark.slow  # 61 s: the default run stays under 15 min on 2 cores; CI runs it
@@ -146,8 +147,8 @@ def test_activation_estimate_tracks_compiled_memory():
                           data=dict(image_size=image, batch_size=1),
                           model=dict(patch_size=4, action_reads_frames=False, attention_impl=impl, remat=remat,
                                      dim=64, depth=2, mlp_dim=128))
-            measured = plan.compiled_memory(cfg, mesh_cfg).temp_size_in_bytes
-            estimate = plan.activation_estimate(cfg, mesh_cfg)
+            measured = memory.compiled_memory(cfg, mesh_cfg).temp_size_in_bytes
+            estimate = memory.activation_estimate(cfg, mesh_cfg)
             assert 0.5 < measured / estimate < 2.0, (image, impl, remat, measured, estimate)
             got[image, impl, remat] = measured
     assert got[(32, 32), "dense", "none"] / got[(16, 32), "dense", "none"] > 3.0
@@ -274,7 +275,7 @@ def test_aloha_wan_config_shape():
     """configs/aloha_wan.py: 4 views at 480x640 on Wan2.2 latents, 14-D actions: 15 x 20 tokens per token frame,
     2 + 6 token frames per view, 24 actions -> 9,624 tokens; refused shapes would fail here first."""
     cfg = load_config("aloha_wan")
-    plan.check_shape(cfg, action_space=None, data_fps=None)
+    shape_check.check_shape(cfg, action_space=None, data_fps=None)
     sh = plan.shape_of(cfg)
     assert (len(sh["views"]), sh["image_size"], sh["grid"], sh["action_dim"], sh["state_dim"]) == (
         4, [480, 640], [15, 20], 14, 14)
@@ -290,17 +291,17 @@ def test_a_train_step_that_cannot_fit_trains_with_the_memory_plan_that_does(monk
     flags that fit; nothing fitting is said too."""
     cfg = replace(load_config("tiny"), data=dict(views=("a", "b", "c", "d"), image_size=(96, 128)),
                   model=dict(num_views=4))
-    monkeypatch.setattr(plan, "available_bytes", lambda: (8e9, "test memory"))
-    fitted, note = plan.fit_to_memory(cfg, 8)
+    monkeypatch.setattr(memory, "available_bytes", lambda: (8e9, "test memory"))
+    fitted, note = memory.fit_to_memory(cfg, 8)
     assert fitted.model.attention_impl == "blockwise" and fitted.model.dim == cfg.model.dim
     assert "4612 tokens per sample" in note and "dense attention" in note and "--model.attention-impl blockwise" in note
-    assert plan.fit_to_memory(fitted, 8) == (fitted, None)  # fits as it is
+    assert memory.fit_to_memory(fitted, 8) == (fitted, None)  # fits as it is
     with pytest.raises(UserError) as e:
-        plan.fit_to_memory(cfg, 8, {"model.attention_impl"})
+        memory.fit_to_memory(cfg, 8, {"model.attention_impl"})
     assert "\n" not in str(e.value) and "it fits with --model.attention-impl blockwise" in str(e.value)
-    monkeypatch.setattr(plan, "available_bytes", lambda: (1e6, "test memory"))
+    monkeypatch.setattr(memory, "available_bytes", lambda: (1e6, "test memory"))
     with pytest.raises(UserError, match="nothing fits"):  # not even one sample per device
-        plan.fit_to_memory(cfg, 8)
+        memory.fit_to_memory(cfg, 8)
 
 
 def test_a_resumed_run_keeps_the_memory_plan_it_started_with(tmp_path, monkeypatch):
@@ -312,11 +313,11 @@ def test_a_resumed_run_keeps_the_memory_plan_it_started_with(tmp_path, monkeypat
 
     cfg = replace(load_config("tiny"), data=dict(views=("a", "b", "c", "d"), image_size=(96, 128)),
                   model=dict(num_views=4), train=dict(workdir=str(tmp_path / "w")))
-    monkeypatch.setattr(plan, "available_bytes", lambda: (8e9, "test memory"))
+    monkeypatch.setattr(memory, "available_bytes", lambda: (8e9, "test memory"))
     planned = train_cmd._memory_plan(cfg, frozenset())
     assert planned.model.attention_impl == "blockwise"
     (tmp_path / "w").mkdir()
     (tmp_path / "w" / "config.json").write_text(json.dumps(dataclasses.asdict(planned)))
-    monkeypatch.setattr(plan, "available_bytes", lambda: (1e12, "plenty"))  # more memory now: no re-plan
+    monkeypatch.setattr(memory, "available_bytes", lambda: (1e12, "plenty"))  # more memory now: no re-plan
     assert train_cmd._memory_plan(cfg, frozenset()).model.attention_impl == "blockwise"
     assert train_cmd._memory_plan(cfg, frozenset({"model.attention_impl"})).model.attention_impl == "dense"

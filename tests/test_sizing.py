@@ -8,7 +8,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from sc3_jax.train import plan, sizing
+from sc3_jax.train import flops, sizing
 from sc3_jax.cli import main
 from sc3_jax.core.config import load_config
 from sc3_jax.data import synthetic
@@ -54,7 +54,7 @@ def test_tiny_costs_about_the_same_on_any_shape(size, views):
     p = cfg.model.patch_size
     tokens = views * (size[0] // p) * (size[1] // p)
     assert declared.model.frame_tokens / 2.5 <= tokens <= declared.model.frame_tokens * 2.5
-    ratio = plan.train_step_flops(cfg) / plan.train_step_flops(declared)
+    ratio = flops.train_step_flops(cfg) / flops.train_step_flops(declared)
     assert 1 / 6 < ratio <= sizing.MAX_COST * 1.01, (size, views, p, cfg.data.batch_size, ratio)
 
 
@@ -62,7 +62,7 @@ def test_before_sizing_two_96x128_cameras_cost_many_times_tiny_s_step():
     """What the sizing rule fixes (the first-run issue): 8-pixel patches on a lab's cameras."""
     declared = load_config("tiny")
     unsized = _on(declared, (96, 128), 2)
-    assert plan.train_step_flops(unsized) > 20 * plan.train_step_flops(declared)
+    assert flops.train_step_flops(unsized) > 20 * flops.train_step_flops(declared)
 
 
 def test_what_the_user_names_is_kept():

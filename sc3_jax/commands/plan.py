@@ -10,7 +10,8 @@ from sc3_jax.commands import parse_with_config
 from sc3_jax.commands.flags import onto_config
 from sc3_jax.core.errors import UserError
 from sc3_jax.evaluation.world_model_defaults import Sampler, SamplerSteps, evaluation_config
-from sc3_jax.train.plan import DEVICES, config_flag  # plan.py imports jax only inside its functions
+from sc3_jax.train.config_flag import config_flag
+from sc3_jax.train.plan import DEVICES  # plan.py imports jax only inside its functions
 
 SUMMARY = "what a config costs on a mesh of accelerators (memory, FLOPs, step time)"  # the line `sc3 --help` shows
 
@@ -84,7 +85,7 @@ def main(argv: list[str]) -> int:
                                          tau_units=cfg.rollout.tau_units))
     cfg, store = _shape_from_store(cfg, argv, a.data)
     # a store's action space is the rollout's, its frame rate the rollout's frame stride; without one the config's
-    # data.fps where it records it, and no action kind (plan.cost_robot: a chunk's cost depends on neither)
+    # data.fps where it records it, and no action kind (shape_check.cost_robot: a chunk's cost depends on neither)
     space, fps = (None, cfg.data.fps) if store is None else (store.action_space, float(store.fps))
     p = plan.plan(cfg, plan.parse_mesh(a.mesh), a.device, a.mfu, a.compile, a.chunk, action_space=space,
                   data_fps=fps)

@@ -143,17 +143,17 @@ MEMORY_FIELDS = (("model", "attention_impl"), ("model", "remat"), ("train", "gra
 
 
 def _memory_plan(cfg, explicit):
-    """A step that cannot fit this machine: the memory plan that does (``plan.fit_to_memory``: the same model and
+    """A step that cannot fit this machine: the memory plan that does (``memory.fit_to_memory``: the same model and
     math), or one line saying why not, before anything compiles -- never an allocator failure. A resumed run keeps
     the plan its workdir was started with (free memory changes between runs; its config must not)."""
     import jax
 
-    from sc3_jax.train import plan
+    from sc3_jax.train import memory
 
     old = _saved_config(cfg)
     if old is not None:
         return _keep(cfg, old, MEMORY_FIELDS, explicit)
-    cfg, note = plan.fit_to_memory(cfg, jax.device_count(), explicit)
+    cfg, note = memory.fit_to_memory(cfg, jax.device_count(), explicit)
     if note:
         print(note)
     return cfg

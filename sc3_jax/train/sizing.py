@@ -10,7 +10,7 @@ it would hide the detail a learned tokenizer is there to keep; a coarser patch k
   that tile the (latent) frame exactly.
 - :func:`size_from_data`: ``cfg`` with ``model.patch_size`` so chosen (unless the user set it).
 - :func:`cost`: what a train step of ``cfg`` will cost here (tokens, FLOPs from the lowered step, seconds from this
-  machine's measured matmul rate, memory from ``plan``), printed by ``sc3 train`` before anything compiles.
+  machine's measured matmul rate, memory from ``memory.py``), printed by ``sc3 train`` before anything compiles.
 """
 from __future__ import annotations
 
@@ -115,12 +115,12 @@ def step_flops(cfg) -> float:
     """A train step's FLOPs from the lowered step at one and two layers, extrapolated per layer to the config's depth:
     every layer costs the same, and lowering a deep model unrolled (what XLA's count needs) takes minutes at every
     `sc3 train` start."""
-    from sc3_jax.train import plan
+    from sc3_jax.train import flops
     from sc3_jax.train.distill import teacher_config
 
     teacher_config(cfg)  # a distillation teacher of another model is refused here, at the config's own depth
-    at = {d: plan.train_step_flops(dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, depth=d)),
-                                   check_teacher=False)
+    at = {d: flops.train_step_flops(dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, depth=d)),
+                                    check_teacher=False)
           for d in sorted({1, min(2, cfg.model.depth)})}
     per_layer = at[2] - at[1] if 2 in at else 0.0
     return at[1] + per_layer * (cfg.model.depth - 1)
@@ -128,8 +128,8 @@ def step_flops(cfg) -> float:
 
 def cost(cfg, num_devices: int = 1) -> dict:
     """What one train step of ``cfg`` costs: tokens per frame and per sample, GFLOPs (the lowered step), the
-    estimated seconds here, and the estimated memory (train state + activations, ``plan``)."""
-    from sc3_jax.train import plan
+    estimated seconds here, and the estimated memory (train state + activations, ``memory.py``)."""
+    from sc3_jax.train.memory import activation_estimate, state_bytes
     from sc3_jax.model import sharding
     from sc3_jax.model import tokenizer
 
@@ -137,7 +137,7 @@ def cost(cfg, num_devices: int = 1) -> dict:
     names = sharding.mesh_axes(cfg.mesh)
     mesh_cfg = dataclasses.replace(cfg.mesh, **dict(zip(names, sharding.mesh_shape(cfg.mesh, num_devices))))
     flops = step_flops(cfg)
-    memory = sum(plan.state_bytes(cfg, mesh_cfg).values()) + plan.activation_estimate(cfg, mesh_cfg)
+    memory = sum(state_bytes(cfg, mesh_cfg).values()) + activation_estimate(cfg, mesh_cfg)
     return {"views": len(cfg.data.views), "frame_tokens": len(cfg.data.views) * rows * cols,
             "sample_tokens": tokenizer.tokens_per_sample(cfg), "batch": cfg.data.batch_size,
             "patch_size": cfg.model.patch_size, "gflops": flops / 1e9,
