@@ -186,7 +186,7 @@ def bimanual(tmp_path_factory):
     """The LeRobot dataset, imported with its declaration, and the tiny config trained 2 steps on it with no shape
     flags (small widths for a cheap test: widths are not shape flags)."""
     from sc3_jax.train import train
-    from sc3_jax.data.lerobot import import_lerobot
+    from sc3_jax.data.lerobot_import import import_lerobot
 
     tmp = tmp_path_factory.mktemp("bimanual")
     raw, names = _lerobot(tmp / "lerobot")
@@ -205,7 +205,8 @@ def bimanual(tmp_path_factory):
 
 
 def test_import_takes_the_declaration(bimanual, tmp_path):
-    from sc3_jax.data.lerobot import LeRobotError, import_lerobot
+    from sc3_jax.data.lerobot_error import LeRobotError
+    from sc3_jax.data.lerobot_import import import_lerobot
 
     tmp, raw, names, summary, store, cfg, _ = bimanual
     assert store.action_space == ActionSpace("absolute", A, tuple(names)) and store.state_dim == A

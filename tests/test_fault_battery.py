@@ -720,7 +720,7 @@ def _off(*_a, **_k):
 PLANTED = {
     "rollout bounds": (["sc3_jax.commands.rollout.check_options"], "rollout --episodes -1"),
     "train bounds": (["sc3_jax.core.validate.train_config"], "train --batch 0"),
-    "import bounds": (["sc3_jax.data.lerobot.check_options"], "import --image-size 0 -5"),
+    "import bounds": (["sc3_jax.data.lerobot_import.check_options"], "import --image-size 0 -5"),
     "scorer signature": (["inspect.Signature.bind"], "sweep --scorer os:getcwd"),
     "import --out": (["sc3_jax.core.validate.out_dir"], "import --out FILE/x"),
     "report --out": (["sc3_jax.core.validate.out_dir"], "report --out FILE"),

@@ -10,7 +10,9 @@ av = pytest.importorskip("av", reason="LeRobot support needs the [lerobot] extra
 pa = pytest.importorskip("pyarrow", reason="LeRobot support needs the [lerobot] extra (pyarrow)")
 import pyarrow.parquet as pq  # noqa: E402
 
-from sc3_jax.data.lerobot import LeRobotEpisodes, LeRobotError, import_lerobot  # noqa: E402
+from sc3_jax.data.lerobot import LeRobotEpisodes  # noqa: E402
+from sc3_jax.data.lerobot_error import LeRobotError  # noqa: E402
+from sc3_jax.data.lerobot_import import import_lerobot  # noqa: E402
 from sc3_jax.data.lerobot_write import RawEpisode, av1_encoder, write_lerobot  # noqa: E402
 
 FPS = 20

@@ -7,7 +7,8 @@
 
 ``--views left=observation.images.cam_high`` names a camera key as one of our views; a bare ``cam_high`` keeps its
 name (``observation.images.`` is implied). Views listed in ``--wrist`` are wrist cameras, the rest third-person
-(default: names containing "wrist"). The conversions themselves are ``data/lerobot.py`` and ``data/lerobot_write.py``.
+(default: names containing "wrist"). The conversions themselves are ``data/lerobot_import.py`` and
+``data/lerobot_write.py``.
 """
 from __future__ import annotations
 
@@ -135,7 +136,7 @@ def episode_selection(spec: tuple[str, ...] | None) -> _Selection | None:
 
 def _import(a: ImportLerobot) -> int:
     from sc3_jax.data.episodes import EpisodeStore
-    from sc3_jax.data.lerobot import import_lerobot
+    from sc3_jax.data.lerobot_import import import_lerobot
 
     s = import_lerobot(a.data, a.out, views=views_map(a.views), wrist_views=list(a.wrist) if a.wrist else None,
                        fps=a.fps, image_size=a.image_size, action_key=a.action_key, pose_key=a.pose_key,

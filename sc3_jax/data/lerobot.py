@@ -15,9 +15,8 @@ Frames are decoded lazily: :meth:`LeRobotEpisodes.window` decodes just the reque
 keyframe), :meth:`LeRobotEpisodes.episode` returns the tabular data at once and decodes ``frames`` on first access.
 Every problem with the input raises :class:`LeRobotError` naming the file or key at fault.
 
-:func:`import_lerobot` converts a dataset into our episode store (``sc3_jax.data.episodes``), with the action space
-the dataset is declared to have (LeRobot's info.json has no such declaration: the caller gives it, or our own
-export's ``sc3_action_space`` entry does).
+Video frames are decoded by ``lerobot_video.decode_video``; ``lerobot_import.import_lerobot`` converts a dataset into
+our episode store.
 """
 from __future__ import annotations
 
@@ -25,16 +24,16 @@ import functools
 import json
 import math
 import os
-import re
 from collections import OrderedDict
 from pathlib import Path
 
 import numpy as np
 
-from sc3_jax.core import locks
 from sc3_jax.core.errors import UserError
 from sc3_jax.core.safe_names import ALLOWED, is_safe, join_inside
 from sc3_jax.core.validate import is_count, is_finite_number, json_object, regular_file
+from sc3_jax.data.lerobot_error import LeRobotError
+from sc3_jax.data.lerobot_video import decode_video
 
 try:
     import pyarrow as pa
@@ -47,18 +46,7 @@ IMAGE_PREFIX = "observation.images."
 # info.json key of our action-space declaration (LeRobot has none): our export writes it, import reads it back
 INFO_ACTION_SPACE = "sc3_action_space"
 SUCCESS_KEY = "next.success"  # LeRobot's per-frame success feature (evaluation/labels.py: LEROBOT_SUCCESS)
-MIN_EPISODE_FRAMES = 2  # an imported episode shorter than this is skipped (said): nothing can be learnt from it
-LABELS_FIELD = "labels"  # an imported episode's meta.json {criterion: bool}, what `sc3 sweep episodes --real STORE` reads
-_OPTIONAL = object()  # sentinel: "use observation.state if the dataset has it"
-
-
-class LeRobotError(UserError):
-    """A LeRobot dataset we cannot read as asked (a UserError: one line in every command that reads one).
-    ``where`` names the file or feature key at fault."""
-
-    def __init__(self, where: str | os.PathLike, problem: str):
-        self.where, self.problem = str(where), problem
-        super().__init__(f"{where}: {problem}")
+OPTIONAL = object()  # sentinel: "use observation.state if the dataset has it" (the importer's default too)
 
 
 def read_info(path: Path) -> dict:
@@ -129,7 +117,7 @@ class LeRobotEpisodes:
 
     def __init__(self, root: str | os.PathLike, views: list[str] | dict[str, str] | None = None,
                  wrist_views: list[str] | None = None, fps: float | None = None, action_key: str = "action",
-                 state_key: str | None = _OPTIONAL, cache_size: int = 0,  # type: ignore[assignment]
+                 state_key: str | None = OPTIONAL, cache_size: int = 0,  # type: ignore[assignment]
                  tolerance_s: float | None = None, pose_key: str | None = None):
         self.root = Path(root)
         info_path = self.root / "meta" / "info.json"
@@ -157,7 +145,7 @@ class LeRobotEpisodes:
         if action_key not in self.features:
             raise LeRobotError(info_path, f"action key {action_key!r} not in features {sorted(self.features)}")
         self.action_key = action_key
-        if state_key is _OPTIONAL:
+        if state_key is OPTIONAL:
             state_key = "observation.state" if "observation.state" in self.features else None
         elif state_key is not None and state_key not in self.features:
             raise LeRobotError(info_path, f"state key {state_key!r} not in features {sorted(self.features)}")
@@ -375,94 +363,6 @@ class LeRobotEpisodes:
         return np.stack(out)
 
 
-def decode_video(path: Path, times: np.ndarray, tolerance_s: float) -> np.ndarray:
-    """Decode the frames of ``path`` shown at ``times`` (seconds, ascending): uint8 [len(times), H, W, 3].
-
-    Seeks to the keyframe before the first time, then decodes forward, so a window costs about its own length
-    plus one GOP. A requested time with no frame within ``tolerance_s`` means the video and the parquet disagree.
-    """
-    try:
-        import av
-    except ImportError as e:
-        raise LeRobotError(path, "decoding videos needs PyAV: pip install 'sc3_jax[lerobot]'") from e
-    if not path.exists():
-        raise LeRobotError(path, "missing video file")
-    try:
-        container = av.open(str(path))
-    except av.error.FFmpegError as e:
-        raise LeRobotError(path, f"cannot open video: {e}") from e
-    with container:
-        if not container.streams.video:
-            raise LeRobotError(path, "no video stream")
-        stream = container.streams.video[0]
-        if stream.codec_context is None:  # FFmpeg knows no decoder for this stream's codec
-            raise LeRobotError(path, f"codec {_codec_tag(stream)!r} cannot be decoded by this PyAV/FFmpeg build")
-        codec = stream.codec_context.name
-        target = max(0, int((times[0] - tolerance_s) / stream.time_base))
-        try:
-            out, last = _scan(container, stream, times, tolerance_s, target)
-            if out is None and target > 0:  # the seek landed past the window (odd index): decode from the start
-                out, last = _scan(container, stream, times, tolerance_s, 0)
-        except av.error.FFmpegError as e:
-            raise LeRobotError(path, f"codec {codec!r}: decoding failed ({e}): a corrupt file, or a codec this "
-                                     f"PyAV/FFmpeg build cannot decode") from e
-    where = "none" if last is None else f"{last:.4f} s"
-    if out is None:
-        raise LeRobotError(path, f"no frame at t={times[0]:.4f} s (first frame at {where}): inconsistent "
-                                 f"timestamps between video and parquet")
-    if len(out) < len(times):
-        raise LeRobotError(path, f"inconsistent lengths: video ends (last frame at {where}) before "
-                                 f"t={times[len(out)]:.4f} s; it has fewer frames than the episode")
-    return np.stack(out)
-
-
-def _scan(container, stream, times: np.ndarray, tol: float, seek_to: int):
-    """Frames at ``times`` decoding forward from ``seek_to`` -> (frames, last time seen); frames is None when the
-    first frame decoded is already past ``times[0]``, a missing frame in the middle raises."""
-    container.seek(seek_to, stream=stream, backward=True)
-    out, last = [], None
-    for frame in container.decode(stream):
-        last = frame.time
-        if last is None:
-            raise LeRobotError(container.name, "video frames carry no timestamps")
-        if last < times[len(out)] - tol:
-            continue  # before the window (decoding starts at the keyframe before it)
-        if last > times[len(out)] + tol:
-            if not out:
-                return None, last
-            raise LeRobotError(container.name, f"no frame at t={times[len(out)]:.4f} s (next frame at {last:.4f} s):"
-                                               f" inconsistent timestamps between video and parquet")
-        out.append(frame.to_ndarray(format="rgb24"))
-        if len(out) == len(times):
-            break
-    return out, last
-
-
-def _codec_tag(stream) -> str:
-    try:
-        return stream.codec_tag or "unknown"
-    except Exception:  # noqa: BLE001 - only used to word an error message
-        return "unknown"
-
-
-MAX_SIDE = 4096  # pixels a side of an imported frame: a 20000 x 20000 one is 1.2 GB, per frame and view
-
-
-def check_options(out, fps: float | None, image_size) -> None:
-    """The numeric options of an import and its --out, in one line each before anything is read or written (``--fps
-    0`` was a ZeroDivisionError, ``--image-size 0 -5`` a cv2 traceback after the store's dataset.json was written,
-    which then refused the corrected rerun)."""
-    from sc3_jax.core.validate import in_range, out_dir
-
-    if fps is not None:
-        in_range("--fps", fps, 1e-3, 10_000, "frames per second")
-    for side in image_size or ():
-        in_range("--image-size", side, 1, MAX_SIDE, "pixels a side")
-    if image_size is not None and len(image_size) != 2:
-        raise UserError(f"--image-size {' '.join(map(str, image_size))}: expected H W")
-    out_dir(out, "--out")
-
-
 def _stride(source_fps: float, fps: float | None, where: Path) -> int:
     if fps is None:
         return 1
@@ -525,148 +425,3 @@ def _to_numpy(col: pa.ChunkedArray) -> np.ndarray:
         values = col.flatten().to_numpy(zero_copy_only=False)
         return values.reshape(n, -1) if n else values.reshape(0, 0)
     return col.to_numpy(zero_copy_only=False)
-
-
-# -- conversion into our episode store ---------------------------------------------------------------------------
-def import_lerobot(root: str | os.PathLike, out: str | os.PathLike, views=None, wrist_views=None,
-                   fps: float | None = None, image_size: tuple[int, int] | None = None, action_key: str = "action",
-                   pose_key: str | None = "observation.state", allow_missing_pose: bool = False,
-                   progress: bool = False, *, action_space: str | None = None,
-                   action_names: list[str] | None = None, action_targets: list[int] | None = None,
-                   state_key: str | None = _OPTIONAL, episodes=None,  # type: ignore[assignment]
-                   id_prefix: str = "") -> dict:
-    """Convert the LeRobot dataset at ``root`` into an episode store at ``out``.
-
-    The action space (``data/action_space.py``): ``action_space`` ("delta_ee", "absolute" or "velocity") with
-    ``action_names`` (default: the feature's own names) and, for velocities, ``action_targets`` (indices of
-    position-target dimensions such as a gripper); else our own export's ``sc3_action_space`` entry in info.json;
-    else, for 7-D actions, the simulated benchmark's delta_ee (how stores were imported before declarations).
-    Other actions without a declaration are refused (one line saying what to pass).
-
-    ``pose_key``: a 7-D feature that becomes our ``ee_pose`` (x, y, z, rotation vector, gripper). delta_ee actions
-    need one unless ``allow_missing_pose`` (then the store has no ee_pose: no pseudo-actions, motion relative to the
-    start); for other action spaces it is optional (used where it names a 7-D feature other than the state).
-    ``state_key``: the proprioceptive state feature of any size (default ``observation.state`` when present and not
-    already the ee_pose; None: none), stored as ``state``. ``image_size`` resizes every view (our store has one size
-    for all views). A ``next.success`` feature becomes each episode's meta ``"labels": {"success": any frame's}``
-    (the real outcomes ``sc3 sweep episodes --real STORE`` reads). ``episodes``: the episode_index values to import (a
-    container; None: all), so that one dataset gives a training store and a held-out one. Episodes are named
-    ``{id_prefix}lerobot{episode_index:06d}``; existing ones are skipped (resumable). One prefix holds one dataset: a
-    lab's several recording sessions go into one store under a prefix each (``id_prefix``: letters, digits, ``_``,
-    ``-``).
-    """
-    if not re.fullmatch(r"[A-Za-z0-9_-]*", id_prefix):
-        raise LeRobotError(out, f"id prefix {id_prefix!r}: letters, digits, '_' and '-' only (it names folders)")
-    check_options(out, fps, image_size)
-    from .action_space import ActionSpace, names_of
-    from .episodes import Episode, EpisodeStore
-
-    src = LeRobotEpisodes(root, views=views, wrist_views=wrist_views, fps=fps, action_key=action_key,
-                          state_key=None)
-    feats, info_path = src.features, Path(root) / "meta" / "info.json"
-    chosen = [i for i in range(len(src)) if episodes is None or src.episode_index(i) in episodes]
-    if not chosen:  # nothing would be imported, yet the command would say "train on it"
-        have = [src.episode_index(i) for i in range(len(src))]
-        raise LeRobotError(root, f"--episodes selects none of its {len(have)} episodes (episode_index "
-                                 f"{min(have, default=0)}..{max(have, default=-1)})")
-    dim = int(np.prod(feats[action_key]["shape"]))
-    declared = src.info.get(INFO_ACTION_SPACE)
-    if action_space is not None:
-        space = ActionSpace(action_space, dim, tuple(action_names or names_of(feats[action_key].get("names"), dim)),
-                            tuple(action_targets or ()))
-    elif declared is not None:
-        space = ActionSpace.from_dict(declared, dim, f"{info_path}: {INFO_ACTION_SPACE}")
-    elif dim == 7:
-        space = ActionSpace("delta_ee", 7)
-    else:
-        raise LeRobotError(info_path, f"{dim}-D {action_key!r} and no action-space declaration: pass action_space "
-                                      f"'absolute' (position targets), 'velocity' or 'delta_ee'")
-    is_pose = lambda k: k in feats and list(feats[k]["shape"]) == [7]  # noqa: E731
-    if state_key is _OPTIONAL:
-        state_key = "observation.state" if "observation.state" in feats else None
-        if space.kind == "delta_ee" and state_key == pose_key and is_pose(pose_key):
-            state_key = None  # the benchmark's layout: observation.state is the pose
-    elif state_key is not None and state_key not in feats:
-        raise LeRobotError(info_path, f"state key {state_key!r} not in features {sorted(feats)}")
-    has_pose = is_pose(pose_key) and (space.kind == "delta_ee" or pose_key != state_key)
-    if space.kind == "delta_ee" and not has_pose and not allow_missing_pose:
-        shape = feats[pose_key]["shape"] if pose_key in feats else "missing"
-        raise LeRobotError(pose_key, f"our ee_pose needs a 7-D feature, this one is {shape}; pass another pose "
-                                     f"key or allow_missing_pose")
-    src.pose_key, src.state_key = (pose_key if has_pose else None), state_key
-    state_dim = int(np.prod(feats[state_key]["shape"])) if state_key else None
-    state_names = (names_of(feats[state_key].get("names"), state_dim) or None) if state_key else None
-    sizes = {tuple(feats[k]["shape"][:2]) for k in src.cameras.values()}
-    if image_size is None and len(sizes) > 1:
-        raise LeRobotError(root, f"cameras have different sizes {sorted(sizes)}: pass image_size to resize them")
-    size = tuple(image_size) if image_size is not None else sizes.pop()
-    fps_out = int(src.fps) if float(src.fps).is_integer() else src.fps  # keep "fps": 20 as our stores write it
-    store = EpisodeStore(out, views=src.views, fps=fps_out, image_size=size, create=True, action_space=space,
-                         state_dim=state_dim, state_names=state_names, has_pose=has_pose)
-    source = str(Path(root).resolve())
-    written = skipped = labelled = 0
-    short: list[int] = []
-    with locks.hold(store.root, "import"):  # two imports into one store would race on its episodes
-        _check_same_source(store, source, id_prefix, {src.episode_index(i) for i in chosen})
-        for i in chosen:
-            ep = src.episode(i)
-            eid = f"{id_prefix}lerobot{ep.episode_index:06d}"
-            if eid in store:
-                skipped += 1
-                continue
-            if ep.length < MIN_EPISODE_FRAMES:  # no training window and no initial condition can come of it
-                short.append(ep.episode_index)
-                if progress:
-                    print(f"  skipped episode {ep.episode_index}: {ep.length} frame(s), fewer than "
-                          f"{MIN_EPISODE_FRAMES}", flush=True)
-                continue
-            frames = {v: _resize(f, size) for v, f in ep.frames.items()}
-            meta = {"source": "lerobot", "lerobot_root": source, "episode_index": ep.episode_index,
-                    "tasks": ep.tasks, "source_fps": src.source_fps, "camera_keys": src.cameras,
-                    "wrist_views": list(src.wrist_views), "timestamps": ep.timestamps.tolist(),
-                    "ee_pose_source": pose_key if has_pose else "none", "state_source": state_key or "none"}
-            if ep.success is not None:  # the real outcome, so that `sc3 sweep episodes --real STORE` needs no LeRobot source
-                meta[LABELS_FIELD] = {"success": ep.success}
-                labelled += 1
-            store.write(Episode(eid, frames, ep.actions.reshape(ep.length, dim), ep.pose, ep.prompt, meta,
-                                None if ep.state is None else ep.state.reshape(ep.length, state_dim)))
-            written += 1
-            if progress:
-                print(f"  {eid}: {ep.length} frames", flush=True)
-    return {"out": str(out), "written": written, "skipped": skipped, "too_short": short, "views": src.views,
-            "fps": fps_out, "action_space": space.to_dict(), "state_dim": state_dim, "ee_pose": has_pose,
-            "success_labels": labelled}  # of the episodes written: those whose meta holds next.success
-
-
-def _check_same_source(store, source: str, prefix: str, indices: set[int]) -> None:
-    """Importing dataset B into a store made from dataset A under the same id prefix would skip B's episodes as
-    "already there" (their ids are episode indices) and keep A's; importing A again under another prefix would hold
-    its episodes twice. Both refused, naming the store's source and prefix: duplicates are found by what was
-    imported (source and episode_index), not by their names."""
-    from sc3_jax.core import atomic
-
-    held = []  # (id prefix, LeRobot root, episode_index, id) of every imported episode of the store
-    for eid in store.episode_ids():
-        m = re.fullmatch(r"(.*)lerobot(\d+)", eid)
-        if m is not None:
-            meta = atomic.read_json(store.root / eid / "meta.json", "restore it (the episode's metadata)")
-            if meta.get("source") == "lerobot":
-                held.append((m[1], meta.get("lerobot_root"), meta.get("episode_index"), eid))
-    for pre, came, _, _ in held:
-        if pre == prefix and came not in (None, source):
-            raise LeRobotError(store.root, f"holds episodes imported from {came}, not from {source}"
-                                           f"{' under this prefix' if prefix else ''}: import into another --out or "
-                                           "under another --id-prefix")
-    for pre, came, index, eid in held:
-        if pre != prefix and came == source and index in indices:
-            raise LeRobotError(store.root, f"holds episode {index} of {source} already, as {eid} (id prefix "
-                                           f"{pre!r}): importing it again under {prefix!r} would give it twice; "
-                                           f"resume with --id-prefix {pre!r}")
-
-
-def _resize(frames: np.ndarray, size: tuple[int, int]) -> np.ndarray:
-    if tuple(frames.shape[1:3]) == tuple(size):
-        return np.ascontiguousarray(frames)
-    import cv2
-
-    return np.stack([cv2.resize(f, (size[1], size[0]), interpolation=cv2.INTER_AREA) for f in frames])
