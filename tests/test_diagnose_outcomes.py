@@ -153,9 +153,9 @@ def test_a_stage_not_named_is_a_usage_error(open_loop_run, capsys):
 
 
 def test_report_reads_a_diagnose_json_with_skipped_stages(open_loop_run):
-    from sc3_jax.evaluation import report
+    from sc3_jax.evaluation import report_bench
     wm, result, _ = open_loop_run
-    d = report._diagnose_gates(str(wm))
+    d = report_bench._diagnose_gates(str(wm))
     assert d["episodes"] == 2 and [g["pass"] for g in d["gates"]][:3] == [None, None, None]
 
 

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from sc3_jax.evaluation import bootstrap, calibrate, degrade, intervals, report
+from sc3_jax.evaluation import bootstrap, calibrate, degrade, intervals, report, report_bench
 from sc3_jax.measures import metrics
 from sc3_jax.benchmarks.bussing import sweep
 from sc3_jax.evaluation.results import ResultsStore, seed_blocks
@@ -72,7 +72,7 @@ def test_evaluator_rows_match_a_slow_reference_loop():
                                 for r in calibrate.object_rows(recs[p, i], recs[p, i]["objects"])]
         f = calibrate.faith(rows_of(ev), rows_of(real))
         real_rates = metrics.success_rates_by_split(rows_of(real))
-        floor = report._faith_rates(report._policy_blind(real_rates), real_rates)  # the same draw's guess
+        floor = report_bench._faith_rates(report_bench._policy_blind(real_rates), real_rates)  # the same draw's guess
         for m in slow:
             slow[m].append(f["overall"][m])
         for s, m in minus_floor:

@@ -6,7 +6,7 @@ import pytest
 
 from sc3_jax.benchmarks.bussing.hooks import object_pixels
 from sc3_jax.measures import permanence
-from sc3_jax.evaluation import report
+from sc3_jax.evaluation import report_bench
 from sc3_jax.evaluation.results import ResultsStore, rollout_id
 
 TABLE = (205, 180, 145)  # beige, as the benchmark's table
@@ -49,7 +49,7 @@ def _store(tmp_path, vanish: bool) -> tuple[ResultsStore, dict, dict]:
 @pytest.mark.parametrize("vanish", [True, False])
 def test_the_report_reads_vanishing_objects_low_and_kept_ones_high(tmp_path, vanish):
     store, cfg, online = _store(tmp_path, vanish)
-    kept = report._permanence(store, cfg, online, object_pixels, draws=200, seed=0)
+    kept = report_bench._permanence(store, cfg, online, object_pixels, draws=200, seed=0)
     # 12 imagined frames over 12 s: 1 frame a second; every time up to 12 s is read, over the 3 conditions
     assert list(kept) == ["1 s", "2 s", "4 s", "6 s", "12 s"]
     for label, e in kept.items():
@@ -63,10 +63,10 @@ def test_the_report_reads_vanishing_objects_low_and_kept_ones_high(tmp_path, van
 
 def test_a_store_without_frames_or_a_horizon_has_no_permanence(tmp_path):
     store, cfg, online = _store(tmp_path, vanish=False)
-    assert report._permanence(store, {**cfg, "episode_seconds": None}, online, object_pixels, 10, 0) is None
+    assert report_bench._permanence(store, {**cfg, "episode_seconds": None}, online, object_pixels, 10, 0) is None
     for p in (store.root / "rollouts").rglob("*.npz"):
         p.unlink()
-    assert report._permanence(store, cfg, online, object_pixels, 10, 0) is None
+    assert report_bench._permanence(store, cfg, online, object_pixels, 10, 0) is None
 
 
 def test_summary_counts_only_rollouts_that_reach_a_time_and_intervals_bracket_the_value():

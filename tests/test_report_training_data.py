@@ -5,7 +5,7 @@ import json
 import pytest
 
 from sc3_jax.core import xla_cost
-from sc3_jax.evaluation import report
+from sc3_jax.evaluation import report_bench, report_bench_render
 
 
 def _stats(episodes=4, tasks=("bussing",)):
@@ -17,17 +17,17 @@ def _stats(episodes=4, tasks=("bussing",)):
 
 
 def test_the_training_data_section_names_the_swept_tasks_the_data_never_shows(tmp_path):
-    assert report.training_data(str(tmp_path), {"bussing"}) is None  # no file: no section
+    assert report_bench.training_data(str(tmp_path), {"bussing"}) is None  # no file: no section
     (tmp_path / "data_stats.json").write_text(json.dumps(_stats()))
-    d = report.training_data(str(tmp_path), {"bussing", "reverse"})
+    d = report_bench.training_data(str(tmp_path), {"bussing", "reverse"})
     assert d["unseen_tasks"] == ["reverse"] and d["episodes"] == 4
-    title, header, rows = report._training_data_table(d)
+    title, header, rows = report_bench_render._training_data_table(d)
     assert "never shows: reverse" in title and "1 of 3: 2" in title
     assert header[3:] == ["lifted", "placed", "wrong_container", "dropped", "missed"]
     # shares of the source's objects: placed + wrong + dropped + missed = 1
     assert rows[0][:3] == ["dc_expert", "4", "12"] and rows[0][3:] == ["0.50", "0.33", "0.17", "0.08", "0.42"]
-    d = report.training_data(str(tmp_path), {"bussing"})
-    assert d["unseen_tasks"] == [] and "never shows" not in report._training_data_table(d)[0]
+    d = report_bench.training_data(str(tmp_path), {"bussing"})
+    assert d["unseen_tasks"] == [] and "never shows" not in report_bench_render._training_data_table(d)[0]
 
 
 class _Lowered:

@@ -22,7 +22,8 @@ from sc3_jax.rollout import rollout
 from sc3_jax.train import train
 from sc3_jax.core.config import load_config, replace
 from sc3_jax.data.norm_stats import NormStats
-from sc3_jax.evaluation import engine, report
+from sc3_jax.evaluation import engine, report, report_bench_render
+from sc3_jax.evaluation.report_html import ci
 from sc3_jax.measures import metrics
 from sc3_jax.benchmarks.bussing import annotation, perception, sweep
 from sc3_jax.core.errors import UserError
@@ -123,7 +124,8 @@ def test_validate_rescores_real_rollouts_as_the_sweep_scored_them(setup):
 def test_report_shows_the_world_models_diagnose_gates(setup):
     from sc3_jax.evaluation import diagnose
     root, cfg = setup
-    gate_rows = lambda t: [x[2] for x in report.tables(t) if x[0].startswith("World-model checkpoint gates")]  # noqa: E731
+    gate_rows = lambda t: [x[2] for x in report_bench_render.tables(t)  # noqa: E731
+                           if x[0].startswith("World-model checkpoint gates")]
     t = report.compute(cfg.out, draws=20)
     assert t["diagnose"]["gates"] is None and gate_rows(t)[0][0][0].startswith("not diagnosed")
     path = Path(cfg.world_model) / "diagnose.json"
@@ -244,7 +246,7 @@ def test_report_numbers_come_from_compute(setup, tmp_path):
                 assert (math.isnan(a) and math.isnan(c)) or a == pytest.approx(c)
     text = md.read_text()
     row = next(line for line in text.splitlines() if line.startswith("| offline |"))
-    assert report.ci(t["faithfulness"]["physics"]["offline"]["splits"]["overall"]["mmrv"]) in row
+    assert ci(t["faithfulness"]["physics"]["offline"]["splits"]["overall"]["mmrv"]) in row
     assert t["tau"]["chosen"] in ("inf", "1.0", "0.5") and t["protocol"]["calibration"]["n"] == 1
     assert t["psnr"]["views"] == ["left", "right", "wrist"] and "| split | rollouts | left | right | wrist | mean |" in text
     for split, q in t["psnr"]["by_split"].items():  # per split: the offline records of that split only
@@ -285,10 +287,10 @@ def test_report_from_an_archived_store_needs_only_its_two_json_files(setup, tmp_
 
 def test_report_warns_while_a_mode_is_incomplete():
     t = {"protocol": {"evaluation": {"n": 4}}, "policies": [("a", "in_distribution"), ("b", "out_of_distribution")]}
-    warn = report.incomplete(dict(t, counts={"real": 8, "offline": 3, "online": 8}))
+    warn = report_bench_render.incomplete(dict(t, counts={"real": 8, "offline": 3, "online": 8}))
     assert "offline 3 of 8" in warn and "online" not in warn and "real" not in warn
-    assert report.incomplete(dict(t, counts={"real": 8, "offline": 0, "online": 8})) == ""  # a mode not swept
-    assert "real 7 of 8" in report.incomplete(dict(t, counts={"real": 7, "offline": 0, "online": 7}))
+    assert report_bench_render.incomplete(dict(t, counts={"real": 8, "offline": 0, "online": 8})) == ""  # not swept
+    assert "real 7 of 8" in report_bench_render.incomplete(dict(t, counts={"real": 7, "offline": 0, "online": 7}))
 
 
 def test_real_from_links_the_real_rollouts_and_refuses_another_protocol(setup, tmp_path):
@@ -425,7 +427,7 @@ def test_compute_curve_over_sweeps_sharing_one_real_set(setup, tmp_path):
     text = md.read_text()
     assert "| a | 2-core CPU, 0.1 h | 20 |" in text and "policy-blind (floor)" in text
     vs = t["faithfulness"]["physics"]["online"]["vs_floor"]["in_distribution"]["pearson"]
-    assert c["points"][1]["vs_floor"]["in_distribution"]["pearson"] == vs and f"| b | {report.ci(vs)} |" in text
+    assert c["points"][1]["vs_floor"]["in_distribution"]["pearson"] == vs and f"| b | {ci(vs)} |" in text
     assert (tmp_path / "out" / "curve.png").stat().st_size > 1000
     # a baseline: each point's paired difference to it (its own is 0), printed for the others
     spec.write_text(json.dumps({"title": "t", "points": points, "baseline": "a"}))
@@ -436,7 +438,7 @@ def test_compute_curve_over_sweeps_sharing_one_real_set(setup, tmp_path):
     a_b = [report.compute(st, draws=200)["faithfulness"]["physics"]["online"]["splits"]["overall"]["mmrv"]["value"]
            for st in (cfg.out, second.out)]
     assert other["value"] == pytest.approx(a_b[1] - a_b[0])
-    assert f"| b | {report.ci(c['points'][1]['vs_baseline']['in_distribution']['pearson'])} |" in text
+    assert f"| b | {ci(c['points'][1]['vs_baseline']['in_distribution']['pearson'])} |" in text
     spec.write_text(json.dumps({"points": points, "baseline": "nope"}))
     with pytest.raises(ValueError, match="baseline 'nope'"):
         curve.read_spec(spec)

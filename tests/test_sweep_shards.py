@@ -13,7 +13,7 @@ import pytest
 
 import sc3_jax.benchmarks.bussing  # noqa: F401  (picks the GL backend before mujoco is imported)
 from sc3_jax.core.errors import UserError
-from sc3_jax.evaluation import engine, report
+from sc3_jax.evaluation import engine, report, report_bench_render
 from sc3_jax.benchmarks.bussing import perception, sweep
 from sc3_jax.evaluation.merged import open_store
 from sc3_jax.evaluation.results import EVAL_MODES, ResultsStore, seed_blocks
@@ -146,6 +146,6 @@ def test_verdict_says_better_than_a_guess_only_when_the_paired_interval_excludes
         "vs_floor": {"in_distribution": {"pearson": cell(0.1, 0.02, 0.2), "mmrv": cell(-0.1, -0.2, 0.01)},
                      "out_of_distribution": {"pearson": cell(0.0, -0.1, 0.1), "mmrv": cell(0.0, -0.1, 0.1)},
                      "overall": {"pearson": cell(0.0, -0.1, 0.1), "mmrv": cell(-0.1, -0.2, -0.01)}}}}}}
-    lines = report.verdict(t)
+    lines = report_bench_render.verdict(t)
     assert "better than a policy-blind guess on r" in lines[0] and "MMRV" not in lines[0].split("on r")[-1]
     assert "not distinguishable" in lines[1] and "better than a policy-blind guess on MMRV" in lines[2]

@@ -24,7 +24,8 @@ from __future__ import annotations
 from pathlib import Path
 
 from sc3_jax.core import atomic
-from sc3_jax.evaluation import intervals, report
+from sc3_jax.evaluation import intervals, report, report_bench
+from sc3_jax.evaluation.report_html import ci
 from sc3_jax.measures.metrics import OVERALL
 from sc3_jax.evaluation.results import ResultsStore, criteria_order, seed_blocks, split_order
 
@@ -68,7 +69,7 @@ def _grids(store: str):
     seeds = seed_blocks(st.config())["evaluation"]
     recs = [r for r in st.records() if r["seed"] in set(seeds)]
     by = {m: {(r["policy"], r["seed"]): r for r in recs if r["mode"] == m} for m in ("real", "online")}
-    policies = report.policy_order(by["real"].values(), split_order(st.config(), recs))
+    policies = report_bench.policy_order(by["real"].values(), split_order(st.config(), recs))
     names = [p for p, _ in policies]
     criteria = criteria_order(st.config(), by["real"].values())
     grid = lambda m: intervals.grid(by[m], names, seeds, criteria)  # noqa: E731
@@ -119,9 +120,9 @@ def markdown(c: dict) -> str:
     for p in c["points"]:
         cells = [p["label"], f"{p['device']}, {p['hours']:g} h", f"{p['windows']:,}", str(p["cases"]),
                  str(len(p["gates_failed"])) if p["gates_failed"] is not None else "-"]
-        rows.append(cells + [report.ci((p["online"][s] or {}).get(k)) for s in _SPLITS for k in ("pearson", "mmrv")])
+        rows.append(cells + [ci((p["online"][s] or {}).get(k)) for s in _SPLITS for k in ("pearson", "mmrv")])
     for name, row in (("policy-blind (floor)", c["floor"]), ("noise ceiling", c["ceiling"])):
-        rows.append([name, "", "", "", ""] + [report.ci((row[s] or {}).get(k)) for s in _SPLITS
+        rows.append([name, "", "", "", ""] + [ci((row[s] or {}).get(k)) for s in _SPLITS
                                               for k in ("pearson", "mmrv")])
     lines = [f"# {c['title']}", "",
              f"Online (tau = inf) against real rollouts scored by physics; value [95% paired bootstrap interval over "
@@ -132,7 +133,7 @@ def markdown(c: dict) -> str:
     lines += ["", "Better than a guess? The paired difference to the policy-blind floor on the same resampled "
               "conditions (r > 0 and MMRV < 0 favour the checkpoint):", "",
               "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-    lines += ["| " + " | ".join([p["label"]] + [report.ci((p["vs_floor"][s] or {}).get(k)) for s in _SPLITS
+    lines += ["| " + " | ".join([p["label"]] + [ci((p["vs_floor"][s] or {}).get(k)) for s in _SPLITS
                                                 for k in ("pearson", "mmrv")]) + " |" for p in c["points"]]
     if c.get("baseline"):
         # here the pooled split too: "better than the baseline overall" is a question a curve's user asks
@@ -140,7 +141,7 @@ def markdown(c: dict) -> str:
         head = ["checkpoint"] + [f"{s.replace('_', ' ')} {k} - baseline" for s in pooled for k in ("r", "MMRV")]
         lines += ["", f"Paired difference to the baseline, {c['baseline']}, on the same resampled conditions (r > 0 "
                   "and MMRV < 0 favour the checkpoint):", "", "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-        lines += ["| " + " | ".join([p["label"]] + [report.ci(p["vs_baseline"].get(s, {}).get(k)) for s in pooled
+        lines += ["| " + " | ".join([p["label"]] + [ci(p["vs_baseline"].get(s, {}).get(k)) for s in pooled
                                                     for k in ("pearson", "mmrv")]) + " |"
                   for p in c["points"] if p["label"] != c["baseline"]]
     return "\n".join(lines) + "\n"

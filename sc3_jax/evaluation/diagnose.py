@@ -47,7 +47,7 @@ from typing import Any
 
 import numpy as np
 
-# numpy only, all of them: the module stays cheap for report.py to import
+# numpy only, all of them: the module stays cheap for report_bench.py to import
 from sc3_jax.evaluation import diagnose_follow, diagnose_kept, diagnose_outcomes, diagnose_video
 from sc3_jax.evaluation.diagnose_actions import InverseErrors, arm_centroid  # noqa: F401  (public names)
 from sc3_jax.evaluation.diagnose_config import STAGES, DiagnoseConfig, Stage  # noqa: F401  (public names)
