@@ -1,5 +1,5 @@
 """``sc3 plan``, ``sc3 train-tokenizer`` and ``sc3 train-perception``: every option's help under its own flag, the
-documented command lines parse (an option a command does not take is refused, naming the closest), config overrides reach
+documented command lines parse (an option a command does not take is refused, naming the closest), overrides reach
 the config, bad input is one line with exit status 2, and each command's closing summary says what its numbers
 are measured against. Cheap: nothing here trains or lowers a model."""
 from __future__ import annotations
@@ -99,7 +99,7 @@ def test_plan_help_config_lists_the_config_fields(capsys, monkeypatch):
 
 @pytest.mark.parametrize("argv, message", [
     (["plan", "--set", "data.batch_size=64"], "unknown option --set"),
-    (["plan", "--model.attention-imp", "ring"], "unknown option --model.attention-imp (did you mean --model.attention-impl?"),
+    (["plan", "--model.attention-imp", "ring"], "--model.attention-imp (did you mean --model.attention-impl?"),
     (["plan", "--mesh.context", "4"], "--mesh AXIS=SIZE"),
     (["plan", "--mesh", "pipeline=2"], "--mesh: expected AXIS=SIZE"),
     (["plan", "--config", "no_such_config"], "no config 'no_such_config'"),

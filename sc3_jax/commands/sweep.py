@@ -92,7 +92,7 @@ def episodes(cfg: ICSweepConfig) -> int:
 
 
 def main(argv: list[str]) -> int:
-    if argv and argv[0].startswith("-") and argv[0] not in ("-h", "--help"):  # options without a job: the one implied
+    if argv and argv[0].startswith("-") and argv[0] not in ("-h", "--help"):  # no job named: say the one implied
         job = "episodes" if any(a.split("=")[0] == "--data" for a in argv) else "bench"
         raise UserError(f"name the sweep: `sc3 sweep {job} {' '.join(argv)}` (bench: the simulated benchmark; "
                         "episodes: held-out episodes of any robot)")
