@@ -6,8 +6,8 @@ keep functions, not ``main()``s.
 Every command that builds or loads a world model takes its config's fields the same way: ``--SECTION.FIELD VALUE``
 (``sc3 train --help`` lists them all), applied over the named config or the loaded world model's config
 (``parse_with_config``). The options every command shares have one spelling each (``--world-model``, ``--data``,
-``--batch``, ``--sample-steps``: ``flags.py``); ``parse`` and ``parse_with_config`` refuse the spellings before
-them in one line, for every command."""
+``--batch``, ``--sample-steps``: ``flags.py``); ``parse`` and ``parse_with_config`` refuse an option the command
+does not take in one line, naming the closest one it does."""
 from __future__ import annotations
 
 import sys
@@ -16,7 +16,7 @@ from typing import TypeVar
 
 import tyro
 
-from sc3_jax.commands.flags import refuse_old_spellings
+from sc3_jax.commands.flags import refuse_unknown
 
 T = TypeVar("T")
 
@@ -26,19 +26,18 @@ CONFIG_OVERRIDES = ("World-model config: any --SECTION.FIELD VALUE of `sc3 train
 
 def parse(args: type[T], argv: list[str], command: str) -> T:
     """``argv`` as ``args``; positionals are named after their field (``RESULTS``, not ``STR``), as they were before
-    the commands moved from argparse. The spellings before the shared options' (``flags.OLD``) are refused first."""
-    refuse_old_spellings(command, argv, args)
+    the commands moved from argparse. An option ``args`` does not have is refused first, in one line."""
+    refuse_unknown(command, argv, args)
     return tyro.cli(args, args=argv, prog=f"sc3 {command}", config=(tyro.conf.PositionalMetavarFromFieldName,))
 
 
 def parse_with_config(args: type[T], argv: list[str], command: str, base: Callable[[T], object]):
     """(``args``, Config): the command's own options, then every ``--SECTION.FIELD VALUE`` left over applied to
     ``base(parsed args)`` (the named config, or the config of the world model the command loads). One spelling of
-    config overrides for every command; an unknown option is refused by the second parse, naming it, and a spelling
-    from before the shared options' (``flags.OLD``: ``--data.path`` is ``--data``) before either."""
+    config overrides for every command; an option neither ``args`` nor the config has is refused first, in one line."""
     from sc3_jax.core.config import Config
 
-    refuse_old_spellings(command, argv, args)
+    refuse_unknown(command, argv, args, Config)
     a, rest = tyro.cli(args, args=argv, prog=f"sc3 {command}", return_unknown_args=True,
                        config=(tyro.conf.PositionalMetavarFromFieldName,))
     cfg = base(a)

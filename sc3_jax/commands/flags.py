@@ -1,4 +1,5 @@
-"""The one spelling of each idea the ``sc3`` commands share, and the one line that refuses the spellings before them.
+"""The one spelling of each idea the ``sc3`` commands share, and the one line that refuses an option a
+command does not take.
 
     --world-model DIR   a saved world model (a `sc3 train` workdir or an exported one): sc3 rollout, diagnose,
                         train-state, diagnose-table (one or more), sweep bench|episodes|so101
@@ -18,14 +19,13 @@ one command must be read alike in the others. ``--sample-steps None`` samples in
 ``config.json`` ``sample.steps``), ``--inverse-steps None`` likewise. ``sc3 train`` and ``sc3 demo`` sample nothing
 that is evaluated: the model's own steps are its config file's ``sample.steps``.
 
-The spellings before these (``OLD``, and the positional world models and stores of ``POSITIONAL``) are refused by
-``refuse_old_spellings`` in one line that gives the command back respelt; ``commands.parse`` and
-``commands.parse_with_config`` call it for every command, before tyro parses anything.
+An option the command does not take is refused in one line that names the closest one it does take (``refuse_unknown``;
+``commands.parse`` and ``commands.parse_with_config`` call it for every command, before tyro parses anything).
 """
 from __future__ import annotations
 
 import dataclasses
-import shlex
+import difflib
 import types
 import typing
 
@@ -36,28 +36,13 @@ from sc3_jax.core.errors import UserError
 WORLD_MODEL, DATA, BATCH, SAMPLE_STEPS, INVERSE_STEPS = (
     "--world-model", "--data", "--batch", "--sample-steps", "--inverse-steps")
 
-# spellings before the one set of flags -> the one spelling now
-OLD = {"--checkpoint": WORLD_MODEL,
-       "--initial-conditions": DATA, "--store": DATA, "--data.path": DATA,
-       "--batch-size": BATCH, "--data.batch-size": BATCH,
-       "--sample.steps": SAMPLE_STEPS, "--sample.inverse-steps": INVERSE_STEPS}
-
-# commands whose world model or store was their positional argument -> the option it is now
-POSITIONAL = {"diagnose": WORLD_MODEL, "train-state": WORLD_MODEL, "diagnose-table": WORLD_MODEL,
-              "train-detector": DATA, "data import-lerobot": DATA, "data export-lerobot": DATA}
-
-# commands whose store is their positional argument (sc3 report RESULTS): an old store flag is respelt as it
-STORE_POSITIONAL = {"report": "RESULTS", "rescore": "RESULTS"}
-
-# where a refused flag's new spelling lives when the command itself does not take it
-ELSEWHERE = {SAMPLE_STEPS: "the sampler's steps are chosen where a world model is sampled: sc3 sweep, rollout, "
-                           "diagnose, plan --sample-steps N (a config file's sample.steps is the model's own)",
-             INVERSE_STEPS: "the sampler's steps are chosen where a world model is sampled: sc3 sweep, rollout, "
-                            "diagnose, plan --inverse-steps N (a config file's sample.inverse_steps is the model's "
-                            "own)"}
-
 # the options of sc3 train / demo / plan that set a config field (every other field: --SECTION.FIELD VALUE)
 CONFIG_FIELDS = {DATA: "data.path", BATCH: "data.batch_size"}
+
+# config fields that a command's own option sets where it has that option: given as --SECTION.FIELD too, one would
+# silently override the other, so the field is refused there, naming the option
+SET_BY_OPTION = {"--data.path": DATA, "--data.batch-size": BATCH, "--sample.steps": SAMPLE_STEPS,
+                 "--sample.inverse-steps": INVERSE_STEPS}
 
 GREEDY = -1  # an option taking any number of values (a tuple), or a config override whose arity is not known here
 
@@ -115,65 +100,27 @@ def arity(args: type, prefix: str = "") -> dict[str, int]:
     return out
 
 
-def _strays(argv: list[str], takes: dict[str, int]) -> list[int]:
-    """Indices of the tokens of ``argv`` that no option takes as its value: positional arguments."""
-    out, i = [], 0
-    while i < len(argv):
-        token = argv[i]
-        i += 1
-        if not _is_option(token):
-            out.append(i - 1)
-            continue
-        n = 0 if "=" in token else takes.get(_name(token), GREEDY)
-        while i < len(argv) and not _is_option(argv[i]) and (n == GREEDY or n > 0):
-            i, n = i + 1, n if n == GREEDY else n - 1
-    return out
-
-
-def refuse_old_spellings(command: str, argv: list[str], args: type) -> None:
-    """A one-line UserError when ``argv`` (of ``sc3 COMMAND``, whose options are the dataclass ``args``) spells a
-    world model, store, batch or sampler steps as before (``OLD``, or a positional where ``POSITIONAL`` names the
-    option it became): it names the new option and gives the command back respelt, or, where the command does not
-    take the new option, says where it lives."""
-    takes = arity(args)
-    said, fixed = [], list(argv)
-    for i, token in enumerate(argv):
-        new = OLD.get(_name(token))
-        if new is not None and _name(token) not in takes:
-            said.append((_name(token), new))
-            fixed[i] = new + token[len(token.split("=", 1)[0]):]
-    strays = _strays(argv, takes) if command in POSITIONAL else []
-    if strays:
-        new = POSITIONAL[command]
-        said.append(("the positional " + " ".join(argv[i] for i in strays), new))
-        fixed = [t for i, t in enumerate(fixed) if i not in strays]
-        fixed[strays[0]:strays[0]] = [new] + [argv[i] for i in strays]
-    if not said:
-        return
-    missing = sorted({new for _, new in said if new not in takes})
-    what = ", ".join(f"{old} is now {new}" for old, new in said)
-    if missing == [DATA] and command in STORE_POSITIONAL:
-        # the store is this command's positional argument: the value moves there, not to an option it does not take
-        values, rest, i = [], [], 0
-        while i < len(argv):
-            t, i = argv[i], i + 1
-            if OLD.get(_name(t)) not in missing:
-                rest.append(t)
-            elif "=" in t:
-                values.append(t.split("=", 1)[1])
-            elif i < len(argv):
-                values, i = values + [argv[i]], i + 1
-        raise UserError(f"{what}, which sc3 {command} does not take: its store is the positional "
-                        f"{STORE_POSITIONAL[command]}: sc3 {command} {shlex.join(values + rest)}")
-    if missing:
-        where = "; ".join(ELSEWHERE.get(m, f"`sc3 {command} --help` lists its options") for m in missing)
-        raise UserError(f"{what}, which sc3 {command} does not take: {where}")
-    raise UserError(f"{what}: sc3 {command} {shlex.join(fixed)}")
-
-
-def respell(argv: list[str]) -> list[str]:
-    """``argv`` with every ``OLD`` option in its new spelling (values kept)."""
-    return [OLD[_name(t)] + t[len(t.split("=", 1)[0]):] if _name(t) in OLD else t for t in argv]
+def refuse_unknown(command: str, argv: list[str], *args: type) -> None:
+    """A one-line UserError naming the first option of ``argv`` that none of the dataclasses ``args`` (a command's
+    options, and the config whose ``--SECTION.FIELD`` it takes) spells, with the closest one that is (tyro's own
+    refusal is a box of many lines), or a config field the command sets with an option of its own
+    (``SET_BY_OPTION``). Nothing unknown is refused where an annotation does not resolve here (nothing known)."""
+    own = {_name(o) for o in arity(args[0])}
+    for token in argv:
+        if SET_BY_OPTION.get(_name(token)) in own:
+            raise UserError(f"{_name(token)}: sc3 {command} sets it with {SET_BY_OPTION[_name(token)]}")
+    known = {"--help", "-h"}
+    for a in args:
+        try:
+            typing.get_type_hints(a, include_extras=True)
+        except (NameError, TypeError):  # arity() knows nothing of it: tyro refuses what it does not take
+            return
+        known |= {_name(o) for o in arity(a)}
+    for token in argv:
+        if token.startswith("--") and _name(token) not in known:
+            close = difflib.get_close_matches(_name(token), sorted(known), n=1, cutoff=0.6)
+            hint = f"did you mean {close[0]}? " if close else ""
+            raise UserError(f"unknown option {_name(token)} ({hint}sc3 {command} --help lists them)")
 
 
 def onto_config(cfg, data: str | None, batch: int | None):

@@ -10,7 +10,6 @@ from sc3_jax.commands import parse_with_config
 from sc3_jax.commands.flags import onto_config
 from sc3_jax.core.errors import UserError
 from sc3_jax.evaluation.world_model_defaults import Sampler, SamplerSteps, evaluation_config
-from sc3_jax.train.config_flag import config_flag
 from sc3_jax.train.plan import DEVICES  # plan.py imports jax only inside its functions
 
 SUMMARY = "what a config costs on a mesh of accelerators (memory, FLOPs, step time)"  # the line `sc3 --help` shows
@@ -51,20 +50,10 @@ class Args(SamplerSteps):
     """list every --SECTION.FIELD option of the config, with its value in NAME, and exit"""
 
 
-def _refuse_old_spellings(argv: list[str]) -> None:
-    """`--set SECTION.FIELD=VALUE` (before every command took config fields one way) and `--mesh.AXIS N` (which the
-    plan would ignore: --mesh names the planned mesh): refused with the spelling to use."""
-    for i, token in enumerate(argv):
-        if token == "--set" or token.startswith("--set="):
-            value = token[len("--set="):] if "=" in token[:6] else (argv[i + 1] if i + 1 < len(argv) else "")
-            key, _, v = value.partition("=")
-            if "." in key:
-                v = v.strip().strip("[]()").replace(",", " ").split() if v.strip().startswith(("[", "(")) else v
-                hint = config_flag(key.strip(), v)
-            else:
-                hint = "--SECTION.FIELD VALUE"
-            raise UserError(f"--set is gone: write {hint} (every config field is an option; the list: "
-                            f"sc3 plan --config NAME --help-config)")
+def _refuse_mesh_fields(argv: list[str]) -> None:
+    """`--mesh.AXIS N` sets the training config's mesh, which the plan would ignore (--mesh names the planned mesh):
+    refused with the spelling to use."""
+    for token in argv:
         if token.startswith("--mesh."):
             raise UserError(f"{token}: the planned mesh is --mesh AXIS=SIZE,... (e.g. --mesh data=4,fsdp=8,context=2)")
 
@@ -74,7 +63,7 @@ def main(argv: list[str]) -> int:
 
     from sc3_jax.core.config import Config
 
-    _refuse_old_spellings(argv)
+    _refuse_mesh_fields(argv)
     a, cfg = parse_with_config(Args, argv, "plan", config_of)
     if a.help_config:
         tyro.cli(Config, default=cfg, args=["--help"], prog=f"sc3 plan --config {a.config}")

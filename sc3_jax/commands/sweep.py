@@ -13,7 +13,6 @@ from pathlib import Path
 
 from sc3_jax.evaluation import benchmark
 from sc3_jax.commands import parse, run_group
-from sc3_jax.commands.flags import respell
 from sc3_jax.core.errors import UserError
 from sc3_jax.evaluation.ic_sweep import ICSweepConfig
 
@@ -93,8 +92,7 @@ def episodes(cfg: ICSweepConfig) -> int:
 
 
 def main(argv: list[str]) -> int:
-    if argv and argv[0].startswith("-") and argv[0] not in ("-h", "--help"):  # the spelling before the subcommands
-        argv = respell(argv)  # and the options' spellings before the one set (commands/flags.py)
+    if argv and argv[0].startswith("-") and argv[0] not in ("-h", "--help"):  # no job named: say the one implied
         job = "episodes" if any(a.split("=")[0] == "--data" for a in argv) else "bench"
         raise UserError(f"name the sweep: `sc3 sweep {job} {' '.join(argv)}` (bench: the simulated benchmark; "
                         "episodes: held-out episodes of any robot)")
