@@ -7,7 +7,7 @@ its imagined sweep then runs on the CPU).
     python3 launch/gpu_playbook.py --phase preflight              here, before the lease: what travels, wheels
     python3 launch/gpu_playbook.py --phase so101 [--minutes 8.5]  first call: SO-101 data on every core (sized to
                                                                    --so101-collect-minutes 3), then train
-                                                                   --so101-from (exports/so101_v6_cpu) on it at
+                                                                   --so101-from (exports/so101_v7_cpu) on it at
                                                                    batch 64; again: goes on (the trainer runs on
                                                                    between calls), --stop-trainer in the last
     python3 launch/gpu_playbook.py --phase data  [--minutes 3]    mixture on every core (sc3 sim mixture)
@@ -67,7 +67,7 @@ PART = 15 * 2**20  # a returned file may not exceed 16 MiB
 SITE = Path("/tmp/site")
 # each inside a 10-minute call, setup included
 MINUTES = {"so101": 8.5, "data": 3.0, "train": 8.5, "sweep": 8.5, "distill": 6.0, "bench": 4.0}
-SO101_FROM = "exports/so101_v6_cpu"  # the newest CPU-trained SO-101 export (float32), where the so101 phase starts
+SO101_FROM = "exports/so101_v7_cpu"  # the newest CPU-trained SO-101 export (float32), where the so101 phase starts
 EPISODE_CORE_SECONDS = 12  # one SO-101 episode (100 steps, two 80x80 views) rendered on one core
 EXPORT_SECONDS = 100  # int8 export of the 23.8M model on the CPU, and its packing (the lost call of 2026-11-24)
 TRAVEL_LIMIT = 64 * 2**20  # the working tree a device call sends (tracked, untracked-not-ignored, carried paths)
