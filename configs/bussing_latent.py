@@ -17,7 +17,8 @@ the tokenizer, then runs these; resumable):
 
     sc3 train --config bussing_latent --model.tokenizer-path RUNS/tokenizer/tokenizer --data RUNS/demos \
         --train.workdir RUNS/latent_train
-    sc3 diagnose --world-model RUNS/latent_train --data RUNS/heldout --sample-steps 8 --out RUNS/latent_train/diagnose.json
+    sc3 diagnose --world-model RUNS/latent_train --data RUNS/heldout --benchmark bussing --sample-steps 8 \
+        --out RUNS/latent_train/diagnose.json
     sc3 sweep bench --world-model EXPORT          # an export of the run (docs/results.md has the commands)
 
 Measured (docs/world_model.md, "Training and where it stands"): 4.9M parameters, the latent cache ~4 min, then

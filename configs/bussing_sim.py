@@ -12,7 +12,7 @@ trains at ~1 step/s on 2 CPU cores. (l' = 12 > l, as in the paper, costs 1.4x pe
 From nothing (``bash scripts/bussing_sim.sh RUNS`` makes the demos, this model and the perception scorer):
 
     sc3 train --config bussing_sim --data RUNS/demos --train.workdir RUNS/train
-    sc3 diagnose --world-model RUNS/train --data HELDOUT --sample-steps 8 --out DIAG.json
+    sc3 diagnose --world-model RUNS/train --data HELDOUT --benchmark bussing --sample-steps 8 --out DIAG.json
     sc3 sweep bench --world-model RUNS/train
 
 Measured: the shipped model (``sc3_jax/evaluation/shipped/bussing_sim``) was stopped at step 2,177 of 2,600, ~80 min

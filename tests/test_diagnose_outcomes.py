@@ -106,7 +106,7 @@ def open_loop_run(tmp_path_factory):
     out = io.StringIO()
     with contextlib.redirect_stdout(out):
         rc = cli(["diagnose", "--world-model", str(wm), "--data", str(store.root), "--stages", "open_loop", "--out",
-                  str(wm / "diagnose.json"), "--no-progress"])
+                  str(wm / "diagnose.json"), "--benchmark", "bussing", "--no-progress"])
     assert rc == 0
     return wm, dg.load_result(wm / "diagnose.json"), out.getvalue()
 

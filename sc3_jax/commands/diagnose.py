@@ -52,14 +52,15 @@ class Args(SamplerSteps):
     horizons: tuple[float, ...] = D.horizons
     """drift curve points in seconds"""
     perception: str | None = D.perception
-    """perception weights for the outcome check (None: the shipped ones)"""
+    """weights for the benchmark's outcome scorer, the outcome check's (None: the benchmark's own)"""
     progress: bool = D.progress
     """a progress bar on stderr (--no-progress: none, for batch logs)"""
-    benchmark: str = "bussing"
-    """whose measures the passes read: a benchmark's name (sc3_jax/evaluation/benchmark.py: bussing, the simulated benchmark's
-    perception outcome scorer, its objects' pixels and positions; so101, the block's and the goal marker's pixels,
-    the arm's and the block's image positions, what its actions move in its state, no outcome scorer), any
-    benchmark as package.module:attr, or none"""
+    benchmark: str = "none"
+    """whose measures the passes read besides the generic ones: a benchmark's name (sc3_jax/evaluation/benchmark.py:
+    bussing, the simulated benchmark's perception outcome scorer, its objects' pixels and positions; so101, the
+    block's and the goal marker's pixels, the arm's and the block's image positions, what its actions move in its
+    state, no outcome scorer) or package.module:attr; none: the generic measures alone (the arm read by the median
+    rule, no outcome scorer, no objects kept), since a model of any robot can be diagnosed"""
     stages: tuple[Stage, ...] = D.stages
     """the passes to run: teacher_forced (one chunk ahead, shuffled actions, inverse dynamics), counterfactual,
     open_loop (drift and outcome reproduction); the others' sections and gates read "not run". --stages open_loop:

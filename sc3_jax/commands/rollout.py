@@ -58,10 +58,12 @@ class Args(SamplerSteps):
     offline: bool = False
     """also replay the recorded actions open loop and compare with the recorded frames (episode stores only)"""
     perception: str | None = None
-    """perception weights for the success estimate (None: the shipped ones)"""
-    benchmark: str = "bussing"
+    """weights for the benchmark's outcome scorer, the success estimate's (None: the benchmark's own)"""
+    benchmark: str = "none"
     """whose outcome scorer makes the success estimate and whose policy names --policy takes: a benchmark's name
-    (sc3_jax/evaluation/benchmark.py: bussing, the simulated benchmark's perception and zoo; so101) or package.module:attr"""
+    (sc3_jax/evaluation/benchmark.py: bussing, the simulated benchmark's perception and zoo; so101) or
+    package.module:attr; none: no success estimate and only the built-in policy spellings, since a model of any
+    robot can be rolled out"""
     learned_state: bool = True
     """hand the policy the world model's learned robot state where it has one (state_head.npz); --no-learned-state:
     the integrated commands (exact for absolute targets, or velocities of the recorded state)"""
@@ -125,7 +127,7 @@ def main(argv: list[str]) -> int:
     ids, ics, store = rollout_io.load_initial_conditions(a.data, cfg, ro.spec, a.episodes, a.start, a.task)
     family = a.family
     if store is not None and get_mapping(a.family) is not None:
-        # an openpi server reads each episode's own instruction (not the bussing table by --task), and its
+        # an openpi server reads each episode's own instruction (not a mapping's table by --task), and its
         # cameras by the model's view names where it has them (as `sc3 sweep episodes --data` sends them)
         prompts = [atomic.read_json(store.root / e / "meta.json").get("prompt", "") for e in ids]
         table = list(dict.fromkeys(prompts))
