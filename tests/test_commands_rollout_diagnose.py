@@ -153,7 +153,8 @@ def test_no_command_defaults_to_a_benchmark(command):
     assert a.benchmark == "none"
     bm = rollout_cmd.benchmark_of(a.benchmark)
     assert (bm.outcome_scorer, dict(bm.measures), bm.named_policy, bm.locators) == (None, {}, None, None)
-    assert diagnose_cmd.benchmark_hooks(a.benchmark) == (None, {}) and diagnose_cmd.benchmark_locators(a.benchmark) is None
+    assert diagnose_cmd.benchmark_hooks(a.benchmark) == (None, {})
+    assert diagnose_cmd.benchmark_locators(a.benchmark) is None
 
 
 def test_the_libraries_keep_no_command_line():

@@ -3,8 +3,9 @@
 A benchmark (``sc3_jax/benchmarks/NAME/``, or any package outside this one) is a plug-in of the evaluation core: the
 core ranks policies inside a world model and reports; a benchmark adds what only it knows -- its own sweep (its
 simulator's real outcomes beside the imagined ones), its scene measures (which pixels are its objects), its outcome
-scorer on imagined frames and its policies' names. :class:`Benchmark` holds exactly what ``sc3 sweep``, ``sc3
-report``, ``sc3 diagnose`` and ``sc3 rollout`` take from one; every field but ``name`` may be absent.
+scorer on imagined frames, its policies' names and the words for its tasks and outcomes. :class:`Benchmark` holds
+exactly what ``sc3 sweep``, ``sc3 report``, ``sc3 diagnose``, ``sc3 rollout`` and ``sc3 serve-policy`` take from one;
+every field but ``name`` may be absent, and no command uses one unless named (``--benchmark``, ``sc3 sweep NAME``).
 
 :func:`get` resolves a name: a built-in short one (``BUILTIN``: "bussing", "so101"; ``ALIASES``: "bench", the
 bussing benchmark's sweep as README command 1 spells it), or ``package.module:attr`` naming a ``Benchmark`` anywhere
@@ -71,6 +72,12 @@ class Benchmark:
     locators: Locators | None = None
     """where the arm and the objects are in frames, and what the actions move (:class:`Locators`): ``sc3
     diagnose``'s action-following and position measures. None: the arm is what the temporal median erases"""
+    prompts: Mapping[int, str] = dataclasses.field(default_factory=dict)
+    """task id -> its instruction, for an openpi policy where the episodes carry none (``sc3 rollout --family`` on an
+    .npz of initial conditions, ``sc3 serve-policy``'s table). Empty: no prompt is sent (the server's default)"""
+    category_names: Mapping[str, str] = dataclasses.field(default_factory=dict)
+    """an outcome category (a criterion first failed, or "no_failure") -> the words ``sc3 diagnose``'s tables
+    print for it (e.g. a placing failure as "dropped / off target"); a category not named prints as itself"""
 
     def __post_init__(self):
         if not self.name or not isinstance(self.name, str):
@@ -80,7 +87,8 @@ class Benchmark:
         bad = [k for k, f in self.measures.items() if not callable(f)]
         if bad:
             raise TypeError(f"benchmark {self.name}: measures {bad} are not callable")
-        object.__setattr__(self, "measures", types.MappingProxyType(dict(self.measures)))  # read-only, as the rest
+        for field in ("measures", "prompts", "category_names"):  # read-only, as the rest
+            object.__setattr__(self, field, types.MappingProxyType(dict(getattr(self, field))))
         if self.locators is not None and not isinstance(self.locators, Locators):
             raise TypeError(f"benchmark {self.name}: locators is a {type(self.locators).__name__}, not a Locators")
 
