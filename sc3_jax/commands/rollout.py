@@ -47,7 +47,8 @@ class Args(SamplerSteps):
     start: int = 0
     """first frame of the initial context in each stored episode"""
     task: int = 0
-    """task id given to the policy (episode stores carry none; a mapped ws:// policy gets the episodes' prompts)"""
+    """task id given to the policy (episode stores carry none; a mapped ws:// policy gets the episodes' prompts, and
+    for an .npz the --benchmark's prompt of its task ids, else none)"""
     batch: int | None = None
     """episodes per jitted call (None: all at once)"""
     data_fps: float | None = None
@@ -133,6 +134,8 @@ def main(argv: list[str]) -> int:
         table = list(dict.fromkeys(prompts))
         ics = ics._replace(task=np.asarray([table.index(p) for p in prompts], np.int32))
         family = for_world_model(a.family, tuple(cfg.data.views), table, f"--family {a.family}")
+    elif get_mapping(a.family) is not None and bm.prompts:  # an .npz's task ids: the benchmark's words for them
+        family = get_mapping(a.family).replace(prompts=dict(bm.prompts))
     try:  # an unknown name, or a module:attr that is no policy: one line, before anything compiles
         policy = resolve(a.policy, cfg.rollout.policy_chunk, family, action_space=stats.action_space,
                          named=bm.named_policy, num_views=len(cfg.data.views)).policy
