@@ -77,7 +77,8 @@ def main(argv: list[str]) -> int:
     dc = DiagnoseConfig(**{k: v for k, v in dataclasses.asdict(a).items() if k in fields})
     scorer_for, scene = benchmark_hooks(a.benchmark)
     result = diagnose.diagnose(a.world_model, a.data, dc, model_config=cfg, scorer_for=scorer_for, scene=scene,
-                               filmstrips=strips, locators=benchmark_locators(a.benchmark))
+                               filmstrips=strips, locators=benchmark_locators(a.benchmark),
+                               category_names=benchmark_of(a.benchmark).category_names)
     print(diagnose.render_table(result))
     st = result["settings"]
     print(f"sampler: {st['sample_steps']} forward Euler steps, U re-read in {st['inverse_steps']} (`sc3 sweep`'s "
@@ -136,21 +137,21 @@ def _under_a_folder(flag: str, path: Path) -> None:
             return
 
 
-def benchmark_hooks(name: str):
-    """(outcome scorer factory or None, scene measures by name) of the benchmark ``name`` (``--benchmark``: a
-    registered name or package.module:attr, ``sc3_jax.evaluation.benchmark.get``; "none": neither)."""
-    if name == "none":
-        return None, {}
+def benchmark_of(name: str):
+    """The benchmark ``--benchmark`` names (a registered name or package.module:attr,
+    ``sc3_jax.evaluation.benchmark.get``); "none": one that adds nothing to the generic measures."""
     from sc3_jax.evaluation import benchmark
 
-    bm = benchmark.get(name)
+    return benchmark.Benchmark(name="none") if name == "none" else benchmark.get(name)
+
+
+def benchmark_hooks(name: str):
+    """(outcome scorer factory or None, scene measures by name) of the benchmark ``name`` ("none": neither)."""
+    bm = benchmark_of(name)
     return bm.outcome_scorer, dict(bm.measures)
 
 
 def benchmark_locators(name: str):
     """The benchmark's ``Locators`` (where its arm and objects are, what its actions move), or None ("none", or a
     benchmark without them: the arm is then read by the median rule)."""
-    if name == "none":
-        return None
-    from sc3_jax.evaluation import benchmark
-    return benchmark.get(name).locators
+    return benchmark_of(name).locators
