@@ -9,8 +9,8 @@ l' = 10 frames and a rollout keeps l = 8 (the paper's horizon decoupling), from 
 the 20 Hz data; rollouts run at stride 2 = 10 Hz) with pseudo-actions half of the time.
 
 ``--model.tokenizer-path`` names the trained tokenizer; the default is the one shipped with the exported model
-(``sc3_jax/evaluation/shipped/bussing_latent_gpu/tokenizer``; ``configs/bussing_latent_gpu.py`` is this recipe at
-accelerator scale), and scripts/world_model.sh passes the one it trains.
+(``sc3_jax/benchmarks/bussing/shipped/bussing_latent_gpu/tokenizer``; ``configs/bussing_latent_gpu.py`` is this recipe
+at accelerator scale), and scripts/world_model.sh passes the one it trains.
 
 From nothing on the 2-core machine (``bash scripts/world_model.sh RUNS`` makes the demos, the held-out episodes and
 the tokenizer, then runs these; resumable):
@@ -35,7 +35,7 @@ from sc3_jax.benchmarks.bussing.hooks import BENCHMARK_TAU
 from sc3_jax.core.config import (Config, DataConfig, FlowConfig, ModeConfig, ModelConfig, RolloutConfig, SampleConfig,
                             TrainConfig)
 
-SHIPPED_TOKENIZER = Path(sc3_jax.__file__).parent / "evaluation" / "shipped" / "bussing_latent_gpu" / "tokenizer"
+SHIPPED_TOKENIZER = Path(sc3_jax.__file__).parent / "benchmarks/bussing/shipped/bussing_latent_gpu/tokenizer"
 
 
 def get_config(arg: str | None = None) -> Config:
