@@ -7,13 +7,14 @@ scorer on imagined frames, its policies' names and the words for its tasks and o
 exactly what ``sc3 sweep``, ``sc3 report``, ``sc3 diagnose``, ``sc3 rollout`` and ``sc3 serve-policy`` take from one;
 every field but ``name`` may be absent, and no command uses one unless named (``--benchmark``, ``sc3 sweep NAME``).
 
-:func:`get` resolves a name: a built-in short one (``BUILTIN``: "bussing", "so101"; ``ALIASES``: "bench", the
-bussing benchmark's sweep as README command 1 spells it), or ``package.module:attr`` naming a ``Benchmark`` anywhere
-on the path, as policies (``--policies NAME=module:attr``) and scorers (``--scorer module:attr``) are named. The
-table holds strings, imported on lookup: this module imports no benchmark (docs/architecture.md, "Adding a
-benchmark")."""
+:func:`get` resolves a name: a built-in short one (``BUILTIN``: the folders of ``sc3_jax/benchmarks/``; ``ALIASES``:
+the other names their benchmark.py declare, e.g. README command 1's "bench"), or ``package.module:attr`` naming a
+``Benchmark`` anywhere on the path, as policies (``--policies NAME=module:attr``) and scorers (``--scorer
+module:attr``) are named. The table holds strings, imported on lookup: this module imports no benchmark and names
+none (docs/architecture.md, "Adding a benchmark")."""
 from __future__ import annotations
 
+import ast
 import dataclasses
 import types
 from collections.abc import Callable, Mapping
@@ -98,10 +99,31 @@ class Benchmark:
         return self.measures.get("objects")
 
 
-# built-in short names -> "package.module:attr" of their Benchmark, imported on lookup (the core imports none)
-BUILTIN = {"bussing": "sc3_jax.benchmarks.bussing.benchmark:BENCHMARK",
-           "so101": "sc3_jax.benchmarks.so101.benchmark:BENCHMARK"}
-ALIASES = {"bench": "bussing"}  # `sc3 sweep bench` (README command 1, the golden records) is the bussing sweep
+BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"  # the built-in ones: a folder each
+
+
+def _builtin() -> dict[str, str]:
+    """Short name -> "package.module:attr" of each built-in Benchmark: every ``sc3_jax/benchmarks/NAME/benchmark.py``
+    (its ``BENCHMARK``), found on disk and imported on lookup, so the core names (and imports) none."""
+    return {p.name: f"sc3_jax.benchmarks.{p.name}.benchmark:BENCHMARK" for p in sorted(BENCHMARKS.iterdir())
+            if (p / "benchmark.py").is_file()}
+
+
+def _aliases(builtin) -> dict[str, str]:
+    """Alias -> short name: each built-in's ``ALIASES = ("...",)`` in its benchmark.py, read from the source (as
+    ``sc3 --help`` reads a command's SUMMARY) so that no benchmark is imported to learn its other names."""
+    out = {}
+    for name in builtin:
+        tree = ast.parse((BENCHMARKS / name / "benchmark.py").read_text())
+        for node in tree.body:
+            target = node.targets[0] if isinstance(node, ast.Assign) else getattr(node, "target", None)
+            if isinstance(target, ast.Name) and target.id == "ALIASES":
+                out.update({alias: name for alias in ast.literal_eval(node.value)})
+    return out
+
+
+BUILTIN = _builtin()
+ALIASES = _aliases(BUILTIN)
 FORM = "package.module:attr (a Benchmark on the path)"
 
 
@@ -111,7 +133,7 @@ def names() -> list[str]:
 
 
 def canonical(name: str) -> str:
-    """The spelling a store records for ``name``: an alias's benchmark ("bench": "bussing"), else ``name``."""
+    """The spelling a store records for ``name``: an alias's benchmark (e.g. "bench"'s), else ``name``."""
     return ALIASES.get(name, name)
 
 
