@@ -7,6 +7,7 @@ import math
 from pathlib import Path
 
 from sc3_jax.commands import parse_evaluated
+from sc3_jax.evaluation import benchmark
 from sc3_jax.evaluation.diagnose import DiagnoseConfig, Stage
 from sc3_jax.evaluation.world_model_defaults import SamplerSteps
 
@@ -78,7 +79,7 @@ def main(argv: list[str]) -> int:
     scorer_for, scene = benchmark_hooks(a.benchmark)
     result = diagnose.diagnose(a.world_model, a.data, dc, model_config=cfg, scorer_for=scorer_for, scene=scene,
                                filmstrips=strips, locators=benchmark_locators(a.benchmark),
-                               category_names=benchmark_of(a.benchmark).category_names)
+                               category_names=benchmark.get_or_none(a.benchmark).category_names)
     print(diagnose.render_table(result))
     st = result["settings"]
     print(f"sampler: {st['sample_steps']} forward Euler steps, U re-read in {st['inverse_steps']} (`sc3 sweep`'s "
@@ -137,21 +138,14 @@ def _under_a_folder(flag: str, path: Path) -> None:
             return
 
 
-def benchmark_of(name: str):
-    """The benchmark ``--benchmark`` names (a registered name or package.module:attr,
-    ``sc3_jax.evaluation.benchmark.get``); "none": one that adds nothing to the generic measures."""
-    from sc3_jax.evaluation import benchmark
-
-    return benchmark.Benchmark(name="none") if name == "none" else benchmark.get(name)
-
-
 def benchmark_hooks(name: str):
-    """(outcome scorer factory or None, scene measures by name) of the benchmark ``name`` ("none": neither)."""
-    bm = benchmark_of(name)
+    """(outcome scorer factory or None, scene measures by name) of the benchmark ``name`` (``--benchmark``: a
+    registered name or package.module:attr, ``sc3_jax.evaluation.benchmark.get``; "none": neither)."""
+    bm = benchmark.get_or_none(name)
     return bm.outcome_scorer, dict(bm.measures)
 
 
 def benchmark_locators(name: str):
     """The benchmark's ``Locators`` (where its arm and objects are, what its actions move), or None ("none", or a
     benchmark without them: the arm is then read by the median rule)."""
-    return benchmark_of(name).locators
+    return benchmark.get_or_none(name).locators

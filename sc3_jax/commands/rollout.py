@@ -99,7 +99,7 @@ def benchmark_of(name: str):
     it (its success estimate then says there is none)."""
     from sc3_jax.evaluation import benchmark
 
-    return benchmark.Benchmark(name="none") if name == "none" else benchmark.get(name)
+    return benchmark.get_or_none(name)
 
 
 def main(argv: list[str]) -> int:

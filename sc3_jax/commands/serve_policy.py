@@ -98,12 +98,11 @@ def loopback(host: str) -> bool:
 def build_server(a: Args, resolve: Callable[[str], Any] | None = None):
     """The bound, not yet serving ``PolicyServer`` for ``a``. ``resolve`` (optional) turns ``a.policy`` into a
     policy instead of ``policies.resolve``."""
+    from sc3_jax.evaluation import benchmark
     from sc3_jax.policies.openpi_mappings import get_mapping
     from sc3_jax.policies.openpi_server import PolicyServer
 
-    from sc3_jax.evaluation import benchmark
-
-    bm = benchmark.Benchmark(name="none") if a.benchmark == "none" else benchmark.get(a.benchmark)
+    bm = benchmark.get_or_none(a.benchmark)
     mapping = get_mapping(a.family)
     if mapping is not None:
         changes: dict[str, Any] = {"default_task": a.default_task}

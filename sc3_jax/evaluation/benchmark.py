@@ -150,6 +150,12 @@ def get(name: str) -> Benchmark:
     return obj
 
 
+def get_or_none(name: str) -> Benchmark:
+    """:func:`get`, except that "none" (the commands' ``--benchmark`` default) is a benchmark that adds nothing: no
+    scorer, measures, locators, policy names, prompts or category words, for a model of any robot."""
+    return Benchmark(name="none") if name == "none" else get(name)
+
+
 # the benchmark a results store was swept by: OUT/benchmark.json {"benchmark": NAME}, its short name or module:attr
 STORE_FILE = "benchmark.json"
 
