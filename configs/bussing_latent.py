@@ -9,15 +9,16 @@ l' = 10 frames and a rollout keeps l = 8 (the paper's horizon decoupling), from 
 the 20 Hz data; rollouts run at stride 2 = 10 Hz) with pseudo-actions half of the time.
 
 ``--model.tokenizer-path`` names the trained tokenizer; the default is the one shipped with the exported model
-(``sc3_jax/evaluation/shipped/bussing_latent_gpu/tokenizer``; ``configs/bussing_latent_gpu.py`` is this recipe at
-accelerator scale), and scripts/world_model.sh passes the one it trains.
+(``sc3_jax/benchmarks/bussing/shipped/bussing_latent_gpu/tokenizer``; ``configs/bussing_latent_gpu.py`` is this recipe
+at accelerator scale), and scripts/world_model.sh passes the one it trains.
 
 From nothing on the 2-core machine (``bash scripts/world_model.sh RUNS`` makes the demos, the held-out episodes and
 the tokenizer, then runs these; resumable):
 
     sc3 train --config bussing_latent --model.tokenizer-path RUNS/tokenizer/tokenizer --data RUNS/demos \
         --train.workdir RUNS/latent_train
-    sc3 diagnose --world-model RUNS/latent_train --data RUNS/heldout --sample-steps 8 --out RUNS/latent_train/diagnose.json
+    sc3 diagnose --world-model RUNS/latent_train --data RUNS/heldout --benchmark bussing --sample-steps 8 \
+        --out RUNS/latent_train/diagnose.json
     sc3 sweep bench --world-model EXPORT          # an export of the run (docs/results.md has the commands)
 
 Measured (docs/world_model.md, "Training and where it stands"): 4.9M parameters, the latent cache ~4 min, then
@@ -34,7 +35,7 @@ from sc3_jax.benchmarks.bussing.hooks import BENCHMARK_TAU
 from sc3_jax.core.config import (Config, DataConfig, FlowConfig, ModeConfig, ModelConfig, RolloutConfig, SampleConfig,
                             TrainConfig)
 
-SHIPPED_TOKENIZER = Path(sc3_jax.__file__).parent / "evaluation" / "shipped" / "bussing_latent_gpu" / "tokenizer"
+SHIPPED_TOKENIZER = Path(sc3_jax.__file__).parent / "benchmarks/bussing/shipped/bussing_latent_gpu/tokenizer"
 
 
 def get_config(arg: str | None = None) -> Config:

@@ -12,7 +12,7 @@ On one GPU machine (docs/world_model.md, "Accelerator run"; the shipped tokenize
     bash scripts/gpu_world_model.sh data /tmp/wm 120     # demos from 16 MuJoCo processes for 120 s
     bash scripts/gpu_world_model.sh train /tmp/wm        # sc3 train --config bussing_latent_gpu --data /tmp/wm/demos
     bash scripts/gpu_world_model.sh export /tmp/wm OUT int8
-    sc3 diagnose --world-model EXPORT --data HELDOUT --sample-steps 8 --out DIAG.json
+    sc3 diagnose --world-model EXPORT --data HELDOUT --benchmark bussing --sample-steps 8 --out DIAG.json
     sc3 sweep bench --world-model EXPORT
 
 Measured (docs/world_model.md, "Accelerator run"): step 2,000 (128k windows) in about 9 min on one H100; its diagnose

@@ -12,10 +12,10 @@ trains at ~1 step/s on 2 CPU cores. (l' = 12 > l, as in the paper, costs 1.4x pe
 From nothing (``bash scripts/bussing_sim.sh RUNS`` makes the demos, this model and the perception scorer):
 
     sc3 train --config bussing_sim --data RUNS/demos --train.workdir RUNS/train
-    sc3 diagnose --world-model RUNS/train --data HELDOUT --sample-steps 8 --out DIAG.json
+    sc3 diagnose --world-model RUNS/train --data HELDOUT --benchmark bussing --sample-steps 8 --out DIAG.json
     sc3 sweep bench --world-model RUNS/train
 
-Measured: the shipped model (``sc3_jax/evaluation/shipped/bussing_sim``) was stopped at step 2,177 of 2,600, ~80 min
+Measured: the shipped model (``sc3_jax/benchmarks/bussing/shipped/bussing_sim``) was stopped at step 2,177 of 2,600, ~80 min
 on the 2-core machine (scripts/bussing_sim.sh). Its diagnose on 6 held-out episodes at 8 sampler steps
 (docs/world_model.md, "bussing_sim's figures"): moving pixels +2.72 dB over copy-last (gate 3), +0.03 dB over the
 temporal median (gate 3), true - shuffled actions +1.06 dB (gate 2), inverse dynamics 0.136 against the floor's

@@ -60,7 +60,7 @@ from pathlib import Path
 from typing import Literal
 
 ROOT = Path(__file__).resolve().parents[1]
-SHIPPED = ROOT / "sc3_jax" / "evaluation" / "shipped" / "bussing_latent_gpu"
+SHIPPED = ROOT / "sc3_jax" / "benchmarks" / "bussing" / "shipped" / "bussing_latent_gpu"
 ARCHIVE = ROOT / "docs" / "stores" / "sweep72_gpu"  # the shipped model's 72-condition sweep: protocol and real rollouts
 SHIPPED_WINDOWS = 128_000  # bussing_latent_gpu: 2,000 steps x 64 windows (docs/world_model.md)
 PART = 15 * 2**20  # a returned file may not exceed 16 MiB

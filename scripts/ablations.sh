@@ -35,6 +35,6 @@ for v in $variants; do
     [ "$last" = "$STEPS" ] || { echo "$v stopped at step $last of $STEPS: rerun to resume" >&2; exit 1; }
     python -c "import numpy as np; from sc3_jax.model import checkpoint; checkpoint.export('$W', '$W/export', np.float16)"; }
   [ -f $W/export/diagnose.json ] || sc3 diagnose --world-model $W/export --data $R/heldout --episodes 4 --no-progress \
-    --sample-steps 8 --inverse-steps 8 \
+    --benchmark bussing --sample-steps 8 --inverse-steps 8 \
     --out $W/export/diagnose.json > $W/diagnose.md
 done

@@ -23,5 +23,5 @@ sc3 train-perception --data $D $R/scorer_data $R/scorer_zoo --generate 300 --gen
 sc3 train-perception --data $R/scorer_data $R/scorer_zoo $R/scorer_zoo2 --generate-policies 208 \
     --policy-seed 70 --init $R/perception.npz --steps 3000 --lr 5e-4 --out $R/perception_ft.npz
 # small copies to commit (params as float16)
-python -c "from sc3_jax.model import checkpoint; checkpoint.export('$R/train', 'sc3_jax/evaluation/shipped/bussing_sim')"
+python -c "from sc3_jax.model import checkpoint; checkpoint.export('$R/train', 'sc3_jax/benchmarks/bussing/shipped/bussing_sim')"
 cp $R/perception_ft.npz sc3_jax/benchmarks/bussing/perception.npz

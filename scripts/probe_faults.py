@@ -844,7 +844,7 @@ def _ic_for(model: Path, dest: Path) -> None:
 def issue_cases() -> list[Case]:
     import numpy as np
     cases = []
-    models = sorted(p for p in [*(ROOT / "exports").iterdir(), *(ROOT / "sc3_jax/evaluation/shipped").iterdir()]
+    models = sorted(p for p in [*(ROOT / "exports").iterdir(), *(ROOT / "sc3_jax/benchmarks/bussing/shipped").iterdir()]
                     if (p / "config.json").is_file())
     for m in models:
         def damage(case_dir: Path, m=m):

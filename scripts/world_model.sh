@@ -27,4 +27,5 @@ sc3 train-tokenizer --data $D --heldout $H --workdir $R/tokenizer --steps 2200 -
 sc3 train --config bussing_latent --model.tokenizer-path $R/tokenizer/tokenizer --data $D \
   --train.workdir $R/latent_train --train.no-progress "$@"
 # gate it on the held-out episodes
-sc3 diagnose --world-model $R/latent_train --data $H --out $R/latent_train/diagnose.json --sample-steps 8 --inverse-steps 8
+sc3 diagnose --world-model $R/latent_train --data $H --benchmark bussing --out $R/latent_train/diagnose.json \
+  --sample-steps 8 --inverse-steps 8

@@ -4,7 +4,7 @@ the shipped world model and scorer) gives exactly the records and rollout arrays
 state became data (commit b64205e) wrote. tests/golden/benchmark_sweep.json was made by that commit:
 
     git archive b64205e | tar -x -C OLD && cd OLD && PYTHONPATH=OLD python -m sc3_jax.cli sweep --out G \\
-        --world-model <this repo>/sc3_jax/evaluation/shipped/bussing_latent_gpu ARGS --degradations
+        --world-model <this repo>/sc3_jax/benchmarks/bussing/shipped/bussing_latent_gpu ARGS --degradations
 
 (ARGS below; its boolean --degradations is today's "all"), then the records and each array's dtype, shape, mean and
 mean absolute value. Floats are compared to a relative 1e-4 (records) and 1e-3 (array means): XLA's CPU numerics move

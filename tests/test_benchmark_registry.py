@@ -78,7 +78,8 @@ def test_the_commands_refuse_an_unknown_benchmark_in_one_line(capsys, tmp_path):
 def test_a_store_records_its_benchmark_and_a_damaged_record_is_one_line(tmp_path):
     from sc3_jax.commands.report import scene_of
 
-    assert benchmark.recorded(tmp_path) is None and scene_of(str(tmp_path)) is benchmark.get("bussing").scene
+    assert benchmark.recorded(tmp_path) is None and scene_of(str(tmp_path)) is None  # no benchmark: no objects row
+    assert scene_of(str(tmp_path), "bussing") is benchmark.get("bussing").scene
     benchmark.record(tmp_path, "bench")
     assert benchmark.recorded(tmp_path) == "bussing"
     benchmark.record(tmp_path, TOY)
@@ -135,6 +136,21 @@ def test_sc3_report_imports_a_benchmark_only_when_its_command_line_names_it(toy_
     assert toy_benchmark.CALLS["scene"] > 0  # the toy's measure, named on the command line
     assert json.loads((tmp_path / "rep" / "report.json").read_text())["permanence"]
     assert f"report: {tmp_path / 'rep' / 'report.md'}" in capsys.readouterr().out
+
+
+def test_a_store_that_records_no_benchmark_reports_without_an_objects_kept_row(toy_swept, tmp_path):
+    """No benchmark's objects are guessed at: the same store (its real and imagined frames kept) without
+    benchmark.json reports every row but objects kept."""
+    import shutil
+
+    _, _, out, _ = toy_swept
+    bare = tmp_path / "bare"
+    shutil.copytree(out, bare, ignore=shutil.ignore_patterns("report"))
+    (bare / benchmark.STORE_FILE).unlink()
+    toy_benchmark.CALLS["scene"] = 0
+    assert main(["report", str(bare), "--out", str(tmp_path / "rep"), "--draws", "50"]) == 0
+    t = json.loads((tmp_path / "rep" / "report.json").read_text())
+    assert "permanence" not in t and t["real"]["sources"] and toy_benchmark.CALLS["scene"] == 0
 
 
 def test_sc3_diagnose_takes_a_module_attr_benchmark(toy_swept, tmp_path, capsys):

@@ -15,6 +15,7 @@ from sc3_jax.commands import demo_run as demo_pieces
 from sc3_jax.cli import main as sc3
 from sc3_jax.commands import convert, data, demo, parse, parse_with_config, serve_policy
 from test_commands_help import _help_text, _leaves, _misplaced
+from sc3_jax.core.errors import UserError
 
 TARGETS = {"data import-lerobot": data.ImportLerobot, "data export-lerobot": data.ExportLerobot,
            "serve-policy": serve_policy.Args, "convert": convert.Args, "demo": demo.Args}
@@ -61,13 +62,14 @@ def test_data_lists_its_subcommands_and_refuses_others(capsys):
     ("serve-policy", ["--policy", "zero", "--host", "127.0.0.1", "--port", "0", "--family", "libero",
                       "--image-size", "48", "64", "--num-views", "2", "--task-prompt", "3=wipe it", "--task-prompt",
                       "4=stack", "--default-task", "1", "--api-key-file", "k", "--max-message-mb", "2", "--log-level",
-                      "warning"],
+                      "warning", "--benchmark", "bussing"],
      dict(policy="zero", host="127.0.0.1", port=0, family="libero", image_size=(48, 64), num_views=2,
-          task_prompt=("3=wipe it", "4=stack"), default_task=1, api_key_file="k", max_message_mb=2.0,
-          log_level="warning")),
+          task_prompt=("3=wipe it", "4=stack"), default_task=1, benchmark="bussing", api_key_file="k",
+          max_message_mb=2.0, log_level="warning")),
     ("serve-policy", ["--policy", "zero"],
      dict(policy="zero", host="127.0.0.1", port=8000, family="native", image_size=None, num_views=None,
-          task_prompt=(), default_task=None, api_key_file=None, max_message_mb=8.0, log_level="INFO")),
+          task_prompt=(), default_task=None, benchmark="none", api_key_file=None, max_message_mb=8.0,
+          log_level="INFO")),
     ("convert", ["--from", "diffusers", "src", "--to", "out", "--dtype", "bfloat16"],
      dict(src_kind="diffusers", src="src", to="out", dtype="bfloat16")),
     ("convert", ["src", "--from", "sc3", "--to", "out"], dict(src_kind="sc3", src="src", to="out", dtype="float32")),
@@ -167,6 +169,24 @@ def test_serve_policy_prints_its_address_and_metadata(monkeypatch, capsys):
     assert f"http://127.0.0.1:{server.port}/healthz" in out
     meta = json.loads(re.search(r"metadata sent to every client: (\{.*\})", out).group(1))
     assert meta == server.metadata and meta["policy"] == "zero" and meta["action_dim"] == 7
+
+
+def test_serve_policy_takes_a_benchmarks_prompts_and_policy_names_only_when_named():
+    from sc3_jax.benchmarks.bussing.tasks import PROMPTS
+    from sc3_jax.benchmarks.bussing.zoo import zoo_names
+
+    argv = ["--policy", "zero", "--host", "127.0.0.1", "--port", "0", "--family", "libero"]
+    plain = serve_policy.build_server(parse(serve_policy.Args, argv, "serve-policy"))
+    bussing = serve_policy.build_server(parse(serve_policy.Args, argv + ["--benchmark", "bussing"], "serve-policy"))
+    try:  # without --benchmark the table is empty: any prompt is task 0, no benchmark's words are assumed
+        assert plain.mapping.prompts is None and int(plain.mapping.task_for("wipe it")) == 0
+        assert dict(bussing.mapping.prompts) == PROMPTS
+    finally:
+        plain.shutdown()
+        bussing.shutdown()
+    zoo = zoo_names("bussing")[0]
+    with pytest.raises(UserError, match=f"--policy {zoo}"):  # a zoo name is the benchmark's, not the core's
+        serve_policy.build_server(parse(serve_policy.Args, ["--policy", zoo, "--port", "0"], "serve-policy"))
 
 
 def test_convert_says_what_it_passed_and_wrote(tmp_path, monkeypatch, capsys):

@@ -123,7 +123,7 @@ def test_a_world_model_without_a_config_is_a_one_line_error(command, tmp_path, c
     ("rollout", ["--world-model", "wm", "--policy", "zero", "--data", "ics", "--out", "o"],
      dict(sample_steps=2, inverse_steps=1, world_model="wm", policy="zero", data="ics", out="o", step=None,
           family="native", episodes=None, start=0, task=0, batch=None, data_fps=None, seed=0, offline=False,
-          perception=None, benchmark="bussing", learned_state=True, video=True, progress=True)),
+          perception=None, benchmark="none", learned_state=True, video=True, progress=True)),
     ("rollout", ["--world-model", "wm", "--policy", "ws://h:1", "--data", "ics", "--out", "o",
                  "--step", "5", "--family", "libero", "--episodes", "2", "--start", "1", "--task", "1",
                  "--batch", "1", "--data-fps", "10", "--seed", "3", "--offline", "--no-video", "--no-progress",
@@ -138,11 +138,23 @@ def test_a_world_model_without_a_config_is_a_one_line_error(command, tmp_path, c
      dict(sample_steps=8, inverse_steps=1, world_model="wm", data="h", episodes=4, cf_starts=1, out="r.json",
           cf_fraction=0.25, carry_px=2.0,
           filmstrips=None, seed=1, max_seconds=4.0, batch=2, moving_threshold=0.1, horizons=(0.8, 2.0),
-          perception="p.npz", progress=False, benchmark="bussing",
+          perception="p.npz", progress=False, benchmark="none",
           stages=("teacher_forced", "counterfactual", "open_loop"))),
 ])
 def test_the_options_parse_into_their_fields(command, argv, expected):
     assert dataclasses.asdict(parse(COMMANDS[command].Args, argv, command)) == expected
+
+
+@pytest.mark.parametrize("command", sorted(COMMANDS))
+def test_no_command_defaults_to_a_benchmark(command):
+    """Without --benchmark a model of any robot is rolled out or diagnosed with the generic measures alone: no outcome
+    scorer, no scene measure, no locators, no benchmark's policy names (the bussing benchmark only when named)."""
+    a = parse(COMMANDS[command].Args, _required(command, "wm"), command)
+    assert a.benchmark == "none"
+    bm = rollout_cmd.benchmark_of(a.benchmark)
+    assert (bm.outcome_scorer, dict(bm.measures), bm.named_policy, bm.locators) == (None, {}, None, None)
+    assert diagnose_cmd.benchmark_hooks(a.benchmark) == (None, {})
+    assert diagnose_cmd.benchmark_locators(a.benchmark) is None
 
 
 def test_the_libraries_keep_no_command_line():

@@ -123,6 +123,13 @@ def test_plan_refuses_a_device_it_does_not_know(capsys):
     assert _rc(["plan", "--device", "tpu"]) == 2 and "tpu" in capsys.readouterr().err
 
 
+def test_train_tokenizer_without_data_says_so_and_creates_nothing(tmp_path, capsys):
+    """No store is a default (it named the bussing benchmark's demos): --data is asked for in one line."""
+    assert _rc(["train-tokenizer", "--workdir", str(tmp_path / "w")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--data: give the episode store" in err and not (tmp_path / "w").exists()
+
+
 def test_export_only_without_a_checkpoint_says_so_and_creates_nothing(tmp_path, capsys):
     assert _rc(["train-tokenizer", "--export-only", "--workdir", str(tmp_path / "w")]) == 2
     assert "no checkpoint to export" in capsys.readouterr().err and not (tmp_path / "w").exists()

@@ -86,7 +86,7 @@ def run(tmp_path_factory):
     out = io.StringIO()
     with contextlib.redirect_stdout(out):
         rc = cli(["diagnose", "--world-model", str(wm), "--data", str(store.root), "--out", str(root / "result.json"),
-                  "--no-progress"])
+                  "--benchmark", "bussing", "--no-progress"])
     assert rc == 0
     return store, dg.load_result(root / "result.json"), out.getvalue()
 

@@ -57,3 +57,17 @@ def test_good_options_reach_the_diagnosis(model, tmp_path, capsys, monkeypatch):
              "2.5", "--cf-fraction", "0.25", "--benchmark", "so101", "--out", str(tmp_path / "new" / "d.json")])
     assert called["dc"].cf_fraction == 0.25 and called["dc"].max_seconds == 2.5 and called["dc"].episodes == 1
     assert set(called["locators"].objects) == {"block"} and called["locators"].moves["dx"] == "ee_x"
+
+
+def test_diagnose_without_a_benchmark_reads_the_generic_measures_alone(model, tmp_path, monkeypatch):
+    """No command defaults to a benchmark: without --benchmark the passes get no outcome scorer, no scene measure
+    and no locators (the arm by the median rule), whatever robot the model is of."""
+    called = {}
+
+    def fake(wm, data, dc, **kw):
+        called.update(kw)
+        raise SystemExit(0)
+    monkeypatch.setattr(dg, "diagnose", fake)
+    with pytest.raises(SystemExit):
+        cli(["diagnose", "--world-model", str(model), "--data", str(tmp_path), "--no-progress"])
+    assert called["scorer_for"] is None and called["scene"] == {} and called["locators"] is None

@@ -98,6 +98,22 @@ def test_no_physics_labels_gives_no_reproduction_and_the_verdict_reads_the_set_s
         assert lines[-1] == f"outcome set: {want}"
 
 
+def test_outcome_categories_print_in_the_benchmarks_words_else_by_their_own_names():
+    """The core knows no benchmark's words: a category is its criterion's name unless the benchmark names it
+    (``Benchmark.category_names``, kept in the section); the bussing benchmark's are the simulator's."""
+    from sc3_jax.evaluation import benchmark
+    from sc3_jax.evaluation.diagnose_report import _outcome_lines
+
+    plain = "\n".join(_outcome_lines(do.outcome_section(ROWS, None, seed=0))[1])
+    assert "| placing | 2 |" in plain and "imagined no_failure" in plain and "dropped" not in plain
+    words = benchmark.get("bussing").category_names
+    named = do.outcome_section(ROWS, None, seed=0, names=words)
+    assert named["category_names"] == dict(words) and "category_names" not in do.outcome_section(ROWS, None)
+    text = "\n".join(_outcome_lines(named)[1])
+    assert "| dropped / off target | 2 |" in text and "imagined wrong container" in text
+    assert "| placing | 2 |" not in text
+
+
 @pytest.fixture(scope="module")
 def open_loop_run(tmp_path_factory):
     root = tmp_path_factory.mktemp("diagnose_open_loop")
@@ -106,7 +122,7 @@ def open_loop_run(tmp_path_factory):
     out = io.StringIO()
     with contextlib.redirect_stdout(out):
         rc = cli(["diagnose", "--world-model", str(wm), "--data", str(store.root), "--stages", "open_loop", "--out",
-                  str(wm / "diagnose.json"), "--no-progress"])
+                  str(wm / "diagnose.json"), "--benchmark", "bussing", "--no-progress"])
     assert rc == 0
     return wm, dg.load_result(wm / "diagnose.json"), out.getvalue()
 

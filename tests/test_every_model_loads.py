@@ -1,5 +1,5 @@
-"""Every world model the project ships (``sc3_jax/evaluation/shipped/``) or exports (``exports/``) is usable as it is
-committed: its robot facts read (checkpoint.read_robot, what `sc3 rollout` and `sc3 sweep` read) and, in the slow
+"""Every world model the project ships (``sc3_jax/benchmarks/bussing/shipped/``) or exports (``exports/``) is usable as
+it is committed: its robot facts read (checkpoint.read_robot, what `sc3 rollout` and `sc3 sweep` read) and, in the slow
 variant, a chunk rolls out inside it the way the sweeps build their rollout. A model made by `sc3 demo` records its
 data's facts; a model's facts never come from the current directory, and a damaged fact is one line."""
 from __future__ import annotations
@@ -16,7 +16,7 @@ from sc3_jax.model import checkpoint
 from sc3_jax.core.errors import UserError
 
 ROOT = Path(__file__).resolve().parents[1]
-MODELS = sorted([*(ROOT / "exports").iterdir(), *(ROOT / "sc3_jax" / "evaluation" / "shipped").iterdir()])
+MODELS = sorted([*(ROOT / "exports").iterdir(), *(ROOT / "sc3_jax" / "benchmarks" / "bussing" / "shipped").iterdir()])
 MODELS = [p for p in MODELS if (p / "config.json").is_file()]
 STUDENT = ROOT / "exports" / "bussing_latent_gpu_student"
 # the robots they were trained on (docs/world_model.md, docs/so101.md): bussing's simulator records 20 fps and no

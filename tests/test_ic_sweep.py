@@ -16,6 +16,7 @@ from sc3_jax.data.action_space import ActionSpace
 from sc3_jax.data.episodes import Episode, EpisodeStore
 from sc3_jax.core.errors import UserError
 from sc3_jax.evaluation import labels
+from sc3_jax.evaluation.diagnose_outcomes import no_scorer
 from sc3_jax.policies.openpi_mappings import ALOHA_CAMERAS, for_world_model, resize_with_pad
 from test_any_robot import CAMS, A, H, W, bimanual  # noqa: F401  (the fixture: imported store + trained tiny model)
 
@@ -320,7 +321,7 @@ def test_sc3_rollout_of_a_module_attr_policy(swept, tmp_path, capsys):
         np.testing.assert_allclose(z["actions"][:, 3], z["actions"][:, 0] + 0.3, atol=1e-5)
     summary = json.loads((tmp_path / "ro" / "summary.json").read_text())
     assert summary["num_chunks"] == 2 and summary["keep_frames"] == 3 and summary["stopped"] == 0
-    assert not summary["success"]["available"]  # the benchmark's perception scorer: not this robot's cameras
+    assert summary["success"] == {"available": False, "note": no_scorer(None, None)[1]}  # no --benchmark: no scorer
     assert sorted(p.name for p in (tmp_path / "ro").glob("*.mp4")) == sorted(
         f"{e}_{v}.mp4" for e in summary["episodes"] for v in CAMS)
     assert capsys.readouterr().out.strip().splitlines()[-1].startswith(f"wrote {tmp_path / 'ro'}/: rollout.npz")

@@ -19,9 +19,10 @@ from sc3_jax.policies import msgpack_numpy as mn
 from sc3_jax.policies.base import HostPolicy, JaxPolicy, as_host, check_dims
 from sc3_jax.policies.openpi_client import (PolicyConnectionError, PolicyServerError, PolicyTimeoutError,
                                             WebsocketClientPolicy)
-from sc3_jax.policies.openpi_mappings import (ALOHA, ALOHA_CAMERAS, DEFAULT_PROMPTS, DROID, LIBERO, ActionMap,
+from sc3_jax.policies.openpi_mappings import (ALOHA, ALOHA_CAMERAS, DROID, LIBERO, ActionMap,
                                              get_mapping)
 from sc3_jax.policies.openpi_server import PolicyServer, serve
+from sc3_jax.benchmarks.bussing.tasks import PROMPTS  # a benchmark's task words, as --benchmark bussing sends them
 
 CHUNK = 5
 
@@ -184,7 +185,8 @@ def test_presets_keys_shapes_and_inverse():
     # gets an observation of that layout (this test used to feed all three our 7-D, 3-view benchmark observation).
     obs = our_obs(task=1, state_dim=8)
     s = obs["state"]
-    droid = DROID.to_family(obs)
+    assert "prompt" not in DROID.to_family(obs)  # a preset has no words of its own: the episodes' or a benchmark's
+    droid = DROID.replace(prompts=PROMPTS).to_family(obs)
     assert set(droid) == {"observation/exterior_image_1_left", "observation/wrist_image_left",
                           "observation/joint_position", "observation/gripper_position", "prompt"}
     for k in ("observation/exterior_image_1_left", "observation/wrist_image_left"):
@@ -195,17 +197,17 @@ def test_presets_keys_shapes_and_inverse():
     assert (droid["observation/wrist_image_left"][100, 100] == obs["images"][2, 0, 0]).all()  # wrist = last view
     np.testing.assert_array_equal(droid["observation/joint_position"], s[:7])
     np.testing.assert_array_equal(droid["observation/gripper_position"], s[7:8])
-    assert droid["prompt"] == DEFAULT_PROMPTS[1]
+    assert droid["prompt"] == PROMPTS[1]
 
     lobs = our_obs(task=1)
-    libero = LIBERO.to_family(lobs)
+    libero = LIBERO.replace(prompts=PROMPTS).to_family(lobs)
     assert set(libero) == {"observation/image", "observation/wrist_image", "observation/state", "prompt"}
     assert libero["observation/image"].shape == (224, 224, 3)
     ls = lobs["state"]
     np.testing.assert_array_equal(libero["observation/state"], np.r_[ls, -ls[6]].astype(np.float32))
 
     aobs = our_obs(task=1, state_dim=14, views=4)
-    aloha = ALOHA.to_family(aobs)
+    aloha = ALOHA.replace(prompts=PROMPTS).to_family(aobs)
     assert set(aloha) == {"images", "state", "prompt"}
     assert tuple(aloha["images"]) == ALOHA_CAMERAS
     for v in aloha["images"].values():
@@ -214,7 +216,7 @@ def test_presets_keys_shapes_and_inverse():
 
     # inverse (server side): back to our observation; constant views survive exactly
     for m, o, fobs in ((DROID, obs, droid), (LIBERO, lobs, libero), (ALOHA, aobs, aloha)):
-        back = m.replace(our_image_size=(48, 64)).from_family(fobs)
+        back = m.replace(our_image_size=(48, 64), prompts=PROMPTS).from_family(fobs)
         n = m.num_views
         assert back["images"].shape == (n, 48, 64, 3) and back["images"].dtype == np.uint8
         np.testing.assert_array_equal(back["state"], o["state"])
@@ -227,7 +229,7 @@ def test_presets_keys_shapes_and_inverse():
     # prompts: fixed prompt, unknown prompt
     assert DROID.replace(prompts="do it").to_family(obs)["prompt"] == "do it"
     with pytest.raises(ValueError, match="matches no task"):
-        DROID.from_family({**droid, "prompt": "dance"})
+        DROID.replace(prompts=PROMPTS).from_family({**droid, "prompt": "dance"})
     assert int(DROID.replace(default_task=0).from_family({**droid, "prompt": "dance"})["task"]) == 0
     assert get_mapping("native") is None and get_mapping("DROID") is DROID
 
@@ -355,8 +357,8 @@ def test_droid_against_fake_openpi_server(server_factory):
     fake = FakeOpenpiDroid()
     server = server_factory(fake)  # native: the fake gets the raw family dict and its reply goes back as is
     obs = our_obs(h=180, w=320, task=0, state_dim=8)  # a ZED-like 16:9 frame; views: exterior 1, exterior 2, wrist
-    with WebsocketClientPolicy("127.0.0.1", server.port, mapping="droid", action_dim=8, state_dim=8,
-                               views=3) as client:
+    with WebsocketClientPolicy("127.0.0.1", server.port, mapping=DROID.replace(prompts=PROMPTS), action_dim=8,
+                               state_dim=8, views=3) as client:
         assert client.chunk == 8  # examples/droid/main.py's open_loop_horizon (the server's metadata has no chunk)
         got = client.infer(obs)
     sent = fake.seen[-1]
@@ -365,7 +367,7 @@ def test_droid_against_fake_openpi_server(server_factory):
         "observation/wrist_image_left": ((224, 224, 3), np.uint8),
         "observation/joint_position": ((7,), np.float32),
         "observation/gripper_position": ((1,), np.float32),
-        "prompt": DEFAULT_PROMPTS[0]}
+        "prompt": PROMPTS[0]}
     top = (224 - int(180 / (320 / 224))) // 2  # the client letterboxes: 320x180 -> 224x126, 49 black rows above
     ext, wrist = sent["observation/exterior_image_1_left"], sent["observation/wrist_image_left"]
     assert (ext[:top] == 0).all() and (ext[top + 1:top + 125] == obs["images"][0, 0, 0]).all()
@@ -386,13 +388,13 @@ def test_aloha_against_fake_openpi_server(server_factory):
     server = server_factory(fake, metadata={"reset_pose": [0, -1.5, 1.5, 0, 0, 0]})  # pi0_aloha's policy_metadata
     obs = our_obs(h=480, w=640, task=1, state_dim=14, views=4)  # real_env.py's 480x640 cameras
     obs["state"] = np.arange(14, dtype=np.float32) + 1  # [left 6 joints, left gripper, right 6 joints, right gripper]
-    with WebsocketClientPolicy("127.0.0.1", server.port, mapping="aloha", action_dim=14, state_dim=14,
-                               views=4) as client:
+    with WebsocketClientPolicy("127.0.0.1", server.port, mapping=ALOHA.replace(prompts=PROMPTS), action_dim=14,
+                               state_dim=14, views=4) as client:
         assert client.chunk == 25  # examples/aloha_real/main.py's action_horizon
         assert client.metadata["reset_pose"] == [0, -1.5, 1.5, 0, 0, 0]
         got = client.infer(obs)
     sent = fake.seen[-1]
-    assert set(sent) == {"images", "state", "prompt"} and sent["prompt"] == DEFAULT_PROMPTS[1]
+    assert set(sent) == {"images", "state", "prompt"} and sent["prompt"] == PROMPTS[1]
     assert list(sent["images"]) == list(ALOHA_CAMERAS)
     for i, cam in enumerate(ALOHA_CAMERAS):  # view i -> camera i, CHW uint8, letterboxed 640x480 -> 224x168
         img = sent["images"][cam]
@@ -500,7 +502,7 @@ def test_jax_policy_served_native_and_droid(server_factory):
     policy = tiny_policy(8)
     local = as_host(policy)
     obs = our_obs(task=1, state_dim=8)
-    mapping = DROID.replace(our_image_size=(48, 64), pad_actions="hold")
+    mapping = DROID.replace(our_image_size=(48, 64), pad_actions="hold", prompts=PROMPTS)  # task 1 rides its prompt
     server = server_factory(policy, mapping=mapping)
     with WebsocketClientPolicy("127.0.0.1", server.port, mapping=mapping, chunk=8) as client:
         assert client.metadata["family"] == "droid" and client.metadata["action_dim"] == 8

@@ -323,7 +323,7 @@ def test_cli_writes_arrays_and_videos(tmp_path, setup, capsys):
     # N chunks of l = 3 frames at 10 Hz: 0.9 s (what --num-chunks N said before the config's own fields)
     rc = main(["rollout", "--world-model", str(tmp_path / "run"), "--policy", "linear", "--data",
                str(tmp_path / "eps"), "--out", str(tmp_path / "out"), "--rollout.episode-seconds", "0.9",
-               "--rollout.tau", "inf", "--offline", "--no-progress"])
+               "--rollout.tau", "inf", "--offline", "--benchmark", "bussing", "--no-progress"])
     assert rc == 0
     z = np.load(tmp_path / "out" / "rollout.npz")
     assert z["frames"].shape == (B, 3, N * 3, 8, 8, 3) and z["u"].shape == (B, N)

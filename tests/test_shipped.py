@@ -1,6 +1,7 @@
 """The shipped world model README command 1 evaluates inside, and the state reader a sweep picks."""
 import dataclasses
 import hashlib
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -46,7 +47,7 @@ def test_the_state_reader_is_the_given_one_else_the_world_models_own_else_the_sc
 
 def test_the_distilled_student_is_its_teachers_architecture_in_its_units_with_trained_weights():
     """exports/bussing_latent_gpu_student (docs/sweep.md#sampler-steps): the shipped model distilled to 1 step."""
-    student = sweep.SHIPPED_WORLD_MODEL.parents[3] / "exports" / "bussing_latent_gpu_student"
+    student = Path(__file__).resolve().parents[1] / "exports" / "bussing_latent_gpu_student"
     cfg, _, params = checkpoint.load(student)
     tcfg, _, tparams = checkpoint.load(sweep.SHIPPED_WORLD_MODEL)
     # the same model, read with its own copy of the teacher's tokenizer

@@ -7,6 +7,7 @@ import math
 from pathlib import Path
 
 from sc3_jax.commands import parse_evaluated
+from sc3_jax.evaluation import benchmark
 from sc3_jax.evaluation.diagnose import DiagnoseConfig, Stage
 from sc3_jax.evaluation.world_model_defaults import SamplerSteps
 
@@ -52,14 +53,15 @@ class Args(SamplerSteps):
     horizons: tuple[float, ...] = D.horizons
     """drift curve points in seconds"""
     perception: str | None = D.perception
-    """perception weights for the outcome check (None: the shipped ones)"""
+    """weights for the benchmark's outcome scorer, the outcome check's (None: the benchmark's own)"""
     progress: bool = D.progress
     """a progress bar on stderr (--no-progress: none, for batch logs)"""
-    benchmark: str = "bussing"
-    """whose measures the passes read: a benchmark's name (sc3_jax/evaluation/benchmark.py: bussing, the simulated benchmark's
-    perception outcome scorer, its objects' pixels and positions; so101, the block's and the goal marker's pixels,
-    the arm's and the block's image positions, what its actions move in its state, no outcome scorer), any
-    benchmark as package.module:attr, or none"""
+    benchmark: str = "none"
+    """whose measures the passes read besides the generic ones: a benchmark's name (sc3_jax/evaluation/benchmark.py:
+    bussing, the simulated benchmark's perception outcome scorer, its objects' pixels and positions; so101, the
+    block's and the goal marker's pixels, the arm's and the block's image positions, what its actions move in its
+    state, no outcome scorer) or package.module:attr; none: the generic measures alone (the arm read by the median
+    rule, no outcome scorer, no objects kept), since a model of any robot can be diagnosed"""
     stages: tuple[Stage, ...] = D.stages
     """the passes to run: teacher_forced (one chunk ahead, shuffled actions, inverse dynamics), counterfactual,
     open_loop (drift and outcome reproduction); the others' sections and gates read "not run". --stages open_loop:
@@ -76,7 +78,8 @@ def main(argv: list[str]) -> int:
     dc = DiagnoseConfig(**{k: v for k, v in dataclasses.asdict(a).items() if k in fields})
     scorer_for, scene = benchmark_hooks(a.benchmark)
     result = diagnose.diagnose(a.world_model, a.data, dc, model_config=cfg, scorer_for=scorer_for, scene=scene,
-                               filmstrips=strips, locators=benchmark_locators(a.benchmark))
+                               filmstrips=strips, locators=benchmark_locators(a.benchmark),
+                               category_names=benchmark.get_or_none(a.benchmark).category_names)
     print(diagnose.render_table(result))
     st = result["settings"]
     print(f"sampler: {st['sample_steps']} forward Euler steps, U re-read in {st['inverse_steps']} (`sc3 sweep`'s "
@@ -138,18 +141,11 @@ def _under_a_folder(flag: str, path: Path) -> None:
 def benchmark_hooks(name: str):
     """(outcome scorer factory or None, scene measures by name) of the benchmark ``name`` (``--benchmark``: a
     registered name or package.module:attr, ``sc3_jax.evaluation.benchmark.get``; "none": neither)."""
-    if name == "none":
-        return None, {}
-    from sc3_jax.evaluation import benchmark
-
-    bm = benchmark.get(name)
+    bm = benchmark.get_or_none(name)
     return bm.outcome_scorer, dict(bm.measures)
 
 
 def benchmark_locators(name: str):
     """The benchmark's ``Locators`` (where its arm and objects are, what its actions move), or None ("none", or a
     benchmark without them: the arm is then read by the median rule)."""
-    if name == "none":
-        return None
-    from sc3_jax.evaluation import benchmark
-    return benchmark.get(name).locators
+    return benchmark.get_or_none(name).locators

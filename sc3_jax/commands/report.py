@@ -35,7 +35,7 @@ class Args:
     labels, a LeRobot dataset, a CSV; docs/your_robot.md), instead of the sweep's own --real"""
     benchmark: str | None = None
     """whose scene measure reads the objects-kept row: a benchmark's name or package.module:attr (None: the one the
-    store's sweep recorded, else the bussing benchmark's)"""
+    store's sweep recorded; a store that records none gets no such row)"""
 
 
 MAX_DRAWS = 100_000  # a paired bootstrap's intervals settle long before; 2e8 draws took 3 GB
@@ -55,8 +55,9 @@ def scene_of(results: str, name: str | None = None):
     """The scene measure a store's objects-kept row is read with: that of the benchmark ``name`` (``--benchmark``),
     else of the one the store's sweep recorded (``benchmark.json``, as ``sc3 sweep NAME`` was given it: a built-in
     name; a package.module:attr there is refused, as the store is data and may come from anyone, until
-    ``--benchmark`` names it; from before it, ``real_frames/scene.json``, one of the built-in names), else the
-    bussing benchmark's. None when that benchmark has no scene measure."""
+    ``--benchmark`` names it; from before it, ``real_frames/scene.json``, one of the built-in names). None when no
+    benchmark is named (a store of ``sc3 sweep episodes``, of any robot: no objects-kept row) or the benchmark has no
+    scene measure."""
     from sc3_jax.evaluation import benchmark
     from sc3_jax.evaluation.report_episodes import REAL_FRAMES
     from sc3_jax.core.validate import json_object
@@ -68,8 +69,9 @@ def scene_of(results: str, name: str | None = None):
                             f"sc3_jax; sc3 report imports only what its command line names: add --benchmark {name}")
     if name is None:
         saved = Path(results) / REAL_FRAMES / "scene.json"
-        name = (json_object(atomic.read_json(saved), str(saved), "delete it and rerun the sweep").get("benchmark")
-                if saved.is_file() else "bussing")
+        if not saved.is_file():
+            return None  # no benchmark named: the generic report, no benchmark's objects guessed at
+        name = json_object(atomic.read_json(saved), str(saved), "delete it and rerun the sweep").get("benchmark")
         if name not in benchmark.names():  # the file is data: only a built-in benchmark's measure runs
             raise UserError(f"{saved}: unknown benchmark {name!r} (known: {', '.join(benchmark.names())})")
     try:

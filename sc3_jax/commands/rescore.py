@@ -9,7 +9,8 @@ import tyro
 
 from sc3_jax.commands import parse
 
-SUMMARY = "re-score a store's stored frames with other scorer weights"  # the line `sc3 --help` shows
+# the bussing benchmark's own command (its perception scorer), as `sc3 sim` is: --help says so
+SUMMARY = "re-score a bussing sweep's stored frames with other perception weights"  # the line `sc3 --help` shows
 
 
 @dataclasses.dataclass(frozen=True)

@@ -47,7 +47,8 @@ class Args(SamplerSteps):
     start: int = 0
     """first frame of the initial context in each stored episode"""
     task: int = 0
-    """task id given to the policy (episode stores carry none; a mapped ws:// policy gets the episodes' prompts)"""
+    """task id given to the policy (episode stores carry none; a mapped ws:// policy gets the episodes' prompts, and
+    for an .npz the --benchmark's prompt of its task ids, else none)"""
     batch: int | None = None
     """episodes per jitted call (None: all at once)"""
     data_fps: float | None = None
@@ -58,10 +59,12 @@ class Args(SamplerSteps):
     offline: bool = False
     """also replay the recorded actions open loop and compare with the recorded frames (episode stores only)"""
     perception: str | None = None
-    """perception weights for the success estimate (None: the shipped ones)"""
-    benchmark: str = "bussing"
+    """weights for the benchmark's outcome scorer, the success estimate's (None: the benchmark's own)"""
+    benchmark: str = "none"
     """whose outcome scorer makes the success estimate and whose policy names --policy takes: a benchmark's name
-    (sc3_jax/evaluation/benchmark.py: bussing, the simulated benchmark's perception and zoo; so101) or package.module:attr"""
+    (sc3_jax/evaluation/benchmark.py: bussing, the simulated benchmark's perception and zoo; so101) or
+    package.module:attr; none: no success estimate and only the built-in policy spellings, since a model of any
+    robot can be rolled out"""
     learned_state: bool = True
     """hand the policy the world model's learned robot state where it has one (state_head.npz); --no-learned-state:
     the integrated commands (exact for absolute targets, or velocities of the recorded state)"""
@@ -96,7 +99,7 @@ def benchmark_of(name: str):
     it (its success estimate then says there is none)."""
     from sc3_jax.evaluation import benchmark
 
-    return benchmark.Benchmark(name="none") if name == "none" else benchmark.get(name)
+    return benchmark.get_or_none(name)
 
 
 def main(argv: list[str]) -> int:
@@ -125,12 +128,14 @@ def main(argv: list[str]) -> int:
     ids, ics, store = rollout_io.load_initial_conditions(a.data, cfg, ro.spec, a.episodes, a.start, a.task)
     family = a.family
     if store is not None and get_mapping(a.family) is not None:
-        # an openpi server reads each episode's own instruction (not the bussing table by --task), and its
+        # an openpi server reads each episode's own instruction (not a mapping's table by --task), and its
         # cameras by the model's view names where it has them (as `sc3 sweep episodes --data` sends them)
         prompts = [atomic.read_json(store.root / e / "meta.json").get("prompt", "") for e in ids]
         table = list(dict.fromkeys(prompts))
         ics = ics._replace(task=np.asarray([table.index(p) for p in prompts], np.int32))
         family = for_world_model(a.family, tuple(cfg.data.views), table, f"--family {a.family}")
+    elif get_mapping(a.family) is not None and bm.prompts:  # an .npz's task ids: the benchmark's words for them
+        family = get_mapping(a.family).replace(prompts=dict(bm.prompts))
     try:  # an unknown name, or a module:attr that is no policy: one line, before anything compiles
         policy = resolve(a.policy, cfg.rollout.policy_chunk, family, action_space=stats.action_space,
                          named=bm.named_policy, num_views=len(cfg.data.views)).policy

@@ -26,8 +26,8 @@ class Args:
     ws://HOST:PORT` in our own commands) queries it."""
 
     policy: str
-    """a zoo name, zero | random | linear, or package.module:attr of a JaxPolicy / HostPolicy or of a factory
-    returning one (every spelling of policies/resolve.py)"""
+    """zero | random | linear, package.module:attr of a JaxPolicy / HostPolicy or of a factory returning one, or a
+    --benchmark's policy name, e.g. its zoo's (every spelling of policies/resolve.py)"""
     host: str = "127.0.0.1"
     """interface to listen on (127.0.0.1: this machine only; 0.0.0.0: every one, then set a key)"""
     port: int = 8000
@@ -39,10 +39,14 @@ class Args:
     num_views: int | None = None
     """number of views our policy expects (None: the family's, e.g. 4 for aloha)"""
     task_prompt: Annotated[tyro.conf.UseAppendAction[tuple[str, ...]], tyro.conf.arg(metavar="ID=PROMPT")] = ()
-    """a prompt -> task id entry of the family's table (repeatable; default: the bussing / reverse-bussing
-    prompts)"""
+    """a prompt -> task id entry of the family's table (repeatable; default: the --benchmark's prompts; no table
+    without one, so any prompt is --default-task, else task 0)"""
     default_task: int | None = None
     """task id for prompts not in the table"""
+    benchmark: str = "none"
+    """whose policy names --policy takes and whose task prompts the table holds: a benchmark's name
+    (sc3_jax/evaluation/benchmark.py: bussing, its zoo and its two tasks' prompts; so101) or package.module:attr;
+    none: the built-in spellings alone, no table"""
     api_key_file: str | None = None
     """require the header 'Authorization: Api-Key <key>' from clients, the key read from this file (or from the
     environment variable SC3_POLICY_API_KEY; never from the command line, which `ps` shows)"""
@@ -94,9 +98,11 @@ def loopback(host: str) -> bool:
 def build_server(a: Args, resolve: Callable[[str], Any] | None = None):
     """The bound, not yet serving ``PolicyServer`` for ``a``. ``resolve`` (optional) turns ``a.policy`` into a
     policy instead of ``policies.resolve``."""
+    from sc3_jax.evaluation import benchmark
     from sc3_jax.policies.openpi_mappings import get_mapping
     from sc3_jax.policies.openpi_server import PolicyServer
 
+    bm = benchmark.get_or_none(a.benchmark)
     mapping = get_mapping(a.family)
     if mapping is not None:
         changes: dict[str, Any] = {"default_task": a.default_task}
@@ -104,8 +110,8 @@ def build_server(a: Args, resolve: Callable[[str], Any] | None = None):
             changes["num_views"] = a.num_views
         if a.image_size:
             changes["our_image_size"] = tuple(a.image_size)
-        if a.task_prompt:
-            changes["prompts"] = _prompts(a.task_prompt)
+        if a.task_prompt or bm.prompts:
+            changes["prompts"] = _prompts(a.task_prompt) if a.task_prompt else dict(bm.prompts)
         mapping = mapping.replace(**changes)
     from sc3_jax.core.validate import in_range
 
@@ -124,9 +130,8 @@ def build_server(a: Args, resolve: Callable[[str], Any] | None = None):
     if resolve is None:  # after the options are checked: loading a policy can take seconds
         from sc3_jax.policies.resolve import resolve as resolve_spec
 
-        from sc3_jax.benchmarks.bussing.hooks import named_policy
         # a built-in policy sees --num-views cameras (ignored once: it saw the benchmark's 3 whatever was said)
-        resolve = lambda spec: resolve_spec(spec, named=named_policy, num_views=a.num_views).policy  # noqa: E731
+        resolve = lambda spec: resolve_spec(spec, named=bm.named_policy, num_views=a.num_views).policy  # noqa: E731
     try:
         policy = resolve(a.policy)
     except (ValueError, ImportError) as e:  # a spelling, or a module:attr that does not import

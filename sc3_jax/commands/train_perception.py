@@ -11,7 +11,8 @@ import tyro
 from sc3_jax.commands import parse
 from sc3_jax.core.errors import UserError
 
-SUMMARY = "train the perception scorer, or check its weights against physics"  # the line `sc3 --help` shows
+# the bussing benchmark's own command (its scorer, its simulator's labels), as `sc3 sim` is: --help says so
+SUMMARY = "train the bussing benchmark's perception scorer, or check its weights against physics"  # `sc3 --help`
 
 
 @dataclasses.dataclass(frozen=True)

@@ -39,8 +39,8 @@ class AEConfig:
 class TokenizerTrainConfig:
     """How the tokenizer is trained and evaluated."""
 
-    data: str = "runs/bussing/demos"
-    """the training episode store"""
+    data: str | None = None
+    """the training episode store (required: no robot's store is a default)"""
     heldout: str | None = None
     """a separate episode store for the held-out evaluation (None: no evaluation)"""
     workdir: str = "runs/tokenizer"

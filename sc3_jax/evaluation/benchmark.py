@@ -3,16 +3,18 @@
 A benchmark (``sc3_jax/benchmarks/NAME/``, or any package outside this one) is a plug-in of the evaluation core: the
 core ranks policies inside a world model and reports; a benchmark adds what only it knows -- its own sweep (its
 simulator's real outcomes beside the imagined ones), its scene measures (which pixels are its objects), its outcome
-scorer on imagined frames and its policies' names. :class:`Benchmark` holds exactly what ``sc3 sweep``, ``sc3
-report``, ``sc3 diagnose`` and ``sc3 rollout`` take from one; every field but ``name`` may be absent.
+scorer on imagined frames, its policies' names and the words for its tasks and outcomes. :class:`Benchmark` holds
+exactly what ``sc3 sweep``, ``sc3 report``, ``sc3 diagnose``, ``sc3 rollout`` and ``sc3 serve-policy`` take from one;
+every field but ``name`` may be absent, and no command uses one unless named (``--benchmark``, ``sc3 sweep NAME``).
 
-:func:`get` resolves a name: a built-in short one (``BUILTIN``: "bussing", "so101"; ``ALIASES``: "bench", the
-bussing benchmark's sweep as README command 1 spells it), or ``package.module:attr`` naming a ``Benchmark`` anywhere
-on the path, as policies (``--policies NAME=module:attr``) and scorers (``--scorer module:attr``) are named. The
-table holds strings, imported on lookup: this module imports no benchmark (docs/architecture.md, "Adding a
-benchmark")."""
+:func:`get` resolves a name: a built-in short one (``BUILTIN``: the folders of ``sc3_jax/benchmarks/``; ``ALIASES``:
+the other names their benchmark.py declare, e.g. README command 1's "bench"), or ``package.module:attr`` naming a
+``Benchmark`` anywhere on the path, as policies (``--policies NAME=module:attr``) and scorers (``--scorer
+module:attr``) are named. The table holds strings, imported on lookup: this module imports no benchmark and names
+none (docs/architecture.md, "Adding a benchmark")."""
 from __future__ import annotations
 
+import ast
 import dataclasses
 import types
 from collections.abc import Callable, Mapping
@@ -71,6 +73,12 @@ class Benchmark:
     locators: Locators | None = None
     """where the arm and the objects are in frames, and what the actions move (:class:`Locators`): ``sc3
     diagnose``'s action-following and position measures. None: the arm is what the temporal median erases"""
+    prompts: Mapping[int, str] = dataclasses.field(default_factory=dict)
+    """task id -> its instruction, for an openpi policy where the episodes carry none (``sc3 rollout --family`` on an
+    .npz of initial conditions, ``sc3 serve-policy``'s table). Empty: no prompt is sent (the server's default)"""
+    category_names: Mapping[str, str] = dataclasses.field(default_factory=dict)
+    """an outcome category (a criterion first failed, or "no_failure") -> the words ``sc3 diagnose``'s tables
+    print for it (e.g. a placing failure as "dropped / off target"); a category not named prints as itself"""
 
     def __post_init__(self):
         if not self.name or not isinstance(self.name, str):
@@ -80,7 +88,8 @@ class Benchmark:
         bad = [k for k, f in self.measures.items() if not callable(f)]
         if bad:
             raise TypeError(f"benchmark {self.name}: measures {bad} are not callable")
-        object.__setattr__(self, "measures", types.MappingProxyType(dict(self.measures)))  # read-only, as the rest
+        for field in ("measures", "prompts", "category_names"):  # read-only, as the rest
+            object.__setattr__(self, field, types.MappingProxyType(dict(getattr(self, field))))
         if self.locators is not None and not isinstance(self.locators, Locators):
             raise TypeError(f"benchmark {self.name}: locators is a {type(self.locators).__name__}, not a Locators")
 
@@ -90,10 +99,31 @@ class Benchmark:
         return self.measures.get("objects")
 
 
-# built-in short names -> "package.module:attr" of their Benchmark, imported on lookup (the core imports none)
-BUILTIN = {"bussing": "sc3_jax.benchmarks.bussing.benchmark:BENCHMARK",
-           "so101": "sc3_jax.benchmarks.so101.benchmark:BENCHMARK"}
-ALIASES = {"bench": "bussing"}  # `sc3 sweep bench` (README command 1, the golden records) is the bussing sweep
+BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"  # the built-in ones: a folder each
+
+
+def _builtin() -> dict[str, str]:
+    """Short name -> "package.module:attr" of each built-in Benchmark: every ``sc3_jax/benchmarks/NAME/benchmark.py``
+    (its ``BENCHMARK``), found on disk and imported on lookup, so the core names (and imports) none."""
+    return {p.name: f"sc3_jax.benchmarks.{p.name}.benchmark:BENCHMARK" for p in sorted(BENCHMARKS.iterdir())
+            if (p / "benchmark.py").is_file()}
+
+
+def _aliases(builtin) -> dict[str, str]:
+    """Alias -> short name: each built-in's ``ALIASES = ("...",)`` in its benchmark.py, read from the source (as
+    ``sc3 --help`` reads a command's SUMMARY) so that no benchmark is imported to learn its other names."""
+    out = {}
+    for name in builtin:
+        tree = ast.parse((BENCHMARKS / name / "benchmark.py").read_text())
+        for node in tree.body:
+            target = node.targets[0] if isinstance(node, ast.Assign) else getattr(node, "target", None)
+            if isinstance(target, ast.Name) and target.id == "ALIASES":
+                out.update({alias: name for alias in ast.literal_eval(node.value)})
+    return out
+
+
+BUILTIN = _builtin()
+ALIASES = _aliases(BUILTIN)
 FORM = "package.module:attr (a Benchmark on the path)"
 
 
@@ -103,7 +133,7 @@ def names() -> list[str]:
 
 
 def canonical(name: str) -> str:
-    """The spelling a store records for ``name``: an alias's benchmark ("bench": "bussing"), else ``name``."""
+    """The spelling a store records for ``name``: an alias's benchmark (e.g. "bench"'s), else ``name``."""
     return ALIASES.get(name, name)
 
 
@@ -118,6 +148,12 @@ def get(name: str) -> Benchmark:
     if not isinstance(obj, Benchmark):
         raise UserError(f"benchmark {name!r}: {type(obj).__name__} is not a sc3_jax.evaluation.benchmark.Benchmark")
     return obj
+
+
+def get_or_none(name: str) -> Benchmark:
+    """:func:`get`, except that "none" (the commands' ``--benchmark`` default) is a benchmark that adds nothing: no
+    scorer, measures, locators, policy names, prompts or category words, for a model of any robot."""
+    return Benchmark(name="none") if name == "none" else get(name)
 
 
 # the benchmark a results store was swept by: OUT/benchmark.json {"benchmark": NAME}, its short name or module:attr

@@ -130,19 +130,21 @@ class _Sums:
 
 
 def diagnose(world_model, heldout_store, config: DiagnoseConfig | None = None, *, model_config=None,
-             scorer_for=None, scene=None, filmstrips=None, locators=None, head=None, **overrides) -> dict:
+             scorer_for=None, scene=None, filmstrips=None, locators=None, head=None, category_names=None,
+             **overrides) -> dict:
     """Every diagnostic of ``world_model`` (a path or ``(cfg, norm_stats, params)``) on the episode store
     ``heldout_store`` (path or ``EpisodeStore``); see the module docstring. ``model_config``: the world model's
     config to evaluate under (default: its own; ``sc3 diagnose`` passes the sweep's evaluation settings and the
     command line's overrides). ``scorer_for(views, image_size, weights) -> (scorer, None) | (None, why not)``: the
-    benchmark's outcome scorer for the open-loop stage (``sc3 diagnose`` passes the simulated benchmark's
-    ``perception_scorer``; None: no outcome reproduction); ``scene``: the benchmark's scene measure
-    (``permanence.SceneMeasure``, or a dict of them by name: ``{"objects": ..., "arm": ...}``), with which every
+    benchmark's outcome scorer for the open-loop stage (``sc3 diagnose --benchmark NAME`` passes that benchmark's,
+    e.g. the simulated one's ``perception_scorer``; None: no outcome reproduction); ``scene``: the benchmark's scene
+    measure (``permanence.SceneMeasure``, or a dict of them by name: ``{"objects": ..., "arm": ...}``), with which every
     stage says how much of the objects the imagined frames keep over time (None: not measured); ``filmstrips``: a
     folder for a filmstrip per stage (None: none); ``locators``: the benchmark's (``benchmark.Locators``: the arm,
     its objects, what the actions move; None: the arm by the median rule, no objects); ``head``: the learned state
-    head (default: ``state_head.npz`` beside a world model given as a path). Returns a JSON-able dict (non-finite numbers as floats: write it
-    with :func:`save_result`)."""
+    head (default: ``state_head.npz`` beside a world model given as a path); ``category_names``: the benchmark's words
+    for its outcome categories (``Benchmark.category_names``; None: each by its own name). Returns a JSON-able dict
+    (non-finite numbers as floats: write it with :func:`save_result`)."""
     from tqdm import tqdm
 
     from sc3_jax.data.episodes import EpisodeStore
@@ -172,7 +174,7 @@ def diagnose(world_model, heldout_store, config: DiagnoseConfig | None = None, *
             _round_trip(p, g)
         bar.update(len(g))
     bar.close()
-    result = _result(p, acc, name, store, ids)
+    result = _result(p, acc, name, store, ids, category_names)
     if p.kept is not None and filmstrips is not None:
         result["permanence"]["filmstrips"] = p.kept.write_filmstrips(filmstrips, p.views)
     result["gates"] = gates(result, dc)
@@ -375,7 +377,7 @@ def _kept_section(p: _Plan) -> dict:
     return p.kept.section(p.views, p.dc.seed)
 
 
-def _result(p: _Plan, acc: _Sums, name: str, store, ids) -> dict:
+def _result(p: _Plan, acc: _Sums, name: str, store, ids, category_names=None) -> dict:
     cfg, dc, spec = p.cfg, p.dc, p.tf.spec
     ran = lambda stage, section: section() if stage in dc.stages else dict(NOT_RUN)  # noqa: E731
     return {
@@ -395,7 +397,7 @@ def _result(p: _Plan, acc: _Sums, name: str, store, ids) -> dict:
         "tracking": ran("open_loop", lambda: p.follow.tracks.section(seed=dc.seed)),
         "inverse_dynamics": ran("teacher_forced", acc.inverse.section),
         "outcomes": ran("open_loop", lambda: diagnose_outcomes.outcome_section(acc.outcomes, p.scorer_note,
-                                                                               seed=dc.seed)),
+                                                                               seed=dc.seed, names=category_names)),
         "permanence": _kept_section(p),
     }
 

@@ -23,7 +23,7 @@ class DiagnoseConfig:
     arm_threshold: float = 0.12  # [-1, 1] units: a pixel belongs to the arm when it differs this much from the median
     min_arm_pixels: int = 4
     carry_px: float = 3.0  # an object the real arm moves this many pixels (its way) is carried (tracking.py)
-    perception: str | None = None  # perception weights (None: the shipped ones)
+    perception: str | None = None  # the benchmark's outcome scorer's weights (None: the benchmark's own)
     progress: bool = True
     stages: tuple[Stage, ...] = STAGES  # the passes to run (diagnose.py's docstring); the others' sections read NOT_RUN
     # gates (see diagnose_report.GATES)

@@ -60,9 +60,11 @@ def _criteria(rows) -> tuple[str, ...]:
                  for o in (r.get(k) or ())), ())
 
 
-def outcome_section(rows, note, seed: int = 0, draws: int = BOOTSTRAP_DRAWS) -> dict:
+def outcome_section(rows, note, seed: int = 0, draws: int = BOOTSTRAP_DRAWS, names=None) -> dict:
     """Per-criterion agreement of the imagined outcomes with physics and with the scorer on real frames; imagined vs
-    physics also per outcome category with intervals (:func:`physics_reproduction`, seeded by ``seed``)."""
+    physics also per outcome category with intervals (:func:`physics_reproduction`, seeded by ``seed``). ``names``:
+    the benchmark's words for its outcome categories (``Benchmark.category_names``), kept in the section for the
+    tables (a category not named prints as itself)."""
     from sc3_jax.measures.metrics import outcome_category
     rows = [r for r in rows if r is not None]
     criteria = _criteria(rows)
@@ -89,7 +91,8 @@ def outcome_section(rows, note, seed: int = 0, draws: int = BOOTSTRAP_DRAWS) -> 
             "reference": "physics" if vs_physics else "perception(real frames)",
             "imagined_vs_physics": vs_physics, "imagined_vs_real_perception": agree("imagined", "real_perception"),
             "real_perception_vs_physics": agree("real_perception", "physics"),
-            "physics_reproduction": physics_reproduction(rows, seed, draws)}
+            "physics_reproduction": physics_reproduction(rows, seed, draws)} | (
+                {"category_names": dict(names)} if names else {})
 
 
 def physics_reproduction(rows, seed: int = 0, draws: int = BOOTSTRAP_DRAWS) -> dict | None:

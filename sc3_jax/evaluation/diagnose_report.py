@@ -195,13 +195,8 @@ def _outcome_lines(oc: dict) -> tuple[str, list[str]]:
         L.append(f"| {label} | {r['n_objects']} | " + " | ".join(_f(r.get(c)) for c in cols) +
                  f" | {_f(r['outcome'])} |")
     if oc.get("physics_reproduction"):
-        L += [""] + _reproduction_lines(oc["physics_reproduction"])
+        L += [""] + _reproduction_lines(oc["physics_reproduction"], oc.get("category_names") or {})
     return "", L
-
-
-# metrics' outcome categories (the first criterion an object fails) in the simulator's words (benchmarks/bussing/mixture.py)
-CATEGORY_NAMES = {"no_failure": "placed", "placing": "dropped / off target", "lifting": "missed (never lifted)",
-                  "language": "wrong container"}
 
 
 def _ci(s: dict) -> str:
@@ -209,9 +204,10 @@ def _ci(s: dict) -> str:
     return _f(s["agreement"]) + (f" [{ci[0]:.2f}, {ci[1]:.2f}]" if ci else "")
 
 
-def _reproduction_lines(r: dict) -> list[str]:
+def _reproduction_lines(r: dict, names: dict) -> list[str]:
     """Imagined vs physics with intervals: agreement overall and per criterion, then per physics category with the
-    imagined categories it became (``diagnose_outcomes.physics_reproduction``)."""
+    imagined categories it became (``diagnose_outcomes.physics_reproduction``), each category in the benchmark's
+    words (``names``, e.g. a placing failure as "dropped / off target"), else by its own name."""
     how = (f"95% bootstrap interval over the {r['n_episodes']} episodes ({r['draws']} draws, seed {r['seed']})"
            if r["draws"] else "no interval: a single episode")
     cats = list(r["categories"])
@@ -220,9 +216,9 @@ def _reproduction_lines(r: dict) -> list[str]:
          f"| outcome category | {r['outcome']['n_objects']} | {_ci(r['outcome'])} |"]
     L += [f"| {c} | {s['n_objects']} | {_ci(s)} |" for c, s in r["criteria"].items()]
     L += ["", "| physics category | objects | imagined same category | " +
-          " | ".join(f"imagined {CATEGORY_NAMES.get(c, c)}" for c in cats) + " |", "|---|---|---|" + "---|" * len(cats)]
+          " | ".join(f"imagined {names.get(c, c)}" for c in cats) + " |", "|---|---|---|" + "---|" * len(cats)]
     for c, s in r["categories"].items():
-        L.append(f"| {CATEGORY_NAMES.get(c, c)} | {s['n_objects']} | {_ci(s)} | " +
+        L.append(f"| {names.get(c, c)} | {s['n_objects']} | {_ci(s)} | " +
                  " | ".join(str(r["confusion"][c][k]) for k in cats) + " |")
     return L
 

@@ -16,7 +16,7 @@ frames and state of the whole rollout and of each shorter cut a candidate tau wo
 A ``ws://`` policy is an openpi-protocol server (``policies/openpi_client.py``); ``--family`` picks the openpi
 observation mapping it speaks (``policies/openpi_mappings.py``: native, droid, libero, aloha), for every ``ws://``
 policy (``FAMILY``) or one (``NAME=FAMILY``). A mapped server gets each condition's own prompt (its episode's
-meta.json "prompt", e.g. "fold the towel", not the mapping's bussing table; none when empty, so the server's default
+meta.json "prompt", e.g. "fold the towel", not a table of a benchmark's; none when empty, so the server's default
 applies), and the mapping's cameras by the world model's view names when those include them (an ALOHA dataset's
 cam_high, ...), else in the preset's order.
 

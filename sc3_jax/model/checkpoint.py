@@ -8,7 +8,7 @@ Three kinds of directory hold one, and every reader here takes any of them:
     a ``sc3 convert`` output  config.json, params/ (orbax, params only)
 
 :func:`load` gives (config, stats, params); :func:`save` / :func:`export` write the exported form (small enough to
-commit, e.g. ``sc3_jax/evaluation/shipped/bussing_sim``).
+commit, e.g. ``sc3_jax/benchmarks/bussing/shipped/bussing_sim``).
 
 A saved model records its robot's facts, and :func:`read_robot` is the one reader of them (rollouts, sweeps,
 diagnostics and plans take them from there, never from a default): the data's frame rate (config.json

@@ -5,7 +5,7 @@ An observation is a dict of arrays (one sample, no batch axis):
     "state":  float32 [S]           proprioception; inside a world model the imagined state, in the action's space
                                     (``data/action_space.py``): for our benchmarks the end-effector pose (x, y, z,
                                     rotvec, gripper), for absolute joint targets the last targets
-    "task":   int32   []            task id (0 = bussing, 1 = reverse bussing, ...); the host-side prompt maps to it
+    "task":   int32   []            task id, the benchmark's or the episodes' (a prompt table maps it to words)
 A policy returns an action chunk float32 [chunk, action_dim] of raw (unnormalised) actions in the robot's action space
 (for our benchmarks 7-D delta end-effector actions). ``check_dims`` compares what a policy declares with what a world
 model takes, before anything compiles.

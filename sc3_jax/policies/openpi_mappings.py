@@ -33,12 +33,7 @@ import numpy as np
 from sc3_jax.core.errors import UserError
 
 __all__ = ["ViewField", "StateField", "ActionMap", "ObsMapping", "DROID", "LIBERO", "ALOHA", "ALOHA_CAMERAS",
-           "PRESETS", "DEFAULT_PROMPTS", "get_mapping", "for_world_model", "resize_with_pad"]
-
-DEFAULT_PROMPTS: dict[int, str] = {
-    0: "put the utensils in the bin and the trash in the trash can",  # bussing (in-distribution)
-    1: "put the utensils in the trash can and the trash in the bin",  # reverse bussing (out-of-distribution)
-}
+           "PRESETS", "get_mapping", "for_world_model", "resize_with_pad"]
 
 KeyPath = str | tuple[str, ...]  # a tuple addresses a nested dict, e.g. ("images", "cam_high")
 
@@ -159,8 +154,9 @@ class ObsMapping:
     Client side (``to_family``): each :class:`ViewField` picks one of our views, resizes it to ``image_size``
     (``resize="pad"``: openpi's keep-aspect letterbox; ``"stretch"``: plain resize; ``image_size=None``: as is) and
     transposes it to CHW when ``channels_first``; each :class:`StateField` slices/scales/pads ``state``; the prompt is
-    ``prompts[task]`` (a task-id -> prompt table) or ``prompts`` itself when it is a string (fixed prompt; None: no
-    prompt key). ``extra`` entries are sent unchanged with every request.
+    ``prompts[task]`` (a task-id -> prompt table: each episode's own instruction, or a benchmark's
+    ``Benchmark.prompts``) or ``prompts`` itself when it is a string (fixed prompt; None, the default: no prompt key,
+    so the server's default prompt applies). ``extra`` entries are sent unchanged with every request.
     ``actions_to_ours`` takes ``actions[:, action_map.indices] * scale`` and fits the rows to the chunk (slice, or pad
     according to ``pad_actions``). ``chunk``: the actions our client executes per request when neither the caller
     nor the server's metadata says (a preset's is its openpi example client's; None: the client's default, 25).
@@ -170,8 +166,8 @@ class ObsMapping:
     un-letterboxed and resized to ``our_image_size`` when given (else kept at the family size); state entries scattered
     back to their indices (divided by the scale; the first occurrence of a duplicated index wins) into ``state_dim``;
     the prompt looked up (case/space-insensitive) in the table to recover ``task`` (a fixed prompt or an unknown/missing
-    prompt gives ``default_task``; unknown with ``default_task=None`` is an error). ``actions_to_family`` scatters our
-    [chunk, D] into zeros [chunk, family_dim].
+    prompt gives ``default_task``; unknown with ``default_task=None`` is an error; no table: ``default_task``, else
+    0). ``actions_to_family`` scatters our [chunk, D] into zeros [chunk, family_dim].
 
     Dimensions: our action dimension is ``len(action_map.our_indices)``; our state dimension ``state_dim`` (None:
     the highest mapped state index + 1, not enforced on the client); our views at least :attr:`min_views`. Both sides
@@ -186,7 +182,7 @@ class ObsMapping:
     resize: str = "pad"
     channels_first: bool = False
     prompt_key: KeyPath | None = "prompt"
-    prompts: Mapping[int, str] | str | None = dataclasses.field(default_factory=lambda: dict(DEFAULT_PROMPTS))
+    prompts: Mapping[int, str] | str | None = None  # the instructions are the episodes' or a benchmark's, not ours
     extra: Mapping[str, Any] = dataclasses.field(default_factory=dict)
     pad_actions: str = "hold"
     chunk: int | None = None

@@ -162,8 +162,16 @@ def evaluate(params, stats, store_root: str, views, n: int, threshold: float, se
     return out
 
 
+def _data(cfg: TokenizerTrainConfig) -> str:
+    """``cfg.data``, or one line saying it is needed (no store is a default: none is every robot's)."""
+    if not cfg.data:
+        raise UserError("--data: give the episode store to train the tokenizer on (sc3 train-tokenizer --data STORE)")
+    return cfg.data
+
+
 def train(cfg: TokenizerTrainConfig, ae_cfg: ae.AEConfig, stop_at: int | None = None) -> dict:
     """Train (or resume) to ``cfg.steps`` (or stop after ``stop_at``), then export. Returns the export's summary."""
+    _data(cfg)  # before the workdir is made
     workdir = Path(cfg.workdir).absolute()
     workdir.mkdir(parents=True, exist_ok=True)
     meta = {"train": dataclasses.asdict(cfg), "ae": dataclasses.asdict(ae_cfg)}
@@ -245,4 +253,4 @@ def export_latest(cfg: TokenizerTrainConfig, ae_cfg: ae.AEConfig) -> dict:
     state = mngr.restore(mngr.latest_step(), args=ocp.args.StandardRestore(
         {"params": params, "opt_state": opt.init(params), "step": jnp.zeros((), jnp.int32)}))
     mngr.close()
-    return export(cfg, ae_cfg, state["params"], ImageSampler(cfg.data, cfg.views))
+    return export(cfg, ae_cfg, state["params"], ImageSampler(_data(cfg), cfg.views))

@@ -47,7 +47,7 @@ from sc3_jax.evaluation.results import (EVAL_MODES, REAL_ONLY_STRIDE, ResultsSto
                                       seed_blocks)
 
 # the best shipped world model (docs/results.md's headline): README command 1 evaluates the zoo inside it
-SHIPPED_WORLD_MODEL = Path(__file__).resolve().parents[2] / "evaluation" / "shipped" / "bussing_latent_gpu"
+SHIPPED_WORLD_MODEL = Path(__file__).resolve().parent / "shipped" / "bussing_latent_gpu"  # the benchmark's own model
 # a world model may ship the gripper-state reader its published sweeps used (see default_state_reader)
 STATE_READER_FILE = "state_reader.npz"
 

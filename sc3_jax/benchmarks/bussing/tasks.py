@@ -19,6 +19,10 @@ SPLITS = {"bussing": "in_distribution", "reverse": "out_of_distribution"}  # tas
 CRITERIA = ("language", "lifting", "placing")  # per object, ordered and cumulative (``criteria.py``)
 CONTAINERS = ("bin", "can")  # utensil bin, trash can
 CLASSES = ("utensil", "trash")
+# task id -> the one instruction per task that a prompted (openpi) policy is sent where an episode's own wording is not
+# at hand (an .npz of initial conditions, `sc3 serve-policy --benchmark bussing`'s table): ``Benchmark.prompts``
+PROMPTS = {0: "put the utensils in the bin and the trash in the trash can",  # bussing (in distribution)
+           1: "put the utensils in the trash can and the trash in the bin"}  # reverse bussing (out of distribution)
 
 
 @dataclasses.dataclass(frozen=True)
