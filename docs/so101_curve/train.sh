@@ -5,7 +5,8 @@
 # FROM: the newest float32 export (exports/so101_vN_cpu, params only: the optimizer's moments are not exported, so
 # each stretch re-warms up briefly and decays to lr 0 at STEPS); rerunning with the same WORKDIR resumes it exactly.
 # Stretches so far: v3 -> v4 (wm, 1100 steps, seed 0, warm-up 50; first launched with 1500, shortened at step 341),
-# v4 -> v5 (wm2, seed 1), v5 -> v6 (wm3, 260 steps, seed 2; launched for 350, shortened at step 81): docs/results.md.
+# v4 -> v5 (wm2, seed 1), v5 -> v6 (wm3, 260 steps, seed 2; launched for 350, shortened at step 81), v6 -> v7
+# (lev/base_a, 400 steps, seed 3, run with PYTHONPATH=~/sc3-runs/code: a frozen copy of the code): docs/results.md.
 set -euo pipefail
 FROM=$1; WORKDIR=$2; STEPS=$3; SEED=$4; WARMUP=${5:-30}
 shift $(( $# < 5 ? $# : 5 ))
