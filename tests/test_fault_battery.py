@@ -765,3 +765,26 @@ def test_the_battery_catches_the_store_doors_switched_off(pristine, monkeypatch,
         monkeypatch.setattr(t, _off)
     with pytest.raises((AssertionError, ExceptionGroup)):  # hypothesis reports several distinct failures as a group
         test_every_damaged_file_kind_ends_in_one_line_and_changes_nothing_outside_out(pristine, kind)
+
+
+COMMANDS_WITH_CONFIG = ["train", "diagnose", "rollout", "plan", "report", "sweep episodes", "data import-lerobot"]
+
+
+@BATTERY
+@given(command=st.sampled_from(COMMANDS_WITH_CONFIG),
+       option=st.text(alphabet="abcdefghijklmnopqrstuvwxyz-._=", min_size=1, max_size=24))
+def test_an_option_no_command_takes_is_one_line_before_anything_runs(command, option, capsys):
+    """Any ``--WORD`` a command does not take (its own options and, where it takes them, its config's fields):
+    status 2, one line naming it, no traceback, before a model or store is read (none is given)."""
+    from sc3_jax.commands import flags
+    from sc3_jax.core.config import Config
+    from test_cli_flags import TARGETS, _args
+
+    token = "--" + option.lstrip("-")
+    known = {flags._name(o) for o in flags.arity(_args(command)) | flags.arity(Config)} | {"--help"}
+    if flags._name(token) in known or flags._name(token) in flags.SET_BY_OPTION or token.startswith("--no-"):
+        return  # an option some command path takes: not a fault
+    rc = main([*TARGETS[command], token, "1"])
+    err = capsys.readouterr().err
+    assert rc == 2 and err.count("\n") == 1 and "Traceback" not in err, (command, token, err)
+    assert f"unknown option {flags._name(token)}" in err, (command, token, err)
