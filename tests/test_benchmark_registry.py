@@ -39,6 +39,17 @@ def test_names_list_the_built_in_benchmarks_and_bench_is_bussing():
     assert set(so101.measures) == {"objects", "arm"} and so101.outcome_scorer is None
 
 
+def test_the_sweeps_read_from_the_sources_are_the_benchmarks_that_have_one():
+    """`sc3 sweep`'s subcommands come from the registry (names read from the sources, for `sc3 --help`): every
+    built-in name or alias whose benchmark has a sweep, README command 1's bench first, then episodes."""
+    from sc3_jax.commands import sweep as sweep_cmd
+
+    everything = benchmark.names() + list(benchmark.ALIASES)
+    assert set(benchmark.sweeps()) == {n for n in everything if benchmark.get(n).sweep_config is not None}
+    assert list(sweep_cmd.SUBCOMMANDS) == [*benchmark.sweeps(), "episodes"] and benchmark.sweeps()[0] == "bench"
+    assert benchmark.sweep_configs() == {n: benchmark.get(n).sweep_config for n in benchmark.sweeps()}
+
+
 @pytest.mark.parametrize("name, says", [
     ("nope", "unknown benchmark 'nope': known are bussing, so101, bench (= bussing), or package.module:attr"),
     ("no_such_module:BENCHMARK", "cannot import 'no_such_module'"),

@@ -21,7 +21,7 @@ from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
-from sc3_jax.core import atomic, module_attr
+from sc3_jax.core import module_attr
 from sc3_jax.core.errors import UserError
 
 
@@ -109,27 +109,42 @@ def _builtin() -> dict[str, str]:
             if (p / "benchmark.py").is_file()}
 
 
-def _aliases(builtin) -> dict[str, str]:
-    """Alias -> short name: each built-in's ``ALIASES = ("...",)`` in its benchmark.py, read from the source (as
-    ``sc3 --help`` reads a command's SUMMARY) so that no benchmark is imported to learn its other names."""
-    out = {}
-    for name in builtin:
-        tree = ast.parse((BENCHMARKS / name / "benchmark.py").read_text())
-        for node in tree.body:
-            target = node.targets[0] if isinstance(node, ast.Assign) else getattr(node, "target", None)
-            if isinstance(target, ast.Name) and target.id == "ALIASES":
-                out.update({alias: name for alias in ast.literal_eval(node.value)})
-    return out
+def _declared(name: str) -> tuple[tuple[str, ...], bool]:
+    """(its ``ALIASES = ("...",)``, whether its ``BENCHMARK = Benchmark(...)`` is given a ``sweep_config``) of the
+    built-in ``name``, read from its benchmark.py's source (as ``sc3 --help`` reads a command's SUMMARY) so that no
+    benchmark is imported to learn its other names or whether ``sc3 sweep`` takes it."""
+    aliases, sweeps = (), False
+    for node in ast.parse((BENCHMARKS / name / "benchmark.py").read_text()).body:
+        target = node.targets[0] if isinstance(node, ast.Assign) else getattr(node, "target", None)
+        if isinstance(target, ast.Name) and target.id == "ALIASES":
+            aliases = tuple(ast.literal_eval(node.value))
+        elif isinstance(target, ast.Name) and target.id == "BENCHMARK" and isinstance(node.value, ast.Call):
+            sweeps = any(k.arg == "sweep_config" and not (isinstance(k.value, ast.Constant) and k.value.value is None)
+                         for k in node.value.keywords)
+    return aliases, sweeps
 
 
 BUILTIN = _builtin()
-ALIASES = _aliases(BUILTIN)
+_DECLARED = {name: _declared(name) for name in BUILTIN}
+ALIASES = {alias: name for name, (aliases, _) in _DECLARED.items() for alias in aliases}  # alias -> short name
 FORM = "package.module:attr (a Benchmark on the path)"
 
 
 def names() -> list[str]:
     """The built-in benchmarks' short names."""
     return list(BUILTIN)
+
+
+def sweeps() -> list[str]:
+    """The names ``sc3 sweep`` takes for the built-ins' own sweeps: of each built-in with one, its aliases, then its
+    name (README command 1's "bench" first, as the commands listed it before they came from here). From the sources:
+    ``sc3 --help`` lists them importing no benchmark."""
+    return [n for name, (aliases, swept) in _DECLARED.items() if swept for n in (*aliases, name)]
+
+
+def sweep_configs() -> dict[str, type]:
+    """:func:`sweeps`' names -> each one's ``sweep_config`` (importing the benchmarks): ``sc3 sweep``'s subcommands."""
+    return {name: get(name).sweep_config for name in sweeps()}
 
 
 def canonical(name: str) -> str:
@@ -162,12 +177,15 @@ STORE_FILE = "benchmark.json"
 
 def record(out: str | Path, name: str) -> None:
     """Write ``name`` (canonical) as the benchmark of the store ``out``, for ``sc3 report`` to read its measures."""
+    from sc3_jax.core import atomic  # here, not above: `sc3 --help` reads the registry and loads no numpy
+
     atomic.write_json(Path(out) / STORE_FILE, {"benchmark": canonical(name)})
 
 
 def recorded(results: str | Path) -> str | None:
     """The benchmark name the store ``results`` recorded (:func:`record`), or None (a store from before, or of
     ``sc3 sweep episodes``). A damaged file is a one-line UserError naming it."""
+    from sc3_jax.core import atomic
     from sc3_jax.core.validate import json_object
 
     path = Path(results) / STORE_FILE
