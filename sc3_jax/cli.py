@@ -4,55 +4,76 @@ from __future__ import annotations
 import ast
 import errno
 import importlib
-import importlib.util
 import os
 import signal
 import sys
 import textwrap
 import threading
 import time
-
-# what Ctrl-C leaves, per command: the one line it ends with (every writer here is atomic, so nothing is half-written)
-RESUME = {"train": "the same command resumes from its last checkpoint",
-          "sweep": "the same command resumes it (finished rollouts are kept)",
-          "data": "the same command resumes it (imported episodes are kept)",
-          "sim": "the same command resumes it where it writes a store (finished parts are kept)"}
+from pathlib import Path
 
 CANNOT_WRITE = {errno.EACCES, errno.EPERM, errno.EROFS, errno.ENOSPC, errno.EDQUOT}
+PACKAGE = Path(__file__).resolve().parent
 
 
 def _command(module: str):
-    """The `main` of `sc3_jax/commands/MODULE.py`, imported when the command runs: `sc3 --help` and the other
+    """The `main` of the command module ``module``, imported when the command runs: `sc3 --help` and the other
     commands load none of its libraries."""
     def run(argv: list[str]) -> int:
-        return importlib.import_module(f"sc3_jax.commands.{module}").main(argv)
+        return importlib.import_module(module).main(argv)
 
     return run
 
 
+def _benchmarks_commands() -> dict[str, str]:
+    """Command -> module of each built-in benchmark's own commands: every ``sc3_jax/benchmarks/NAME/commands/CMD.py``
+    is ``sc3 CMD``, found on disk (as evaluation/benchmark.py finds the benchmarks), so that this file names none."""
+    return {p.stem.replace("_", "-"): f"sc3_jax.benchmarks.{p.parents[1].name}.commands.{p.stem}"
+            for p in sorted(PACKAGE.glob("benchmarks/*/commands/*.py")) if p.stem != "__init__"}
+
+
 # command -> its module in sc3_jax/commands/
-MODULES = {"demo": "demo", "train": "train", "train-tokenizer": "train_tokenizer", "train-state": "train_state",
-           "train-perception": "train_perception",
-           "train-detector": "train_detector", "diagnose": "diagnose", "diagnose-table": "diagnose_table",
-           "rollout": "rollout", "sweep": "sweep", "report": "report", "check-scorer": "check_scorer",
-           "curve": "curve", "rescore": "rescore", "data": "data", "sim": "sim", "serve-policy": "serve_policy",
-           "configs": "configs", "convert": "convert", "plan": "plan", "so101": "so101"}
+CORE = {"demo": "demo", "train": "train", "train-tokenizer": "train_tokenizer", "train-state": "train_state",
+        "train-detector": "train_detector", "diagnose": "diagnose", "diagnose-table": "diagnose_table",
+        "rollout": "rollout", "sweep": "sweep", "report": "report", "check-scorer": "check_scorer", "curve": "curve",
+        "data": "data", "serve-policy": "serve_policy", "configs": "configs", "convert": "convert", "plan": "plan"}
+# every command -> its module: the core's, then the benchmarks' own
+MODULES = {**{name: f"sc3_jax.commands.{m}" for name, m in CORE.items()}, **_benchmarks_commands()}
 COMMANDS = {name: _command(m) for name, m in MODULES.items()}
 
 
-def describe(module: str) -> tuple[str, list[str]]:
-    """(SUMMARY, the SUBCOMMANDS' names) of `sc3_jax/commands/MODULE.py`, read from its source: `sc3 --help` imports
-    no command (and so none of their libraries)."""
-    tree = ast.parse(open(importlib.util.find_spec(f"sc3_jax.commands.{module}").origin).read())
-    summary, subs = "", []
-    for node in tree.body:
+def declared(module: str) -> dict[str, ast.expr]:
+    """The module-level assignments of the command module ``module`` (name -> value), read from its source."""
+    out = {}
+    for node in ast.parse((PACKAGE.parent / (module.replace(".", "/") + ".py")).read_text()).body:
         target = node.target if isinstance(node, ast.AnnAssign) else (node.targets[0] if isinstance(node, ast.Assign)
                                                                       else None)
-        if isinstance(target, ast.Name) and target.id == "SUMMARY":
-            summary = ast.literal_eval(node.value)
-        elif isinstance(target, ast.Name) and target.id == "SUBCOMMANDS" and isinstance(node.value, ast.Dict):
-            subs = [ast.literal_eval(k) for k in node.value.keys]
-    return summary, subs
+        if isinstance(target, ast.Name) and node.value is not None:
+            out[target.id] = node.value
+    return out
+
+
+def describe(module: str) -> tuple[str, list[str]]:
+    """(SUMMARY, the SUBCOMMANDS' names) of the command module ``module``, read from its source: `sc3 --help` imports
+    no command (and so none of their libraries). A ``**benchmark.sweep_configs()`` among the SUBCOMMANDS (`sc3
+    sweep`'s) stands for the built-in benchmarks' sweeps, whose names the registry reads from their sources."""
+    found = declared(module)
+    summary = ast.literal_eval(found["SUMMARY"]) if "SUMMARY" in found else ""
+    subs = found.get("SUBCOMMANDS")
+    if not isinstance(subs, ast.Dict):
+        return summary, []
+    return summary, [name for key, value in zip(subs.keys, subs.values)
+                     for name in ([ast.literal_eval(key)] if key is not None else _unpacked(value))]
+
+
+def _unpacked(node: ast.expr) -> list[str]:
+    """The names of a ``**`` entry of SUBCOMMANDS: only the registry's sweeps, read as the registry reads them (its
+    module imports no benchmark, nor numpy)."""
+    if ast.unparse(node) != "benchmark.sweep_configs()":
+        raise ValueError(f"SUBCOMMANDS: cannot list **{ast.unparse(node)} without importing it")
+    from sc3_jax.evaluation import benchmark
+
+    return benchmark.sweeps()
 
 
 def usage() -> str:
@@ -95,8 +116,11 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:  # Ctrl-C: one line, not a traceback from wherever the command was
         before = _sigint(signal.SIG_IGN)  # a second Ctrl-C while the line is written: no traceback
         _HEARD.clear()
-        print(f"\nsc3 {argv[0]}: interrupted; nothing half-written is left; "
-              f"{RESUME.get(argv[0], 'run it again to redo it')}", file=sys.stderr)
+        # the command's own line (its module's RESUME: what a rerun keeps; from its source, in case the interrupt
+        # came while the module was still being imported), else the general one
+        own = declared(MODULES[argv[0]]).get("RESUME")
+        resume = ast.literal_eval(own) if own is not None else "run it again to redo it"
+        print(f"\nsc3 {argv[0]}: interrupted; nothing half-written is left; {resume}", file=sys.stderr)
         if own_process:
             _interrupted()
         _sigint(before)

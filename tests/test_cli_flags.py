@@ -35,7 +35,7 @@ def _targets() -> dict[str, list[str]]:
     """Every command and subcommand of cli.MODULES: 'NAME' or 'NAME SUB' -> its argv head."""
     out = {}
     for name, module in cli.MODULES.items():
-        subcommands = getattr(importlib.import_module(f"sc3_jax.commands.{module}"), "SUBCOMMANDS", None)
+        subcommands = getattr(importlib.import_module(module), "SUBCOMMANDS", None)
         if subcommands is None:
             out[name] = [name]
         else:
@@ -126,7 +126,7 @@ def test_a_config_field_misspelt_is_refused_in_one_line_where_a_command_takes_co
 def _args(where: str) -> type:
     """The options dataclass of ``sc3 WHERE``."""
     name, _, sub = where.partition(" ")
-    module = importlib.import_module(f"sc3_jax.commands.{cli.MODULES[name]}")
+    module = importlib.import_module(cli.MODULES[name])
     return module.SUBCOMMANDS[sub] if sub else module.Args
 
 

@@ -22,12 +22,11 @@ from sc3_jax.core.config import Config
 
 ROOT = Path(__file__).resolve().parents[1]
 # commands whose modules exist by now (cli.MODULES lists them all; the others still run their old code)
-PRESENT = sorted(name for name, module in cli.MODULES.items()
-                 if importlib.util.find_spec(f"sc3_jax.commands.{module}") is not None)
+PRESENT = sorted(name for name, module in cli.MODULES.items() if importlib.util.find_spec(module) is not None)
 
 
 def _module(command: str):
-    return importlib.import_module(f"sc3_jax.commands.{cli.MODULES[command]}")
+    return importlib.import_module(cli.MODULES[command])
 
 
 def _args(command: str):
@@ -102,7 +101,7 @@ def test_help_gives_every_option_its_own_docstring(command, capsys, monkeypatch)
     module = _module(command)
     subcommands = getattr(module, "SUBCOMMANDS", None)
     if subcommands is None:
-        assert hasattr(module, "Args"), f"sc3_jax/commands/{cli.MODULES[command]}.py has neither Args nor SUBCOMMANDS"
+        assert hasattr(module, "Args"), f"{cli.MODULES[command]} has neither Args nor SUBCOMMANDS"
         targets = {command: ([command], module.Args)}
     else:
         assert subcommands, f"sc3 {command}: SUBCOMMANDS is empty"
@@ -210,7 +209,7 @@ def test_no_module_uses_argparse_or_keeps_a_main_block():
 
 
 def test_libraries_whose_commands_moved_keep_no_main():
-    for lib in ("benchmarks.bussing.rescore", "evaluation.diagnose_table"):  # their commands are in sc3_jax/commands/
+    for lib in ("benchmarks.bussing.rescore", "evaluation.diagnose_table"):  # their commands: modules of cli.MODULES
         assert not hasattr(importlib.import_module(f"sc3_jax.{lib}"), "main")
 
 
@@ -264,9 +263,33 @@ def test_the_top_level_usage_lists_every_command_and_subcommand(capsys):
     text = " ".join(capsys.readouterr().out.split())
     for name, module in cli.MODULES.items():
         summary, subs = cli.describe(module)
-        assert summary, f"sc3_jax/commands/{module}.py has no SUMMARY (the line `sc3 --help` shows)"
+        assert summary, f"{module} has no SUMMARY (the line `sc3 --help` shows)"
         assert f"{name} {summary.split()[0]}" in text, name
         imported = getattr(_module(name), "SUBCOMMANDS", {})
         assert subs == list(imported), f"sc3 {name}: usage lists {subs}, the module has {list(imported)}"
         for sub in subs:
             assert re.search(rf"[(|] ?{re.escape(sub)} ?[|)]", text), f"sc3 --help lacks {name} {sub}"
+
+
+def test_the_top_level_usage_imports_no_command_no_benchmark_and_no_numpy():
+    """`sc3 --help` reads every command's SUMMARY and subcommands (`sc3 sweep`'s benchmarks too) from the sources."""
+    import subprocess
+    import sys
+    code = ("import sys; from sc3_jax import cli; cli.usage(); print(sorted(m for m in sys.modules if m.startswith("
+            "('sc3_jax.commands', 'sc3_jax.benchmarks', 'numpy', 'tyro', 'jax'))))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "[]", out
+
+
+def test_a_benchmarks_own_commands_are_found_on_disk_and_replace_no_other():
+    """Each ``sc3_jax/benchmarks/NAME/commands/CMD.py`` is ``sc3 CMD``; cli.py names no benchmark, and no two command
+    modules share a command's name (a later one would replace the other in cli.MODULES)."""
+    from sc3_jax.evaluation import benchmark
+
+    own = [p for p in sorted((ROOT / "sc3_jax" / "benchmarks").glob("*/commands/*.py")) if p.stem != "__init__"]
+    assert {"sim", "so101"} <= {p.stem for p in own}
+    found = {name: m for name, m in cli.MODULES.items() if m.startswith("sc3_jax.benchmarks.")}
+    assert sorted(found.values()) == sorted(f"sc3_jax.benchmarks.{p.parents[1].name}.commands.{p.stem}" for p in own)
+    assert not set(found) & set(cli.CORE)
+    source = (ROOT / "sc3_jax" / "cli.py").read_text()
+    assert not [name for name in benchmark.names() + list(benchmark.ALIASES) if re.search(rf"\b{name}\b", source)]

@@ -10,7 +10,8 @@ import re
 
 import pytest
 
-from sc3_jax.commands import parse, sim
+from sc3_jax.benchmarks.bussing.commands import sim
+from sc3_jax.commands import parse
 from test_commands_help import ROOT, _help_text, _leaves, _misplaced
 
 

@@ -12,8 +12,9 @@ from test_commands_help import _help_text, _leaves, _misplaced
 from sc3_jax import cli
 from sc3_jax.cli import main
 from sc3_jax.commands import parse
+from sc3_jax.benchmarks.bussing.commands import train_perception
 from sc3_jax.commands import plan as plan_command
-from sc3_jax.commands import train_perception, train_tokenizer
+from sc3_jax.commands import train_tokenizer
 
 MODULES = {"plan": plan_command, "train-tokenizer": train_tokenizer, "train-perception": train_perception}
 

@@ -154,12 +154,21 @@ LOOSE: list[str] = ["cli"]  # the console entry point (`sc3`), dispatching to co
 MAX_LOOSE = 5
 
 
+def own_command(mod: str, top: str = "sc3_jax") -> bool:
+    """``mod`` is a benchmark's own command (``benchmarks/NAME/commands/``): a command, found there by ``cli.py``."""
+    parts = mod.split(".")
+    return len(parts) > 3 and parts[:2] == [top, "benchmarks"] and parts[3] == "commands"
+
+
 def floor_of(mod: str, graph, floors=FLOORS, top: str = "sc3_jax") -> tuple[int, str] | None:
-    """(index, name) of ``mod``'s floor: its folder's, or ``(len(floors), "loose")`` for a module loose at the top of
-    the package; None for the package's own ``__init__`` and for a folder that is no floor."""
+    """(index, name) of ``mod``'s floor: its folder's (a benchmark's own commands: the commands'), or
+    ``(len(floors), "loose")`` for a module loose at the top of the package; None for the package's own ``__init__``
+    and for a folder that is no floor."""
     parts = mod.split(".")
     if parts[0] != top or len(parts) < 2:
         return None
+    if own_command(mod, top) and "commands" in floors:
+        return floors.index("commands"), "commands"
     if parts[1] in floors:
         return floors.index(parts[1]), parts[1]
     is_folder = any(m.startswith(f"{top}.{parts[1]}.") for m in graph)
@@ -232,13 +241,14 @@ def test_an_import_against_the_floors_is_reported(tmp_path):
 
 def folder_violations(graph: dict[str, set[str]], top: str = "sc3_jax") -> list[str]:
     """The folders' rules: a benchmark (``benchmarks/NAME/``) is a plug-in of the evaluation core, so nothing but the
-    commands imports one, and no benchmark imports another or the commands."""
+    commands imports one, no benchmark imports another, and none imports the commands but its own commands
+    (``benchmarks/NAME/commands/``, which are commands: they use the commands' helpers)."""
     def bench(m: str) -> str | None:
         parts = m.split(".")
         return parts[2] if len(parts) > 2 and parts[1] == "benchmarks" else None
 
     def command(m: str) -> bool:
-        return m == f"{top}.cli" or m.startswith(f"{top}.commands")
+        return m == f"{top}.cli" or m.startswith(f"{top}.commands") or own_command(m, top)
     out = []
     for mod in sorted(graph):
         for dep in sorted(graph[mod]):
@@ -247,7 +257,7 @@ def folder_violations(graph: dict[str, set[str]], top: str = "sc3_jax") -> list[
                 out.append(f"{mod} imports the benchmark {dep}: pass what it needs in from the command instead")
             elif b and d and b != d:
                 out.append(f"{mod} (benchmark {b}) imports {dep} (benchmark {d})")
-            elif b and command(dep):
+            elif b and command(dep) and not command(mod):
                 out.append(f"{mod} (benchmark {b}) imports the command {dep}")
     return out
 
@@ -263,8 +273,17 @@ def test_the_folder_check_catches_the_core_importing_a_benchmark():
     graph = {"sc3_jax.evaluation.report": {"sc3_jax.benchmarks.bussing.zoo"},
              "sc3_jax.benchmarks.so101.zoo": {"sc3_jax.benchmarks.bussing.zoo", "sc3_jax.evaluation.results"},
              "sc3_jax.commands.sweep": {"sc3_jax.benchmarks.bussing.sweep"},
-             "sc3_jax.benchmarks.bussing.zoo": {"sc3_jax.commands.sim"}}
-    assert len(folder_violations(graph)) == 3
+             "sc3_jax.benchmarks.bussing.zoo": {"sc3_jax.commands.sweep", "sc3_jax.benchmarks.bussing.commands.sim"},
+             "sc3_jax.benchmarks.bussing.commands.sim": {"sc3_jax.commands", "sc3_jax.benchmarks.bussing.zoo"},
+             "sc3_jax.benchmarks.so101.commands.so101": {"sc3_jax.benchmarks.bussing.zoo"}}
+    assert len(folder_violations(graph)) == 5  # a benchmark's own command may use the commands' helpers, no other's
+
+
+def test_a_benchmarks_own_commands_sit_on_the_commands_floor():
+    graph = {"sc3_jax.benchmarks.bussing.commands.sim": {"sc3_jax.commands"}, "sc3_jax.commands": set(),
+             "sc3_jax.benchmarks.bussing.zoo": {"sc3_jax.benchmarks.bussing.commands.sim"}}
+    assert layer_violations(graph) == ["sc3_jax.benchmarks.bussing.zoo (floor 'benchmarks') imports "
+                                       "sc3_jax.benchmarks.bussing.commands.sim (higher floor 'commands')"]
 
 
 def test_the_benchmarks_hooks_load_no_simulator_for_a_labs_robot():

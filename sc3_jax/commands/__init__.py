@@ -1,7 +1,9 @@
 """One module per ``sc3`` command: its options are a frozen dataclass ``Args`` parsed by tyro (each field's docstring
 is its ``--help`` text), and ``main(argv) -> int`` calls the library functions. A command with subcommands (``sc3
-sim``, ``sc3 data``) has ``SUBCOMMANDS = {name: Args}`` instead. ``sc3_jax/cli.py`` dispatches here; library modules
-keep functions, not ``main()``s.
+sim``, ``sc3 data``) has ``SUBCOMMANDS = {name: Args}`` instead. ``sc3_jax/cli.py`` dispatches here, and to a
+benchmark's own commands, which keep the same contract in ``sc3_jax/benchmarks/NAME/commands/CMD.py`` (``sc3 CMD``);
+``RESUME``, where a command has one, is what the line Ctrl-C leaves says a rerun keeps. Library modules keep
+functions, not ``main()``s.
 
 Every command that builds or loads a world model takes its config's fields the same way: ``--SECTION.FIELD VALUE``
 (``sc3 train --help`` lists them all), applied over the named config or the loaded world model's config

@@ -21,6 +21,8 @@ from sc3_jax.commands import run_group
 from sc3_jax.core.errors import UserError
 
 SUMMARY = "LeRobot datasets to and from our episode store"  # the line `sc3 --help` shows
+# the line Ctrl-C ends with (cli.py; every writer is atomic)
+RESUME = "the same command resumes it (imported episodes are kept)"
 
 
 @dataclasses.dataclass(frozen=True)

@@ -11,6 +11,8 @@ from sc3_jax.commands.flags import explicit_fields, onto_config
 PREEMPTED = 143  # 128 + SIGTERM, as a shell reports a process the signal ended
 
 SUMMARY = "train (or resume) a world model from a named config or a config file"  # the line `sc3 --help` shows
+# the line Ctrl-C ends with (cli.py; every writer is atomic)
+RESUME = "the same command resumes from its last checkpoint"
 
 
 @dataclasses.dataclass(frozen=True)

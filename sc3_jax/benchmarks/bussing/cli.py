@@ -1,6 +1,7 @@
-"""The library side of ``sc3 sim demos`` and ``sc3 sim eval`` (the command itself: ``sc3_jax/commands/sim.py``):
-scripted-expert demonstrations from plain arguments, and a policy evaluated by any of its spellings. It sits in the
-commands layer because ``eval`` resolves policy names (``policies/resolve.py``), which the simulator must not import.
+"""The library side of ``sc3 sim demos`` and ``sc3 sim eval`` (the command itself: ``commands/sim.py`` beside it):
+scripted-expert demonstrations from plain arguments, and a policy evaluated by any of its spellings. It stands apart
+from the simulator's modules because ``eval`` resolves policy names (``policies/resolve.py``), which they must not
+import.
 """
 from __future__ import annotations
 

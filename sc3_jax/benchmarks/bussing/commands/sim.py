@@ -22,6 +22,8 @@ from sc3_jax.commands import run_group
 from sc3_jax.core.errors import UserError
 
 SUMMARY = "the simulated table-bussing benchmark"  # the line `sc3 --help` shows
+# the line Ctrl-C ends with (cli.py; every writer is atomic)
+RESUME = "the same command resumes it where it writes a store (finished parts are kept)"
 
 SIZE = tyro.conf.arg(metavar="H W")
 
