@@ -17,11 +17,12 @@ from sc3_jax.core.errors import UserError
 from sc3_jax.evaluation.ic_sweep import ICSweepConfig
 
 SUMMARY = "policies x initial conditions inside the world model, then the report"  # the line `sc3 --help` shows
-# the registered benchmarks' sweeps (bench: bussing's, as README command 1 and the golden records name it), then the
-# benchmark-free one; any other benchmark by ``package.module:attr`` (``main``)
-SUBCOMMANDS: dict[str, type] = {"bench": benchmark.get("bench").sweep_config,
-                                "bussing": benchmark.get("bussing").sweep_config,
-                                "so101": benchmark.get("so101").sweep_config, "episodes": ICSweepConfig}
+# the line Ctrl-C ends with (cli.py; every writer is atomic)
+RESUME = "the same command resumes it (finished rollouts are kept)"
+# every built-in benchmark's own sweep, by its names (the registry's: README command 1's alias first), then the
+# benchmark-free one; any other benchmark by ``package.module:attr`` (``main``). `sc3 --help` reads this line
+# (cli.describe): the registry lists the sweeps' names without importing a benchmark
+SUBCOMMANDS: dict[str, type] = {**benchmark.sweep_configs(), "episodes": ICSweepConfig}
 
 
 # numeric options every sweep may have: (lowest, highest, what it counts); a value outside is one line, before
