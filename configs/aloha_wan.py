@@ -21,7 +21,7 @@ size and action dimension from its dataset.json; absolute actions have no pseudo
     sc3 plan --config aloha_wan --mesh data=2,fsdp=8 --device h100                 # anywhere: nothing is allocated
     sc3 train --config aloha_wan --data STORE --model.tokenizer-path VAE --train.workdir CKPT   # on the pod
 
-Measured (docs/plan.md, "A bimanual robot on Wan latents", 2026-11-26, `sc3 plan` at MFU 0.4): 2,018,988,238
+Expected, from `sc3 plan` at MFU 0.4 (its output: docs/plan.md, "A bimanual robot on Wan latents"): 2,018,988,238
 parameters, 9,624 tokens a sample; fits 16 H100 at 47.96 GB a device; 9.7e16 FLOPs a step plus 6.4e16 for the VAE
 encode inside it: 15.4 s a step (at least 10.1 s more for the VAE), 4.27 days for 24,000 steps; one rollout chunk
 1.2e15 FLOPs, 3.1 s on one H100. ``:wan2.1``: 38,424 tokens, fits only with remat dots (45.6 days). Never trained:

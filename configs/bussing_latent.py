@@ -21,13 +21,13 @@ the tokenizer, then runs these; resumable):
         --out RUNS/latent_train/diagnose.json
     sc3 sweep bench --world-model EXPORT          # an export of the run (docs/results.md has the commands)
 
-Measured (docs/world_model.md, "Training and where it stands"): 4.9M parameters, the latent cache ~4 min, then
-0.43-0.5 steps/s on the 2 cores; at step 4,906 (3.8 training hours, 59k windows) diagnose reads moving pixels
-+5.74 dB over copy-last, +2.76 dB over the temporal median (gate 3), true - shuffled actions +3.40 dB, offline
-outcome reproduction 0.33 (gate 0.75): 2 of 5 gates fail. Online on the full protocol (docs/results.md,
-"Faithfulness against training compute"): in distribution r 0.726 [0.631, 0.801], MMRV 0.317 [0.270, 0.413]
-against the policy-blind floor's 0.701 / 0.410. Expected: at a CPU budget it does not rank policies clearly better
-than a guess; its accelerator twin ``bussing_latent_gpu`` does."""
+Expected (docs/results.md, "The CPU latent run, checkpoint by checkpoint"): 4.9M parameters, the latent cache ~4 min,
+then 0.43-0.5 steps/s on the 2 cores; at step 4,906 (3.8 training hours, 59k windows) diagnose reads moving pixels
++5.74 dB over copy-last, +2.76 dB over the temporal median (gate 3), true - shuffled actions +3.40 dB, offline outcome
+reproduction 0.33 (gate 0.75): 2 of 5 gates fail. Online on the full protocol (docs/results.md, "Faithfulness against
+training compute"): in distribution r 0.726 [0.631, 0.801], MMRV 0.317 [0.270, 0.413] against the policy-blind floor's
+0.701 / 0.410. Expected: at a CPU budget it does not rank policies clearly better than a guess; its accelerator twin
+``bussing_latent_gpu`` does."""
 from pathlib import Path
 
 import sc3_jax

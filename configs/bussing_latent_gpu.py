@@ -15,13 +15,14 @@ On one GPU machine (docs/world_model.md, "Accelerator run"; the shipped tokenize
     sc3 diagnose --world-model EXPORT --data HELDOUT --benchmark bussing --sample-steps 8 --out DIAG.json
     sc3 sweep bench --world-model EXPORT
 
-Measured (docs/world_model.md, "Accelerator run"): step 2,000 (128k windows) in about 9 min on one H100; its diagnose
-reads moving pixels +6.76 dB over copy-last, +4.21 dB over the temporal median, true - shuffled actions +4.75 dB,
-inverse dynamics 0.045 against the floor's 1.47, offline outcome reproduction 0.67 with the shipped scorer (gate
+Expected (docs/results.md, "The first accelerator run"): step 2,000 (128k windows) in about 9 min on one H100; its
+diagnose reads moving pixels +6.76 dB over copy-last, +4.21 dB over the temporal median, true - shuffled actions +4.75
+dB, inverse dynamics 0.045 against the floor's 1.47, offline outcome reproduction 0.67 with the shipped scorer (gate
 0.75: fails by one object of 12). Online on the full protocol (docs/results.md, "Faithfulness against training
-compute"): in distribution r 0.849 [0.759, 0.892], MMRV 0.208 [0.156, 0.320] against the policy-blind floor's
-0.701 / 0.410. The shipped model, fine-tuned 1,500 more steps on failure-rich data, reads r 0.916 [0.873, 0.937],
-MMRV 0.153 [0.100, 0.192] in distribution at 72 conditions a policy (docs/results.md, "Current")."""
+compute"): in distribution r 0.849 [0.759, 0.892], MMRV 0.208 [0.156, 0.320] against the policy-blind floor's 0.701 /
+0.410. The shipped model, fine-tuned 1,500 more steps on failure-rich data, reads r 0.916 [0.873, 0.937], MMRV 0.153
+[0.100, 0.192] in distribution at 72 conditions a policy (docs/results.md, "The shipped world model at 72
+conditions")."""
 from sc3_jax.core.config import load_config, replace
 
 

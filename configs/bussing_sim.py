@@ -15,13 +15,14 @@ From nothing (``bash scripts/bussing_sim.sh RUNS`` makes the demos, this model a
     sc3 diagnose --world-model RUNS/train --data HELDOUT --benchmark bussing --sample-steps 8 --out DIAG.json
     sc3 sweep bench --world-model RUNS/train
 
-Measured: the shipped model (``sc3_jax/benchmarks/bussing/shipped/bussing_sim``) was stopped at step 2,177 of 2,600, ~80 min
-on the 2-core machine (scripts/bussing_sim.sh). Its diagnose on 6 held-out episodes at 8 sampler steps
-(docs/world_model.md, "bussing_sim's figures"): moving pixels +2.72 dB over copy-last (gate 3), +0.03 dB over the
-temporal median (gate 3), true - shuffled actions +1.06 dB (gate 2), inverse dynamics 0.136 against the floor's
-1.50, offline outcome reproduction 0.39 (gate 0.75). Online on the quick protocol (docs/results.md, "Closed loop on
-the quick protocol"): in distribution r 0.690 [0.526, 0.793], MMRV 0.385, against the policy-blind floor's 0.641 /
-0.468: a guess by its intervals. The latent recipe (``bussing_latent``, ``bussing_latent_gpu``) replaced it."""
+Measured: the shipped model (``sc3_jax/benchmarks/bussing/shipped/bussing_sim``) was stopped at step 2,177 of 2,600,
+~80 min on the 2-core machine (scripts/bussing_sim.sh). Its diagnose on 6 held-out episodes at 8 sampler steps
+(docs/results.md, "bussing_sim's diagnostics"): moving pixels +2.72 dB over copy-last (gate 3), +0.03 dB over the
+temporal median (gate 3), true - shuffled actions +1.06 dB (gate 2), inverse dynamics 0.136 against the floor's 1.50,
+offline outcome reproduction 0.39 (gate 0.75). Online on the quick protocol of then (docs/history/results-2026-11.md,
+"Closed loop on the quick protocol"): in distribution r 0.690 [0.526, 0.793], MMRV 0.385, against the policy-blind
+floor's 0.641 / 0.468: a guess by its intervals. The latent recipe (``bussing_latent``, ``bussing_latent_gpu``)
+replaced it."""
 from sc3_jax.benchmarks.bussing.hooks import BENCHMARK_TAU
 from sc3_jax.core.config import (Config, DataConfig, FlowConfig, ModeConfig, ModelConfig, RolloutConfig, SampleConfig,
                             TrainConfig)

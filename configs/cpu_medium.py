@@ -6,7 +6,7 @@ a train step should run near matmul speed in (bench/train_step.py).
     sc3 train --config cpu_medium --data runs/demo/episodes --train.workdir runs/cpu_medium
 
 Measured (docs/results.md, "Component measurements"; 292 tokens a sample at batch 8, 16M parameters in its table,
-18.8M by `sc3 configs` today): a train step at 0.47 of a matmul's FLOP/s, 1,713 tokens/s on the 2-core machine;
+18.8M by `sc3 configs`): a train step at 0.47 of a matmul's FLOP/s, 1,713 tokens/s on the 2-core machine;
 `sc3 plan`'s lowered FLOP count is within 0.25% of XLA's compiled one here (docs/plan.md). Expected: a benchmark
 config, never trained to a measured quality; check a run of it as any: `sc3 diagnose --world-model RUN --data HELDOUT` should read
 the moving pixels above copy-last and true actions above shuffled ones."""

@@ -9,13 +9,13 @@ docs/wan_vae.md); `sc3 plan` / `jax.eval_shape` report its size without allocati
     sc3 train --config paper --mesh.data 1 --mesh.fsdp 8 --data STORE --train.workdir CKPT    # one 8-GPU node
     python launch/multihost.py ... -- train --config paper --data STORE ...      # several hosts: launch/README.md
 
-Measured (docs/plan.md, "Paper scale ... next to the paper"): 2,030,756,871 parameters, 25,224 tokens a sample,
-5.4e17 FLOPs a step: 16.9 s a step at MFU 0.4, 4.69 days for the 24,000 steps on 32 GB200 (the paper: 7.9 s and 2.2
-days, on Wan latents); as configured it does not fit (1,736 GB of activations a device, estimated), and fits with
-`--model.attention-impl fused --model.remat none --train.grad-accum 16` (117 GB of 186). One closed-loop chunk at 4
-of its 32 layers: 4.05 s on one H200, 32.4 s scaled to full depth against the paper's 2.3 s on one GB200
-(docs/results.md, "GPU lease of 2026-11-28"). Never trained here: no faithfulness measured; `sc3 plan`'s verdict
-line is the check."""
+Expected, from `sc3 plan` (its output: docs/plan.md, "Paper scale ... next to the paper"): 2,030,756,871 parameters,
+25,224 tokens a sample, 5.4e17 FLOPs a step: 16.9 s a step at MFU 0.4, 4.69 days for the 24,000 steps on 32 GB200 (the
+paper: 7.9 s and 2.2 days, on Wan latents); as configured it does not fit (1,736 GB of activations a device,
+estimated), and fits with `--model.attention-impl fused --model.remat none --train.grad-accum 16` (117 GB of 186). One
+closed-loop chunk at 4 of its 32 layers: 4.05 s on one H200, 32.4 s scaled to full depth against the paper's 2.3 s on
+one GB200 (docs/results.md, "Accelerator"). Never trained here: no faithfulness measured; `sc3 plan`'s verdict line is
+the check."""
 from sc3_jax.core.config import Config, DataConfig, MeshConfig, ModelConfig, RolloutConfig, TrainConfig
 
 

@@ -24,11 +24,11 @@ store's two cameras):
     sc3 sweep so101 --world-model ~/sc3-runs/so101/world_model \
         --scorer sc3_jax.benchmarks.so101.scorer:block_at_goal --out ~/sc3-runs/so101/sweep
 
-Measured (2026-11-28, docs/results.md "SO-101 with a lab's cameras"): collection 15 min (2 workers beside other
-work), the tokenizer 18 min (held-out moving pixels 29.3 dB workspace, 33.4 dB wrist, against 8.3 / 10.9 for the
-static frame); a world-model step ~2.5 s on the 2 cores alone (155 GFLOP). Expected: at the CPU's few thousand
-steps the imagined world still fades (the first camera's model kept 0.35 of the objects at 4 s after 2,200 steps);
-the GPU playbook's SO-101 phase trains it on.
+Expected (docs/results.md, "SO-101: data, zoo and scorer on a lab's cameras"): collection 15 min (2 workers beside
+other work), the tokenizer 18 min (held-out moving pixels 29.3 dB workspace, 33.4 dB wrist, against 8.3 / 10.9 for the
+static frame); a world-model step ~2.5 s on the 2 cores alone (155 GFLOP). At the CPU's few thousand steps the
+imagined world still fades (the first camera's model kept 0.35 of the objects at 4 s after 2,200 steps); the GPU
+playbook's SO-101 phase trains it on.
 """
 from sc3_jax.core.config import load_config, replace
 

@@ -14,7 +14,7 @@ against repeat-last 20.92, action use 21.74 dB against shuffled actions 20.04, i
 the mean action's 1.044, cross-view inpainting 21.25 dB against the mean frame's 17.22 (tests/test_learning.py
 asserts each margin); a train step runs at 0.21 of a matmul's FLOP/s, 13,950 tokens/s (bench/train_step.py).
 Sized from a two-camera 96x128 store: 6.0 steps/s at 1.6 GB peak on 2 cores, start to a diagnosed model 5 min 23 s
-(docs/results.md, "A lab's first world model, sized from the data"). Expected: every `sc3 demo` check passes
+(docs/results.md, "A lab's first world model"). Expected: every `sc3 demo` check passes
 (each figure above beats its baseline)."""
 from sc3_jax.core.config import Config, DataConfig, FlowConfig, ModeConfig, ModelConfig, RolloutConfig, TrainConfig
 
