@@ -85,3 +85,6 @@ def _has_head(world_model: str) -> bool:
     from sc3_jax.rollout import state_head
 
     return (Path(world_model) / state_head.FILE).is_file()
+
+
+from . import so101  # noqa: E402, F401  (registers --env.type=sc3_so101: the SO-101 simulator on our cameras)
