@@ -1,7 +1,7 @@
 """The SO-101 simulator as a gymnasium vector env (``sc3_jax/benchmarks/so101/vec_env.py``, what ``lerobot-eval
 --env.type=sc3_so101`` runs): gymnasium's own env checker, seed s is the sweep's condition s, an episode ends and
 succeeds as the benchmark's real episode does, SAME_STEP autoreset to the next unused condition. Needs the ``so101``
-extra (no lerobot); tests/test_lerobot_eval.py runs it under the real lerobot-eval."""
+extra (no lerobot); tests/test_lerobot_so101.py runs it under the real lerobot-eval."""
 import warnings
 
 import numpy as np
