@@ -63,3 +63,13 @@ def test_lerobot_train_then_lerobot_eval_in_the_so101_simulator_on_the_lab_camer
     assert len(successes) == 2 and all(isinstance(s, bool) for s in successes)
     videos = info["overall"]["video_paths"]
     assert len(videos) == 2 and all(Path(v).stat().st_size > 0 for v in videos)
+
+
+def test_a_camera_the_benchmark_does_not_render_is_refused_when_the_config_is_built_naming_the_option():
+    from lerobot_env_sc3.so101 import SC3So101Env
+
+    with pytest.raises(ValueError, match=r"--env.views=\['top'\].*choose from"):
+        SC3So101Env(views=["top"])
+    with pytest.raises(ValueError, match="H W, both positive"):
+        SC3So101Env(image_size=[80])
+    assert SC3So101Env().features_map["pixels/wrist"] == "observation.images.wrist"

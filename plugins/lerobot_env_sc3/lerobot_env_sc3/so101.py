@@ -35,8 +35,15 @@ class SC3So101Env(EnvConfig):
     """steps before an episode is truncated (None: the sweep's horizon, vec_env.EPISODE_STEPS)"""
 
     def __post_init__(self):
-        from sc3_jax.benchmarks.so101.env import So101Env
+        from sc3_jax.benchmarks.so101.env import So101Env, check_views
+        from sc3_jax.core.errors import UserError
 
+        try:  # a wrong camera or size is one line naming the option, before a policy loads or a table starts
+            check_views(self.views)
+            if len(self.image_size) != 2 or min(self.image_size) < 1:
+                raise UserError(f"{list(self.image_size)}: H W, both positive")
+        except UserError as e:
+            raise ValueError(f"--env.views={self.views} --env.image_size={self.image_size}: {e}") from None
         h, w = self.image_size
         self.features = {ACTION: PolicyFeature(FeatureType.ACTION, (So101Env.action_dim,)),
                          "agent_pos": PolicyFeature(FeatureType.STATE, (So101Env.state_dim,)),
