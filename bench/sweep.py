@@ -18,14 +18,32 @@ full_protocol_h: the full protocol (13 policies; 36 evaluation + 6 calibration +
 6 online rollouts per policy) at these per-rollout costs. Last line:
 ``sweep_cost: real_s=<new s per real rollout> online_s=<new s per online rollout> full_protocol_h=<new> speedup=<today
 / new full protocol>``.
+
+``--engines OLD [NEW]``: README command 1 (``sc3 sweep bench``, plus any flags after ``--``) end to end, run by the
+code of git revision OLD and then by NEW (default HEAD), each from a ``git archive`` of its revision into a
+fresh store, the machine to itself: the wall time of each, their ratio, whether their records and report tables
+agree to the digit, and the share of NEW's wall time its processes spent inside the world model's compiled calls
+(``timing.json``). The one engine (b499b6c) against the bussing engine before it:
+
+    nice python bench/sweep.py --engines b499b6c^ HEAD     # ~2 x 43 min on 2 cores
+    nice python bench/sweep.py --engines b499b6c^ HEAD -- --episodes 2 --calibration-episodes 0 --ceiling-episodes 0
+
+Last line: ``engines: old_s=<s> new_s=<s> new_over_old=<ratio> records_equal=<bool> tables_equal=<bool>
+compiled_share=<share>``.
 """
 from __future__ import annotations
 
 import argparse
 import functools
+import gzip
+import json
 import math
+import os
+import subprocess
+import sys
 import tempfile
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -122,12 +140,66 @@ def hours(real_s: float, online_s: float) -> float:
     return FULL["policies"] * (FULL["real"] * real_s + FULL["online"] * online_s) / 3600
 
 
+def run_revision(rev: str, work: Path, flags: list[str]) -> tuple[float, Path]:
+    """README command 1 by the code of git revision ``rev`` (its ``sc3_jax`` and ``configs``, laid out as the
+    installed package is) into ``work/store``: (wall seconds, the store)."""
+    code, store = work / "code", work / "store"
+    code.mkdir(parents=True)
+    archive = subprocess.run(["git", "archive", rev, "sc3_jax", "configs"], check=True, capture_output=True).stdout
+    subprocess.run(["tar", "-x", "-C", str(code)], input=archive, check=True)
+    (code / "configs").rename(code / "sc3_jax" / "configs")  # the wheel's layout: sc3_jax.configs
+    env = {**os.environ, "PYTHONPATH": str(code)}  # ahead of the editable install's finder
+    t0 = time.perf_counter()
+    subprocess.run([sys.executable, "-m", "sc3_jax.cli", "sweep", "bench", "--out", str(store), *flags],
+                   check=True, env=env, cwd=work)
+    return time.perf_counter() - t0, store
+
+
+def records(store: Path) -> dict:
+    """The store's records by id (results.jsonl, or its .gz)."""
+    path = store / "results.jsonl"
+    lines = (path.read_text() if path.is_file() else gzip.decompress((store / "results.jsonl.gz").read_bytes())
+             .decode()).splitlines()
+    return {r["id"]: r for r in map(json.loads, filter(None, lines))}
+
+
+def tables(store: Path) -> list[str]:
+    """The report's table rows (report.md lines that start with ``|``)."""
+    return [line for line in (store / "report" / "report.md").read_text().splitlines() if line.startswith("|")]
+
+
+def engines(old: str, new: str, flags: list[str]) -> None:
+    with tempfile.TemporaryDirectory() as d:
+        old_s, old_store = run_revision(old, Path(d) / "old", flags)
+        new_s, new_store = run_revision(new, Path(d) / "new", flags)
+        same_records = records(old_store) == records(new_store)
+        same_tables = tables(old_store) == tables(new_store)
+        timing = json.loads((new_store / "timing.json").read_text())
+        share = timing.get("share_in_world_model_calls", float("nan"))
+        for line in tables(new_store)[:8]:
+            print(line)
+    print(f"| engine | revision | wall s |\n|---|---|---|\n| old | {old} | {old_s:.0f} |\n| new | {new} | {new_s:.0f} |")
+    print(f"(new: {timing['seconds_in_world_model_calls']:.0f} s inside the world model's compiled calls over "
+          f"{timing['model_workers']} processes, {share:.1%} of their wall time)" if "seconds_in_world_model_calls"
+          in timing else "(new: its timing.json has no compiled-call time)")
+    print(f"engines: old_s={old_s:.0f} new_s={new_s:.0f} new_over_old={new_s / old_s:.3f} "
+          f"records_equal={same_records} tables_equal={same_tables} compiled_share={share:.3f}")
+
+
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--real-seeds", type=int, default=6, help="real rollouts per policy (two policies)")
     ap.add_argument("--chunks", type=int, default=3, help="online chunks timed (scaled to a 12 s rollout)")
     ap.add_argument("--batch", type=int, default=6)
-    a = ap.parse_args(argv)
+    ap.add_argument("--engines", nargs="+", metavar="REV", help="OLD [NEW]: README command 1 by two revisions' "
+                    "code; flags after -- go to sc3 sweep bench")
+    argv = sys.argv[1:] if argv is None else list(argv)
+    flags = argv[argv.index("--") + 1:] if "--" in argv else []
+    a = ap.parse_args(argv[:argv.index("--")] if "--" in argv else argv)
+    if a.engines:
+        if len(a.engines) > 2:
+            ap.error("--engines takes OLD [NEW]")
+        return engines(a.engines[0], a.engines[1] if len(a.engines) == 2 else "HEAD", flags)
     import sc3_jax.benchmarks.bussing  # noqa: F401  (picks the GL backend before mujoco is imported)
     from sc3_jax.evaluation.engine import default_workers
     from sc3_jax.benchmarks.bussing.sweep import SweepConfig

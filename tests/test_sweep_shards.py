@@ -74,6 +74,7 @@ def test_rollouts_in_two_worker_processes_equal_one_process(setup, tmp_path):
     timing = json.loads((out / "timing.json").read_text())
     assert timing["workers"] == timing["model_workers"] == 2
     assert sum(timing["rollouts_run"].values()) == len(by_id(two))
+    assert 0 < timing["share_in_world_model_calls"] < 1  # both workers' compiled calls, over both workers' time
 
 
 @pytest.mark.slow  # ~2 min: two sweep processes beside the unsharded one

@@ -287,6 +287,10 @@ class Runner:
     def __call__(self, job: Job) -> list[dict]:
         return self.real(job) if job.mode == "real" else self.batch(job)
 
+    def compiled_seconds(self) -> float:
+        """Seconds this process has spent inside the world model's jitted programs (``Rollout.compiled_seconds``)."""
+        return self._model[0].compiled_seconds if self._model is not None else 0.0
+
     def real(self, job: Job) -> list[dict]:
         rid = job.ids()[0]
         try:
@@ -373,28 +377,44 @@ def _init(setup: Setup) -> None:
     _RUNNER = Runner(setup)
 
 
-def _work(job: Job) -> list[dict]:
-    return _RUNNER(job)
+def _timed(run: Runner, job: Job) -> tuple[list[dict], float]:
+    """``run(job)``'s records and the seconds it spent inside the world model's jitted programs."""
+    before = run.compiled_seconds()
+    recs = run(job)
+    return recs, run.compiled_seconds() - before
 
 
-def run_jobs(jobs: list[Job], setup: Setup, workers: int, runner: Callable[[], Runner], model: bool = True
-             ) -> Iterator[tuple[Job, list[dict]]]:
+def _work(job: Job) -> tuple[list[dict], float]:
+    return _timed(_RUNNER, job)
+
+
+def run_jobs(jobs: list[Job], setup: Setup, workers: int, runner: Callable[[], Runner], model: bool = True,
+             clock: dict | None = None) -> Iterator[tuple[Job, list[dict]]]:
     """(job, records) for every job, in job order, each rollout's arrays already in the store: in ``workers``
     single-threaded processes when :func:`in_workers` (each builds its own Runner from ``setup``), else in this
     process by ``runner()`` (called only if needed).
 
     Why processes: one process spreads each matmul over every core, but 2 threads ran a DiT 1.69x as fast as 1 on
     the 2-core machine, and a simulator episode is single-threaded; single-threaded processes running whole jobs
-    keep every core busy. Records do not depend on the number of workers (tests/test_sweep_shards.py)."""
+    keep every core busy. Records do not depend on the number of workers (tests/test_sweep_shards.py).
+
+    ``clock["compiled"]`` (if given) adds up the seconds every process spent inside the world model's jitted
+    programs."""
     if not jobs:
         return
+    clock = {} if clock is None else clock
+    clock.setdefault("compiled", 0.0)
     if setup.source is None or not in_workers(workers, len(jobs), model):
         run = runner()
         for job in jobs:
-            yield job, run(job)
+            recs, seconds = _timed(run, job)
+            clock["compiled"] += seconds
+            yield job, recs
         return
     with worker_pool.pool(min(workers, len(jobs)), _init, (setup,)) as pool:
-        yield from zip(jobs, pool.imap(_work, jobs, chunksize=1))
+        for job, (recs, seconds) in zip(jobs, pool.imap(_work, jobs, chunksize=1)):
+            clock["compiled"] += seconds
+            yield job, recs
 
 
 def default_workers() -> int:
@@ -451,8 +471,8 @@ def run(setup: Setup, config: dict, policies: list[Policy], units: list[Unit], *
         model_jobs = [Job(policies[u.policy].spec, policies[u.policy].name, mode, u.block, u.seeds, offset + u.start)
                       for u in units for mode, offset in u.modes
                       if not all(rollout_id(policies[u.policy].name, s, mode) in done for s in u.seeds)]
-        t1 = time.time()
-        for job, recs in run_jobs(model_jobs, setup, workers, runner):
+        t1, clock = time.time(), {}
+        for job, recs in run_jobs(model_jobs, setup, workers, runner, clock=clock):
             store.append([{**head(job, s), **r} for s, r in zip(job.seeds, recs)])
             timing[job.mode] += time.time() - t1  # the workers overlap: each mode's share of the wall time
             count[job.mode] += len(recs)
@@ -464,10 +484,15 @@ def run(setup: Setup, config: dict, policies: list[Policy], units: list[Unit], *
                 p.policy.close()
         if callable(getattr(source, "close", None)):
             source.close()
+        wall = time.time() - t0
+        model_workers = workers if setup.source is not None and in_workers(workers, len(model_jobs)) else 1
+        compiled = clock.get("compiled", 0.0)
         atomic.write_json(store.root / "timing.json", {
-            "seconds_last_run": time.time() - t0, "seconds_by_mode": timing, "rollouts_run": count,
-            "workers": workers,
-            "model_workers": workers if setup.source is not None and in_workers(workers, len(model_jobs)) else 1,
+            "seconds_last_run": wall, "seconds_by_mode": timing, "rollouts_run": count,
+            "workers": workers, "model_workers": model_workers,
+            # summed over the processes that ran the world model; the share is of their wall time together
+            "seconds_in_world_model_calls": compiled,
+            "share_in_world_model_calls": compiled / (model_workers * wall) if wall > 0 else 0.0,
             "devices": [str(d) for d in jax.local_devices()]})
         return store.root
     finally:

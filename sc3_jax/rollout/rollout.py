@@ -50,6 +50,7 @@ import dataclasses
 import functools
 import inspect
 import math
+import time
 from typing import Any, NamedTuple
 
 import jax
@@ -349,6 +350,18 @@ class Rollout:
         # state_reader: anything with a pure ``apply(params, images uint8 [V, H, W, 3]) -> gripper width`` and
         # ``params`` (e.g. ``benchmarks.bussing.scorers.PerceptionScorer.state_reader()``); see ``ChunkFns.observe``
         self.reader_params = None if state_reader is None else jax.device_put(state_reader.params, self._repl)
+        # wall seconds spent inside the jitted programs (first calls' compiles included; a host policy's own time
+        # between chunk steps is not): what share of a sweep the world model itself costs
+        self.compiled_seconds = 0.0
+
+    def _call(self, fn, *args, fetch: bool = True):
+        """``fn(*args)``, finished (and fetched to the host unless ``fetch=False``), its wall time added to
+        ``compiled_seconds``."""
+        t = time.perf_counter()
+        out = fn(*args)
+        out = jax.device_get(out) if fetch else jax.block_until_ready(out)
+        self.compiled_seconds += time.perf_counter() - t
+        return out
 
     def _model_step(self, params, carry, actions, keys, tau):
         return self._model_step_fn(params, self.norm, carry, actions, keys, tau)
@@ -396,9 +409,9 @@ class Rollout:
         tau = self.tau if tau is None else tau
         B, frames, state, task, keys = self._inputs(ics, keys)
         params, policy_params = self.place_params(params), jax.device_put(policy.params, self._repl)
-        emits = self._scan_policy(policy.apply, params, self.norm, policy_params, self.reader_params, frames, state,
-                                  task, keys, jnp.float32(tau))
-        return self._finish(jax.device_get(emits), ics, B, tau, chunk_axis=0)
+        emits = self._call(self._scan_policy, policy.apply, params, self.norm, policy_params, self.reader_params,
+                           frames, state, task, keys, jnp.float32(tau))
+        return self._finish(emits, ics, B, tau, chunk_axis=0)
 
     def run_offline(self, params, ics: InitialConditions, actions, keys, tau: float = math.inf) -> dict:
         """Open loop: ``actions`` raw [B, N, >= l', A] (the recorded actions of each chunk, :func:`chunk_actions`)
@@ -409,9 +422,9 @@ class Rollout:
             raise ValueError(f"actions {list(actions.shape)}: expected [B, {self.spec.num_chunks}, "
                              f">={self.spec.predict}, {self.spec.action_dim}]")
         B, frames, state, task, keys = self._inputs(ics, keys)
-        emits = self._scan_actions(self.place_params(params), self.norm, frames, state, task, keys, jnp.float32(tau),
-                                   self._pad(actions, len(keys)))
-        return self._finish(jax.device_get(emits), ics, B, tau, chunk_axis=0)
+        emits = self._call(self._scan_actions, self.place_params(params), self.norm, frames, state, task, keys,
+                           jnp.float32(tau), self._pad(actions, len(keys)))
+        return self._finish(emits, ics, B, tau, chunk_axis=0)
 
     # -- host loop ---------------------------------------------------------------------------------------------
     def run_host(self, params, policy, ics: InitialConditions, keys, tau: float | None = None,
@@ -428,14 +441,14 @@ class Rollout:
         tau = self.tau if tau is None else tau
         B, frames, state, task, keys = self._inputs(ics, keys)
         params = self.place_params(params)
-        carry = self._init(frames, *state)
+        carry = self._call(self._init, frames, *state, fetch=False)
         emits = []
         chunks = range(self.spec.num_chunks)
         if progress:
             from tqdm import tqdm
             chunks = tqdm(chunks, desc="rollout chunks", unit="chunk")
         for _ in chunks:
-            obs, k_pol = jax.device_get(self._observe(carry, task, keys, self.reader_params))
+            obs, k_pol = self._call(self._observe, carry, task, keys, self.reader_params)
             done = np.asarray(jax.device_get(carry.done))
             A = self.spec.action_dim
             acts = np.zeros((len(k_pol), self.spec.step_actions, A), np.float32)
@@ -451,7 +464,8 @@ class Rollout:
                                     f"({self.spec.action_space.kind} actions)")
                 acts[b] = fill_chunk(a[:self.spec.step_actions], self.spec.step_actions)
             acts[B:] = acts[B - 1]
-            carry, emit = self._model_step(params, carry, self._pad(acts, len(acts)), keys, jnp.float32(tau))
+            carry, emit = self._call(self._model_step, params, carry, self._pad(acts, len(acts)), keys,
+                                     jnp.float32(tau), fetch=False)
             emits.append(jax.device_get(emit))
         stacked = {k: np.stack([e[k] for e in emits]) for k in emits[0]}
         return self._finish(stacked, ics, B, tau, chunk_axis=0)
