@@ -145,7 +145,9 @@ def run_revision(rev: str, work: Path, flags: list[str]) -> tuple[float, Path]:
     installed package is) into ``work/store``: (wall seconds, the store)."""
     code, store = work / "code", work / "store"
     code.mkdir(parents=True)
-    archive = subprocess.run(["git", "archive", rev, "sc3_jax", "configs"], check=True, capture_output=True).stdout
+    repo = Path(__file__).resolve().parents[1]
+    archive = subprocess.run(["git", "archive", rev, "sc3_jax", "configs"], check=True, capture_output=True,
+                             cwd=repo).stdout
     subprocess.run(["tar", "-x", "-C", str(code)], input=archive, check=True)
     (code / "configs").rename(code / "sc3_jax" / "configs")  # the wheel's layout: sc3_jax.configs
     env = {**os.environ, "PYTHONPATH": str(code)}  # ahead of the editable install's finder
