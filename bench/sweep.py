@@ -20,12 +20,13 @@ full_protocol_h: the full protocol (13 policies; 36 evaluation + 6 calibration +
 / new full protocol>``.
 
 ``--engines OLD [NEW]``: README command 1 (``sc3 sweep bench``, plus any flags after ``--``) end to end, run by the
-code of git revision OLD and then by NEW (default HEAD), each from a ``git archive`` of its revision into a
-fresh store, the machine to itself: the wall time of each, their ratio, whether their records and report tables
-agree to the digit, and the share of NEW's wall time its processes spent inside the world model's compiled calls
-(``timing.json``). The one engine (b499b6c) against the bussing engine before it:
+code of git revision OLD and by NEW (default HEAD) at the same time (the machine's drift falls on both alike), each
+from a ``git archive`` of its revision into a fresh store, the machine otherwise idle: the wall time of each, their
+ratio, whether their records and report tables agree to the digit, and the share of NEW's wall time its processes
+spent inside the world model's compiled calls (``timing.json``). The one engine (b499b6c) against the bussing
+engine before it:
 
-    nice python bench/sweep.py --engines b499b6c^ HEAD     # ~2 x 43 min on 2 cores
+    python bench/sweep.py --engines b499b6c^ HEAD     # ~90 min on 2 cores (two sweeps of ~43 min each, at once)
     nice python bench/sweep.py --engines b499b6c^ HEAD -- --episodes 2 --calibration-episodes 0 --ceiling-episodes 0
 
 Last line: ``engines: old_s=<s> new_s=<s> new_over_old=<ratio> records_equal=<bool> tables_equal=<bool>
@@ -140,9 +141,9 @@ def hours(real_s: float, online_s: float) -> float:
     return FULL["policies"] * (FULL["real"] * real_s + FULL["online"] * online_s) / 3600
 
 
-def run_revision(rev: str, work: Path, flags: list[str]) -> tuple[float, Path]:
+def start_revision(rev: str, work: Path, flags: list[str]) -> tuple[subprocess.Popen, float, Path]:
     """README command 1 by the code of git revision ``rev`` (its ``sc3_jax`` and ``configs``, laid out as the
-    installed package is) into ``work/store``: (wall seconds, the store)."""
+    installed package is) into ``work/store``, started: (the process, its start time, the store)."""
     code, store = work / "code", work / "store"
     code.mkdir(parents=True)
     repo = Path(__file__).resolve().parents[1]
@@ -151,10 +152,10 @@ def run_revision(rev: str, work: Path, flags: list[str]) -> tuple[float, Path]:
     subprocess.run(["tar", "-x", "-C", str(code)], input=archive, check=True)
     (code / "configs").rename(code / "sc3_jax" / "configs")  # the wheel's layout: sc3_jax.configs
     env = {**os.environ, "PYTHONPATH": str(code)}  # ahead of the editable install's finder
-    t0 = time.perf_counter()
-    subprocess.run([sys.executable, "-m", "sc3_jax.cli", "sweep", "bench", "--out", str(store), *flags],
-                   check=True, env=env, cwd=work)
-    return time.perf_counter() - t0, store
+    log = open(work / "sweep.log", "w")
+    proc = subprocess.Popen([sys.executable, "-m", "sc3_jax.cli", "sweep", "bench", "--out", str(store),
+                             "--no-progress", *flags], env=env, cwd=work, stdout=log, stderr=subprocess.STDOUT)
+    return proc, time.perf_counter(), store
 
 
 def records(store: Path) -> dict:
@@ -171,20 +172,32 @@ def tables(store: Path) -> list[str]:
 
 
 def engines(old: str, new: str, flags: list[str]) -> None:
+    """Both revisions' sweeps at the same time, so that the machine's own drift (40% within the hour on the 2-core
+    machine, docs/results.md#sweep-cost) falls on both alike."""
     with tempfile.TemporaryDirectory() as d:
-        old_s, old_store = run_revision(old, Path(d) / "old", flags)
-        new_s, new_store = run_revision(new, Path(d) / "new", flags)
+        runs = {name: start_revision(rev, Path(d) / name, flags) for name, rev in (("old", old), ("new", new))}
+        wall = {}
+        while len(wall) < len(runs):
+            for name, (proc, t0, _) in runs.items():
+                if name not in wall and proc.poll() is not None:
+                    if proc.returncode:
+                        sys.exit(f"the {name} revision's sweep failed (exit {proc.returncode}): "
+                                 f"{(Path(d) / name / 'sweep.log').read_text()[-2000:]}")
+                    wall[name] = time.perf_counter() - t0
+            time.sleep(1)
+        old_store, new_store = runs["old"][2], runs["new"][2]
         same_records = records(old_store) == records(new_store)
         same_tables = tables(old_store) == tables(new_store)
         timing = json.loads((new_store / "timing.json").read_text())
         share = timing.get("share_in_world_model_calls", float("nan"))
         for line in tables(new_store)[:8]:
             print(line)
-    print(f"| engine | revision | wall s |\n|---|---|---|\n| old | {old} | {old_s:.0f} |\n| new | {new} | {new_s:.0f} |")
+    print(f"| engine | revision | wall s (both at once) |\n|---|---|---|\n| old | {old} | {wall['old']:.0f} |\n"
+          f"| new | {new} | {wall['new']:.0f} |")
     print(f"(new: {timing['seconds_in_world_model_calls']:.0f} s inside the world model's compiled calls over "
           f"{timing['model_workers']} processes, {share:.1%} of their wall time)" if "seconds_in_world_model_calls"
           in timing else "(new: its timing.json has no compiled-call time)")
-    print(f"engines: old_s={old_s:.0f} new_s={new_s:.0f} new_over_old={new_s / old_s:.3f} "
+    print(f"engines: old_s={wall['old']:.0f} new_s={wall['new']:.0f} new_over_old={wall['new'] / wall['old']:.3f} "
           f"records_equal={same_records} tables_equal={same_tables} compiled_share={share:.3f}")
 
 

@@ -100,7 +100,7 @@ def test_every_command_resolves_every_spelling(server, monkeypatch):
     from sc3_jax.benchmarks.bussing.tasks import TASKS
     from sc3_jax.commands import parse, serve_policy
     from sc3_jax.evaluation import engine
-    from sc3_jax.benchmarks.bussing import cli as sim_cli
+    from sc3_jax.benchmarks.bussing.commands import sim
     from sc3_jax.benchmarks.bussing import policy_eval
 
     def resolve(spec):
@@ -133,7 +133,7 @@ def test_every_command_resolves_every_spelling(server, monkeypatch):
     monkeypatch.setattr(policy_eval, "run_policy_episode", run)
     for spec in ("zero", "rev_confused", f"{__name__}:make_policy"):
         with pytest.raises(Stop):
-            sim_cli.eval(spec, episodes=1, videos=False, progress=False)
+            sim.evaluate(spec, episodes=1, videos=False, progress=False)
     assert [h.chunk for h in seen] == [25, 25, CHUNK]
 
 

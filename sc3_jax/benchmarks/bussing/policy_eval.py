@@ -86,8 +86,8 @@ def run_policy_episode(env: BussingEnv, policy, seed: int, task: str = "bussing"
 def evaluate_policy(policy, task: str = "bussing", episodes: int = 36, out: str | Path | None = None,
                     seed0: int = EVAL_SEED0, image_size: tuple[int, int] = (64, 64), videos: bool = True,
                     progress: bool = True) -> dict:
-    """Evaluate ``policy`` (a JaxPolicy or a host policy; ``benchmarks/bussing/cli.py`` resolves names, so the simulator never imports
-    ``policies/resolve.py``, which imports the zoo) on ``episodes`` initial conditions.
+    """Evaluate ``policy`` (a JaxPolicy or a host policy; ``commands/sim.py`` resolves names, so the simulator never
+    imports ``policies/resolve.py``, which imports the zoo) on ``episodes`` initial conditions.
 
     Writes (if ``out``): ``episodes.jsonl`` (per-episode, per-object outcomes), ``summary.json`` (per-criterion
     success rates and outcome distribution), ``videos/ep<seed>_<view>.mp4`` (every view, if ``videos``)."""

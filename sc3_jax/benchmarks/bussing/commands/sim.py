@@ -196,7 +196,8 @@ def _hz(a: Scene) -> int:
 
 
 def _demos(a: Demos) -> int:
-    from sc3_jax.benchmarks.bussing import cli as lib
+    from sc3_jax.benchmarks.bussing.demos import generate_demos
+    from sc3_jax.benchmarks.bussing.expert import ExpertKnobs
 
     if a.policy is not None:
         from sc3_jax.benchmarks.bussing.zoo import ZOO
@@ -204,9 +205,10 @@ def _demos(a: Demos) -> int:
         bussing = sorted(n for n, e in ZOO.items() if e.task == "bussing")
         if a.policy not in bussing:
             raise UserError(f"--policy {a.policy}: not a bussing zoo policy; choose one of {bussing}")
-    res = lib.demos(a.out, a.episodes, a.seed, a.grasp_noise, a.release_noise, a.wrong_destination_prob,
-                    a.action_noise, a.image_size, _hz(a), a.n_objects, policy=a.policy,
-                    allow_swap_all=a.allow_swap_all)
+    knobs = ExpertKnobs(a.grasp_noise, a.release_noise, a.wrong_destination_prob, a.action_noise,
+                        never_swap_all=not a.allow_swap_all)
+    res = generate_demos(a.out, a.episodes, a.seed, knobs, tuple(a.image_size), _hz(a), a.n_objects,
+                         policy=a.policy)
     print(json.dumps(res, indent=1, default=str))
     source = f"zoo policy {a.policy}" if a.policy else "scripted expert"
     print(f"\nwrote {res['written']} {source} episodes to the episode store {res['out']} "
@@ -322,10 +324,23 @@ def _demos_stats(a: DemosStats) -> int:
     return 0
 
 
-def _eval(a: Eval) -> int:
-    from sc3_jax.benchmarks.bussing import cli as lib
+def evaluate(policy: str, task: str = "bussing", episodes: int = 36, out: str | None = None, videos: bool = True,
+             image_size: tuple[int, int] = (64, 64), progress: bool = True) -> dict:
+    """``policy`` (any ``policies/resolve.py`` spelling; here, not in the simulator's modules, which must not import
+    the resolver) evaluated in the simulator: ``policy_eval.evaluate_policy``'s summary."""
+    from sc3_jax.benchmarks.bussing.hooks import named_policy
+    from sc3_jax.benchmarks.bussing.policy_eval import evaluate_policy
+    from sc3_jax.policies.resolve import resolve
+    try:
+        resolved = resolve(policy, named=named_policy)
+    except ValueError as e:  # a misspelt name: the message lists the spellings and the zoo
+        raise UserError(f"--policy: {e}") from None
+    return evaluate_policy(resolved.policy, task, episodes, out, image_size=tuple(image_size), videos=videos,
+                           progress=progress)
 
-    res = lib.eval(a.policy, a.task, a.episodes, a.out, a.videos, a.image_size)
+
+def _eval(a: Eval) -> int:
+    res = evaluate(a.policy, a.task, a.episodes, a.out, a.videos, a.image_size)
     print(json.dumps(res, indent=1, default=str))
     s = res["success"]
     print(f"\n{res['policy']} on {res['task']}: {res['episodes']} episodes (simulator seeds {res['seed0']}-"
