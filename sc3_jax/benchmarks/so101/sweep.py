@@ -7,6 +7,8 @@ floor and a split-half real-vs-real ceiling: ``report_episodes.py``).
     OUT/initial_conditions/   an episode store: per evaluation seed, the frame at the simulator's reset and the frame
                               after one HOLD step (the world model's two context frames) with the 14-D state
     OUT/real.csv              per policy and seed, the simulator's success (``info["succeed"]``) within the horizon
+                              (a policy given by --lerobot-eval: lerobot-eval's, its eval_info.json kept in
+                              OUT/lerobot_eval/NAME/)
     OUT/scorer_check.json     the scorer's verdict on those real episodes' frames against the simulator's
     OUT/real_frames/          per policy and seed, the real frames at the times the report's "objects kept" row
                               reads (measures/permanence.py), so that it compares them with the imagined ones
@@ -30,6 +32,8 @@ import numpy as np
 from sc3_jax.core import atomic
 from sc3_jax.core.errors import UserError
 from sc3_jax.evaluation.world_model_defaults import SamplerSteps
+
+from . import lerobot_outcomes
 
 EVAL_SEED0 = 20_000_000  # as `sc3 so101 zoo-eval`: neither the collection's training nor held-out seeds
 HOLD_STEPS = 1  # one step from the reset gives the world model's second context frame (and opens the gripper)
@@ -56,6 +60,10 @@ class So101SweepConfig(SamplerSteps):
     colour at rest on the goal disc)"""
     policies: tuple[str, ...] = ()
     """the policies, any spelling `sc3 sweep` takes (an SO-101 zoo name, lerobot:PATH, module:attr; none: the zoo)"""
+    lerobot_eval: tuple[str, ...] = ()
+    """NAME=EVAL_INFO: policy NAME's real outcomes read from the real `lerobot-eval --env.type=sc3_so101 --seed=0`
+    (its eval_info.json; episode i is this sweep's condition i) instead of run here; kept as
+    OUT/lerobot_eval/NAME/eval_info.json beside report/ (benchmarks/so101/lerobot_outcomes.py)"""
     episodes: int = 36
     """initial conditions (simulator seeds 20000000+i) per policy"""
     episode_seconds: float | None = None
@@ -92,12 +100,15 @@ def run(cfg: So101SweepConfig) -> Path:
     # a wrong name: one line here, not a traceback from a simulator worker; each name a folder of real_frames/ and
     # rollouts/ (the sweep engine's one resolution)
     engine.resolve_policies(names, named_policy)
+    given = lerobot_real(cfg.lerobot_eval, names, cfg.episodes)  # read and checked before anything runs
     seeds = [EVAL_SEED0 + i for i in range(cfg.episodes)]
     out.mkdir(parents=True, exist_ok=True)
     views, size = tuple(wcfg.data.views), tuple(wcfg.data.image_size)  # the world model's cameras, as it saw them
     write_conditions(out / IC_DIR, seeds, size, views)
     real_outcomes(out, names, seeds, steps, size, views, scorer, cfg.workers, cfg.progress,
-                  wcfg.rollout.control_hz)
+                  wcfg.rollout.control_hz, given={n: done for n, (done, _) in given.items()})
+    for name, (_, info) in given.items():  # once real.csv holds its outcomes (a store's other evaluation: refused)
+        lerobot_outcomes.keep(out, name, info)
     ic_cfg = ic_sweep.ICSweepConfig(
         initial_conditions=str(out / IC_DIR), world_model=cfg.world_model, policies=tuple(names),
         scorer=spec, out=str(out), episodes=cfg.episodes, calibration_episodes=0,
@@ -105,6 +116,21 @@ def run(cfg: So101SweepConfig) -> Path:
         episode_seconds=seconds, taus=(math.inf,), batch=cfg.batch, learned_state=cfg.learned_state,
         progress=cfg.progress)
     return ic_sweep.run(ic_cfg, named=named_policy)
+
+
+def lerobot_real(specs: tuple[str, ...], names: list[str], episodes: int) -> dict[str, tuple[list[bool], dict]]:
+    """``--lerobot-eval NAME=EVAL_INFO`` -> {NAME: (its first ``episodes`` successes, the eval_info)}: NAME one of the
+    sweep's policies (as recorded), each once."""
+    recorded = [_name(n) for n in names]
+    given: dict[str, tuple[list[bool], dict]] = {}
+    for spec in specs:
+        name, path = lerobot_outcomes.parse(spec)
+        if name not in recorded:
+            raise UserError(f"--lerobot-eval {spec}: {name!r} is not one of the sweep's policies {recorded}")
+        if name in given:
+            raise UserError(f"--lerobot-eval {spec}: {name!r} is given twice")
+        given[name] = lerobot_outcomes.successes(path, episodes)
+    return given
 
 
 def write_conditions(root: Path, seeds: list[int], image_size: tuple[int, int], views: tuple[str, ...]) -> None:
@@ -140,9 +166,12 @@ def write_conditions(root: Path, seeds: list[int], image_size: tuple[int, int], 
 
 
 def real_outcomes(out: Path, names: list[str], seeds: list[int], steps: int, image_size: tuple[int, int],
-                  views: tuple[str, ...], scorer, workers: int, progress: bool, hz: float = 10.0) -> None:
+                  views: tuple[str, ...], scorer, workers: int, progress: bool, hz: float = 10.0,
+                  given: dict[str, list[bool]] | None = None) -> None:
     """Append to OUT/real.csv (policy, episode, success) the (policy, seed) episodes it lacks, and the scorer's
-    verdicts on their frames to OUT/scorer_check.json (per policy: agreement of the scorer with the simulator)."""
+    verdicts on their frames to OUT/scorer_check.json (per policy: agreement of the scorer with the simulator).
+    ``given``: policies whose outcomes per seed are known already (``lerobot-eval``'s, ``lerobot_real``), written as
+    they are, without a run here (and so without frames for the scorer check or the report's real frames)."""
     from tqdm import tqdm
 
     from .rollouts import Job, Setup, run_episodes
@@ -153,8 +182,20 @@ def real_outcomes(out: Path, names: list[str], seeds: list[int], steps: int, ima
         with open(path, newline="") as f:
             rows = list(csv.DictReader(f))
     have = {(r["policy"], r["episode"]) for r in rows}
-    jobs = [Job(s, policy=n) for n in names for s in seeds if (_name(n), f"seed{s}") not in have]
+    given = given or {}
+    for n, done in given.items():  # a resumed store keeps what it holds: another evaluation's outcomes are refused
+        held = {r["episode"]: r["success"] for r in rows if r["policy"] == n}
+        if any(held.get(f"seed{s}", str(d).lower()) != str(d).lower() for s, d in zip(seeds, done)):
+            raise UserError(f"--lerobot-eval {n}=...: {path} holds other real outcomes of {n!r}; another "
+                            "evaluation goes in another --out")
+    added = [{"policy": n, "episode": f"seed{s}", "success": str(done[i]).lower()} for n, done in given.items()
+             for i, s in enumerate(seeds) if (n, f"seed{s}") not in have]
+    rows += added
+    jobs = [Job(s, policy=n) for n in names for s in seeds
+            if _name(n) not in given and (_name(n), f"seed{s}") not in have]
     if not jobs:
+        if added:
+            _write_real(path, rows)
         return
     check = atomic.read_json(check_path)["per_policy"] if check_path.is_file() else {}
     setup = Setup(image_size, views, max_steps=steps, record=True, hold=HOLD_STEPS)
@@ -169,13 +210,17 @@ def real_outcomes(out: Path, names: list[str], seeds: list[int], steps: int, ima
             c["n"], c["agree"] = c["n"] + 1, c["agree"] + (said == r.succeeded)
             c["sim_done"], c["scorer_done"] = c["sim_done"] + r.succeeded, c["scorer_done"] + said
     finally:  # what finished is kept (a rerun runs the rest)
-        atomic.write_text(path, "policy,episode,success\n" + "".join(
-            f"{r['policy']},{r['episode']},{r['success']}\n" for r in rows))
+        _write_real(path, rows)
         total = {k: sum(c[k] for c in check.values()) for k in ("agree", "n", "sim_done", "scorer_done")}
         atomic.write_json(check_path, {"per_policy": check, "all": total,
                                        "agreement": total["agree"] / max(total["n"], 1),
                                        "what": "the scorer on the real episodes' frames (the rule it scores imagined "
                                                "rollouts with) against the simulator's success"})
+
+
+def _write_real(path: Path, rows: list[dict]) -> None:
+    atomic.write_text(path, "policy,episode,success\n" + "".join(
+        f"{r['policy']},{r['episode']},{r['success']}\n" for r in rows))
 
 
 def keep_real_frames(out: Path, policy: str, episode: str, frames: np.ndarray, hz: float) -> None:
