@@ -22,11 +22,11 @@ full_protocol_h: the full protocol (13 policies; 36 evaluation + 6 calibration +
 ``--engines OLD [NEW]``: README command 1 (``sc3 sweep bench``, plus any flags after ``--``) end to end, run by the
 code of git revision OLD and by NEW (default HEAD) at the same time (the machine's drift falls on both alike), each
 from a ``git archive`` of its revision into a fresh store, the machine otherwise idle: the wall time of each, their
-ratio, whether their records and report tables agree to the digit, and the share of NEW's wall time its processes
-spent inside the world model's compiled calls (``timing.json``). The one engine (b499b6c) against the bussing
-engine before it:
+ratio, whether their records and report tables agree to the digit, NEW's report tables, and the share of NEW's wall
+time its processes spent inside the world model's compiled calls (``timing.json``); ``--keep DIR`` keeps both
+stores. The one engine (b499b6c) against the bussing engine before it:
 
-    python bench/sweep.py --engines b499b6c^ HEAD     # ~90 min on 2 cores (two sweeps of ~43 min each, at once)
+    python bench/sweep.py --engines b499b6c^ HEAD     # 46 min on 2 cores (both sweeps at once)
     nice python bench/sweep.py --engines b499b6c^ HEAD -- --episodes 2 --calibration-episodes 0 --ceiling-episodes 0
 
 Last line: ``engines: old_s=<s> new_s=<s> new_over_old=<ratio> records_equal=<bool> tables_equal=<bool>
@@ -35,6 +35,7 @@ compiled_share=<share>``.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import functools
 import gzip
 import json
@@ -171,10 +172,11 @@ def tables(store: Path) -> list[str]:
     return [line for line in (store / "report" / "report.md").read_text().splitlines() if line.startswith("|")]
 
 
-def engines(old: str, new: str, flags: list[str]) -> None:
+def engines(old: str, new: str, flags: list[str], keep: str | None = None) -> None:
     """Both revisions' sweeps at the same time, so that the machine's own drift (40% within the hour on the 2-core
     machine, docs/results.md#sweep-cost) falls on both alike."""
-    with tempfile.TemporaryDirectory() as d:
+    kept = contextlib.nullcontext(tempfile.mkdtemp(prefix="engines_", dir=keep)) if keep else None
+    with kept or tempfile.TemporaryDirectory() as d:
         runs = {name: start_revision(rev, Path(d) / name, flags) for name, rev in (("old", old), ("new", new))}
         wall = {}
         while len(wall) < len(runs):
@@ -190,7 +192,7 @@ def engines(old: str, new: str, flags: list[str]) -> None:
         same_tables = tables(old_store) == tables(new_store)
         timing = json.loads((new_store / "timing.json").read_text())
         share = timing.get("share_in_world_model_calls", float("nan"))
-        for line in tables(new_store)[:8]:
+        for line in tables(new_store):
             print(line)
     print(f"| engine | revision | wall s (both at once) |\n|---|---|---|\n| old | {old} | {wall['old']:.0f} |\n"
           f"| new | {new} | {wall['new']:.0f} |")
@@ -208,13 +210,15 @@ def main(argv=None) -> None:
     ap.add_argument("--batch", type=int, default=6)
     ap.add_argument("--engines", nargs="+", metavar="REV", help="OLD [NEW]: README command 1 by two revisions' "
                     "code; flags after -- go to sc3 sweep bench")
+    ap.add_argument("--keep", metavar="DIR", help="with --engines: keep both stores (and their logs) in a new "
+                    "folder under DIR")
     argv = sys.argv[1:] if argv is None else list(argv)
     flags = argv[argv.index("--") + 1:] if "--" in argv else []
     a = ap.parse_args(argv[:argv.index("--")] if "--" in argv else argv)
     if a.engines:
         if len(a.engines) > 2:
             ap.error("--engines takes OLD [NEW]")
-        return engines(a.engines[0], a.engines[1] if len(a.engines) == 2 else "HEAD", flags)
+        return engines(a.engines[0], a.engines[1] if len(a.engines) == 2 else "HEAD", flags, a.keep)
     import sc3_jax.benchmarks.bussing  # noqa: F401  (picks the GL backend before mujoco is imported)
     from sc3_jax.evaluation.engine import default_workers
     from sc3_jax.benchmarks.bussing.sweep import SweepConfig

@@ -165,12 +165,15 @@ def test_records_and_what_the_scorer_sees(swept):
 
 def test_the_time_inside_the_world_models_compiled_calls_is_a_share_of_the_sweep(swept):
     """timing.json: the seconds spent inside the jitted rollout programs (here served policies act between chunk
-    steps, in this process), a part of the sweep's wall time and not all of it."""
+    steps, in this process), a part of the sweep's wall time and not all of it; and the library versions and CPU
+    the run's numerics depend on."""
     timing = json.loads((swept[3] / "timing.json").read_text())
     assert timing["model_workers"] == 1
     assert 0 < timing["seconds_in_world_model_calls"] < timing["seconds_last_run"]
     assert timing["share_in_world_model_calls"] == pytest.approx(
         timing["seconds_in_world_model_calls"] / timing["seconds_last_run"])
+    import jax
+    assert timing["environment"]["jax"] == jax.__version__ and timing["environment"]["cpu"]  # what numerics move with
 
 def test_the_served_policy_gets_openpi_aloha_observations(swept, aloha):
     """What crossed the wire: per condition and chunk one request of openpi's ALOHA layout -- the 4 cameras by

@@ -417,6 +417,27 @@ def run_jobs(jobs: list[Job], setup: Setup, workers: int, runner: Callable[[], R
             yield job, recs
 
 
+def environment() -> dict:
+    """What a run's numbers depend on besides the code and the inputs: the numeric libraries' versions and the CPU.
+    XLA's CPU numerics move with both in the last digits, and a simulator's contacts can amplify them into another
+    trajectory, so two machines' records may differ where one machine's never do."""
+    import importlib.metadata
+    import platform
+    out = {}
+    for dist in ("jax", "jaxlib", "numpy", "mujoco"):
+        try:
+            out[dist] = importlib.metadata.version(dist)
+        except importlib.metadata.PackageNotFoundError:
+            pass
+    cpu = platform.processor() or platform.machine()
+    try:
+        with open("/proc/cpuinfo") as f:
+            cpu = next((line.split(":", 1)[1].strip() for line in f if line.startswith("model name")), cpu)
+    except OSError:  # not Linux
+        pass
+    return {**out, "python": platform.python_version(), "cpu": cpu}
+
+
 def default_workers() -> int:
     """One worker per core this process may use."""
     import os
@@ -493,7 +514,7 @@ def run(setup: Setup, config: dict, policies: list[Policy], units: list[Unit], *
             # summed over the processes that ran the world model; the share is of their wall time together
             "seconds_in_world_model_calls": compiled,
             "share_in_world_model_calls": compiled / (model_workers * wall) if wall > 0 else 0.0,
-            "devices": [str(d) for d in jax.local_devices()]})
+            "devices": [str(d) for d in jax.local_devices()], "environment": environment()})
         return store.root
     finally:
         store.close()  # the lock: another sweep may take the store
