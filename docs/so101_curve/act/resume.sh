@@ -6,7 +6,7 @@ export HF_HUB_OFFLINE=1 WANDB_MODE=disabled MUJOCO_GL=egl
 B=~/sc3-runs/venv312/bin
 OUT=~/sc3-runs/act/so101_act
 echo "act resume start $(date)"
-/usr/bin/time -f "WALL %e s" $B/lerobot-train \
+/usr/bin/time -f "WALL %e s" nice -n ${NICE:-0} $B/lerobot-train \
   --config_path=$OUT/checkpoints/last/pretrained_model/train_config.json --resume=true \
   --steps=$1 --save_freq=1000 > ~/sc3-runs/act/so101_act_resume.log 2>&1
 echo "act resume done $(date)"
