@@ -111,3 +111,16 @@ def test_given_outcomes_are_written_without_a_run_and_another_evaluation_is_refu
     assert (tmp_path / sweep.REAL_FILE).read_text().count("\n") == 4
     with pytest.raises(UserError, match="holds other real outcomes of 'act'"):
         sweep.real_outcomes(*args, given={"act": [True, True, True]})
+
+
+def test_a_sweep_whose_real_outcomes_all_came_from_lerobot_eval_is_described_without_a_scorer_check(tmp_path):
+    # every policy given by --lerobot-eval: no real episode ran, so no scorer_check.json (the sweep ended in a raw
+    # "No such file" after its rollouts)
+    from sc3_jax.benchmarks.so101.benchmark import describe_sweep
+    from sc3_jax.benchmarks.so101.sweep import CHECK_FILE, So101SweepConfig
+
+    cfg = So101SweepConfig(world_model="WM", out=str(tmp_path), scorer="pkg.mod:attr", episodes=3)
+    lines = describe_sweep(cfg, tmp_path)
+    assert "3 simulator seeds" in lines[0] and "not checked against the simulator" in lines[1]
+    (tmp_path / CHECK_FILE).write_text(json.dumps({"agreement": 0.75, "all": {"n": 4}}))
+    assert describe_sweep(cfg, tmp_path)[1].endswith("agrees with the simulator on 0.75 of 4")

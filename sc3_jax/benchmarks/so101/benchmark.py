@@ -24,11 +24,13 @@ def describe_sweep(cfg: So101SweepConfig, out: Path) -> list[str]:
     from sc3_jax.core.atomic import read_json
 
     from .sweep import CHECK_FILE
-    c = read_json(out / CHECK_FILE)
     what = f"the detector {cfg.detector}" if cfg.detector else f"the scorer {cfg.scorer}"
-    return [f"SO-101: {cfg.episodes} simulator seeds per policy, real in the simulator, imagined inside "
-            f"{cfg.world_model}, scored by {what}",
-            f"{what} on the real episodes agrees with the simulator on {c['agreement']:.2f} of {c['all']['n']}"]
+    lines = [f"SO-101: {cfg.episodes} simulator seeds per policy, real in the simulator, imagined inside "
+             f"{cfg.world_model}, scored by {what}"]
+    if not (out / CHECK_FILE).is_file():  # every policy's real outcomes came from lerobot-eval: no real frames here
+        return lines + [f"{what} was not checked against the simulator: no real episode ran here (--lerobot-eval)"]
+    c = read_json(out / CHECK_FILE)
+    return lines + [f"{what} on the real episodes agrees with the simulator on {c['agreement']:.2f} of {c['all']['n']}"]
 
 
 BENCHMARK = Benchmark(name="so101", sweep_config=So101SweepConfig, run_sweep=run_sweep, describe_sweep=describe_sweep,
