@@ -175,6 +175,17 @@ def test_the_time_inside_the_world_models_compiled_calls_is_a_share_of_the_sweep
     import jax
     assert timing["environment"]["jax"] == jax.__version__ and timing["environment"]["cpu"]  # what numerics move with
 
+def test_the_sweep_writes_each_policys_rates_in_lerobot_evals_shape_beside_its_report(swept):
+    """OUT/report/eval_info/online/<policy>/eval_info.json: the evaluation block's success with its Wilson interval,
+    as lerobot-eval's eval_info.json (the sweep writes them as `sc3 report` does)."""
+    out = swept[3]
+    files = sorted((out / "report" / "eval_info" / "online").glob("*/eval_info.json"))
+    assert [f.parent.name for f in files] == sorted(REAL)
+    info = json.loads((out / "report" / "eval_info" / "online" / "reach" / "eval_info.json").read_text())
+    assert info["overall"]["n_episodes"] == 2 and info["overall"]["pc_success"] == 100.0  # reach succeeds twice
+    assert info["overall"]["pc_success_ci95"][1] == 100.0 and info["overall"]["pc_success_ci95"][0] < 100.0
+
+
 def test_the_served_policy_gets_openpi_aloha_observations(swept, aloha):
     """What crossed the wire: per condition and chunk one request of openpi's ALOHA layout -- the 4 cameras by
     name, each the model's view of that name letterboxed to 224x224 CHW uint8, the 14-D state, the episode's own

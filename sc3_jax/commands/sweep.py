@@ -68,8 +68,20 @@ def sweep(name: str, cfg) -> int:
         print("\n".join(bm.describe_sweep(cfg, out)))
     print("\n".join(report.closing_lines(t)))
     also = ["report.html", "report.json"] + ["correlation.png"] * (out / "report" / "correlation.png").exists()
-    print(f"report: {md} (and {', '.join(also)})")
+    print(f"report: {md} (and {', '.join(also)}{_eval_infos(out)})")
     return 0
+
+
+def _eval_infos(out: Path) -> str:
+    """OUT/report/eval_info/<mode>/<policy>/eval_info.json in lerobot-eval's shape, as `sc3 report` writes them, so a
+    lab's dashboards read every sweep; what the report line says of them."""
+    from sc3_jax.evaluation import eval_info
+
+    try:
+        n = len(eval_info.write(out))
+    except UserError as e:  # the report is written; only LeRobot's shape of it is missing
+        return f"; no eval_info.json: {e}"
+    return f"; {n} eval_info.json in lerobot-eval's shape under {out / 'report' / 'eval_info'}"
 
 
 def episodes(cfg: ICSweepConfig) -> int:
@@ -88,7 +100,7 @@ def episodes(cfg: ICSweepConfig) -> int:
         print("openpi policy servers (ws://) and the observation mapping each speaks: "
               + ", ".join(f"{n} ({fam})" for n, (fam, _) in served.items()))
     print("\n".join(report.closing_lines(t)))
-    print(f"report: {md} (and report.html, report.json)")
+    print(f"report: {md} (and report.html, report.json{_eval_infos(out)})")
     return 0
 
 
