@@ -1,6 +1,7 @@
 """Train-step throughput as a fraction of what this machine's plain jitted matmul reaches, measured side by side.
 
     python bench/train_step.py [--configs tiny cpu_medium] [--rounds 3]
+    python bench/train_step.py --run RUN [--steps 20]    # a real run (the SO-101 trunk): bench/train_step_run.py
 
 FLOPs per step come from XLA's cost analysis of the compiled step with the layer scan unrolled (the cost analysis
 counts a loop body once, which would undercount a depth-L model by ~L x); the timed step is the config as it trains
@@ -10,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import statistics
+import sys
 import time
 
 import jax
@@ -75,6 +77,10 @@ class StepBench:
 
 
 def main():
+    if "--run" in sys.argv:  # a real run's step, data and loop: its own bench
+        import train_step_run
+        sys.argv.remove("--run")
+        return train_step_run.main()
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--configs", nargs="+", default=["tiny", "cpu_medium"])
     ap.add_argument("--rounds", type=int, default=3)

@@ -36,7 +36,8 @@ def _benchmarks_commands() -> dict[str, str]:
 CORE = {"demo": "demo", "train": "train", "train-tokenizer": "train_tokenizer", "train-state": "train_state",
         "train-detector": "train_detector", "diagnose": "diagnose", "diagnose-table": "diagnose_table",
         "rollout": "rollout", "sweep": "sweep", "report": "report", "check-scorer": "check_scorer", "curve": "curve",
-        "data": "data", "serve-policy": "serve_policy", "configs": "configs", "convert": "convert", "plan": "plan"}
+        "data": "data", "serve-policy": "serve_policy", "configs": "configs", "convert": "convert", "plan": "plan",
+        "trunk": "trunk"}
 # every command -> its module: the core's, then the benchmarks' own
 MODULES = {**{name: f"sc3_jax.commands.{m}" for name, m in CORE.items()}, **_benchmarks_commands()}
 COMMANDS = {name: _command(m) for name, m in MODULES.items()}

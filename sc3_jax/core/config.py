@@ -303,10 +303,21 @@ class TrainConfig:
     steps: int = 2000
     """optimizer steps to train to (a resumed run continues up to this; the learning-rate schedule follows it)"""
     lr: float = 1e-4
-    """peak learning rate: linear warm-up from 0, then cosine decay to 0 at train.steps"""
+    """peak learning rate: linear warm-up from 0, then (train.schedule) a cosine to 0 at train.steps, or held"""
     warmup_steps: int | None = None
     """steps of linear learning-rate warm-up (None: a thirtieth of train.steps, at most 100); the rate then decays to 0 at
     train.steps, and a warm-up as long as the run is refused"""
+    schedule: str = "cosine"
+    """"cosine": warm up, then a cosine to 0 at train.steps (a run of known length). "wsd": warm up once, hold the
+    peak (a trunk that can go on for weeks: train.steps only says where this stretch stops), and decay to 0 only from
+    train.decay_start (a branch, `sc3 branch`: the copy that is measured and shipped)"""
+    decay_start: int | None = None
+    """schedule "wsd": the step its decay to 0 at train.steps begins (1 - sqrt, Haegele et al. 2024); None: no decay
+    (the trunk holds the peak)"""
+    resume_from: str | None = None
+    """continue a run from its travelling state (an export with trunk_state.npz: `sc3 branch`, `scripts/trunk.sh`):
+    params, optimizer moments, step, rng and data order, as the unbroken run would go on; its config must match this
+    one but for what a resume may change. Ignored once this run has a checkpoint of its own (resume wins)"""
     weight_decay: float = 0.05
     """AdamW weight decay, on weight matrices only (not on norms, biases or embeddings)"""
     b1: float = 0.9

@@ -336,28 +336,30 @@ INT8_MIN_SIZE = 4096  # smaller arrays (norms, biases, embeddings of a few rows)
 
 def export(workdir: str | Path, out: str | Path, dtype=np.float16) -> Path:
     """Write a run's latest params (as ``dtype``), config and norm stats to ``out`` -- small enough to commit -- and
-    its learned robot state (``state_head.npz``) where it has one."""
+    its learned robot state (``state_head.npz``) and lineage (``lineage.json``) where it has them."""
     cfg, stats, params = load(workdir)
     try:  # a run whose config.json predates its robot facts: recorded from its store while that is here
         cfg = with_robot(cfg, _recorded_robot(Path(workdir), cfg))
     except UserError:
         pass  # not here either: exported as it is (read_robot then names the field to add)
     out = save(out, cfg, stats, params, dtype)
-    head = Path(workdir) / "state_head.npz"
-    if head.exists():
-        with atomic.replacing(out / head.name) as tmp:
-            shutil.copyfile(head, tmp)
+    for name in ("state_head.npz", "lineage.json"):  # its learned robot state; its compute since initialisation
+        src = Path(workdir) / name
+        if src.exists():
+            with atomic.replacing(out / name) as tmp:
+                shutil.copyfile(src, tmp)
     return out
 
 
-def save(out: str | Path, cfg: Config, stats: NormStats, params, dtype=np.float16) -> Path:
+def save(out: str | Path, cfg: Config, stats: NormStats, params, dtype=np.float16, extra=None) -> Path:
     """An exported world model at ``out``, written as one (``atomic.replacing_dir``): a reader, a failure or a kill
     sees the previous model or this one whole, never one's params with the other's config; files another tool put
     in ``out`` (``diagnose.json``, ``state_reader.npz``) stay. A learned tokenizer (``conv_ae``) travels with the
     model: copied to ``out/tokenizer`` (float32: a few MB) and referred to by that relative path, which
     :func:`read_config` resolves against the model directory. ``dtype="int8"`` stores every matrix as int8 with a
     float16 scale per output channel (:func:`quantize_int8`) and the rest as float16: half the bytes, for models
-    that must fit a repository."""
+    that must fit a repository. ``extra(tmp)``: writes more files into the new directory before it takes ``out``'s
+    place."""
     out = Path(out)
     int8 = isinstance(dtype, str) and dtype == "int8"
     arrays = {}
@@ -374,6 +376,8 @@ def save(out: str | Path, cfg: Config, stats: NormStats, params, dtype=np.float1
         atomic.save_npz(tmp / "params.npz", **arrays)
         atomic.write_json(tmp / "config.json", dataclasses.asdict(cfg))
         stats.save(tmp / "norm_stats.json")
+        if extra is not None:  # more files of the same model (a trunk's optimizer state), in the same one step
+            extra(tmp)
     return out
 
 

@@ -19,6 +19,7 @@ import orbax.checkpoint as ocp
 
 from sc3_jax.core import atomic, locks
 from sc3_jax.model import checkpoint, flow, sharding
+from sc3_jax.train import lineage
 from sc3_jax.train.distill import WithTeacher, check_teacher_stats, load_teacher, teacher_config
 from sc3_jax.core.config import Config, config_from_dict
 from sc3_jax.core.errors import UserError
@@ -32,22 +33,59 @@ from sc3_jax.core.validate import check_host_memory
 # ================================================================================================================
 def warmup_of(t) -> int:
     """The run's warm-up steps: ``train.warmup_steps``, or (None) a thirtieth of the run, at most 100 (none under 30
-    steps: a smoke run of 1 step still updates)."""
-    return min(100, t.steps // 30) if t.warmup_steps is None else int(t.warmup_steps)
+    steps: a smoke run of 1 step still updates); a WSD run's, 100."""
+    if t.warmup_steps is not None:
+        return int(t.warmup_steps)
+    return WSD_WARMUP if t.schedule == "wsd" else min(100, t.steps // 30)
+
+
+WSD_WARMUP = 100  # a WSD run's default warm-up: fixed, not a share of train.steps (which grows as a trunk goes on)
 
 
 def lr_schedule(t) -> optax.Schedule:
-    """Linear warm-up from 0 to ``t.lr``, then a cosine to 0 *at* ``t.steps``, whatever the warm-up: the last steps
-    are where a short run gains most, so none ends mid-decay (``decay_steps <= warmup + 1`` in optax's schedule rises
-    for the whole run and never decays -- a run must be longer than its warm-up, ``check_schedule``)."""
-    warmup = warmup_of(t)
+    """``train.schedule`` "cosine": linear warm-up from 0 to ``t.lr``, then a cosine to 0 *at* ``t.steps``, whatever
+    the warm-up: the last steps are where a short run gains most, so none ends mid-decay (``decay_steps <= warmup + 1``
+    in optax's schedule rises for the whole run and never decays -- a run must be longer than its warm-up,
+    ``check_schedule``). "wsd": :func:`wsd_schedule`."""
     check_schedule(t)
-    return optax.warmup_cosine_decay_schedule(0.0, t.lr, warmup, t.steps, end_value=0.0)
+    if t.schedule == "wsd":
+        return wsd_schedule(t.lr, warmup_of(t), t.decay_start, t.steps)
+    return optax.warmup_cosine_decay_schedule(0.0, t.lr, warmup_of(t), t.steps, end_value=0.0)
+
+
+def wsd_schedule(peak: float, warmup: int, decay_start: int | None, end: int) -> optax.Schedule:
+    """Warm-up / stable / decay (Haegele et al. 2024): linear warm-up to ``peak`` over ``warmup`` steps, then the peak
+    held; with ``decay_start`` the rate falls from there to 0 at ``end`` as 1 - sqrt of the decay's progress (their
+    best cooldown). Held, the schedule does not depend on ``end``: a trunk resumed with more steps draws the same
+    rates, which is what lets it run for weeks and be branched at any step."""
+    def rate(step):
+        step = jnp.asarray(step, jnp.float32)
+        warm = peak * jnp.minimum(1.0, step / warmup) if warmup > 0 else jnp.float32(peak)
+        if decay_start is None:
+            return warm
+        progress = jnp.clip((step - decay_start) / max(1, end - decay_start), 0.0, 1.0)
+        return warm * (1.0 - jnp.sqrt(progress))
+    return rate
+
+
+SCHEDULES = ("cosine", "wsd")
 
 
 def check_schedule(t) -> None:
-    """One line for a run whose warm-up would swallow it (the rate would rise until the last step)."""
+    """One line for a schedule that cannot run: a warm-up that would swallow a cosine run (the rate would rise until
+    the last step), an unknown schedule, a WSD run without a peak to hold, a decay outside the run."""
+    if t.schedule not in SCHEDULES:
+        raise UserError(f"train.schedule {t.schedule!r}: expected one of {', '.join(SCHEDULES)}")
     warmup = warmup_of(t)
+    if t.schedule == "wsd":
+        if not (isinstance(t.lr, (int, float)) and 0 < t.lr < float("inf")):
+            raise UserError(f"train.schedule wsd holds a peak rate: train.lr {t.lr!r} must be a number > 0")
+        if t.decay_start is not None and not warmup <= t.decay_start <= t.steps:
+            raise UserError(f"train.decay_start {t.decay_start} must lie between the warm-up's end ({warmup}) and "
+                            f"train.steps ({t.steps}): the decay runs from there to 0 at train.steps")
+        return
+    if t.decay_start is not None:
+        raise UserError("train.decay_start is the decay of a WSD run: add --train.schedule wsd, or drop it")
     if warmup >= t.steps:
         raise UserError(f"train.warmup_steps {warmup} >= train.steps {t.steps}: the learning rate would rise for the "
                         f"whole run and never decay; use fewer warm-up steps (e.g. --train.warmup-steps "
@@ -55,7 +93,7 @@ def check_schedule(t) -> None:
 
 
 def make_optimizer(cfg: Config) -> optax.GradientTransformation:
-    """AdamW (paper defaults) with linear warm-up then cosine decay, global-norm clipping; weight decay on weight
+    """AdamW (paper defaults) with ``train.schedule``'s rates, global-norm clipping; weight decay on weight
     matrices only (``dit.decay_mask``: not on norms, biases or embeddings, whatever their stacking)."""
     t = cfg.train
     schedule = lr_schedule(t)
@@ -342,6 +380,10 @@ def prepare_data(cfg: Config):
     src_stats = Path(cfg.train.init_from) / "norm_stats.json" if cfg.train.init_from else None
     if stats_path.exists():
         stats = NormStats.load(stats_path)
+    elif cfg.train.resume_from:  # the resumed run's own statistics, as they were
+        stats = NormStats.load(Path(cfg.train.resume_from) / "norm_stats.json")
+        if jax.process_index() == 0:
+            stats.save(stats_path)
     elif src_stats is not None and src_stats.exists():
         # a fine-tuned model must read actions in the units its params learned, not in this dataset's
         stats = reconditioned(NormStats.load(src_stats), store)
@@ -396,21 +438,38 @@ def check_workdir(cfg: Config) -> None:
     """Refuse, before anything is written, to resume a workdir trained with another config: its checkpoints,
     norm stats and latents belong to the config in its ``config.json``."""
     path = Path(cfg.train.workdir) / "config.json"
-    if not path.exists():
-        return
+    if path.exists():
+        diff = config_changes(config_from_dict(atomic.read_json(path, "restore it from a copy")), cfg)
+        if diff:
+            raise UserError(f"{path.parent} holds a run with another config (changed: {'; '.join(diff)}): resume it "
+                            "with its own settings, or use another --train.workdir")
+    if cfg.train.resume_from and not path.exists():
+        from sc3_jax.train import trunk_state
+        src = Path(cfg.train.resume_from)
+        trunk_state.read_meta(src)
+        diff = config_changes(checkpoint.read_config(src, what="resume_from "), cfg, also=BRANCHABLE)
+        if diff:
+            raise UserError(f"train.resume_from {src} is a run with another config (changed: {'; '.join(diff)}): "
+                            "resume it with its own settings (its config.json)")
 
+
+# What a run resumed from a travelling state may change besides RESUMABLE: where it starts from, its decay (a
+# branch), and the tokenizer's path (a model directory refers to its own copy)
+BRANCHABLE = ("train.resume_from", "train.init_from", "train.decay_start", "model.tokenizer_path", "data.path",
+              "data.fps", "data.state_dim")
+
+
+def config_changes(old_cfg: Config, cfg: Config, also: tuple[str, ...] = ()) -> list[str]:
+    """The fields ``cfg`` changes from ``old_cfg`` that a resumed run may not change."""
     def flat(d, prefix=""):
         for k, v in d.items():
             yield from flat(v, f"{prefix}{k}.") if isinstance(v, dict) else [(prefix + k, v)]
     # through JSON both ways: tuples and lists compare equal; fields added since the run was written take defaults
-    old, new = (dict(flat(json.loads(json.dumps(dataclasses.asdict(c))))) for c in
-                (config_from_dict(atomic.read_json(path, "restore it from a copy")), cfg))
-    diff = [f"{k} {old.get(k)!r} -> {new.get(k)!r}" for k in sorted(old.keys() | new.keys())
-            if old.get(k) != new.get(k) and not (k.startswith(RESUMABLE) and not _sets_windows(k, old, new)
+    old, new = (dict(flat(json.loads(json.dumps(dataclasses.asdict(c))))) for c in (old_cfg, cfg))
+    free = RESUMABLE + also
+    return [f"{k} {old.get(k)!r} -> {new.get(k)!r}" for k in sorted(old.keys() | new.keys())
+            if old.get(k) != new.get(k) and not (k.startswith(free) and not _sets_windows(k, old, new)
                                                  and not _distills_with(k, old, new))]
-    if diff:
-        raise UserError(f"{path.parent} holds a run with another config (changed: {'; '.join(diff)}): resume it "
-                        "with its own settings, or use another --train.workdir")
 
 
 def _sets_windows(key: str, old: dict, new: dict) -> bool:
@@ -506,10 +565,16 @@ def _steps(cfg: Config, workdir: Path, mesh, stop_at: int | None):
     if mngr.latest_step() is not None:
         state, data_state = restore(mngr, cfg, mesh)
         data_iter.set_state(data_state["iterator"])
+    elif cfg.train.resume_from:
+        from sc3_jax.train import trunk_state
+        state, data_state = trunk_state.read(cfg.train.resume_from, cfg, state_shardings(cfg, mesh)[1])
+        data_iter.set_state(data_state["iterator"])
     else:
         state = create_state(cfg, mesh)
     start = int(state["step"])
     log = MetricsLog(workdir, cfg.train.tensorboard, resumed_at=start)
+    lin = _begin_lineage(cfg, workdir, start)
+    clock = lineage.StepClock(time.monotonic())
     stop = _PreemptionFlag()
     end = cfg.train.steps if stop_at is None else min(stop_at, cfg.train.steps)
     pending: list[tuple[int, dict]] = []
@@ -535,7 +600,11 @@ def _steps(cfg: Config, workdir: Path, mesh, stop_at: int | None):
                 bar.set_postfix(loss=f"{last['loss']:.4f}", steps_s=f"{rate:.2f}")
         if bar is not None:
             bar.update(1)
-        save(mngr, step + 1, state, {"iterator": data_iter.get_state()}, force=done or preempted)
+        clock.tick(time.monotonic())
+        if save(mngr, step + 1, state, {"iterator": data_iter.get_state()}, force=done or preempted):
+            lin = lineage.advance(lin, step + 1, clock.wall_s(time.monotonic()), clock.train_s)
+            if jax.process_index() == 0:  # the lineage says no more than the checkpoints hold
+                atomic.write_json(workdir / lineage.FILE, lin)
         yield last
         if preempted:
             break
@@ -546,6 +615,16 @@ def _steps(cfg: Config, workdir: Path, mesh, stop_at: int | None):
     if bar is not None:
         bar.close()
     yield last
+
+
+def _begin_lineage(cfg: Config, workdir: Path, start: int) -> dict:
+    """This stretch's lineage: the workdir's own (a resumed run), else the travelling state's or the init model's it
+    continues, else a fresh model's."""
+    own = lineage.read(workdir)
+    if own is not None:
+        return lineage.begin(own, cfg, workdir.name, start)
+    src = cfg.train.resume_from or cfg.train.init_from
+    return lineage.begin(lineage.read(src), cfg, workdir.name, start, origin=Path(src).name if src else None)
 
 
 def _model_batch(batch: dict, cfg: Config) -> dict:
