@@ -4,7 +4,7 @@
 # travelling state before the session ends.
 #
 #   scripts/trunk.sh start       resume the trunk detached (its workdir; else the committed state; else v7), on a
-#                                frozen copy of the code outside the tree; collects the SO-101 store first if absent
+#                                frozen copy of HEAD's code outside the tree; collects the SO-101 store first if absent
 #   scripts/trunk.sh status      running or paused, its step, windows trained since started, steps/s
 #   scripts/trunk.sh pause|continue   SIGSTOP / SIGCONT (scripts/with_trunk_paused CMD does both around CMD)
 #   scripts/trunk.sh stop        SIGTERM: it saves a checkpoint at its next step and exits
@@ -32,11 +32,14 @@ case "${1:-status}" in
 start)
   if running; then echo "the trunk is already running (pid $(cat "$PIDFILE")): $LOG"; exit 0; fi
   mkdir -p "$SO"
-  # a frozen copy of the code: editing the tree while the trunk trains changes nothing it runs
-  COMMIT="$(git -C "$REPO" rev-parse --short=12 HEAD)$(git -C "$REPO" diff --quiet HEAD -- sc3_jax configs || echo +dirty)"
+  # a frozen copy of the committed code (HEAD; uncommitted edits are not run): editing the tree while the trunk
+  # trains changes nothing it runs, and its lineage names a commit anyone can check out
+  COMMIT="$(git -C "$REPO" rev-parse --short=12 HEAD)"
   CODE=$RUNS/code/$COMMIT
   if [ ! -d "$CODE/sc3_jax" ]; then
-    mkdir -p "$CODE.tmp" && cp -r "$REPO/sc3_jax" "$CODE.tmp/" && cp -r "$REPO/configs" "$CODE.tmp/sc3_jax/configs"
+    rm -rf "$CODE.tmp" && mkdir -p "$CODE.tmp"
+    git -C "$REPO" archive HEAD sc3_jax configs | tar -x -C "$CODE.tmp"
+    mv "$CODE.tmp/configs" "$CODE.tmp/sc3_jax/configs"  # where an installed package keeps them
     rm -rf "$CODE" && mv "$CODE.tmp" "$CODE"
   fi
   if [ -f "$WORK/config.json" ]; then ORIGIN=(); WHAT="resumed from its workdir"
