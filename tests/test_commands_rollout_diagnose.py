@@ -134,12 +134,11 @@ def test_a_world_model_without_a_config_is_a_one_line_error(command, tmp_path, c
     ("diagnose", ["--world-model", "wm", "--data", "h", "--episodes", "4", "--cf-starts", "1", "--out", "r.json",
                   "--seed", "1", "--max-seconds", "4", "--batch", "2", "--moving-threshold", "0.1", "--horizons", "0.8",
                   "2", "--perception", "p.npz", "--no-progress", "--sample-steps", "8", "--cf-fraction", "0.25",
-                  "--carry-px", "2"],
+                  "--carry-px", "2", "--against", "wm2", "--stages", "open_loop", "dense"],
      dict(sample_steps=8, inverse_steps=1, world_model="wm", data="h", episodes=4, cf_starts=1, out="r.json",
-          cf_fraction=0.25, carry_px=2.0,
+          cf_fraction=0.25, carry_px=2.0, against="wm2",
           filmstrips=None, seed=1, max_seconds=4.0, batch=2, moving_threshold=0.1, horizons=(0.8, 2.0),
-          perception="p.npz", progress=False, benchmark="none",
-          stages=("teacher_forced", "counterfactual", "open_loop"))),
+          perception="p.npz", progress=False, benchmark="none", stages=("open_loop", "dense"))),
 ])
 def test_the_options_parse_into_their_fields(command, argv, expected):
     assert dataclasses.asdict(parse(COMMANDS[command].Args, argv, command)) == expected

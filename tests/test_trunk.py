@@ -88,7 +88,7 @@ def unbroken(data, tmp_path_factory):
 def test_a_run_resumed_from_its_travelling_state_goes_on_as_the_unbroken_run(data, unbroken, tmp_path, moments, rel):
     first = tmp_path / "first"
     train(_cfg(data, first, 8))  # stopped at step 8 (a session's end)
-    state = trunk_state.save_run(first, tmp_path / "state", moments)
+    state = branch.save_run(first, tmp_path / "state", moments)
     meta = trunk_state.read_meta(state)
     assert meta["step"] == 8 and meta["moments"] == moments
     # a new machine: another directory, the state only
@@ -100,8 +100,8 @@ def test_a_run_resumed_from_its_travelling_state_goes_on_as_the_unbroken_run(dat
         assert b[s]["loss"] == pytest.approx(a[s]["loss"], rel=rel), s
         assert b[s]["lr"] == pytest.approx(a[s]["lr"], rel=1e-6)
     # the same windows: the data iterator's position after step 12 is the unbroken run's
-    end_a = trunk_state.read_meta(trunk_state.save_run(unbroken, tmp_path / "end_a", moments))
-    end_b = trunk_state.read_meta(trunk_state.save_run(second, tmp_path / "end_b", moments))
+    end_a = trunk_state.read_meta(branch.save_run(unbroken, tmp_path / "end_a", moments))
+    end_b = trunk_state.read_meta(branch.save_run(second, tmp_path / "end_b", moments))
     assert end_a["data"] == end_b["data"] and end_a["step"] == end_b["step"] == 12
 
 
@@ -110,7 +110,7 @@ def test_the_lineage_is_carried_by_a_resumed_run_and_by_a_branch(data, unbroken,
     assert lin["windows"] == 12 * 8 and len(lin["stretches"]) == 1
     assert lin["stretches"][0]["to_step"] == 12 and lin["stretches"][0]["schedule"] == "wsd"
     assert lin["stretches"][0]["commit"] and lin["stretches"][0]["wall_s"] > 0
-    state = trunk_state.save_run(unbroken, tmp_path / "state")
+    state = branch.save_run(unbroken, tmp_path / "state")
     assert lineage.read(state) == lin
     resumed = tmp_path / "resumed"
     train(_cfg(data, resumed, 16, resume_from=str(state)))
@@ -130,7 +130,7 @@ def test_the_lineage_is_carried_by_a_resumed_run_and_by_a_branch(data, unbroken,
 
 
 def test_a_travelling_state_whose_params_were_exported_over_is_refused(data, unbroken, tmp_path):
-    state = trunk_state.save_run(unbroken, tmp_path / "state")
+    state = branch.save_run(unbroken, tmp_path / "state")
     with np.load(state / "params.npz") as z:
         arrays = {k: z[k] for k in z.files}
     k = sorted(arrays)[0]
@@ -141,7 +141,7 @@ def test_a_travelling_state_whose_params_were_exported_over_is_refused(data, unb
 
 
 def test_a_resume_with_another_config_is_refused_naming_the_field(data, unbroken, tmp_path):
-    state = trunk_state.save_run(unbroken, tmp_path / "state")
+    state = branch.save_run(unbroken, tmp_path / "state")
     cfg = _cfg(data, tmp_path / "other", 20, resume_from=str(state))
     cfg = dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, lr=2 * LR))
     with pytest.raises(UserError, match="train.lr"):

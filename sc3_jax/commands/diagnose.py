@@ -28,6 +28,11 @@ class Args(SamplerSteps):
     """a `sc3 train` workdir or an exported world model"""
     data: str
     """held-out episode store"""
+    against: str | None = None
+    """a second world model of the same robot (cameras, image size, frame rate, control rate, actions): both are
+    diagnosed on the same episodes, the dense probe on the same windows with the same noise (its stage is added), and
+    the table is the paired comparison, A (--world-model) - B (this) with 95% intervals over episodes; --out: both
+    results and the comparison"""
     episodes: int | None = D.episodes
     """N episodes evenly spaced over the store (None: all)"""
     cf_starts: int = D.cf_starts
@@ -64,8 +69,9 @@ class Args(SamplerSteps):
     rule, no outcome scorer, no objects kept), since a model of any robot can be diagnosed"""
     stages: tuple[Stage, ...] = D.stages
     """the passes to run: teacher_forced (one chunk ahead, shuffled actions, inverse dynamics), counterfactual,
-    open_loop (drift and outcome reproduction); the others' sections and gates read "not run". --stages open_loop:
-    a large outcome set at the cost of its open-loop rollouts alone"""
+    open_loop (drift and outcome reproduction), dense (not by default: the object 0.5 s and 1 s after real context on
+    every window in which the real arm carries it, a --benchmark with object locators); the others' sections and gates
+    read "not run". --stages open_loop: a large outcome set at the cost of its open-loop rollouts alone"""
 
 
 def main(argv: list[str]) -> int:
@@ -76,6 +82,8 @@ def main(argv: list[str]) -> int:
 
     fields = {f.name for f in dataclasses.fields(DiagnoseConfig)}
     dc = DiagnoseConfig(**{k: v for k, v in dataclasses.asdict(a).items() if k in fields})
+    if a.against:
+        return _against(a, argv, cfg, dc, strips)
     scorer_for, scene = benchmark_hooks(a.benchmark)
     result = diagnose.diagnose(a.world_model, a.data, dc, model_config=cfg, scorer_for=scorer_for, scene=scene,
                                filmstrips=strips, locators=benchmark_locators(a.benchmark),
@@ -88,6 +96,33 @@ def main(argv: list[str]) -> int:
     print("\n".join(diagnose.verdict(result)))
     if a.out:
         print(f"result: {diagnose.save_result(result, a.out)}")
+    return 0
+
+
+def _against(a: Args, argv: list[str], cfg, dc: DiagnoseConfig, strips: str | None) -> int:
+    """``--against B``: A and B diagnosed alike (B's config under the same sampler settings and overrides), the dense
+    probe among the stages, then the paired table (``diagnose_paired``)."""
+    from sc3_jax.commands import parse_with_config
+    from sc3_jax.evaluation import diagnose, diagnose_paired
+    from sc3_jax.evaluation.world_model_defaults import Sampler, evaluation_config, warn_if_student_off_its_step
+    from sc3_jax.model import checkpoint
+
+    _, cfg_b = parse_with_config(Args, argv, "diagnose", lambda x: evaluation_config(
+        checkpoint.read_config(x.against, "--against "), Sampler(sample_steps=x.sample_steps,
+                                                                  inverse_steps=x.inverse_steps)))
+    warn_if_student_off_its_step(cfg_b)
+    diagnose_paired.check_same_robot(a.world_model, cfg, a.against, cfg_b)
+    dc = dataclasses.replace(dc, stages=tuple(dict.fromkeys(dc.stages + ("dense",))))
+    scorer_for, scene = benchmark_hooks(a.benchmark)
+    locators, names = benchmark_locators(a.benchmark), benchmark.get_or_none(a.benchmark).category_names
+    results = [diagnose.diagnose(wm, a.data, dc, model_config=c, scorer_for=scorer_for, scene=scene,
+                                 filmstrips=strips and str(Path(strips) / side), locators=locators,
+                                 category_names=names)
+               for wm, c, side in ((a.world_model, cfg, "a"), (a.against, cfg_b, "b"))]
+    cmp = diagnose_paired.compare(*results, seed=dc.seed)
+    print("\n".join(diagnose_paired.lines(cmp)))
+    if a.out:
+        print(f"result: {diagnose.save_result({'paired': cmp, 'a': results[0], 'b': results[1]}, a.out)}")
     return 0
 
 

@@ -47,9 +47,9 @@ SUBCOMMANDS: dict[str, type] = {"save": Save, "branch": Branch}
 
 
 def _save(a: Save) -> int:
-    from sc3_jax.train import lineage, trunk_state
+    from sc3_jax.train import branch, lineage, trunk_state
 
-    out = trunk_state.save_run(a.run, a.out, a.moments)
+    out = branch.save_run(a.run, a.out, a.moments)
     meta, lin = trunk_state.read_meta(out), lineage.read(out)
     print(f"saved {a.run} at step {meta['step']} ({lin['windows']:,} windows since initialisation) -> {out}")
     return 0

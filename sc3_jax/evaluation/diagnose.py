@@ -21,13 +21,16 @@ store). Everything is computed first (:func:`diagnose` -> a JSON-able dict), the
   episode's physics labels, per object.
 * kept (``diagnose_kept.py``): where objects die, the benchmark's scene measures (objects, the arm) imagined over
   real through the stages: the tokenizer's round trip, one chunk from real context, open loop; filmstrips.
+* dense (``diagnose_dense.py``, only when asked for): the imagined object against the real one 0.5 s and 1 s after
+  real context on every window in which the real arm carries it, each window's noise from (seed, episode, frame);
+  ``diagnose_paired.py`` compares two models window by window (``sc3 diagnose --against``).
 * gates (``diagnose_report.py``): each acceptance gate with value, threshold and pass/fail (``GATES``,
   docs/world_model.md).
 
 ``DiagnoseConfig.stages`` picks the passes that run: "teacher_forced" (frames one chunk ahead, shuffled actions,
-inverse dynamics), "counterfactual", "open_loop" (drift and outcomes). A section of a pass not run reads
-``{"available": false, "note": "not run (--stages)"}`` and its gates neither pass nor fail (``"pass": null``), so a
-large outcome set costs only its open-loop rollouts.
+inverse dynamics), "counterfactual", "open_loop" (drift and outcomes), "dense" (not by default). A section of a pass
+not run reads ``{"available": false, "note": "not run (--stages)"}`` and its gates neither pass nor fail (``"pass":
+null``), so a large outcome set costs only its open-loop rollouts.
 
 Moving pixels of a target frame: any channel differs from the reference frame (the last real context frame) by more
 than ``moving_threshold`` in [-1, 1] units (0.06 = 7.65 grey levels: above the renderer's anti-aliasing flicker,
@@ -48,9 +51,10 @@ from typing import Any
 import numpy as np
 
 # numpy only, all of them: the module stays cheap for report_bench.py to import
-from sc3_jax.evaluation import diagnose_follow, diagnose_kept, diagnose_outcomes, diagnose_video
+from sc3_jax.evaluation import (diagnose_dense, diagnose_follow, diagnose_kept, diagnose_outcomes, diagnose_paired,
+                                 diagnose_video)
 from sc3_jax.evaluation.diagnose_actions import InverseErrors, arm_centroid  # noqa: F401  (public names)
-from sc3_jax.evaluation.diagnose_config import STAGES, DiagnoseConfig, Stage  # noqa: F401  (public names)
+from sc3_jax.evaluation.diagnose_config import DEFAULT_STAGES, STAGES, DiagnoseConfig, Stage  # noqa: F401
 from sc3_jax.evaluation.diagnose_report import (GATES, NOT_RUN_NOTE, gates, load_result,  # noqa: F401
                                               render_table, save_result, verdict)
 from sc3_jax.evaluation.diagnose_video import (PREDICTORS, ErrorSums, moving_mask, psnr_from_sums,  # noqa: F401
@@ -161,6 +165,8 @@ def diagnose(world_model, heldout_store, config: DiagnoseConfig | None = None, *
     measures = {"objects": scene} if callable(scene) else dict(scene or {})
     p = _plan(cfg, stats, params, store, ids, dc, scorer_for or diagnose_outcomes.no_scorer, measures)
     p = dataclasses.replace(p, follow=diagnose_follow.plan(p, store, head, locators, dc.stages))
+    # its windows chosen before any rollout: a store where nothing is carried is one line, not an hour's NaN
+    dense = diagnose_dense.plan(p, ids, str(store.root)) if "dense" in dc.stages else None
     acc = _Sums()
     bar = tqdm(total=len(p.eps), desc="diagnose", unit="episode", disable=not dc.progress)
     for g0 in range(0, len(p.eps), p.batch):  # episodes per step: one open-loop batch
@@ -175,6 +181,8 @@ def diagnose(world_model, heldout_store, config: DiagnoseConfig | None = None, *
         bar.update(len(g))
     bar.close()
     result = _result(p, acc, name, store, ids, category_names)
+    result["dense"] = dict(NOT_RUN) if dense is None else \
+        diagnose_dense.run(p, dense, ids, _imagine(p, dense.rollout, np.asarray))
     if p.kept is not None and filmstrips is not None:
         result["permanence"]["filmstrips"] = p.kept.write_filmstrips(filmstrips, p.views)
     result["gates"] = gates(result, dc)
@@ -305,12 +313,14 @@ def _inverse_dynamics(p: _Plan, acc: _Sums, ics, targets, acts, first_sample: in
 def _counterfactual(p: _Plan, acc: _Sums, group: list[int]):
     """The recorded chunk vs chunks shifted along each action axis from the same real starts
     (``diagnose_follow.counterfactual``), every variant of one start with the same noise."""
-    acc.cf_rows += diagnose_follow.counterfactual(p, p.follow, group, _imagine(p, p.tf, p.dc.seed + 1))
+    from sc3_jax.rollout import rollout as ro_mod
+    key_of = lambda k: np.asarray(ro_mod.episode_keys(p.dc.seed + 1, 1, start=k))[0]  # noqa: E731
+    acc.cf_rows += diagnose_follow.counterfactual(p, p.follow, group, _imagine(p, p.tf, key_of))
 
 
-def _imagine(p: _Plan, rollout, seed: int):
-    """``imagine(ics, actions, noise ids) -> frames [V, l', H, W, 3]`` each: ``rollout``'s offline run in batches;
-    one noise id, one key (``episode_keys(seed, 1, start=id)``)."""
+def _imagine(p: _Plan, rollout, key_of):
+    """``imagine(ics, actions, noise) -> frames [V, n, H, W, 3]`` each: ``rollout``'s offline run in batches; each
+    item's sampler key ``key_of(its noise)`` (raw key data [2])."""
     from sc3_jax.rollout import rollout as ro_mod
     bat = _Batcher(p.batch)
 
@@ -318,7 +328,7 @@ def _imagine(p: _Plan, rollout, seed: int):
         out = []
         for a, b in bat.chunks(len(ics)):
             ic = _padded(bat, ro_mod.stack_initial_conditions(ics[a:b]))
-            keys = np.stack([np.asarray(ro_mod.episode_keys(seed, 1, start=k))[0] for k in noise[a:b]])
+            keys = np.stack([key_of(k) for k in noise[a:b]])
             res = rollout.run_offline(p.params, ic, bat.pad(np.stack(actions[a:b])), bat.pad(keys))
             out += [res["frames"][j] for j in range(b - a)]
         return out
@@ -394,7 +404,9 @@ def _result(p: _Plan, acc: _Sums, name: str, store, ids, category_names=None) ->
         "drift": ran("open_loop", lambda: diagnose_video.drift_section(acc.ol, p.views, dc.horizons,
                                                                        p.horizon_steps)),
         "counterfactual": ran("counterfactual", lambda: diagnose_follow.section(p, p.follow, acc.cf_rows)),
-        "tracking": ran("open_loop", lambda: p.follow.tracks.section(seed=dc.seed)),
+        # per episode too: what a paired comparison of two models (diagnose_paired.py) resamples
+        "tracking": ran("open_loop", lambda: {**p.follow.tracks.section(seed=dc.seed),
+                                              "per_episode": diagnose_paired.per_episode(p.follow.tracks, ids)}),
         "inverse_dynamics": ran("teacher_forced", acc.inverse.section),
         "outcomes": ran("open_loop", lambda: diagnose_outcomes.outcome_section(acc.outcomes, p.scorer_note,
                                                                                seed=dc.seed, names=category_names)),

@@ -6,8 +6,11 @@ from __future__ import annotations
 import dataclasses
 from typing import Literal
 
-Stage = Literal["teacher_forced", "counterfactual", "open_loop"]
-STAGES: tuple[Stage, ...] = ("teacher_forced", "counterfactual", "open_loop")  # the order they run in
+Stage = Literal["teacher_forced", "counterfactual", "open_loop", "dense"]
+STAGES: tuple[Stage, ...] = ("teacher_forced", "counterfactual", "open_loop", "dense")  # the order they run in
+# what runs unless --stages says otherwise: "dense" (hundreds of rollouts, diagnose_dense.py) only when asked for
+# (--stages ... dense, or --against, whose paired comparison it is)
+DEFAULT_STAGES: tuple[Stage, ...] = ("teacher_forced", "counterfactual", "open_loop")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -25,7 +28,7 @@ class DiagnoseConfig:
     carry_px: float = 3.0  # an object the real arm moves this many pixels (its way) is carried (tracking.py)
     perception: str | None = None  # the benchmark's outcome scorer's weights (None: the benchmark's own)
     progress: bool = True
-    stages: tuple[Stage, ...] = STAGES  # the passes to run (diagnose.py's docstring); the others' sections read NOT_RUN
+    stages: tuple[Stage, ...] = DEFAULT_STAGES  # the passes to run (diagnose.py's docstring); the others read NOT_RUN
     # gates (see diagnose_report.GATES)
     gate_margin_db: float = 3.0
     gate_actions_db: float = 2.0

@@ -115,6 +115,10 @@ def render_table(result: dict) -> str:
             L += ["", f"### {heading.format(detail)}", ""] + lines
         else:
             L += ["", f"### {heading.format('')}", "", NOT_RUN_NOTE]
+    if ran(result.get("dense", {"available": False, "note": NOT_RUN_NOTE})):  # asked for, not a default stage
+        from sc3_jax.evaluation import diagnose_dense
+        detail, lines = diagnose_dense.lines(result["dense"])
+        L += ["", f"### Dense probe: the object after real context, where the real arm carries it{detail}", ""] + lines
     L += ["", "### Gates", "", "| gate | value | threshold | pass | note |", "|---|---|---|---|---|"]
     for g in result["gates"]:
         L.append(f"| {g['gate']} | {_f(g['value'])} | {g['threshold']:g} | {_pass(g)} | {g['note']} |")

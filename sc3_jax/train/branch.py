@@ -1,4 +1,5 @@
-"""A WSD trunk's branch (``sc3 trunk branch``): a copy of the trunk's state annealed to a learning rate of ~0 over N
+"""A WSD trunk's travelling state saved from its workdir (``sc3 trunk save``) and its branches (``sc3 trunk branch``):
+a copy of the trunk's state annealed to a learning rate of ~0 over N
 steps and exported -- the model that is measured and shipped -- while the trunk itself trains on at its peak rate.
 The branch resumes the trunk's exact state (``trunk_state``), so it draws the windows the trunk would have drawn
 next, and its lineage records where it left the trunk."""
@@ -11,8 +12,34 @@ from pathlib import Path
 
 import numpy as np
 
+from sc3_jax.core import atomic
 from sc3_jax.core.errors import UserError
 from sc3_jax.train import lineage, trunk_state
+
+
+def save_run(workdir: str | Path, out: str | Path, moments: str = "bfloat16") -> Path:
+    """The travelling state of the ``sc3 train`` run at ``workdir`` (its latest checkpoint), written to ``out``."""
+    from sc3_jax.core.config import config_from_dict
+    from sc3_jax.data.norm_stats import NormStats
+    from sc3_jax.model import checkpoint, sharding
+    from sc3_jax.train import train
+
+    workdir = Path(workdir)
+    if not (workdir / "config.json").is_file():
+        raise UserError(f"{workdir}: not a `sc3 train` run (no config.json)")
+    cfg = config_from_dict(atomic.read_json(workdir / "config.json", "restore it from a copy"))
+    cfg = dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, workdir=str(workdir)))
+    try:  # a run whose config.json predates its robot facts: recorded from its store while that is here
+        cfg = checkpoint.with_robot(cfg, checkpoint._recorded_robot(workdir, cfg))
+    except UserError:
+        pass
+    mngr = train.checkpoint_manager(cfg)
+    if mngr.latest_step() is None:
+        raise UserError(f"{workdir}: no checkpoint yet (the run saves one every train.ckpt_every steps)")
+    state, data_state = train.restore(mngr, cfg, sharding.make_mesh(cfg.mesh))
+    mngr.close()
+    lin = lineage.read(workdir) or lineage.begin(None, cfg, workdir.name, 0)
+    return trunk_state.write(out, cfg, NormStats.load(workdir / "norm_stats.json"), state, data_state, lin, moments)
 
 
 def default_workdir(source: Path, step: int, steps: int) -> Path:
@@ -27,7 +54,7 @@ def start_state(source: Path, workdir: Path) -> Path:
     if not (source / "config.json").is_file():
         raise UserError(f"{source}: neither a trunk's `sc3 train` workdir nor a travelling state (scripts/trunk.sh "
                         "save)")
-    return trunk_state.save_run(source, workdir / "start", moments="float32")
+    return save_run(source, workdir / "start", moments="float32")
 
 
 def branch(source: str | Path, steps: int, out: str | Path, workdir: str | Path | None = None,

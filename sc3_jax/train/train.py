@@ -567,7 +567,7 @@ def _steps(cfg: Config, workdir: Path, mesh, stop_at: int | None):
         data_iter.set_state(data_state["iterator"])
     elif cfg.train.resume_from:
         from sc3_jax.train import trunk_state
-        state, data_state = trunk_state.read(cfg.train.resume_from, cfg, state_shardings(cfg, mesh)[1])
+        state, data_state = trunk_state.read(cfg.train.resume_from, cfg, *state_shardings(cfg, mesh))
         data_iter.set_state(data_state["iterator"])
     else:
         state = create_state(cfg, mesh)

@@ -76,15 +76,13 @@ def read_meta(path: str | Path) -> dict:
     return meta
 
 
-def read(path: str | Path, cfg: Config, shardings) -> tuple[dict, dict]:
-    """(state, data_state) saved at ``path``, placed with ``shardings`` (a state-shaped tree, ``train.state_shardings``)
-    and cast back to the state's own dtypes."""
+def read(path: str | Path, cfg: Config, abstract, shardings) -> tuple[dict, dict]:
+    """(state, data_state) saved at ``path``, placed with ``shardings`` and cast back to the dtypes of ``abstract``
+    (the state's shapes and shardings: ``train.state_shardings``)."""
     from sc3_jax.model import checkpoint
-    from sc3_jax.train import train
 
     path = Path(path)
     meta = read_meta(path)
-    abstract = jax.eval_shape(lambda: train.init_state(cfg))
     params = checkpoint.load_params(path, cfg, shardings=shardings["params"])
     with atomic.open_npz(path / STATE_FILE, "export the state again") as z:
         files = {k: z[k] for k in z.files}
@@ -115,29 +113,3 @@ def _sha256(path: Path) -> str:
             h.update(chunk)
     return h.hexdigest()
 
-
-def save_run(workdir: str | Path, out: str | Path, moments: str = "bfloat16") -> Path:
-    """The travelling state of the ``sc3 train`` run at ``workdir`` (its latest checkpoint), written to ``out``."""
-    import dataclasses
-
-    from sc3_jax.core.config import config_from_dict
-    from sc3_jax.data.norm_stats import NormStats
-    from sc3_jax.model import checkpoint, sharding
-    from sc3_jax.train import lineage, train
-
-    workdir = Path(workdir)
-    if not (workdir / "config.json").is_file():
-        raise UserError(f"{workdir}: not a `sc3 train` run (no config.json)")
-    cfg = config_from_dict(atomic.read_json(workdir / "config.json", "restore it from a copy"))
-    cfg = dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, workdir=str(workdir)))
-    try:  # a run whose config.json predates its robot facts: recorded from its store while that is here
-        cfg = checkpoint.with_robot(cfg, checkpoint._recorded_robot(workdir, cfg))
-    except UserError:
-        pass
-    mngr = train.checkpoint_manager(cfg)
-    if mngr.latest_step() is None:
-        raise UserError(f"{workdir}: no checkpoint yet (the run saves one every train.ckpt_every steps)")
-    state, data_state = train.restore(mngr, cfg, sharding.make_mesh(cfg.mesh))
-    mngr.close()
-    lin = lineage.read(workdir) or lineage.begin(None, cfg, workdir.name, 0)
-    return write(out, cfg, NormStats.load(workdir / "norm_stats.json"), state, data_state, lin, moments)
