@@ -12,7 +12,9 @@ on this process's devices. Per round, interleaved so every figure sees the same 
   loop reads it between steps;
 * loop: the training loop's own sequence (read, put, step) timed over ``--steps`` steps with the metrics fetched every
   ``train.log_every`` (the loop's host syncs), and again with them fetched every step (what a sync costs);
-* recompiles: the step's compile-cache entries after the loop (1: none).
+* recompiles: the step's compile-cache entries after the loop (1: none);
+* attention: the step alone with each ``--impls`` kernel (``model.attention_impl``, which a resumed run may change),
+  and with attention replaced by a pass-through (its share of the step: the time it saves).
 
 Last lines: `train_step_run <run>: gflops_per_s=... ceiling_gflops_per_s=... fraction_of_matmul=... step_s=...
 data_s=... loop_s=...` and the shares of the loop's time."""
@@ -54,16 +56,19 @@ def run_config(run: Path, scratch: Path):
 
 
 class RunBench:
-    def __init__(self, run: Path, scratch: Path):
+    def __init__(self, run: Path, scratch: Path, impl: str | None = None, count_flops: bool = True):
         self.cfg = cfg = run_config(run, scratch)
+        if impl is not None:
+            self.cfg = cfg = replace(cfg, model=dict(attention_impl=impl))
         self.mesh = sharding.make_mesh(cfg.mesh)
         _, _, self.data = train.prepare_data(cfg)
         self.step, _ = train.compile_train_step(cfg, self.mesh)
         self.state = train.create_state(cfg, self.mesh)
         self.batch = self.next_batch()
-        unrolled = replace(cfg, model=dict(scan_layers=False))
-        counted, _ = train.compile_train_step(unrolled, self.mesh)
-        self.flops = flops(counted.lower(self.state, self.batch), compiled=True)
+        if count_flops:
+            unrolled = replace(cfg, model=dict(scan_layers=False))
+            counted, _ = train.compile_train_step(unrolled, self.mesh)
+            self.flops = flops(counted.lower(self.state, self.batch), compiled=True)
         jax.block_until_ready(self.run_step(self.batch))  # compiled once here: every timing below is warm
 
     def next_batch(self):
@@ -105,12 +110,27 @@ class RunBench:
         return fn._cache_size() if hasattr(fn, "_cache_size") else -1
 
 
+def step_variant(run: Path, scratch: Path, impl: str | None, repeats: int, passthrough: bool = False) -> float:
+    """The step alone with attention kernel ``impl``, or (``passthrough``) with every attention call returning its
+    queries (no scores, no softmax, no weighted sum): what attention costs is the difference."""
+    from sc3_jax.model import attention_impl
+
+    real = attention_impl.attend
+    if passthrough:
+        attention_impl.attend = lambda impl, q, k, v, mask=None, block=512: q
+    try:
+        return RunBench(run, scratch, impl, count_flops=False).step_alone(repeats)
+    finally:
+        attention_impl.attend = real
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("run", type=Path)
     ap.add_argument("--steps", type=int, default=20)
     ap.add_argument("--rounds", type=int, default=2)
     ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--impls", nargs="*", default=["dense", "fused"], help="attention kernels to time the step with")
     a = ap.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         b = RunBench(a.run, Path(tmp) / "work")
@@ -123,6 +143,10 @@ def main():
             print(f"round {r}: matmul {row['ceiling'] / 1e9:.1f} GFLOP/s; step alone {row['step']:.3f} s "
                   f"({b.flops / row['step'] / 1e9:.1f} GFLOP/s); one batch read + put {row['data']:.3f} s; loop "
                   f"{row['loop']:.3f} s/step (fetch every {log_every}), {row['loop_sync']:.3f} (every step)", flush=True)
+        variants = {f"attention {impl}": step_variant(a.run, Path(tmp) / f"w_{impl}", impl, a.repeats)
+                    for impl in a.impls}
+        variants["attention pass-through"] = step_variant(a.run, Path(tmp) / "w_none", None, a.repeats, True)
+        variants["as run"] = b.step_alone(a.repeats)  # the run's own kernel again, after the variants
     med = {k: statistics.median(r[k] for r in rows) for k in rows[0]}
     print(f"train_step_run {a.run.name}: {b.flops / 1e9:.1f} GFLOP/step, batch {b.cfg.data.batch_size}, "
           f"{jax.device_count()} {jax.devices()[0].platform} device(s); compiles after the loop: {b.compiles()}")
@@ -133,6 +157,11 @@ def main():
     print(f"train_step_run {a.run.name}: of the loop's {loop:.3f} s/step: compute {med['step'] / loop:.0%}, "
           f"the rest {(loop - med['step']) / loop:.0%} (data on the critical path ~{med['data'] / loop:.0%}); a "
           f"metrics sync every step would add {(med['loop_sync'] - loop) / loop:+.0%}")
+    base = variants["as run"]
+    print(f"train_step_run {a.run.name}: step alone by attention kernel (the run's: {b.cfg.model.attention_impl}): "
+          + "; ".join(f"{k} {v:.3f} s ({v / base:.2f}x)" for k, v in variants.items()))
+    print(f"train_step_run {a.run.name}: attention's share of the step ~"
+          f"{max(0.0, base - variants['attention pass-through']) / base:.0%}")
 
 
 if __name__ == "__main__":
