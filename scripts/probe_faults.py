@@ -484,6 +484,7 @@ FILE_KINDS = {
     "results.jsonl": (lambda d: d / "in" / "results" / "results.jsonl", report(), DAMAGES),
     "sweep.json": (lambda d: d / "in" / "results" / "sweep.json", report(), DAMAGES),
     "real labels CSV": (lambda d: d / "in" / "real.csv", sweep("--real", "{in}/real.csv"), DAMAGES),
+    "kept real.json": (lambda d: d / "in" / "results_ep" / "real.json", report(store="{in}/results_ep"), DAMAGES),
     "initial conditions .npz": (lambda d: d / "in" / "ic.npz", rollout_ic(), DAMAGES),
     "LeRobot info.json": (lambda d: d / "in" / "lerobot" / "meta" / "info.json", imp(), DAMAGES),
     "LeRobot episodes parquet": (lambda d: sorted((d / "in" / "lerobot" / "meta" / "episodes").rglob("*.parquet"))[0],
@@ -1103,10 +1104,45 @@ def _idle_lockout(case_dir: Path):
         else ("silent", r.stdout.strip()[-160:])
 
 
+# -- a store's own truth (issue 76): the report reads the real outcomes the store keeps, never a path -------------
+def _plant_cwd(case_dir: Path):
+    """An all-true sweep/real.csv in the current directory: the path so101_sweep36's sweep was given."""
+    cfg = json.loads((case_dir / "in" / "results_ep" / "sweep.json").read_text())
+    (case_dir / "cwd" / "sweep").mkdir()
+    (case_dir / "cwd" / "sweep" / "real.csv").write_text("policy,episode,success\n" + "".join(
+        f"{p},seed{20000000 + i},true\n" for p in cfg["policy_names"] for i in range(cfg["episodes"])))
+
+
+def _as_before(case_dir: Path, path: str):
+    """results_ep's real.json as sweeps wrote it before the outcomes were kept: the path as given."""
+    (case_dir / "in" / "results_ep" / "real.json").write_text(json.dumps({"real": [path]}))
+
+
+def _the_stores_own(case_dir: Path, res: Result):
+    t = json.loads((case_dir / "out" / "rep" / "report.json").read_text())
+    real = {p: v["rates"]["success"]["value"] for p, v in ((t.get("real") or {}).get("policies") or {}).items()}
+    return None if real.get("so_noise2") == 0.0 else f"real rates {real}: not the store's (so_noise2 0.00)"
+
+
+def kept_real_cases() -> list[Case]:
+    rep_ep = report(store="{in}/results_ep")
+
+    def outside(case_dir: Path):
+        _plant_cwd(case_dir)
+        _as_before(case_dir, str(case_dir / "cwd" / "sweep" / "real.csv"))
+    return [
+        Case("report beside a planted all-true sweep/real.csv", rep_ep, expect="ok", damage=_plant_cwd,
+             check=_the_stores_own, quick=True),
+        Case("report of a store from before, its sweep/real.csv planted beside", rep_ep, expect="ok",
+             damage=lambda d: (_plant_cwd(d), _as_before(d, "sweep/real.csv")), check=_the_stores_own),
+        Case("report of a real.json naming a file outside the store", rep_ep, damage=outside, quick=True),
+    ]
+
+
 # -- the run --------------------------------------------------------------------------------------------------------
 def all_cases() -> list[Case]:
     return [*issue_cases(), *numeric_cases(), *file_cases(), *output_cases(), *interrupt_cases(), *resume_cases(),
-            *server_cases()]
+            *server_cases(), *kept_real_cases()]
 
 
 def main(argv=None) -> int:

@@ -1,9 +1,9 @@
 """The fault battery: every file kind sc3 reads (episode arrays, dataset.json, results records, a labels CSV, a world
-model's config / params / orbax checkpoint, a LeRobot info.json) truncated, corrupted or retyped, and numeric options
-drawn at their edges, each given to the real command (``sc3_jax.cli.main``, in this process) that reads it. For
-every drawn fault: a non-zero exit, exactly one line on stderr, no traceback, the inputs unchanged and nothing
-written outside OUT. The faults are drawn by ``hypothesis`` (a failure prints the example that breaks, and the
-planted-fault test shows the battery catching a validator switched off)."""
+model's config / params / orbax checkpoint, a LeRobot info.json, a store's kept real outcomes) truncated, corrupted
+or retyped, and numeric options drawn at their edges, each given to the real command (``sc3_jax.cli.main``, in this
+process) that reads it. For every drawn fault: a non-zero exit, exactly one line on stderr, no traceback, the
+inputs unchanged and nothing written outside OUT. The faults are drawn by ``hypothesis`` (a failure prints the
+example that breaks, and the planted-fault test shows the battery catching a validator switched off)."""
 import contextlib
 import gzip
 import io
@@ -438,6 +438,45 @@ def episode_sweep_records(data):
     return damage, report_default if how == "report link" else report_episodes
 
 
+# real.json: the real outcomes a store keeps (issue 76). Per field, values its reader must refuse (an empty given
+# list, any episode id, a named policy are values it takes)
+KEPT_WRONG = {"format": WRONG, "given": WRONG.filter(lambda v: v != []), "episodes": WRONG,
+              "policy": WRONG.filter(lambda v: not (isinstance(v, str) and v)),
+              "episode": WRONG.filter(lambda v: not isinstance(v, str)), "outcomes": WRONG}
+
+
+def _outside(root: Path, which: int) -> str:
+    """A real-outcome path outside the store, as a store from before the outcomes were kept names them: the
+    inputs' real.csv by its absolute path, relative ones beside the sweep's --out ("sweep"), the system's."""
+    return [str(root / "real.csv"), "../real.csv", "sweep/../real.csv", "real.csv", "/etc/hostname"][which]
+
+
+def kept_real(data):
+    """The store's real.json retyped, naming a path outside the store, or linked out of it: refused in one line,
+    the path never read (a planted file there once set every policy's real success to 1.0, exit 0)."""
+    how = data.draw(st.sampled_from(["retype", "outside", "link out"]), label="fault")
+
+    def damage(root: Path):
+        p = root / "results_ep" / "real.json"
+        d = json.loads((DOCS / "stores" / "so101_sweep36" / "real.json").read_text())
+        if how == "outside":
+            d = {"real": [_outside(root, data.draw(st.integers(0, 4), label="path"))]}
+        elif how == "retype":
+            key = data.draw(st.sampled_from(list(KEPT_WRONG)), label="field")
+            at = d if key in ("format", "given", "episodes") else \
+                d["episodes"][data.draw(st.integers(0, len(d["episodes"]) - 1), label="episode")]
+            value = data.draw(st.one_of(KEPT_WRONG[key], st.just("<missing>")), label=f"{key} =")
+            if value == "<missing>":
+                at.pop(key)
+            else:
+                at[key] = value
+        p.write_text(json.dumps(d))
+        if how == "link out":  # the same outcomes, in a file of another store's
+            p.rename(root / "other_real.json")
+            p.symlink_to(root / "other_real.json")
+    return damage, report_episodes
+
+
 # norm_stats.json: the statistics and the action space a velocity model integrates its commands with (measured
 # state entries, gains, the recorded range); a retyped field here was a traceback, a NaN / negative std or a
 # fractional index a model run in other units without a word
@@ -481,7 +520,8 @@ def norm_stats(data):
 
 KINDS = {"norm_stats.json": norm_stats, "episode arrays": episode_arrays, "store files": store_files,
          "episode sweep records": episode_sweep_records, "dataset.json": dataset_json, "results records": results_records,
-         "labels CSV": labels_csv, "world model": world_model_files, "LeRobot info.json": lerobot_info}
+         "labels CSV": labels_csv, "world model": world_model_files, "LeRobot info.json": lerobot_info,
+         "kept real outcomes": kept_real}
 
 
 @pytest.mark.parametrize("kind", list(KINDS))
@@ -734,6 +774,19 @@ def test_the_battery_catches_each_door_switched_off(pristine, monkeypatch, door)
         monkeypatch.setattr(t, _off)
     with pytest.raises(AssertionError):
         attack(pristine, lambda root: None, DOOR[case])
+
+
+def test_the_battery_catches_the_kept_real_outcomes_door_switched_off(pristine, monkeypatch):
+    """real.json's paths read wherever they point (as before issue 76): a path outside the store is read, exit 0."""
+    from sc3_jax.evaluation import labels
+
+    monkeypatch.setattr(labels, "_inside", lambda p, out: p)
+    monkeypatch.setattr(labels, "_within", lambda p, root: True)
+
+    def damage(root: Path):
+        (root / "results_ep" / "real.json").write_text(json.dumps({"real": [_outside(root, 0)]}))
+    with pytest.raises(AssertionError, match="exit 0"):
+        attack(pristine, damage, report_episodes)
 
 
 def test_the_battery_catches_the_norm_stats_door_switched_off(pristine, monkeypatch):

@@ -267,12 +267,29 @@ def test_sc3_report_reads_the_store_and_takes_other_real_outcomes(swept, tmp_pat
     same = json.loads((tmp_path / "a" / "report.json").read_text())
     assert same == json.loads((out / "report" / "report.json").read_text())
     assert main(["report", str(out), "--out", str(tmp_path / "b"), "--real", str(real)]) == 0
-    assert json.loads((tmp_path / "b" / "report.json").read_text())["real"] == same["real"]
+    typed = json.loads((tmp_path / "b" / "report.json").read_text())["real"]
+    assert {**typed, "kept": True} == same["real"] and not typed["kept"]  # the same outcomes, typed or kept
     capsys.readouterr()
     assert main(["report", str(out), "--out", str(tmp_path / "c"), "--real", str(tmp_path / "none")]) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith("sc3 report: error: ") and "\n" not in err and "none" in err, err
     assert not (tmp_path / "c").exists()
+
+
+def test_the_store_keeps_its_real_outcomes_and_reports_them_without_their_source(swept, tmp_path, monkeypatch):
+    """--real is kept in the store as read (real.json, issue 76): a copy of the store, where the source is not (on
+    another machine, its path would name whatever is there), reports the same real numbers from any directory."""
+    from sc3_jax.evaluation import report
+
+    out, real = swept[3], swept[2]
+    kept = json.loads((out / "real.json").read_text())
+    assert kept["format"] == 2 and kept["given"] == [str(real)] and len(kept["episodes"]) == 12
+    copy = tmp_path / "copy"
+    shutil.copytree(out, copy, ignore=shutil.ignore_patterns("rollouts", "report"))
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(labels, "read", lambda sources: pytest.fail(f"read {sources}, not the store"))
+    t = report.compute(copy)
+    assert json.dumps(t["real"]) == json.dumps(json.loads((out / "report" / "report.json").read_text())["real"])
 
 
 def test_the_simulator_free_report_is_the_same_page_answering_first_with_no_machine_path(swept, tmp_path):

@@ -32,7 +32,8 @@ class Args:
     """paired bootstrap draws for the 95% intervals"""
     real: tuple[str, ...] | None = None
     """a sweep of held-out episodes only: real outcomes of the same policies, [NAME=]PATH (episode stores with
-    labels, a LeRobot dataset, a CSV; docs/your_robot.md), instead of the sweep's own --real"""
+    labels, a LeRobot dataset, a CSV; docs/your_robot.md), instead of the sweep's own --real, which the store keeps
+    (real.json; without --real nothing outside the store is read for them)"""
     benchmark: str | None = None
     """whose scene measure reads the objects-kept row: a benchmark's name or package.module:attr (None: the one the
     store's sweep recorded; a store that records none gets no such row)"""

@@ -90,7 +90,7 @@ def episodes(cfg: ICSweepConfig) -> int:
     check_options(cfg)
     named = benchmark.get(cfg.benchmark).named_policy if cfg.benchmark else None  # a benchmark's own policy names
     out = ic_sweep.run(cfg, named=named)
-    md = report.render(out, out / "report", real=cfg.real or None)
+    md = report.render(out, out / "report")  # the real outcomes as the store keeps them (read once, by the sweep)
     t = json.loads((out / "report" / "report.json").read_text())
     print(f"sweep: {len(cfg.policies)} policies x {cfg.episodes} held-out initial conditions (+ "
           f"{cfg.calibration_episodes} for tau) of {cfg.initial_conditions}, closed loop inside {cfg.world_model}, "

@@ -30,8 +30,10 @@ states, U). A rerun skips every rollout whose line exists; a killed run redoes a
      "outcomes_by_cut": {"<chunks kept>": {criterion: bool}}  (each cut some candidate tau makes),
      "u": [N], "u_raw": [N], "num_chunks": N, "frames_per_chunk": l, "stride": s}
 
-``--real`` sources are written to ``real.json`` beside (not in) ``sweep.json``: they change the report, not the
-rollouts, so a store is re-reported against other real outcomes without rolling out again.
+The ``--real`` outcomes are kept in the store, as read, in ``real.json`` beside (not in) ``sweep.json``
+(``labels.keep``): the report reads them from there, never from the paths given, which name files where the sweep
+ran; they change the report, not the rollouts, so a store is re-reported against other real outcomes (``sc3 report
+--real``) without rolling out again.
 
 The rollouts run on the sweep engine (``engine.py``), with this module's ``EpisodesSource``. ``sweep.json`` also
 records what the rollouts came from (``engine.with_identity``, for every sweep): the world model's content hash and
@@ -55,7 +57,7 @@ from sc3_jax.core.errors import UserError
 from sc3_jax.evaluation.world_model_defaults import Sampler
 
 KIND = "initial_conditions"
-REAL_FILE = "real.json"  # the --real sources the report reads by default
+REAL_FILE = "real.json"  # the --real outcomes, as read: what the report reads by default
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -241,9 +243,9 @@ def run(cfg: ICSweepConfig, named=None) -> Path:
     _check(cfg)
     served = families(cfg)
     scorer = load_outcome_scorer(cfg.scorer)  # a bad spec is refused before the model loads
-    if cfg.real:
-        from sc3_jax.evaluation import labels
-        labels.read(cfg.real)  # unreadable real outcomes are refused before any rollout, not after hours of them
+    from sc3_jax.evaluation import labels
+    # unreadable real outcomes are refused before any rollout, not after hours of them; read once, kept as read
+    real = labels.read(cfg.real) if cfg.real else None
     setup = engine.Setup(cfg.out, cfg.world_model, cfg, named=named, learned_state=cfg.learned_state, pad=True)
     ro, params = engine.load_world_model(setup)  # the sweep's sampler settings (sc3 rollout / diagnose share them)
     wcfg, s = ro.cfg, ro.spec
@@ -284,7 +286,7 @@ def run(cfg: ICSweepConfig, named=None) -> Path:
 
     def before(results):  # the store, open and locked
         source.criteria = next((tuple(sorted(r["outcomes"])) for r in results.records()), None)  # every rollout's
-        if cfg.real:
-            atomic.write_json(results.root / REAL_FILE, {"real": list(cfg.real)})
+        if real:
+            labels.keep(results.root / REAL_FILE, cfg.real, real)
     return engine.run(setup, config, policies, units, source=source, progress=cfg.progress, model=(ro, params),
                       before=before)

@@ -17,23 +17,30 @@ A SOURCE is ``PATH`` or ``NAME=PATH`` (then every episode of PATH is policy NAME
 
 Policies are matched to the sweep's by name: the NAME of ``--policies NAME=SPEC`` (a bare spec's name is the spec).
 Every problem is a one-line UserError naming the file and the field.
+
+A sweep keeps the outcomes it was given in its store (``keep``: the episodes as read, in ``real.json``), and its
+report reads them from there (``kept``), never from a path: a path names a file on the machine that ran the sweep,
+and resolved here it reads whatever the current directory holds under that name.
 """
 from __future__ import annotations
 
 import csv
 import dataclasses
+import json
+import os
 from pathlib import Path
 
 import numpy as np
 
 from sc3_jax.core import atomic
 from sc3_jax.core.errors import UserError
-from sc3_jax.core.validate import same_files
+from sc3_jax.core.validate import json_object, regular_file, same_files
 
 POLICY_FIELD = "policy"  # meta.json: the name of the policy that ran the episode
 LABELS_FIELD = "labels"  # meta.json: {criterion: bool}
 LEROBOT_SUCCESS = "next.success"  # LeRobot's per-frame success column
 TRUE, FALSE = ("true", "1", "yes", "y", "t"), ("false", "0", "no", "n", "f")
+KEPT_FORMAT = 2  # real.json holds the episodes themselves; a file without "format" (1) holds only the paths given
 
 
 @dataclasses.dataclass(frozen=True)
@@ -178,3 +185,73 @@ def _from_csv(path: Path, name: str | None) -> list[RealEpisode]:
             raise UserError(f"{path}:{line}: empty {POLICY_FIELD!r}")
         out.append(RealEpisode(policy, f"{path}:{(row.get('episode') or '').strip() or line}", outcomes))
     return out
+
+
+def keep(path: str | Path, given, episodes: list[RealEpisode]) -> None:
+    """Write the real outcomes a sweep was given into its store (``path``: its real.json): the ``episodes`` as read
+    (in order: the bootstrap's draws follow it), and ``given``, the sources as typed -- a record of where they came
+    from, never read again."""
+    head = json.dumps({"format": KEPT_FORMAT, "given": list(given)})[:-1]
+    rows = ",\n  ".join(json.dumps(dataclasses.asdict(e)) for e in episodes)  # one a line: a diff shows which
+    atomic.write_text(path, f'{head},\n "episodes": [\n  {rows}\n ]\n}}\n')
+
+
+def kept(path: str | Path, out: str | None) -> tuple[list[str], list[RealEpisode]]:
+    """The real outcomes a store keeps (``path``: its real.json) and the sources they were given as. A store from
+    before they were kept names only paths (``{"real": [...]}``, as typed where the sweep ran): one under the
+    sweep's own ``out`` (its sweep.json's) is that file of the store, read from here; any other is refused in one
+    line, as nothing in the store says what it held."""
+    path = Path(path)
+    root, fix = path.parent, "restore it from a copy of the store, or give the real outcomes as --real PATH"
+    d = json_object(atomic.read_json(regular_file(path, fix, inside=root), fix), str(path), fix)
+    if "format" not in d:
+        return _by_path(path, d.get("real"), out, fix)
+    if d["format"] != KEPT_FORMAT:
+        raise UserError(f"{path}: format {d['format']!r}, this sc3 reads {KEPT_FORMAT}; {fix}")
+    given, eps = d.get("given"), d.get("episodes")
+    if not (isinstance(given, list) and all(isinstance(g, str) for g in given)):
+        raise UserError(f"{path}: given is {given!r}, expected the sources as typed (strings); {fix}")
+    if not (isinstance(eps, list) and eps):
+        raise UserError(f"{path}: episodes is {str(eps)[:60]!r}, expected the real episodes; {fix}")
+    return given, [_kept_episode(e, f"{path}: episode {i}", fix) for i, e in enumerate(eps)]
+
+
+def _kept_episode(e, where: str, fix: str) -> RealEpisode:
+    e = json_object(e, where, fix)
+    policy, episode, outcomes = e.get("policy"), e.get("episode"), e.get("outcomes")
+    if not (isinstance(policy, str) and policy and isinstance(episode, str)):
+        raise UserError(f"{where}: policy {policy!r}, episode {episode!r}: expected a policy name and an episode; "
+                        f"{fix}")
+    if not (isinstance(outcomes, dict) and outcomes and all(isinstance(v, bool) for v in outcomes.values())):
+        raise UserError(f"{where}: outcomes {str(outcomes)[:60]!r}, expected {{criterion: true|false}}; {fix}")
+    return RealEpisode(policy, episode, outcomes)
+
+
+def _by_path(path: Path, sources, out: str | None, fix: str) -> tuple[list[str], list[RealEpisode]]:
+    """A real.json from before the outcomes were kept: its sources read from inside the store, or refused."""
+    if not (isinstance(sources, list) and sources and all(isinstance(s, str) for s in sources)):
+        raise UserError(f"{path}: real is {str(sources)[:60]!r}, expected the sources the sweep was given; {fix}")
+    specs = []
+    for spec in sources:
+        name, p = split_spec(spec)
+        rel = _inside(p, out)
+        if rel is None or not _within(path.parent / rel, path.parent):
+            raise UserError(f"{path}: its real outcomes are named {spec}, outside the store (swept as "
+                            f"{out}); a report reads only what its store holds: give them as --real PATH")
+        specs.append(f"{name}={path.parent / rel}" if name else str(path.parent / rel))
+    return sources, read(specs)
+
+
+def _inside(p: str, out: str | None) -> str | None:
+    """``p`` relative to ``out``, both as the sweep wrote them (one current directory), or None when not under it."""
+    if not (isinstance(out, str) and out):
+        return None
+    p, out = os.path.normpath(p), os.path.normpath(out)
+    rel = os.path.relpath(p, out) if os.path.isabs(p) == os.path.isabs(out) else os.pardir
+    return None if rel == os.curdir or rel.split(os.sep)[0] == os.pardir else rel
+
+
+def _within(p: Path, root: Path) -> bool:
+    """Whether ``p``, links followed, lies inside ``root`` (a file linked out of the store is not the store's)."""
+    base = os.path.realpath(root)
+    return os.path.commonpath([base, os.path.realpath(p)]) == base

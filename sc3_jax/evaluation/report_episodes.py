@@ -29,6 +29,7 @@ Draws resample the imagined conditions (paired across policies) and, independent
 from __future__ import annotations
 
 import math
+import os
 from pathlib import Path
 
 import numpy as np
@@ -58,8 +59,8 @@ def is_store(results: str | Path) -> bool:
 def compute(results: str | Path, real: tuple[str, ...] | list[str] | None = None, draws: int = 2000,
             seed: int = 0, taus=None, scene=None) -> dict:
     """Every number of the report of the store at ``results``. ``real``: real-outcome sources (``labels.py``;
-    None: those the sweep was given, ``real.json``; (): none). ``taus``: other candidate thresholds (None: the
-    sweep's). ``scene``: a benchmark's scene measure; with it and the real frames a sweep kept
+    None: those the sweep was given, as its store keeps them, ``real.json``; (): none). ``taus``: other candidate
+    thresholds (None: the sweep's). ``scene``: a benchmark's scene measure; with it and the real frames a sweep kept
     (``REAL_FRAMES/POLICY/EPISODE.npz``, as ``sc3 sweep so101`` keeps them), the closed-loop objects kept."""
     from sc3_jax.evaluation import labels
 
@@ -69,9 +70,10 @@ def compute(results: str | Path, real: tuple[str, ...] | list[str] | None = None
     cfg = store.config()
     if taus is not None:
         cfg["taus"] = [str(float(t)) for t in taus]
-    if real is None:
+    own, eps = real is None, None
+    if own:  # the outcomes the store keeps: never a path resolved here (the current directory is anyone's)
         saved = Path(results) / REAL_FILE
-        real = tuple(atomic.read_json(saved)["real"]) if saved.is_file() else ()
+        real, eps = labels.kept(saved, cfg.get("out")) if os.path.lexists(saved) else ((), None)
     everything = store.records()
     check_against_sweep(cfg, everything, store.root)
     recs = [r for r in everything if r["mode"] == "online"]
@@ -101,9 +103,10 @@ def compute(results: str | Path, real: tuple[str, ...] | list[str] | None = None
                                "far (rerun the sweep to resume); rates are over the rollouts there are")
     out["real"] = None
     if real:
-        out["real"] = _versus_real(labels.read(real), names, criteria, by, ev_seeds, cal_seeds, cfg["taus"], units,
+        eps = labels.read(real) if eps is None else eps
+        out["real"] = _versus_real(eps, names, criteria, by, ev_seeds, cal_seeds, cfg["taus"], units,
                                    passes, counts, w, draws, seed, out["warnings"])
-        out["real"]["sources"] = list(real)
+        out["real"]["sources"], out["real"]["kept"] = list(real), own
     if scene is not None:
         kept = closed_loop_kept(store, [r for r in recs if r["seed"] in ev_seeds], scene, draws, seed)
         if kept:
@@ -318,7 +321,8 @@ def tables(t: dict) -> list[tuple[str, list[str], list[list[str]]]]:
              for p in t["policies"]])]
     r = t.get("real")
     if r:
-        out.append((f"Real outcomes. From {', '.join(_source_names(r['sources']))}, {how}.",
+        kept = " (as the store keeps them, real.json)" if r.get("kept") else ""
+        out.append((f"Real outcomes. From {', '.join(_source_names(r['sources']))}{kept}, {how}.",
                     ["policy", "episodes"] + r["criteria"],
                     [[p, str(v["episodes"])] + [ci(v["rates"][c]) for c in r["criteria"]]
                      for p, v in r["policies"].items()]))
