@@ -61,7 +61,7 @@ def _leaves(cls, prefix: str = ""):
     for f in dataclasses.fields(cls):
         value = f.default
         if dataclasses.is_dataclass(value):
-            yield from _leaves(type(value), f"{prefix}{f.name}.")
+            yield from _leaves(type(value), f"{prefix}{f.name.replace('_', '-')}.")  # tyro dashes sections too
         else:
             yield cls, f, _flag(cls, f, prefix)
 

@@ -189,6 +189,41 @@ class ModelConfig:
 
 
 @dataclasses.dataclass(frozen=True)
+class WindowWeights:
+    """Training windows drawn by what happens in them (sc3_jax/data/window_weights.py): a window has an *event* when
+    a named entry of the objects' state moves, or a named entry of the robot's state changes, by more than a threshold
+    within its frames (at the smallest of data.strides); event windows are then drawn so often that they make up
+    `share` of the windows the model sees (each window a whole number of times per epoch, so the order stays
+    deterministic and resumable). Nothing robot-specific: the entries are the store's own names (dataset.json)."""
+
+    share: float = 0.0
+    """the share of windows with an event among those drawn (e.g. 0.5), in [0, 1); 0: off -- every window once, in
+    the uniform order (with entries named, the training run still says the share it has)"""
+    objects: tuple[str, ...] = ()
+    """entries of the store's object_state (a name from its dataset.json, or an index) whose motion marks an event,
+    e.g. block_x block_y block_z (empty: none)"""
+    object_motion: float = 0.01
+    """an object entry moves when it spans more than this (max - min over the window's frames, in the data's units:
+    metres for positions)"""
+    state: tuple[str, ...] = ()
+    """entries of the robot's recorded state (a name from its dataset.json, or an index) whose change marks an event,
+    e.g. gripper (closing or opening) (empty: none)"""
+    state_change: float = 0.1
+    """a state entry changes when it spans more than this (max - min over the window's frames, in the data's units)"""
+
+    def __post_init__(self):
+        if not 0.0 <= self.share < 1.0:
+            raise ValueError(f"data.window_weights.share must be in [0, 1) (0: off), got {self.share!r}")
+        for name in ("object_motion", "state_change"):
+            value = getattr(self, name)
+            if not 0.0 <= value < float("inf"):
+                raise ValueError(f"data.window_weights.{name} must be a finite number >= 0, got {value!r}")
+        if self.share > 0 and not (self.objects or self.state):
+            raise ValueError("data.window_weights.share > 0 needs entries that mark an event: name some in "
+                             "data.window_weights.objects or data.window_weights.state")
+
+
+@dataclasses.dataclass(frozen=True)
 class DataConfig:
     """The training data: which episodes, which views, and how training windows are cut from them."""
 
@@ -224,6 +259,9 @@ class DataConfig:
     """seed of the window order (shuffled per epoch) and of each window's stride / pseudo-action draws"""
     read_threads: int = 0
     """threads reading batches ahead (same order, same resumable state); 0 = read in the training thread"""
+    window_weights: WindowWeights = WindowWeights()
+    """which windows are drawn more often: those in which an object moves or the gripper acts (default: off,
+    every window once)"""
 
 
 @dataclasses.dataclass(frozen=True)

@@ -8,7 +8,8 @@ Layout (all arrays plain ``.npy`` so readers can memory-map them and touch only 
                                     "action_dim": A, "image_size": [H, W],
                                     "action_space": {"kind": "delta_ee" | "absolute" | "velocity", "dim": A,
                                                      "names": [...]},
-                                    "state": {"dim": S, "names": [...]} or null, "ee_pose": true | false}
+                                    "state": {"dim": S, "names": [...]} or null, "ee_pose": true | false,
+                                    "object_state": {"dim": O, "names": [...]} or null}
       <episode_id>/
         frames/<view>.npy          uint8   [T, H, W, 3]  one file per camera view
         actions.npy                float32 [T, A]  action[t] is applied after frame t, in the declared action space
@@ -18,10 +19,14 @@ Layout (all arrays plain ``.npy`` so readers can memory-map them and touch only 
                                                    only where dataset.json says "ee_pose": true
         state.npy                  float32 [T, S]  proprioceptive state at frame t (e.g. joint positions); only
                                                    where dataset.json declares a "state"
+        object_state.npy           float32 [T, O]  the state of the scene's objects at frame t (e.g. a block's
+                                                   position: LeRobot's observation.environment_state); only where
+                                                   dataset.json declares an "object_state"
         meta.json                  {"prompt": str, "length": T, "labels": {...}, ...free-form metadata}
 
 A store written before these declarations (no "action_space", no "ee_pose" key) reads as the simulated benchmark's:
-delta_ee actions of its action_dim, an ee_pose, no state.
+delta_ee actions of its action_dim, an ee_pose, no state. One written before "object_state" (every store
+before it) has none.
 
 Episodes are written to a temporary directory and renamed into place, so a crash or a bad episode never leaves a
 half-written episode and never touches episodes already written. Every validation error names the episode and
@@ -66,6 +71,7 @@ class Episode:
     prompt: str = ""
     meta: dict[str, Any] = dataclasses.field(default_factory=dict)
     state: np.ndarray | None = None  # float32 [T, S] proprioceptive state, where the dataset declares one
+    object_state: np.ndarray | None = None  # float32 [T, O] the objects' state, where the dataset declares one
 
     @property
     def length(self) -> int:
@@ -74,10 +80,10 @@ class Episode:
 
 def validate_episode(ep: Episode, views: list[str], action_dim: int = ACTION_DIM,
                      image_size: tuple[int, int] | None = None, min_length: int = 1, has_pose: bool = True,
-                     state_dim: int | None = None) -> None:
-    """Raise EpisodeError naming the episode and field for the first problem found. ``has_pose`` / ``state_dim``:
-    what the dataset declares (an ee_pose [T, 7]; a state [T, state_dim]); an array it does not declare is refused
-    too, so nothing is silently dropped."""
+                     state_dim: int | None = None, object_state_dim: int | None = None) -> None:
+    """Raise EpisodeError naming the episode and field for the first problem found. ``has_pose`` / ``state_dim`` /
+    ``object_state_dim``: what the dataset declares (an ee_pose [T, 7]; a state [T, state_dim]; an object state
+    [T, object_state_dim]); an array it does not declare is refused too, so nothing is silently dropped."""
     name = ep.episode_id
     actions = np.asarray(ep.actions)
     if actions.ndim != 2 or actions.shape[1] != action_dim:
@@ -87,8 +93,9 @@ def validate_episode(ep: Episode, views: list[str], action_dim: int = ACTION_DIM
         raise EpisodeError(name, "length", f"episode has {length} steps, at least {min_length} are needed")
     if not np.all(np.isfinite(actions)):
         raise EpisodeError(name, "actions", f"contains NaN/inf at steps {_bad_steps(actions)}")
-    for field, x, dim, declared in (("ee_pose", ep.ee_pose, 7, has_pose), ("state", ep.state, state_dim,
-                                                                           state_dim is not None)):
+    for field, x, dim, declared in (("ee_pose", ep.ee_pose, 7, has_pose),
+                                    ("state", ep.state, state_dim, state_dim is not None),
+                                    ("object_state", ep.object_state, object_state_dim, object_state_dim is not None)):
         if not declared:
             if x is not None:
                 raise EpisodeError(name, field, "the dataset declares none (dataset.json): create the store with it")
@@ -117,12 +124,15 @@ def _bad_steps(x: np.ndarray) -> list[int]:
 class EpisodeStore:
     """Reads and writes one episode directory. ``create=True`` starts a new dataset (or reopens a compatible one)
     with the given declarations: ``action_space`` (default: delta_ee of ``action_dim``), ``state_dim`` /
-    ``state_names`` (a proprioceptive state per frame; None: none), ``has_pose`` (an end-effector pose per frame)."""
+    ``state_names`` (a proprioceptive state per frame; None: none), ``has_pose`` (an end-effector pose per frame),
+    ``object_state_dim`` / ``object_state_names`` (the state of the scene's objects per frame, e.g. a block's
+    position; None: none)."""
 
     def __init__(self, root: str | os.PathLike, views: list[str] | None = None, fps: float | None = None,
                  image_size: tuple[int, int] | None = None, action_dim: int | None = None, create: bool = False,
                  action_space: ActionSpace | None = None, state_dim: int | None = None,
-                 state_names: list[str] | None = None, has_pose: bool = True):
+                 state_names: list[str] | None = None, has_pose: bool = True,
+                 object_state_dim: int | None = None, object_state_names: list[str] | None = None):
         self.root = Path(root)
         header = self.root / "dataset.json"
         for v in views or ():  # each becomes frames/<view>.npy: checked before anything is written
@@ -131,12 +141,10 @@ class EpisodeStore:
             action_space = ActionSpace(dim=ACTION_DIM if action_dim is None else action_dim)
         elif action_dim is not None and action_dim != action_space.dim:
             raise ValueError(f"action_dim {action_dim} but action_space is {action_space.dim}-D")
-        state = None if state_dim is None else {"dim": int(state_dim), "names": list(
-            state_names or [f"s{i}" for i in range(int(state_dim))])}
-        if state is not None and len(state["names"]) != state["dim"]:
-            raise ValueError(f"{len(state['names'])} state names for a {state_dim}-D state")
+        state = _declaration(state_dim, state_names, "s", "state")
+        objects = _declaration(object_state_dim, object_state_names, "o", "object state")
         declared = {"action_dim": action_space.dim, "action_space": action_space.to_dict(), "state": state,
-                    "ee_pose": bool(has_pose)}
+                    "ee_pose": bool(has_pose), "object_state": objects}
         if header.exists():
             # the store's own regular file (a dataset.json linked to another store's was read as this one's)
             regular_file(header, "restore it from a copy (or write the store again)", inside=self.root)
@@ -170,6 +178,9 @@ class EpisodeStore:
         st = info.get("state")
         self.state_dim: int | None = None if st is None else int(st["dim"])
         self.state_names: tuple[str, ...] = () if st is None else tuple(st.get("names") or ())
+        ob = info.get("object_state")  # a store written before the declaration has none
+        self.object_state_dim: int | None = None if ob is None else int(ob["dim"])
+        self.object_state_names: tuple[str, ...] = () if ob is None else tuple(ob.get("names") or ())
 
     # -- reading ---------------------------------------------------------------------------------------------
     def episode_ids(self) -> list[str]:
@@ -194,7 +205,7 @@ class EpisodeStore:
             if not path.exists():
                 raise EpisodeError(episode_id, f"frames/{view}", f"missing view file {path}")
             frames[view] = load_npy(path, fix, mmap, inside=self.root)  # the store's own regular files only
-        arrays = {"ee_pose": None, "state": None}
+        arrays = {"ee_pose": None, "state": None, "object_state": None}
         for field in self.array_fields():
             path = d / f"{field}.npy"
             if not path.exists():
@@ -205,18 +216,20 @@ class EpisodeStore:
         prompt = meta.get("prompt", "")
         if not isinstance(prompt, str):
             raise EpisodeError(episode_id, "meta.json", f"prompt is {type(prompt).__name__}, expected text; {fix}")
-        ep = Episode(episode_id, frames, arrays["actions"], arrays["ee_pose"], prompt, meta, arrays["state"])
+        ep = Episode(episode_id, frames, arrays["actions"], arrays["ee_pose"], prompt, meta, arrays["state"],
+                     arrays["object_state"])
         if validate:
             self.validate(ep, min_length)
         return ep
 
     def array_fields(self) -> tuple[str, ...]:
         """The per-episode arrays besides frames this dataset has (``<field>.npy``)."""
-        return ("actions",) + (("ee_pose",) if self.has_pose else ()) + (("state",) if self.state_dim else ())
+        return ("actions",) + (("ee_pose",) if self.has_pose else ()) + (("state",) if self.state_dim else ()) \
+            + (("object_state",) if self.object_state_dim else ())
 
     def validate(self, ep: Episode, min_length: int = 1) -> None:
         validate_episode(ep, self.views, self.action_dim, self.image_size, min_length, self.has_pose,
-                         self.state_dim)
+                         self.state_dim, self.object_state_dim)
 
     # -- writing ---------------------------------------------------------------------------------------------
     def write(self, ep: Episode, overwrite: bool = False) -> Path:
@@ -254,7 +267,7 @@ def read_header(path: Path) -> dict:
     def need(key: str, ok: bool, want: str):
         if not ok:
             raise UserError(f"{path}: {key} is {info.get(key, 'missing')!r}, expected {want}; {fix}")
-    views, size, state = info.get("views"), info.get("image_size"), info.get("state")
+    views, size, state, objects = info.get("views"), info.get("image_size"), info.get("state"), info.get("object_state")
     need("views", isinstance(views, list) and bool(views) and all(isinstance(v, str) for v in views),
          "a list of view names")
     need("fps", is_finite_number(info.get("fps")) and 0 < info["fps"] <= 10_000, "a positive frame rate")
@@ -264,6 +277,10 @@ def read_header(path: Path) -> dict:
     need("state", state is None or (isinstance(state, dict) and is_count(state.get("dim"), 4096)),
          'null or {"dim": S, "names": [...]}')
     need("ee_pose", isinstance(info.get("ee_pose", True), bool), "true or false")
+    need("object_state", objects is None or (isinstance(objects, dict) and is_count(objects.get("dim"), 4096) and (
+        objects.get("names") is None or (isinstance(objects["names"], list) and len(objects["names"]) == objects["dim"]
+                                         and all(isinstance(n, str) for n in objects["names"])))),
+         'null or {"dim": O, "names": [O names]}')
     return info
 
 
@@ -271,7 +288,18 @@ def _declared(info: dict) -> dict:
     """The declarations of a dataset.json as it is read (defaults for stores written before them)."""
     return {"action_dim": info["action_dim"],
             "action_space": ActionSpace.from_dict(info.get("action_space"), info["action_dim"]).to_dict(),
-            "state": info.get("state"), "ee_pose": bool(info.get("ee_pose", True))}
+            "state": info.get("state"), "ee_pose": bool(info.get("ee_pose", True)),
+            "object_state": info.get("object_state")}
+
+
+def _declaration(dim: int | None, names: list[str] | None, prefix: str, what: str) -> dict | None:
+    """dataset.json's ``{"dim": D, "names": [...]}`` of a per-frame vector (None: the store has none)."""
+    if dim is None:
+        return None
+    out = {"dim": int(dim), "names": list(names or [f"{prefix}{i}" for i in range(int(dim))])}
+    if len(out["names"]) != out["dim"]:
+        raise ValueError(f"{len(out['names'])} {what} names for a {dim}-D {what}")
+    return out
 
 
 def _json_default(x):

@@ -47,6 +47,8 @@ IMAGE_PREFIX = "observation.images."
 INFO_ACTION_SPACE = "sc3_action_space"
 SUCCESS_KEY = "next.success"  # LeRobot's per-frame success feature (evaluation/labels.py: LEROBOT_SUCCESS)
 OPTIONAL = object()  # sentinel: "use observation.state if the dataset has it" (the importer's default too)
+# LeRobot's per-frame state of the scene's objects (e.g. a block's position), our store's ``object_state``
+ENVIRONMENT_STATE_KEY = "observation.environment_state"
 
 
 def read_info(path: Path) -> dict:
@@ -80,9 +82,11 @@ class LeRobotEpisode:
 
     def __init__(self, source: LeRobotEpisodes, index: int, episode_index: int, timestamps: np.ndarray,
                  actions: np.ndarray, state: np.ndarray | None, prompt: str, tasks: list[str],
-                 pose: np.ndarray | None = None, success: bool | None = None):
+                 pose: np.ndarray | None = None, success: bool | None = None,
+                 object_state: np.ndarray | None = None):
         self._source, self.index, self.episode_index = source, index, episode_index
         self.timestamps, self.actions, self.state, self.pose = timestamps, actions, state, pose
+        self.object_state = object_state  # [T, O] the objects' state (None: not read)
         self.prompt, self.tasks = prompt, tasks
         self.success = success  # any frame's next.success (None: the dataset has no such feature)
         self.fps = source.fps
@@ -110,7 +114,8 @@ class LeRobotEpisodes:
         LeRobot actions are usually absolute targets; delta actions should be imported at the native rate and
         composed by the training pipeline's strides instead).
     action_key / state_key: column names. ``state_key=None`` ignores the state; by default ``observation.state``
-        is used when present. ``pose_key``: a column read as ``pose`` too (None: none).
+        is used when present. ``pose_key``: a column read as ``pose`` too (None: none). ``object_state_key``: a
+        column read as ``object_state`` (None: none; e.g. ``observation.environment_state``).
     cache_size: how many decoded (episode, view, span) windows to keep, least recently used out first; 0 = none.
     tolerance_s: how far a decoded video frame may sit from the requested time (default a quarter frame period).
     """
@@ -118,7 +123,8 @@ class LeRobotEpisodes:
     def __init__(self, root: str | os.PathLike, views: list[str] | dict[str, str] | None = None,
                  wrist_views: list[str] | None = None, fps: float | None = None, action_key: str = "action",
                  state_key: str | None = OPTIONAL, cache_size: int = 0,  # type: ignore[assignment]
-                 tolerance_s: float | None = None, pose_key: str | None = None):
+                 tolerance_s: float | None = None, pose_key: str | None = None,
+                 object_state_key: str | None = None):
         self.root = Path(root)
         info_path = self.root / "meta" / "info.json"
         if not info_path.exists():
@@ -153,6 +159,10 @@ class LeRobotEpisodes:
         if pose_key is not None and pose_key not in self.features:
             raise LeRobotError(info_path, f"pose key {pose_key!r} not in features {sorted(self.features)}")
         self.pose_key = pose_key
+        if object_state_key is not None and object_state_key not in self.features:
+            raise LeRobotError(info_path, f"object state key {object_state_key!r} not in features "
+                                          f"{sorted(self.features)}")
+        self.object_state_key = object_state_key
         self.tolerance_s = 0.25 / self.source_fps if tolerance_s is None else tolerance_s
         self.tasks = self._read_tasks()
         self._episodes = self._read_episodes()
@@ -260,7 +270,8 @@ class LeRobotEpisodes:
             self._rows.move_to_end(i)
             return self._rows[i]
         ep = self._episode_row(i)
-        cols = ["timestamp", self.action_key] + [k for k in (self.state_key, self.pose_key) if k]
+        cols = ["timestamp", self.action_key] + [k for k in (self.state_key, self.pose_key, self.object_state_key)
+                                                 if k]
         cols += [c for c in ("frame_index", "task_index", SUCCESS_KEY) if c in self.features]
         cols = list(dict.fromkeys(cols))
         table = self._read_rows(ep, cols)
@@ -293,11 +304,13 @@ class LeRobotEpisodes:
             prompt = tasks[0] if tasks else ""
         state = tab[self.state_key][s].astype(np.float32) if self.state_key else None
         pose = tab[self.pose_key][s].astype(np.float32) if self.pose_key else None
+        objects = tab[self.object_state_key][s].astype(np.float32) if self.object_state_key else None
         # over every recorded frame, not only those kept at self.fps: success is often marked on the last one alone
         # (LeRobot's evaluation reduces it with any, as evaluation/labels.py does)
         success = bool(np.asarray(tab[SUCCESS_KEY]).astype(bool).any()) if SUCCESS_KEY in tab else None
         return LeRobotEpisode(self, i, int(ep["episode_index"]), tab["timestamp"][s],
-                              tab[self.action_key][s].astype(np.float32), state, prompt, tasks, pose, success)
+                              tab[self.action_key][s].astype(np.float32), state, prompt, tasks, pose, success,
+                              objects)
 
     # -- frames ------------------------------------------------------------------------------------------------
     def window(self, i: int, start: int, stop: int, views: list[str] | None = None) -> dict[str, np.ndarray]:

@@ -14,7 +14,7 @@ import numpy as np
 
 from sc3_jax.core import locks
 from sc3_jax.core.errors import UserError
-from sc3_jax.data.lerobot import INFO_ACTION_SPACE, OPTIONAL, LeRobotEpisodes
+from sc3_jax.data.lerobot import ENVIRONMENT_STATE_KEY, INFO_ACTION_SPACE, OPTIONAL, LeRobotEpisodes
 from sc3_jax.data.lerobot_error import LeRobotError
 
 MIN_EPISODE_FRAMES = 2  # an imported episode shorter than this is skipped (said): nothing can be learnt from it
@@ -44,7 +44,7 @@ def import_lerobot(root: str | os.PathLike, out: str | os.PathLike, views=None, 
                    progress: bool = False, *, action_space: str | None = None,
                    action_names: list[str] | None = None, action_targets: list[int] | None = None,
                    state_key: str | None = OPTIONAL, episodes=None,  # type: ignore[assignment]
-                   id_prefix: str = "") -> dict:
+                   id_prefix: str = "", object_state_key: str | None = OPTIONAL) -> dict:  # type: ignore[assignment]
     """Convert the LeRobot dataset at ``root`` into an episode store at ``out``.
 
     The action space (``data/action_space.py``): ``action_space`` ("delta_ee", "absolute" or "velocity") with
@@ -57,7 +57,10 @@ def import_lerobot(root: str | os.PathLike, out: str | os.PathLike, views=None, 
     need one unless ``allow_missing_pose`` (then the store has no ee_pose: no pseudo-actions, motion relative to the
     start); for other action spaces it is optional (used where it names a 7-D feature other than the state).
     ``state_key``: the proprioceptive state feature of any size (default ``observation.state`` when present and not
-    already the ee_pose; None: none), stored as ``state``. ``image_size`` resizes every view (our store has one size
+    already the ee_pose; None: none), stored as ``state``. ``object_state_key``: the feature holding the state of the
+    scene's objects, of any size (default ``observation.environment_state`` when present -- except when resuming an
+    import into a store written without one, which keeps its declaration; None: none), stored as ``object_state``
+    with the feature's names. ``image_size`` resizes every view (our store has one size
     for all views). A ``next.success`` feature becomes each episode's meta ``"labels": {"success": any frame's}``
     (the real outcomes ``sc3 sweep episodes --real STORE`` reads). ``episodes``: the episode_index values to import (a
     container; None: all), so that one dataset gives a training store and a held-out one. Episodes are named
@@ -103,16 +106,25 @@ def import_lerobot(root: str | os.PathLike, out: str | os.PathLike, views=None, 
         shape = feats[pose_key]["shape"] if pose_key in feats else "missing"
         raise LeRobotError(pose_key, f"our ee_pose needs a 7-D feature, this one is {shape}; pass another pose "
                                      f"key or allow_missing_pose")
+    auto = object_state_key is OPTIONAL
+    object_state_key = _object_state_key(object_state_key, feats, info_path, Path(out))
+    if auto and object_state_key is None and ENVIRONMENT_STATE_KEY in feats and progress:
+        print(f"  {ENVIRONMENT_STATE_KEY} not imported: {out} was written without object states (import into a "
+              "new store to keep them)", flush=True)
     src.pose_key, src.state_key = (pose_key if has_pose else None), state_key
+    src.object_state_key = object_state_key
     state_dim = int(np.prod(feats[state_key]["shape"])) if state_key else None
     state_names = (names_of(feats[state_key].get("names"), state_dim) or None) if state_key else None
+    object_dim = int(np.prod(feats[object_state_key]["shape"])) if object_state_key else None
+    object_names = (names_of(feats[object_state_key].get("names"), object_dim) or None) if object_state_key else None
     sizes = {tuple(feats[k]["shape"][:2]) for k in src.cameras.values()}
     if image_size is None and len(sizes) > 1:
         raise LeRobotError(root, f"cameras have different sizes {sorted(sizes)}: pass image_size to resize them")
     size = tuple(image_size) if image_size is not None else sizes.pop()
     fps_out = int(src.fps) if float(src.fps).is_integer() else src.fps  # keep "fps": 20 as our stores write it
     store = EpisodeStore(out, views=src.views, fps=fps_out, image_size=size, create=True, action_space=space,
-                         state_dim=state_dim, state_names=state_names, has_pose=has_pose)
+                         state_dim=state_dim, state_names=state_names, has_pose=has_pose,
+                         object_state_dim=object_dim, object_state_names=object_names)
     source = str(Path(root).resolve())
     written = skipped = labelled = 0
     short: list[int] = []
@@ -134,19 +146,41 @@ def import_lerobot(root: str | os.PathLike, out: str | os.PathLike, views=None, 
             meta = {"source": "lerobot", "lerobot_root": source, "episode_index": ep.episode_index,
                     "tasks": ep.tasks, "source_fps": src.source_fps, "camera_keys": src.cameras,
                     "wrist_views": list(src.wrist_views), "timestamps": ep.timestamps.tolist(),
-                    "ee_pose_source": pose_key if has_pose else "none", "state_source": state_key or "none"}
+                    "ee_pose_source": pose_key if has_pose else "none", "state_source": state_key or "none",
+                    **({"object_state_source": object_state_key} if object_state_key else {})}
             # the real outcome, so that `sc3 sweep episodes --real STORE` needs no LeRobot source
             if ep.success is not None:
                 meta[LABELS_FIELD] = {"success": ep.success}
                 labelled += 1
             store.write(Episode(eid, frames, ep.actions.reshape(ep.length, dim), ep.pose, ep.prompt, meta,
-                                None if ep.state is None else ep.state.reshape(ep.length, state_dim)))
+                                None if ep.state is None else ep.state.reshape(ep.length, state_dim),
+                                None if ep.object_state is None else ep.object_state.reshape(ep.length, object_dim)))
             written += 1
             if progress:
                 print(f"  {eid}: {ep.length} frames", flush=True)
     return {"out": str(out), "written": written, "skipped": skipped, "too_short": short, "views": src.views,
             "fps": fps_out, "action_space": space.to_dict(), "state_dim": state_dim, "ee_pose": has_pose,
+            "object_state_dim": object_dim,
             "success_labels": labelled}  # of the episodes written: those whose meta holds next.success
+
+
+def _object_state_key(key, feats: dict, info_path: Path, out: Path) -> str | None:
+    """The feature that becomes the store's ``object_state``: ``key``, checked; by default (``OPTIONAL``)
+    observation.environment_state where the dataset has it, unless ``out`` is a store written without one (an import
+    resumed into a store from before object states: its declaration stays, the episodes it holds have none)."""
+    if key is OPTIONAL:
+        if ENVIRONMENT_STATE_KEY not in feats:
+            return None
+        header = out / "dataset.json"
+        if header.exists():
+            from .episodes import read_header
+
+            if read_header(header).get("object_state") is None:
+                return None
+        return ENVIRONMENT_STATE_KEY
+    if key is not None and key not in feats:
+        raise LeRobotError(info_path, f"object state key {key!r} not in features {sorted(feats)}")
+    return key
 
 
 def _check_same_source(store, source: str, prefix: str, indices: set[int]) -> None:

@@ -36,7 +36,7 @@ import pyarrow.parquet as pq
 from sc3_jax.core import atomic
 from .action_space import DELTA_EE_NAMES
 from .action_space import POSE_NAMES as _POSE_NAMES
-from .lerobot import IMAGE_PREFIX, INFO_ACTION_SPACE
+from .lerobot import ENVIRONMENT_STATE_KEY, IMAGE_PREFIX, INFO_ACTION_SPACE
 
 VERSIONS = ("v3.0", "v2.1")
 CHUNKS_SIZE = 1000
@@ -402,8 +402,9 @@ def export_store(store, out: str | os.PathLike, version: str = "v3.0", codec: st
                  robot_type: str = "sc3_sim", overwrite: bool = False) -> dict:
     """Export an episode store (path or EpisodeStore): ``actions`` -> ``action``, the recorded ``state`` ->
     ``observation.state`` (a store without one: its ``ee_pose`` there, as the simulated benchmark's), an ``ee_pose``
-    beside a state -> ``observation.ee_pose``, view ``v`` -> ``observation.images.v``, prompt -> task, the action
-    space -> ``info.json`` ``sc3_action_space`` (import reads it back). Episodes go in sorted id order."""
+    beside a state -> ``observation.ee_pose``, an ``object_state`` -> ``observation.environment_state`` (with its
+    names), view ``v`` -> ``observation.images.v``, prompt -> task, the action space -> ``info.json``
+    ``sc3_action_space`` (import reads it back). Episodes go in sorted id order."""
     from .episodes import EpisodeStore
 
     store = store if isinstance(store, EpisodeStore) else EpisodeStore(store)
@@ -414,11 +415,15 @@ def export_store(store, out: str | os.PathLike, version: str = "v3.0", codec: st
             ep = store.load(eid, mmap=True)
             state, extra = (ep.state, {POSE_KEY: ep.ee_pose} if store.has_pose else {}) if store.state_dim \
                 else (ep.ee_pose, {})
+            if store.object_state_dim:
+                extra = {**extra, ENVIRONMENT_STATE_KEY: ep.object_state}
             yield RawEpisode({IMAGE_PREFIX + v: ep.frames[v] for v in views}, ep.actions, ep.prompt, state, extra)
 
     space = store.action_space
     names = {"action": list(space.names), POSE_KEY: POSE_NAMES,
              "observation.state": list(store.state_names) if store.state_dim else POSE_NAMES}
+    if store.object_state_dim and store.object_state_names:
+        names[ENVIRONMENT_STATE_KEY] = list(store.object_state_names)
     return write_lerobot(out, episodes(), store.fps, version=version, codec=codec, image_dtype=image_dtype, crf=crf,
                          names=names, robot_type=robot_type, overwrite=overwrite,
                          info={INFO_ACTION_SPACE: space.to_dict()})

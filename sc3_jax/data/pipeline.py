@@ -25,7 +25,8 @@ seconds per action) -- the numpy twin of ``imagination_state.frame_poses``, whic
 the state statistics of ``NormStats``.
 
 Batch i of process p is a deterministic function of (cfg.seed, i, p, process_count): the index of all valid
-(episode, start) pairs (valid for the largest stride) is shuffled per epoch, repeated forever, per-sample draws
+(episode, start) pairs (valid for the largest stride; with ``cfg.window_weights``, windows where an object moves or
+the gripper acts repeated: ``data/window_weights.py``) is shuffled per epoch, repeated forever, per-sample draws
 (stride, pseudo) come from ``random_map`` (seeded by the *global* sample index), and process p of n takes samples
 ``[i*B + p*B/n, i*B + (p+1)*B/n)`` of the global sample stream, so concatenating the local batches of all
 processes in process order gives exactly the single-process global batch.
@@ -41,6 +42,7 @@ from typing import NamedTuple
 import grain
 import numpy as np
 
+from sc3_jax.data import window_weights
 from sc3_jax.data.action_space import DELTA_EE, ActionSpace
 from sc3_jax.data.episodes import Episode, EpisodeStore
 from sc3_jax.data.norm_stats import NormStats
@@ -287,9 +289,12 @@ def make_dataset(cfg, store: EpisodeStore, stats: NormStats, process_index: int 
     if not 0 <= process_index < process_count:
         raise ValueError(f"process_index {process_index} not in [0, {process_count})")
     index = index if index is not None else build_index(store, cfg)
-    reader = (_TrajectoryReader(str(store.root), index.episode_ids, store.array_fields()) if latents is not None
+    fields = tuple(f for f in store.array_fields() if f in _Trajectory._fields)  # what windows read
+    reader = (_TrajectoryReader(str(store.root), index.episode_ids, fields) if latents is not None
               else _EpisodeReader(str(store.root), index.episode_ids, tuple(cfg.views)))
-    samples = (grain.MapDataset.source(index.pairs)
+    # data.window_weights: windows where something happens repeated (default: index.pairs itself, the uniform order)
+    pairs = window_weights.weighted_pairs(store, index, cfg, say=process_index == 0)
+    samples = (grain.MapDataset.source(pairs)
                .shuffle(seed=int(cfg.seed))
                .repeat()
                .random_map(_MakeWindow(reader, cfg, stats, latents, fps=store.fps), seed=int(cfg.seed) + 1))

@@ -7,7 +7,8 @@ one-line ``UserError`` naming both sides, before anything compiles.
   its robot's facts: ``checkpoint.read_robot``), and turns pseudo-actions off (``data.pseudo_action_prob`` 0) where
   the data cannot give them (no measured end-effector pose, or actions that are not delta_ee), and cross-view
   inpainting off (``modes.probs``' second share to the other two, in proportion) where the model sees one view; the
-  fields named in ``explicit`` are checked instead of filled.
+  fields named in ``explicit`` are checked instead of filled. The entries ``data.window_weights`` names must be the
+  store's (checked, not filled).
 - :func:`check_shape` (a trained model against a store of initial conditions, ``sc3 rollout``): checks only.
 - :func:`explicit_fields`: which of those fields a command line set (``--SECTION.FIELD``).
 
@@ -21,6 +22,7 @@ import dataclasses
 import os
 from collections.abc import Collection, Iterable
 
+from sc3_jax.data import window_weights
 from sc3_jax.data.episodes import EpisodeStore
 from sc3_jax.core.errors import UserError
 
@@ -55,6 +57,7 @@ def shape_from_dataset(cfg, store, explicit: Collection[str] = ()):
     if state_dim != recorded:
         raise UserError(f"data.state_dim={state_dim}, but {where} records "
                         f"{f'a {recorded}-D state' if recorded else 'no state'}")
+    window_weights.check(data, store)  # entries the store lacks: one line now, not after the latents are cached
     refusal = store.action_space.pseudo_refusal(store.has_pose)
     pseudo = data.pseudo_action_prob
     if refusal and pseudo > 0:
