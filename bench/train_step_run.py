@@ -33,7 +33,6 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import jax  # noqa: E402
-import numpy as np  # noqa: E402
 
 from sc3_jax.core import atomic  # noqa: E402
 from sc3_jax.core.config import config_from_dict, replace  # noqa: E402

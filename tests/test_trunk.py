@@ -146,3 +146,23 @@ def test_a_resume_with_another_config_is_refused_naming_the_field(data, unbroken
     cfg = dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, lr=2 * LR))
     with pytest.raises(UserError, match="train.lr"):
         train(cfg)
+
+
+def test_sc3_trunk_refuses_what_is_not_a_trunk_in_one_line(data, unbroken, tmp_path):
+    import subprocess
+    import sys
+
+    def run(*args):
+        r = subprocess.run([sys.executable, "-m", "sc3_jax.cli", "trunk", *args], capture_output=True, text=True,
+                           timeout=300)
+        return r.returncode, r.stderr.strip()
+
+    code, err = run("branch", str(tmp_path / "nothing"), "--steps", "2", "--out", str(tmp_path / "o"))
+    assert code in (1, 2) and "no such trunk" in err and len(err.splitlines()) == 1, err
+    code, err = run("branch", str(unbroken), "--steps", "13", "--out", str(tmp_path / "o"))
+    assert code in (1, 2) and "--steps 2" in err and len(err.splitlines()) == 1, err
+    cosine = tmp_path / "cosine"
+    train(_cfg(data, cosine, 4, schedule="cosine", warmup_steps=1))
+    code, err = run("branch", str(cosine), "--steps", "2", "--out", str(tmp_path / "o"))
+    assert code in (1, 2) and "not a WSD trunk" in err and len(err.splitlines()) == 1, err
+    assert not (tmp_path / "o").exists()

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import dataclasses
 
+import tyro
+
 from sc3_jax.commands import run_group
 
 SUMMARY = "a WSD trunk: save its travelling state, or anneal a branch of it and export it"  # `sc3 --help`'s line
@@ -16,7 +18,7 @@ class Save:
     """Save a run's latest checkpoint as state that travels: a world model plus its optimizer moments, step, rng,
     data position and lineage, to commit and resume elsewhere (--train.resume-from DIR)."""
 
-    run: str
+    run: tyro.conf.Positional[str]
     """the `sc3 train` workdir of the trunk"""
     out: str
     """where to write it (replaced whole, in one step)"""
@@ -29,7 +31,7 @@ class Branch:
     """Anneal a copy of a WSD trunk's latest state to a learning rate of ~0 over --steps steps and export it (the
     model to measure and ship); the trunk itself is not touched."""
 
-    trunk: str
+    trunk: tyro.conf.Positional[str]
     """the trunk: its `sc3 train` workdir, or its travelling state (`sc3 trunk save`)"""
     steps: int
     """the decay's length in steps (at most the steps the trunk has trained; 10-20% of them is usual)"""

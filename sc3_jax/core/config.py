@@ -7,6 +7,8 @@ import importlib.util
 import sys
 from pathlib import Path
 
+from sc3_jax.core.errors import UserError
+
 
 ATTENTION_IMPLS = ("dense", "blockwise", "fused", "context_parallel", "ring")
 REMAT_POLICIES = ("none", "dots", "block")  # lightest to heaviest recompute
@@ -500,12 +502,39 @@ def load_config(name_or_path: str) -> Config:
         path = configs_dir() / f"{name_or_path}.py"
     if not path.exists():
         raise FileNotFoundError(f"no config {name_or_path!r}; named configs: {', '.join(available_configs())}")
+    if path.suffix == ".json":  # a run's own config.json: re-running a run from it is what users do
+        return _json_config(path)
+    if path.suffix != ".py":
+        raise UserError(f"--config {path}: a config is a named config, a .py file with get_config(), or a run's "
+                        "config.json")
     spec = importlib.util.spec_from_file_location(f"sc3_config_{path.stem}", path)
     module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
+    try:
+        spec.loader.exec_module(module)
+    except SyntaxError as e:
+        raise UserError(f"{path}:{e.lineno}: {e.msg} (a Python syntax error in the config file)") from None
+    if not callable(getattr(module, "get_config", None)):
+        raise UserError(f"{path}: defines no get_config(arg=None) returning a Config (see configs/tiny.py)")
     cfg = module.get_config(arg or None)
     if not isinstance(cfg, Config):
-        raise TypeError(f"{path}: get_config() must return sc3_jax.core.config.Config, got {type(cfg)}")
+        raise UserError(f"{path}: get_config() must return sc3_jax.core.config.Config, got {type(cfg).__name__}")
+    return cfg
+
+
+def _json_config(path: Path) -> Config:
+    """A run's config.json (``dataclasses.asdict`` of its Config) as a Config, every field's type checked."""
+    from sc3_jax.core import atomic
+
+    fix = "give a run's config.json (sc3 train writes one in its workdir), or a named config"
+    raw = atomic.read_json(path, fix)
+    if not isinstance(raw, dict):
+        raise UserError(f"{path}: expected a run's config (a JSON object), got {type(raw).__name__}; {fix}")
+    try:
+        cfg = config_from_dict(raw)
+    except (TypeError, ValueError, AttributeError) as e:  # a section retyped (a list where fields are)
+        raise UserError(f"{path}: does not read as a config ({e}); {fix}") from None
+    from sc3_jax.core.validate import check_config_types
+    check_config_types(cfg, Config(), str(path), fix)
     return cfg
 
 

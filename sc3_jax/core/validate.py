@@ -4,6 +4,7 @@ one ``UserError`` line naming the file (the episode or record) and the fix, so t
 what it is handed. docs/untrusted_inputs.md lists the faults and what each ends in."""
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import pickle
@@ -239,3 +240,21 @@ def train_config(cfg) -> None:
     if cfg.mesh.data != -1:
         in_range("--mesh.data", cfg.mesh.data, 1, 1 << 16, "devices; -1: all the others")
     out_dir(cfg.train.workdir, "--train.workdir")
+
+
+def check_config_types(cfg, default, where: str, fix: str, prefix: str = "") -> None:
+    """Every field of a config read from a file has its default's type (``model.dim: "abc"`` would otherwise be a
+    TypeError from inside JAX): one line naming the field. A field whose default is None may be anything."""
+    for f in dataclasses.fields(default):
+        have, want, name = getattr(cfg, f.name), getattr(default, f.name), prefix + f.name
+        if dataclasses.is_dataclass(want):
+            if not dataclasses.is_dataclass(have):
+                raise UserError(f"{where}: {name} is {have!r}, expected a section of fields; {fix}")
+            check_config_types(have, want, where, fix, name + ".")
+            continue
+        ok = {bool: lambda v: isinstance(v, bool), str: lambda v: isinstance(v, str),
+              int: lambda v: isinstance(v, int) and not isinstance(v, bool),
+              float: lambda v: is_finite_number(v) or v in (math.inf, -math.inf),
+              tuple: lambda v: isinstance(v, tuple)}.get(type(want))
+        if want is not None and ok is not None and not ok(have):
+            raise UserError(f"{where}: {name} is {have!r}, expected {type(want).__name__}; {fix}")

@@ -105,7 +105,6 @@ def select(eps, views, spec, arm_of, objects: dict, carry_px: float, steps: dict
 def plan(p, ids, data: str) -> Dense:
     """The probe of diagnosis plan ``p`` (``diagnose._Plan``) over the episodes ``ids`` of store ``data``: its
     windows and keys, chosen before any rollout; a one-line UserError where there is nothing to measure."""
-    from sc3_jax.core.config import replace
     from sc3_jax.core.errors import UserError
     from sc3_jax.rollout import rollout as ro_mod
 

@@ -23,7 +23,6 @@ module only reads their params.
 from __future__ import annotations
 
 import dataclasses
-import math
 import shutil
 from pathlib import Path
 
@@ -39,7 +38,7 @@ from sc3_jax.core.errors import UserError
 from sc3_jax.model import dit
 from sc3_jax.model.shapes import check_shapes
 from sc3_jax.model.tokenizer import token_geometry
-from sc3_jax.core.validate import first_line, is_finite_number, json_object, numeric
+from sc3_jax.core.validate import check_config_types, first_line, is_finite_number, json_object, numeric
 
 
 # ================================================================================================================
@@ -163,24 +162,6 @@ def _recorded_robot(path: Path, cfg: Config) -> Robot:
 def with_robot(cfg: Config, robot: Robot) -> Config:
     """``cfg`` with ``robot``'s frame rate and state size recorded (what :func:`save` writes to config.json)."""
     return dataclasses.replace(cfg, data=dataclasses.replace(cfg.data, fps=robot.fps, state_dim=robot.state_dim))
-
-
-def check_config_types(cfg, default, where: str, fix: str, prefix: str = "") -> None:
-    """Every field of a config read from a file has its default's type (``model.dim: "abc"`` would otherwise be a
-    TypeError from inside JAX): one line naming the field. A field whose default is None may be anything."""
-    for f in dataclasses.fields(default):
-        have, want, name = getattr(cfg, f.name), getattr(default, f.name), prefix + f.name
-        if dataclasses.is_dataclass(want):
-            if not dataclasses.is_dataclass(have):
-                raise UserError(f"{where}: {name} is {have!r}, expected a section of fields; {fix}")
-            check_config_types(have, want, where, fix, name + ".")
-            continue
-        ok = {bool: lambda v: isinstance(v, bool), str: lambda v: isinstance(v, str),
-              int: lambda v: isinstance(v, int) and not isinstance(v, bool),
-              float: lambda v: is_finite_number(v) or v in (math.inf, -math.inf),
-              tuple: lambda v: isinstance(v, tuple)}.get(type(want))
-        if want is not None and ok is not None and not ok(have):
-            raise UserError(f"{where}: {name} is {have!r}, expected {type(want).__name__}; {fix}")
 
 
 def read_norm_stats(path: str | Path) -> NormStats:
