@@ -10,6 +10,7 @@ import sys
 import textwrap
 import threading
 import time
+import traceback
 from pathlib import Path
 
 CANNOT_WRITE = {errno.EACCES, errno.EPERM, errno.EROFS, errno.ENOSPC, errno.EDQUOT}
@@ -129,12 +130,51 @@ def main(argv: list[str] | None = None) -> int:
     except (FileNotFoundError, FileExistsError, UserError) as e:  # expected faults: the one-line message says it all
         print(f"sc3 {argv[0]}: error: {e}", file=sys.stderr)
         return 2
+    except (ConnectionError, TimeoutError, RuntimeError, AssertionError) as e:  # faults of this machine's setup
+        line = _unavailable_backend(e) or (_one_line(e) if _policy_client_fault(e) else None)
+        if line is None:
+            raise
+        print(f"sc3 {argv[0]}: error: {line}", file=sys.stderr)
+        return 2
     except OSError as e:  # a place the command cannot write (permissions, read-only, full): the user's to fix
         if e.errno not in CANNOT_WRITE:
             raise
         print(f"sc3 {argv[0]}: error: cannot write {e.filename or ''}: {e.strerror}; choose another place (or free "
               "space there)", file=sys.stderr)
         return 2
+
+
+def _policy_client_fault(e: BaseException) -> bool:
+    """Whether ``e`` is the policy client's (``policies/openpi_client.py``: a server that is not there, does not
+    answer, or sent an error), in whichever command and whenever in its run it came: the user's to fix. Read from
+    the loaded module: a command that connects to no server never imports it."""
+    client = sys.modules.get("sc3_jax.policies.openpi_client")
+    return client is not None and isinstance(e, (client.PolicyConnectionError, client.PolicyTimeoutError,
+                                                 client.PolicyServerError))
+
+
+def _unavailable_backend(e: BaseException) -> str | None:
+    """The line for JAX_PLATFORMS naming a backend this machine lacks (gpu, cuda on a machine without one, a typo):
+    JAX raised it from its backend setup (a RuntimeError, chained, or a bare AssertionError); None for anything
+    else. Found where it fails, so that a command that never initialises JAX pays nothing for the check."""
+    platforms = os.environ.get("JAX_PLATFORMS", "")
+    frames = traceback.extract_tb(e.__traceback__)
+    if not platforms or not frames or not frames[-1].filename.replace(os.sep, "/").endswith("jax/_src/xla_bridge.py"):
+        return None
+    try:
+        from jax._src import xla_bridge
+
+        known = sorted(xla_bridge._backend_factories)  # the backends this installation of JAX has
+    except (ImportError, AttributeError):
+        known = ["cpu"]
+    return (f"JAX_PLATFORMS={platforms}: no such backend is available on this machine (JAX here knows "
+            f"{', '.join(known)}; cpu always works): set JAX_PLATFORMS=cpu, or unset it to let JAX choose")
+
+
+def _one_line(e: BaseException) -> str:
+    """An error's first line and, where a server's text follows (openpi sends a traceback), its last line."""
+    lines = [x.strip() for x in str(e).splitlines() if x.strip()]
+    return " ".join(lines[:1] + lines[-1:] if len(lines) > 1 else lines) or type(e).__name__
 
 
 _HEARD = threading.Event()  # a Ctrl-C came and main has not yet written its line

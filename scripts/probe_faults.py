@@ -64,6 +64,7 @@ class Case:
     pre: list[list[str]] = dataclasses.field(default_factory=list)  # commands run first (must exit 0)
     quick: bool = False
     fn: Callable[[Path], tuple[str, str]] | None = None  # an in-probe case (the server's): (class, what it saw)
+    env: dict = dataclasses.field(default_factory=dict)  # the command's environment beyond env_for's
 
 
 @dataclasses.dataclass
@@ -244,7 +245,7 @@ def run_case(case: Case, fixtures: Path, work: Path, index: int) -> dict:
     (case_dir / "cwd").mkdir()
     (case_dir / "victim").mkdir()
     (case_dir / "victim" / "keep.txt").write_text("not yours to overwrite\n")
-    env = env_for(case_dir)
+    env = {**env_for(case_dir), **case.env}
     t0 = time.monotonic()
     try:
         for pre in case.pre:
@@ -1139,10 +1140,117 @@ def kept_real_cases() -> list[Case]:
     ]
 
 
+# -- issue 76's other faults: a saved model's every field at the door, the machine's and a server's faults, nothing
+# silent, the rough edges -------------------------------------------------------------------------------------------
+def _edit(rel: str, fn):
+    """``fn(obj)`` done to the JSON file ``rel`` of the case's inputs."""
+    def damage(case_dir: Path):
+        p = case_dir / "in" / rel
+        obj = json.loads(p.read_text())
+        fn(obj)
+        p.write_text(json.dumps(obj))
+    return damage
+
+
+def _so101(rel: str, fn):
+    """exports/so101_v7_cpu (a learned tokenizer's model) copied into the inputs as so101/, ``rel`` edited."""
+    def damage(case_dir: Path):
+        shutil.copytree(ROOT / "exports" / "so101_v7_cpu", case_dir / "in" / "so101")
+        _edit(f"so101/{rel}", fn)(case_dir)
+    return damage
+
+
+def _empty_first(case_dir: Path):
+    """The held-out store's first episode emptied (its directory kept): the rollout took the next one."""
+    first = sorted(p for p in (case_dir / "in" / "demo" / "heldout").iterdir() if p.is_dir())[0]
+    shutil.rmtree(first)
+    first.mkdir()
+
+
+def _cut_data_parquet(case_dir: Path):
+    p = sorted((case_dir / "in" / "lerobot" / "data").rglob("*.parquet"))[0]
+    p.write_bytes(p.read_bytes()[: p.stat().st_size // 2])
+
+
+def _not_fail(case_dir: Path, res: Result):
+    return "an unmeasurable gate printed FAIL" if "FAIL offline per-object outcome" in res.stdout else None
+
+
+def _odd_client(case_dir: Path):
+    """One client's [3, 4, 4, 3] images (answered: the zero policy takes any shape) fixed the server's shapes for
+    everyone until restart while /healthz said OK; each refusal was a traceback on the server's terminal."""
+    import urllib.request
+
+    import numpy as np
+    import websockets.sync.client
+
+    from sc3_jax.policies import msgpack_numpy
+    proc, url = _serve(case_dir, "--policy", "zero")
+    try:
+        with websockets.sync.client.connect(url, open_timeout=30) as odd:
+            odd.recv(timeout=30)
+            odd.send(msgpack_numpy.packb({"images": np.zeros((3, 4, 4, 3), np.uint8), "state": np.zeros(7, "f4")}))
+            if not isinstance(odd.recv(timeout=60), bytes):
+                return "silent", "the odd client itself was refused"
+            k, r = _send(url, _good())
+            if k != "actions":
+                return "silent", f"a correct client after an odd one got {k}: {str(r)[:160]}"
+            with urllib.request.urlopen(url.replace("ws://", "http://") + "/healthz", timeout=10) as h:
+                health = h.read().decode()
+            if "[3, 4, 4, 3]" not in health:
+                return "silent", f"/healthz does not say the shapes it serves: {health[:160]!r}"
+        _send(url, "hello", raw=True)  # refused: one line in the server's log
+    finally:
+        proc.send_signal(signal.SIGINT)
+        with contextlib.suppress(subprocess.TimeoutExpired):
+            proc.wait(timeout=20)
+        if proc.poll() is None:
+            proc.kill()
+    log = proc.stderr.read()
+    if "Traceback" in log or log.count("refused an observation") != 1:
+        return "silent", f"the server's log of one refusal: {log[-300:]!r}"
+    return "handled", "the odd client and a correct one each served on its own terms; /healthz says both"
+
+
+def issue76_cases() -> list[Case]:
+    so = lambda *extra: rollout(*extra, wm="{in}/so101", data="{in}/ic.npz")  # noqa: E731  (refused first)
+    cases = [
+        Case("76: ae.json latent_channels 'sixteen'", so(),
+             damage=_so101("tokenizer/ae.json", lambda d: d["config"].update(latent_channels="sixteen")), quick=True),
+        Case("76: config.json model.dim -192", so(), damage=_so101("config.json", lambda d: d["model"].update(
+            dim=-192))),
+        Case("76: config.json image_size [81, 79] (its tokenizer's is 80x80)", so(),
+             damage=_so101("config.json", lambda d: d["data"].update(image_size=[81, 79]))),
+        Case("76: config.json image_size [96, 128] against 16x16 data", rollout(wm=EXPORT),
+             damage=_edit("export/config.json", lambda d: d["data"].update(image_size=[96, 128]))),
+        Case("76: config.json data.views a string", rollout(wm=EXPORT),
+             damage=_edit("export/config.json", lambda d: d["data"].update(views="abc"))),
+        Case("76: train --config a run's config.json with data.fps 'ten'", train("--config", "{in}/export/config.json"),
+             damage=_edit("export/config.json", lambda d: d["data"].update(fps="ten"))),
+        Case("76: rollout --policy ws://127.0.0.1:1", rollout("--policy", "ws://127.0.0.1:1"), quick=True),
+        Case("76: an episode directory emptied", rollout(), damage=_empty_first),
+        Case("76: diagnose --filmstrips --benchmark none", diagnose("--filmstrips", "{out}/fs")),
+        Case("76: diagnose's outcome gate without a scorer reads not measured", diagnose("--stages", "open_loop"),
+             expect="ok", check=_not_fail, timeout=300),
+        Case("76: sweep so101 of another robot's model", ["sweep", "so101", "--world-model", WM, "--out", "{out}/so",
+                                                          "--scorer", "probe_scorer:score"]),
+        Case("76: report of a store with sweep.json's kind removed", report(store="{in}/results_ep"),
+             damage=_edit("results_ep/sweep.json", lambda d: d.pop("kind"))),
+        Case("76: report of a store with sweep.json's episodes removed", report(store="{in}/results_ep"),
+             damage=_edit("results_ep/sweep.json", lambda d: d.pop("episodes"))),
+        Case("76: import --episodes 0:3 of a 2-episode dataset", imp("--episodes", "0:3")),
+        Case("76: import of a truncated data parquet", imp(), damage=_cut_data_parquet),
+        Case("76: server: an odd client locks no other out", [], fn=_odd_client, quick=True),
+    ]
+    cases += [Case(f"76: JAX_PLATFORMS={p} on this machine", rollout(), env={"JAX_PLATFORMS": p}, quick=p == "gpu")
+              for p in ("gpu", "cuda", "bogus")]
+    return cases
+
+
 # -- the run --------------------------------------------------------------------------------------------------------
 def all_cases() -> list[Case]:
     return [*issue_cases(), *numeric_cases(), *file_cases(), *output_cases(), *interrupt_cases(), *resume_cases(),
-            *server_cases(), *kept_real_cases()]
+            *server_cases(), *kept_real_cases(), *issue76_cases()]
 
 
 def main(argv=None) -> int:

@@ -95,11 +95,11 @@ stop)
   fi
   ;;
 save)
-  "$REPO/scripts/with_trunk_paused" "$VENV/bin/sc3" trunk save "$WORK" --out "$STATE"
+  "$REPO/scripts/with_trunk_paused" "$VENV/bin/sc3" trunk save --run "$WORK" --out "$STATE"
   ;;
 branch)
   N=$2; OUT=$3
-  "$REPO/scripts/with_trunk_paused" "$VENV/bin/sc3" trunk branch "$WORK" --steps "$N" --out "$OUT" --no-progress
+  "$REPO/scripts/with_trunk_paused" "$VENV/bin/sc3" trunk branch --trunk "$WORK" --steps "$N" --out "$OUT" --no-progress
   ;;
 *) echo "usage: scripts/trunk.sh start|status|pause|continue|stop|save|branch N OUT" >&2; exit 2 ;;
 esac

@@ -7,7 +7,7 @@ import sys
 
 import pytest
 
-from sc3_jax.core.config import Config, load_config
+from sc3_jax.core.config import load_config
 from sc3_jax.core.errors import UserError
 
 

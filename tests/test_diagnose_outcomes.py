@@ -184,3 +184,21 @@ def test_diagnose_table_reads_a_diagnose_json_with_skipped_stages(open_loop_run,
     row = out.read_text().splitlines()[2].split(" | ")
     assert row[0] == "| open_loop" and row.count("n/a") >= 5  # the teacher-forced / counterfactual / ID columns
     assert json.loads((d / "diagnose.json").read_text())["outcomes"]["physics_reproduction"]["n_objects"] == 6
+
+
+def test_a_gate_that_cannot_be_measured_reads_not_measured_not_fail():
+    """Issue 76: an outcome gate with nothing to measure it by (no outcome scorer: --benchmark none) printed FAIL,
+    which reads as the model's fault; it reads "not measured", neither passing nor failing, with its reason."""
+    from sc3_jax.evaluation import diagnose_report as dr
+
+    skipped = {"available": False, "note": NOT_RUN_NOTE}
+    result = {"third_person_views": ["left"], "views": ["left"], "teacher_forced": skipped, "drift": skipped,
+              "counterfactual": skipped, "inverse_dynamics": skipped,
+              "outcomes": {"available": False, "note": "no outcome scorer (--benchmark none)"}}
+    result["gates"] = dr.gates(result, dg.DiagnoseConfig())
+    g = {x["gate"]: x for x in result["gates"]}[dg.GATES[3]]
+    assert g["pass"] is None and math.isnan(g["value"]) and g["note"] == "not measured: no outcome scorer " \
+        "(--benchmark none)" and dr.word(g) == "not measured"
+    lines = verdict(result)
+    assert "FAIL" not in "\n".join(lines) and "1 not measured" in lines[0], lines
+    assert f"  not measured {dg.GATES[3]}: no outcome scorer (--benchmark none)" in lines, lines

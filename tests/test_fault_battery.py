@@ -66,12 +66,56 @@ def _world_model(root: Path) -> Path:
     return wm
 
 
+def _ae_world_model(root: Path) -> Path:
+    """A world model of a learned (conv_ae) tokenizer, tiny: its config.json, tokenizer/ae.json and
+    norm_stats.json are the files of a saved model the door reads (issue 76)."""
+    import jax
+
+    from sc3_jax.core.config import load_config, replace
+    from sc3_jax.data.norm_stats import NormStats
+    from sc3_jax.model import autoencoder as ae
+    from sc3_jax.model import checkpoint, dit
+    from sc3_jax.model.tokenizer import token_geometry
+
+    acfg = ae.AEConfig(latent_channels=4, downsample=2, width=8, mid_width=8, out_width=4, blocks=1)
+    ae.save(root / "tok", acfg, (16, 16), jax.device_get(ae.init(acfg, jax.random.key(0))),
+            {"mean": np.zeros(4, np.float32), "std": np.ones(4, np.float32)})
+    cfg = replace(load_config("tiny"), model=dict(dim=32, depth=1, num_heads=2, num_kv_heads=1, head_dim=16,
+                                                  mlp_dim=64, rope_axes_dim=(4, 2, 2), tokenizer="conv_ae",
+                                                  tokenizer_path=str(root / "tok"), patch_size=2, num_views=1,
+                                                  action_dim=2),
+                  data=dict(views=("cam",), image_size=(16, 16), fps=10.0, state_dim=0))
+    token_dim, grid = token_geometry(cfg)
+    params = jax.device_get(dit.init_params(cfg.model, token_dim, jax.random.key(0), grid))
+    stats = NormStats(np.zeros(2, np.float32), np.full(2, 0.1, np.float32), action_space=ActionSpace("absolute", 2))
+    out = checkpoint.save(root / "aewm", cfg, stats, params, np.float32)
+    shutil.rmtree(root / "tok")  # the model carries its own copy (aewm/tokenizer)
+    return out
+
+
+def _fitting_store(root: Path, wm: Path) -> Path:
+    """A store the world model ``wm`` fits (its views, image size, frame rate and action dimension): a command
+    given it goes past the data's checks to the door under test."""
+    from sc3_jax.model import checkpoint
+
+    cfg = checkpoint.read_config(wm)
+    h, w = cfg.data.image_size
+    store = EpisodeStore(root, views=list(cfg.data.views), fps=cfg.data.fps, image_size=(h, w), create=True,
+                         action_space=ActionSpace("absolute", cfg.model.action_dim), has_pose=False)
+    for i in range(2):
+        store.write(Episode(f"e{i}", {v: np.full((12, h, w, 3), 40 * i, np.uint8) for v in cfg.data.views},
+                            np.zeros((12, cfg.model.action_dim), np.float32), None, "pick it up"))
+    return root
+
+
 @pytest.fixture(scope="module")
 def pristine(tmp_path_factory) -> Path:
     root = tmp_path_factory.mktemp("pristine")
     _store(root / "store")
     _lerobot(root / "lerobot")
     _world_model(root)
+    _ae_world_model(root)
+    _fitting_store(root / "fit", root / "wm")
     results = root / "results"
     shutil.copytree(DOCS / "stores" / "cmd1_s1", results)
     (results / "results.jsonl").write_bytes(gzip.decompress((results / "results.jsonl.gz").read_bytes()))
@@ -627,7 +671,9 @@ DOOR = {
                                               "--action-space", "absolute"],
     "export --crf 99": lambda root, out: [*export(root, out), "--crf", "99"],
     "report --out FILE": lambda root, out: [*report(root, out), "--out", str(root / "real.csv")],
-    "sweep --scorer os:getcwd": lambda root, out: [*sweep_real(root, out), "--scorer", "os:getcwd"],
+    # (on a store the model fits: the data's own check would refuse it first, with the scorer's door off too)
+    "sweep --scorer os:getcwd": lambda root, out: [*sweep_real(root, out), "--data", str(root / "fit"), "--scorer",
+                                                   "os:getcwd"],
     # scripts/probe_faults.py's finds (2026-12-02): each exited 0, was a traceback or hung
     "rollout --rollout.tau -1": _rollout_ic("--rollout.tau", "-1"),
     "rollout --rollout.tau nan": _rollout_ic("--rollout.tau", "nan"),
@@ -640,6 +686,9 @@ DOOR = {
     "demo --steps 0": lambda root, out: ["demo", "--out", str(out / "demo"), "--steps", "0", "--episodes", "1"],
     "demo --out FILE": lambda root, out: ["demo", "--out", str(root / "real.csv"), "--episodes", "1"],
     "serve-policy --num-views 0": lambda root, out: ["serve-policy", "--policy", "zero", "--num-views", "0"],
+    # issue 76: a model's sizes, in a config to train as in a saved one (a JAX TypeError)
+    "train --model.dim -192": _train("--model.dim", "-192"),
+    "train --data.image-size 0 16": _train("--data.image-size", "0", "16"),
 }
 
 
@@ -841,3 +890,206 @@ def test_an_option_no_command_takes_is_one_line_before_anything_runs(command, op
     err = capsys.readouterr().err
     assert rc == 2 and err.count("\n") == 1 and "Traceback" not in err, (command, token, err)
     assert f"unknown option {flags._name(token)}" in err, (command, token, err)
+
+
+# -- issue 76: a saved model's every field at the door; the faults of the machine and of a policy server ----------
+# (file, field) of a saved model the validator reads (core/saved_model.py); "a.b" nests
+SAVED_FIELDS = [("config.json", f) for f in ("model.dim", "model.depth", "model.num_heads", "model.num_kv_heads",
+                                              "model.mlp_dim", "model.patch_size", "model.action_dim",
+                                              "model.time_embed_dim", "data.image_size", "data.context_frames",
+                                              "data.future_frames", "data.views", "data.fps", "sample.steps")] + \
+    [("tokenizer/ae.json", f) for f in ("config.latent_channels", "config.downsample", "config.width",
+                                        "config.mid_width", "config.out_width", "config.blocks", "image_size")]
+# a count: every one a fault (0 too: none of the fields drawn takes it but blocks, which is drawn without it); a
+# field missing from config.json keeps its default (configs evolve: the params then say they do not fit), one
+# missing from ae.json is a fault
+COUNT_FAULTS = [-192, -1, "sixteen", 1.5, True, None, 10**12, [], {}]
+SIZE_FAULTS = [[81, 79], [96, 128], [16, -16], [16], ["a", "b"], "16x16", [16.0, 16.0], None, 16]
+FIELD_FAULTS = {"data.image_size": SIZE_FAULTS, "image_size": [[17, 16], [0, 16], [32, 32], "x", [16], None],
+                "data.views": ["cam", [], ["cam", "cam"], [1], None], "data.fps": ["ten", -1, 0, [], True],
+                "config.blocks": [-1, "one", 1.5, None, 10**6, "<missing>"]}
+
+
+def saved_model_field(data):
+    """(damage, rel, field) of a drawn field of the conv_ae model's files set to a drawn value that is a fault."""
+    rel, field = data.draw(st.sampled_from(SAVED_FIELDS), label="file, field")
+    faults = FIELD_FAULTS.get(field, COUNT_FAULTS + ["<missing>"] * (rel != "config.json"))
+    value = data.draw(st.sampled_from(faults), label=f"{field} =")
+
+    def damage(root: Path):
+        p = root / "aewm" / rel
+        obj = json.loads(p.read_text())
+        *path, last = field.split(".")
+        d = obj
+        for k in path:
+            d = d[k]
+        if value == "<missing>":
+            d.pop(last)
+        else:
+            d[last] = value
+        p.write_text(json.dumps(obj))
+    return damage, rel, field
+
+
+def rollout_ae(root, out):
+    """A rollout of the conv_ae model on initial conditions that are not there (an .npz: no store is checked
+    first): whatever a field's fault would do, it does before the conditions are read."""
+    return ["rollout", "--world-model", str(root / "aewm"), "--policy", "zero", "--data", str(root / "none.npz"),
+            "--out", str(out / "r"), "--no-video", "--no-progress"]
+
+
+@BATTERY
+@given(data=st.data())
+def test_every_damaged_saved_model_field_is_refused_at_the_door_naming_its_file_and_field(pristine, data):
+    """Issue 76: ae.json latent_channels "sixteen" (a 50-line JAX TypeError), config.json model.dim -192 (a JAX
+    TypeError), an image size the tokenizer was not trained on (a ValueError traceback): the model's reader refuses
+    each drawn fault itself, in one line naming the file and the field, before anything is built from it."""
+    from sc3_jax.core.errors import UserError
+    from sc3_jax.model import checkpoint
+
+    damage, rel, field = saved_model_field(data)
+    with tempfile.TemporaryDirectory() as tmp:
+        shutil.copytree(pristine / "aewm", Path(tmp) / "aewm")
+        damage(Path(tmp))
+        try:
+            checkpoint.read_config(Path(tmp) / "aewm")
+        except UserError as e:
+            said = str(e)
+            assert "\n" not in said and rel in said and field.split(".")[-1] in said, said
+        except Exception as e:  # noqa: BLE001  (what a user would see as a traceback)
+            raise AssertionError(f"traceback: {type(e).__name__}: {e}") from e
+        else:
+            raise AssertionError(f"{rel} {field} damaged, read as a model")
+
+
+@BATTERY
+@given(data=st.data())
+def test_every_damaged_saved_model_field_is_one_line_from_the_command(pristine, data):
+    damage, rel, _ = saved_model_field(data)
+    assert rel in attack(pristine, damage, rollout_ae)
+
+
+def _edit_json(rel: str, edit):
+    def damage(root: Path):
+        p = root / rel
+        obj = json.loads(p.read_text())
+        edit(obj)
+        p.write_text(json.dumps(obj))
+    return damage
+
+
+# the issue's cases as written: (damage, argv, what its line says)
+ISSUE76 = {
+    "ae.json latent_channels 'sixteen'": (
+        _edit_json("aewm/tokenizer/ae.json", lambda d: d["config"].update(latent_channels="sixteen")), rollout_ae,
+        'ae.json: config.latent_channels is "sixteen", expected an integer'),
+    "config.json model.dim -192": (_edit_json("aewm/config.json", lambda d: d["model"].update(dim=-192)),
+                                   rollout_ae, "config.json: model.dim is -192"),
+    "config.json image_size [81, 79]": (_edit_json("aewm/config.json", lambda d: d["data"].update(image_size=[81, 79])),
+                                        rollout_ae, "data.image_size [81, 79], its tokenizer"),
+    "config.json data.views a string": (_edit_json("aewm/config.json", lambda d: d["data"].update(views="cam")),
+                                        rollout_ae, "data.views is 'cam', expected tuple"),
+    # a run's config.json as --config, data.fps retyped: a TyroWarning printed before the line (attack: one line)
+    "train --config with data.fps 'ten'": (
+        _edit_json("aewm/config.json", lambda d: d["data"].update(fps="ten")),
+        lambda root, out: ["train", "--config", str(root / "aewm" / "config.json"), "--data", str(root / "none"),
+                           "--train.workdir", str(out / "wd"), "--train.steps", "1"],
+        "data.fps is 'ten', expected float or null"),
+    "import --episodes 0:3 of 2 episodes": (lambda root: None, _import("--episodes", "0:3"),
+                                            "--episodes asks for episode_index 2, which this dataset does not have"),
+    "import of a truncated data parquet": (
+        lambda root: [p.write_bytes(p.read_bytes()[:len(p.read_bytes()) // 2])
+                      for p in sorted((root / "lerobot" / "data").rglob("*.parquet"))[:1]],
+        import_lerobot, "file-000.parquet: not a whole parquet file"),
+    "sweep so101 of another robot's model": (
+        lambda root: None, lambda root, out: ["sweep", "so101", "--world-model", str(root / "wm"), "--out",
+                                              str(out / "so"), "--scorer", "test_fault_battery:score"],
+        "the SO-101 simulator renders"),
+    "report of a store with sweep.json's kind removed": (_edit_json("results_ep/sweep.json", lambda d: d.pop("kind")),
+                                                         report_episodes, 'no "kind"'),
+    "report of a store with sweep.json's episodes removed": (
+        _edit_json("results_ep/sweep.json", lambda d: d.pop("episodes")), report_episodes, "episodes is missing"),
+    "diagnose --filmstrips --benchmark none": (
+        lambda root: None, lambda root, out: ["diagnose", "--world-model", str(root / "wm"), "--data",
+                                              str(root / "store"), "--filmstrips", str(out / "fs"), "--no-progress"],
+        "has no scene measure, so there are no objects-kept filmstrips"),
+}
+
+
+@pytest.mark.parametrize("case", list(ISSUE76))
+def test_each_issue_76_case_as_written_is_one_line_and_writes_nothing(pristine, case):
+    damage, argv, says = ISSUE76[case]
+    line = attack(pristine, damage, argv)
+    assert says in line, line
+
+
+def _fit_rollout(root, out):
+    return ["rollout", "--world-model", str(root / "wm"), "--policy", "zero", "--data", str(root / "fit"),
+            "--episodes", "1", "--out", str(out / "r"), "--no-video", "--no-progress"]
+
+
+def test_an_emptied_episode_directory_is_named_not_passed_over(pristine):
+    """Issue 76: `sc3 rollout --episodes 1` on a store whose first episode was emptied rolled out the next one."""
+    def empty_e0(root):
+        shutil.rmtree(root / "fit" / "e0")
+        (root / "fit" / "e0").mkdir()
+    line = attack(pristine, empty_e0, _fit_rollout)
+    assert "fit/e0: an episode directory without its meta.json" in line, line
+
+
+def test_a_config_image_size_the_data_lacks_is_one_line_before_the_params_load(pristine, monkeypatch):
+    """Issue 76: config.json image_size [96, 128] against 64x64 data ended in a params.npz shape error (a pixel
+    tokenizer) or a ValueError traceback (a learned one); now the data and the model are compared first."""
+    from sc3_jax.model import checkpoint
+
+    monkeypatch.setattr(checkpoint, "load_params", lambda *a, **k: pytest.fail("the params loaded first"))
+    resize = _edit_json("wm/config.json", lambda d: d["data"].update(image_size=[96, 128]))
+    line = attack(pristine, resize, _fit_rollout)
+    assert "data.image_size=[96, 128], but" in line and "fit/dataset.json has image_size" in line, line
+
+
+def test_a_policy_server_that_is_not_there_is_one_line_in_every_command_that_connects(pristine, monkeypatch):
+    """Issue 76: `sc3 rollout --policy ws://127.0.0.1:1` was 21 lines ending in PolicyConnectionError (`sc3 sweep`
+    said it in one); the client's back-off is not waited here."""
+    from sc3_jax.policies import openpi_client
+
+    init = openpi_client.WebsocketClientPolicy.__init__
+    monkeypatch.setattr(init, "__kwdefaults__", {**init.__kwdefaults__, "backoff_s": 0.0, "max_retries": 1})
+    line = attack(pristine, lambda root: None, _rollout_ic("--policy", "ws://127.0.0.1:1"))
+    assert line.startswith("sc3 rollout: error: --policy ws://127.0.0.1:1: could not connect to the policy server "
+                           "at 127.0.0.1:1") and "is a policy server" in line, line
+
+
+def test_a_policy_server_fault_mid_run_is_one_line_from_any_command(monkeypatch, capsys):
+    """A server that dies or answers an error in the middle of a run (openpi sends a traceback as its text):
+    the command's one line, its first and last words, not the client's traceback."""
+    from sc3_jax import cli
+    from sc3_jax.policies.openpi_client import PolicyServerError
+
+    def fails(argv):
+        raise PolicyServerError("error in the policy server at 10.0.0.2:8000:\nTraceback (most recent call last):\n"
+                                "  File \"policy.py\", line 3\nValueError: image must be 224x224")
+    monkeypatch.setitem(cli.COMMANDS, "rollout", fails)
+    assert cli.main(["rollout"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["sc3 rollout: error: error in the policy server at 10.0.0.2:8000: ValueError: image must be "
+                   "224x224"], err
+
+
+@pytest.mark.parametrize("platforms", ["bogus", "gpu"])
+def test_a_jax_platform_this_machine_lacks_is_one_line(pristine, tmp_path, platforms):
+    """Issue 76: JAX_PLATFORMS=gpu | cuda | bogus on a machine without that backend: chained tracebacks, or a bare
+    AssertionError. (A machine with a GPU has gpu: only bogus is asked of it.)"""
+    import subprocess
+    import sys
+
+    if platforms == "gpu" and any(Path("/dev").glob("nvidia[0-9]*")):
+        pytest.skip("this machine has a GPU")
+    env = {**os.environ, "JAX_PLATFORMS": platforms}
+    r = subprocess.run([sys.executable, "-m", "sc3_jax.cli", *_rollout_ic()(pristine, tmp_path)], env=env,
+                       capture_output=True, text=True, timeout=300)
+    lines = r.stderr.strip().splitlines()
+    assert r.returncode == 2 and len(lines) == 1, r.stderr[-3000:]
+    assert lines[0].startswith(f"sc3 rollout: error: JAX_PLATFORMS={platforms}: no such backend") and \
+        "cpu always works" in lines[0], lines
+    assert not (tmp_path / "r").exists()

@@ -41,7 +41,7 @@ def test_wsd_warms_up_once_holds_the_peak_and_a_branch_decays_to_zero(warmup, he
     trunk = wsd_schedule(lr, warmup, None, warmup + held)
     longer = wsd_schedule(lr, warmup, None, 10 * (warmup + held))
     if warmup:
-        assert float(trunk(0)) == 0.0 and float(trunk(warmup // 2)) <= lr * 0.5 + 1e-9
+        assert float(trunk(0)) == 0.0 and float(trunk(warmup // 2)) <= lr * 0.5 * (1 + 1e-6)  # float32 rates
     for s in (warmup, warmup + held // 2, warmup + held, 50 * (warmup + held)):
         assert float(trunk(s)) == pytest.approx(lr, rel=1e-6)  # held, however long the trunk goes on
         assert float(longer(s)) == float(trunk(s))  # the trunk's rates do not depend on where a stretch stops
@@ -157,12 +157,12 @@ def test_sc3_trunk_refuses_what_is_not_a_trunk_in_one_line(data, unbroken, tmp_p
                            timeout=300)
         return r.returncode, r.stderr.strip()
 
-    code, err = run("branch", str(tmp_path / "nothing"), "--steps", "2", "--out", str(tmp_path / "o"))
+    code, err = run("branch", "--trunk", str(tmp_path / "nothing"), "--steps", "2", "--out", str(tmp_path / "o"))
     assert code in (1, 2) and "no such trunk" in err and len(err.splitlines()) == 1, err
-    code, err = run("branch", str(unbroken), "--steps", "13", "--out", str(tmp_path / "o"))
+    code, err = run("branch", "--trunk", str(unbroken), "--steps", "13", "--out", str(tmp_path / "o"))
     assert code in (1, 2) and "--steps 2" in err and len(err.splitlines()) == 1, err
     cosine = tmp_path / "cosine"
     train(_cfg(data, cosine, 4, schedule="cosine", warmup_steps=1))
-    code, err = run("branch", str(cosine), "--steps", "2", "--out", str(tmp_path / "o"))
+    code, err = run("branch", "--trunk", str(cosine), "--steps", "2", "--out", str(tmp_path / "o"))
     assert code in (1, 2) and "not a WSD trunk" in err and len(err.splitlines()) == 1, err
     assert not (tmp_path / "o").exists()

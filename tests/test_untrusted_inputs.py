@@ -221,6 +221,9 @@ class Jitting:
         s = np.asarray(self.f(obs["images"]))
         return np.zeros((4, 2), np.float32) + s[:1].mean() * 0
 
+    def clear_programs(self):  # as JaxAsHost does: the server bounds the programs kept
+        self.f.clear_cache()
+
 
 def jitting():
     return Jitting()
@@ -252,6 +255,24 @@ def _send(url: str, obs: dict, key: str | None = None):
     return ("error", reply) if isinstance(reply, str) else ("actions", msgpack_numpy.unpackb(reply))
 
 
+def _send_all(url: str, observations: list[dict]) -> list[tuple]:
+    """Several requests on one connection: each ("actions", reply) or ("error", one line), until one is refused."""
+    import websockets.sync.client
+
+    from sc3_jax.policies import msgpack_numpy
+
+    out = []
+    with websockets.sync.client.connect(url, max_size=None, compression=None, open_timeout=30) as ws:
+        ws.recv()  # metadata
+        for obs in observations:
+            ws.send(msgpack_numpy.packb(obs))
+            reply = ws.recv(timeout=60)
+            out.append(("error", reply) if isinstance(reply, str) else ("actions", msgpack_numpy.unpackb(reply)))
+            if isinstance(reply, str):
+                break
+    return out
+
+
 def test_the_policy_server_refuses_big_and_reshaped_messages_and_keeps_its_memory(tmp_path, ctrl_c_reaches_children):
     key_file = tmp_path / "key"
     key_file.write_text("s3cret\n")
@@ -266,13 +287,11 @@ def test_the_policy_server_refuses_big_and_reshaped_messages_and_keeps_its_memor
         assert line.startswith("serving ") and "ws://127.0.0.1:" in line, (line, proc.stderr.read()[-2000:])
         url = line.split(" on ", 1)[1].split(" ", 1)[0]
         obs = lambda h: {"images": np.zeros((h, 16, 3), np.uint8), "state": np.zeros(2, np.float32)}  # noqa: E731
-        assert _send(url, obs(16), "s3cret")[0] == "actions"  # the first observation fixes the shape
+        assert _send(url, obs(16), "s3cret")[0] == "actions"
         assert _send(url, obs(16), "s3cret")[0] == "actions"
         base = _rss_mb(proc.pid)
-        for h in range(17, 57):  # 40 new shapes: each would compile (and keep) a program
-            kind, msg = _send(url, obs(h), "s3cret")
-            assert kind == "error" and "\n" not in msg and msg.startswith("ShapeError: observation images is"), msg
-            assert "/" not in msg.replace("(fixed", "")  # no server path
+        for h in range(17, 57):  # 40 new shapes, each a client of its own: each compiles a program, none kept past 8
+            assert _send(url, obs(h), "s3cret")[0] == "actions"
         for _ in range(3):  # 3 x 48 MB, each refused before it is read
             assert _send(url, {"images": np.zeros((48 * 2**20,), np.uint8)}, "s3cret") == ("closed", 1009)
         grown = _rss_mb(proc.pid) - base
@@ -631,11 +650,74 @@ def test_a_refused_first_observation_fixes_nothing_and_says_no_internals():
         assert "images [2, 8, 8, 3]" in msg and "dot_general" not in msg and "jax" not in msg.lower(), msg
         kind, msg = _send(server.url, _linear_obs(state=(0.0, 0.0, 0.0)))  # a state the policy does not read
         assert kind == "error" and msg.startswith("ObservationError: observation state has shape [3]"), msg
-        assert server.signature is None  # nothing refused fixed the shape
-        kind, reply = _send(server.url, _linear_obs())  # the first good client is served, and fixes it
-        assert kind == "actions" and reply["actions"].shape == (4, 2), reply
-        kind, msg = _send(server.url, _linear_obs(h=12))
-        assert kind == "error" and msg.startswith("ShapeError: observation images is"), msg
+        assert server.shapes == {}  # nothing refused fixed a shape
+        (kind, reply), (kind2, msg) = _send_all(server.url, [_linear_obs(), _linear_obs(h=12)])
+        assert kind == "actions" and reply["actions"].shape == (4, 2), reply  # a good client is served, and fixes
+        assert kind2 == "error" and msg.startswith("ShapeError: observation images is [1, 12, 8, 3] |u1, this "
+                                                   "connection sends [1, 8, 8, 3] |u1"), msg  # its connection's shapes
+        assert "/" not in msg.replace("(fixed", "")  # no server path
+
+
+def test_one_clients_odd_shapes_lock_no_other_client_out_and_healthz_says_what_is_served(caplog):
+    """Issue 76: one client sending [3, 4, 4, 3] images (answered: the policy takes any shape) fixed the server's
+    shapes, every later correct client was refused until restart, and /healthz said OK; each refusal was a
+    traceback in the server's log."""
+    import logging
+    import urllib.request
+
+    import websockets.sync.client
+
+    from sc3_jax.policies import msgpack_numpy
+
+    def health(server) -> str:
+        with urllib.request.urlopen(f"http://127.0.0.1:{server.port}/healthz", timeout=5) as r:
+            return r.read().decode()
+    odd = {"images": np.zeros((3, 4, 4, 3), np.uint8), "state": np.zeros(2, np.float32)}
+    good = {"images": np.zeros((1, 8, 8, 3), np.uint8), "state": np.zeros(2, np.float32)}
+    with _server_of(lambda obs: np.zeros((2, 2), np.float32)) as server, caplog.at_level(logging.DEBUG):
+        assert health(server).startswith("OK\nexpects: our observation dict") and "answered now: none yet" in \
+            health(server)
+        with websockets.sync.client.connect(server.url) as bad:  # the odd client stays connected
+            bad.recv()
+            bad.send(msgpack_numpy.packb(odd))
+            assert isinstance(bad.recv(timeout=30), bytes)  # answered: its shapes are its connection's
+            assert _send(server.url, good)[0] == "actions"  # a correct client is served meanwhile
+            assert "images [3, 4, 4, 3] |u1, state [2] <f4 (1 connection)" in health(server)
+            kind, msg = _send_all(server.url, [good, odd])[-1]  # a client changing shapes: only it is refused
+            assert kind == "error" and "this connection sends [1, 8, 8, 3] |u1" in msg, msg
+            bad.send(msgpack_numpy.packb(odd))
+            assert isinstance(bad.recv(timeout=30), bytes)  # the odd one still served on its own terms
+        assert _send(server.url, good)[0] == "actions"
+    refusals = [r for r in caplog.records if r.name == "sc3_jax.policies.openpi_server" and r.levelno >= logging.ERROR]
+    assert len(refusals) == 1 and "\n" not in refusals[0].getMessage(), [r.getMessage() for r in refusals]
+    assert refusals[0].getMessage().startswith("refused an observation from 127.0.0.1:") and "ShapeError" in \
+        refusals[0].getMessage()
+
+
+def test_a_jax_policy_keeps_a_bounded_number_of_programs_compiled():
+    """Shapes served per connection: clients sending ever new shapes compile ever new programs; past MAX_PROGRAMS
+    the policy's are cleared (a shape seen again compiles again), so memory stays bounded."""
+    from sc3_jax.policies.openpi_server import MAX_PROGRAMS, PolicyServer
+
+    class Counting:
+        chunk, cleared = 1, 0
+
+        def infer(self, obs):
+            return np.zeros((1, 2), np.float32)
+
+        def clear_programs(self):
+            self.cleared += 1
+    policy = Counting()
+    server = PolicyServer(policy, port=0)
+    try:
+        for h in range(1, MAX_PROGRAMS + 1):
+            server._infer({"images": np.zeros((h, 4, 3), np.uint8)})
+            server._infer({"images": np.zeros((h, 4, 3), np.uint8)})  # seen: no new program
+        assert policy.cleared == 0
+        server._infer({"images": np.zeros((MAX_PROGRAMS + 1, 4, 3), np.uint8)})
+        assert policy.cleared == 1 and len(server._programs) == 1
+    finally:
+        server.shutdown()
 
 
 @given(where=st.sampled_from(["state", "nested"]), value=st.sampled_from([np.nan, np.inf, -np.inf]),
@@ -657,7 +739,7 @@ def test_a_non_finite_observation_is_one_line_and_never_nan_actions(where, value
     try:
         with pytest.raises(ObservationError, match="holds NaN or inf"):
             server._infer(obs)
-        assert server.signature is None
+        assert server.shapes == {}
     finally:
         server.shutdown()
     with PolicyServer(Echo(), port=0).start() as live:  # over a real socket: one line back, then served again

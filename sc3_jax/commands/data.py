@@ -61,7 +61,8 @@ class ImportLerobot:
     observation.state when present and not already the ee_pose; "none": no state)"""
     episodes: Annotated[tuple[str, ...] | None, tyro.conf.arg(metavar="A:B|N ...")] = None
     """which episodes (the dataset's episode_index) to import: ranges A:B (B excluded, either end open) or single
-    indices, e.g. `--episodes 0:20` for a training store and `--episodes 20:` for a held-out one (None: all)"""
+    indices, e.g. `--episodes 0:20` for a training store and `--episodes 20:` for a held-out one (None: all); an
+    index of a closed range or a single one that the dataset lacks is refused"""
     id_prefix: str = ""
     """put in front of the episode ids (PREFIXlerobot000012): one store holds several datasets (recording
     sessions) under a prefix each"""
@@ -113,6 +114,11 @@ class _Selection:
 
     def __contains__(self, i: int) -> bool:
         return any(a <= i < b for a, b in self.ranges)
+
+    def missing(self, have: set[int]) -> list[int]:
+        """The indices asked for by name (a single index, or a range closed at both ends) that ``have`` lacks:
+        ``0:3`` with episode 1 missing imported two without a word. An open end (``20:``) asks for what there is."""
+        return sorted({i for a, b in self.ranges if b != float("inf") for i in range(a, int(b))} - have)
 
 
 def episode_selection(spec: tuple[str, ...] | None) -> _Selection | None:

@@ -78,6 +78,12 @@ def main(argv: list[str]) -> int:
     a, cfg = parse_evaluated(Args, argv, "diagnose")
     strips = a.filmstrips or (str(Path(a.out).with_suffix("")) + "_filmstrips" if a.out else None)
     check(a, strips)  # at the door: a bad bound or an unwritable path is one line before any rollout
+    if a.filmstrips and not benchmark.get_or_none(a.benchmark).measures:  # asked for, it wrote none without a word
+        from sc3_jax.core.errors import UserError
+
+        raise UserError(f"--filmstrips {a.filmstrips}: --benchmark {a.benchmark} has no scene measure, so there are "
+                        "no objects-kept filmstrips to write; give a --benchmark with one (bussing, so101), or leave "
+                        "--filmstrips out")
     from sc3_jax.evaluation import diagnose
 
     fields = {f.name for f in dataclasses.fields(DiagnoseConfig)}

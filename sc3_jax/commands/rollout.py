@@ -122,6 +122,10 @@ def main(argv: list[str]) -> int:
         raise UserError(f"--rollout.tau {tau}: a threshold is a non-negative number (inf: never stop)")
     bm = benchmark_of(a.benchmark)  # an unknown name: one line before the model loads
     stats = checkpoint.read_norm_stats(a.world_model)
+    if Path(a.data).suffix != ".npz":  # the store against the model's views and image size before its params load
+        from sc3_jax.data.shape import check_shape  # (a config.json image size the data lacks: a params.npz error)
+
+        check_shape(cfg, a.data)
     params = checkpoint.load_params(a.world_model, cfg, a.step)
     fps = rollout_io.data_fps(a.world_model, a.data_fps)
     ro = rollout.Rollout(cfg, stats, data_fps=fps, head=state_head.load(a.world_model) if a.learned_state else None)
@@ -139,10 +143,10 @@ def main(argv: list[str]) -> int:
     try:  # an unknown name, or a module:attr that is no policy: one line, before anything compiles
         policy = resolve(a.policy, cfg.rollout.policy_chunk, family, action_space=stats.action_space,
                          named=bm.named_policy, num_views=len(cfg.data.views)).policy
-    except (ValueError, TypeError) as e:
+    except (ValueError, TypeError, ConnectionError, TimeoutError) as e:  # a ws:// server not there, too
         if isinstance(e, UserError):
             raise
-        raise UserError(f"--policy {a.policy}: {e}") from None
+        raise UserError(f"--policy {a.policy}: {' '.join(str(e).split())}") from None
     n, s, tau = len(ids), ro.spec, ro.tau
     size = a.batch or n
     rollout_io.check_horizon(s, cfg.rollout.episode_seconds, min(size, n))

@@ -44,6 +44,9 @@ def main(argv: list[str]) -> int:
     from sc3_jax.core import validate
 
     validate.train_config(cfg)  # every numeric field in bounds, the workdir a directory: before anything is read
+    from sc3_jax.model import saved_model
+
+    saved_model.check_options(cfg)  # and the model's sizes (--model.dim -192 was a JAX TypeError)
     import jax
 
     from sc3_jax.train import sizing, train

@@ -1,11 +1,9 @@
-"""``sc3 trunk save RUN --out DIR`` / ``sc3 trunk branch TRUNK --steps N --out DIR``: a long WSD run (the trunk) as
-state that travels between machines, and the annealed branches of it that are measured and shipped
+"""``sc3 trunk save --run RUN --out DIR`` / ``sc3 trunk branch --trunk TRUNK --steps N --out DIR``: a long WSD run
+(the trunk) as state that travels between machines, and the annealed branches of it that are measured and shipped
 (docs/world_model.md, "The trunk")."""
 from __future__ import annotations
 
 import dataclasses
-
-import tyro
 
 from sc3_jax.commands import run_group
 
@@ -18,7 +16,7 @@ class Save:
     """Save a run's latest checkpoint as state that travels: a world model plus its optimizer moments, step, rng,
     data position and lineage, to commit and resume elsewhere (--train.resume-from DIR)."""
 
-    run: tyro.conf.Positional[str]
+    run: str
     """the `sc3 train` workdir of the trunk"""
     out: str
     """where to write it (replaced whole, in one step)"""
@@ -31,7 +29,7 @@ class Branch:
     """Anneal a copy of a WSD trunk's latest state to a learning rate of ~0 over --steps steps and export it (the
     model to measure and ship); the trunk itself is not touched."""
 
-    trunk: tyro.conf.Positional[str]
+    trunk: str
     """the trunk: its `sc3 train` workdir, or its travelling state (`sc3 trunk save`)"""
     steps: int
     """the decay's length in steps (at most the steps the trunk has trained; 10-20% of them is usual)"""

@@ -529,11 +529,13 @@ def _json_config(path: Path) -> Config:
     raw = atomic.read_json(path, fix)
     if not isinstance(raw, dict):
         raise UserError(f"{path}: expected a run's config (a JSON object), got {type(raw).__name__}; {fix}")
+    from sc3_jax.core.validate import check_config_types
+
     try:
         cfg = config_from_dict(raw)
     except (TypeError, ValueError, AttributeError) as e:  # a section retyped (a list where fields are)
+        check_config_types(raw, Config(), str(path), fix)  # the field whose type it was, named
         raise UserError(f"{path}: does not read as a config ({e}); {fix}") from None
-    from sc3_jax.core.validate import check_config_types
     check_config_types(cfg, Config(), str(path), fix)
     return cfg
 
@@ -560,7 +562,7 @@ def config_from_dict(d: dict, default=None):
         cur, val = getattr(default, f.name), d[f.name]
         if dataclasses.is_dataclass(cur):
             changes[f.name] = config_from_dict(val, cur)
-        elif isinstance(cur, tuple):
+        elif isinstance(cur, tuple) and isinstance(val, list):  # a string stays one (its letters are no views)
             changes[f.name] = tuple(tuple(v) if isinstance(v, list) else v for v in val)
         else:
             changes[f.name] = val

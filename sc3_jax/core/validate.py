@@ -244,11 +244,18 @@ def train_config(cfg) -> None:
 
 def check_config_types(cfg, default, where: str, fix: str, prefix: str = "") -> None:
     """Every field of a config read from a file has its default's type (``model.dim: "abc"`` would otherwise be a
-    TypeError from inside JAX): one line naming the field. A field whose default is None may be anything."""
+    TypeError from inside JAX): one line naming the field. A field whose default is None has its annotation's type
+    or is null. ``cfg``: the config, or the file's raw dict (fields absent keep their defaults; lists as tuples),
+    which names the field whose type made building the config fail."""
+    raw = isinstance(cfg, dict)
     for f in dataclasses.fields(default):
-        have, want, name = getattr(cfg, f.name), getattr(default, f.name), prefix + f.name
+        if raw and f.name not in cfg:
+            continue
+        have, want, name = cfg[f.name] if raw else getattr(cfg, f.name), getattr(default, f.name), prefix + f.name
+        if raw and isinstance(have, list) and isinstance(want, tuple):
+            have = tuple(have)
         if dataclasses.is_dataclass(want):
-            if not dataclasses.is_dataclass(have):
+            if not (isinstance(have, dict) if raw else dataclasses.is_dataclass(have)):
                 raise UserError(f"{where}: {name} is {have!r}, expected a section of fields; {fix}")
             check_config_types(have, want, where, fix, name + ".")
             continue
@@ -258,3 +265,28 @@ def check_config_types(cfg, default, where: str, fix: str, prefix: str = "") -> 
               tuple: lambda v: isinstance(v, tuple)}.get(type(want))
         if want is not None and ok is not None and not ok(have):
             raise UserError(f"{where}: {name} is {have!r}, expected {type(want).__name__}; {fix}")
+        kind = str(f.type).removesuffix(" | None")
+        if want is None and have is not None and kind in _ENTRY and not _ENTRY[kind](have):  # an optional field,
+            raise UserError(f"{where}: {name} is {have!r}, expected {kind} or null; {fix}")  # set: of its type
+        if isinstance(want, tuple):  # and its entries: ["a", "b"] as data.image_size was a TypeError in JAX
+            _check_entries(have, str(f.type), f"{where}: {name} is {list(have)!r}", fix)
+
+
+_ENTRY = {"int": lambda v: isinstance(v, int) and not isinstance(v, bool), "str": lambda v: isinstance(v, str),
+          "float": lambda v: is_finite_number(v) or v in (math.inf, -math.inf)}
+
+
+def _check_entries(have: tuple, annotation: str, said: str, fix: str) -> None:
+    """A tuple field's entries against its annotation: ``tuple[int, int]`` two ints, ``tuple[str, ...]`` any number
+    of strings (another annotation: unchecked)."""
+    if not annotation.startswith("tuple[") or not annotation.endswith("]"):
+        return
+    kinds = [k.strip() for k in annotation[len("tuple["):-1].split(",")]
+    if not all(k in _ENTRY or k == "..." for k in kinds):
+        return
+    many = kinds[-1] == "..."
+    if not many and len(have) != len(kinds):
+        raise UserError(f"{said}, expected {len(kinds)} entries ({', '.join(kinds)}); {fix}")
+    for v, k in zip(have, [kinds[0]] * len(have) if many else kinds):
+        if not _ENTRY[k](v):
+            raise UserError(f"{said}, expected {kinds[0] + ' entries' if many else ', '.join(kinds)}; {fix}")

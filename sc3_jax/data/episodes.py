@@ -188,6 +188,18 @@ class EpisodeStore:
         return sorted(p.name for p in self.root.iterdir() if p.is_dir() and (p / "meta.json").exists()
                       and not p.name.startswith("."))
 
+    def check_whole(self) -> None:
+        """One line naming an episode directory that lost its meta.json (emptied, or damaged by hand), which
+        :meth:`episode_ids` passes over as no episode: a command taking the store's first N read the next one in its
+        place without a word. An interrupted write is a dot-named temporary, never one of these."""
+        hollow = sorted(p.name for p in self.root.iterdir() if p.is_dir() and not p.name.startswith(".")
+                        and not (p / "meta.json").exists())
+        if hollow:
+            more = f" (and {len(hollow) - 1} more: {', '.join(hollow[1:4])}{', ...' if len(hollow) > 4 else ''})" \
+                if len(hollow) > 1 else ""
+            raise UserError(f"{self.root / hollow[0]}: an episode directory without its meta.json{more}, emptied or "
+                            "damaged; restore it from a copy, or delete it")
+
     def __len__(self) -> int:
         return len(self.episode_ids())
 

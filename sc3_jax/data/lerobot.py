@@ -51,6 +51,20 @@ OPTIONAL = object()  # sentinel: "use observation.state if the dataset has it" (
 ENVIRONMENT_STATE_KEY = "observation.environment_state"
 
 
+def _parquet(read, path: Path, **kw):
+    """``read(path, **kw)`` (``pq.read_table`` / ``pq.read_schema``) of a regular file of the dataset, a damaged one
+    (cut short, not parquet) one line naming it: pyarrow's own message named no file."""
+    try:
+        return read(_regular(path), **kw)
+    except (pa.ArrowException, OSError) as e:
+        if isinstance(e, OSError) and e.errno is not None:
+            raise  # a file that cannot be opened: the command layer says so
+        said = " ".join(str(e).split())
+        said = said.split("': ", 1)[-1] if said.startswith("Could not open") else said  # (its path, named already)
+        raise LeRobotError(path, f"not a whole parquet file ({said[:160]}); restore it from the dataset's "
+                                 "source") from None
+
+
 def read_info(path: Path) -> dict:
     """A LeRobot dataset's ``meta/info.json``, checked where it enters: its rate, features and path templates have
     the types the reader needs (a retyped one is one line naming it, not a TypeError where it is first used)."""
@@ -183,7 +197,7 @@ class LeRobotEpisodes:
             path = self.root / "meta" / "tasks.parquet"
             if not path.exists():
                 raise LeRobotError(path, "missing")
-            table = pq.read_table(_regular(path))
+            table = _parquet(pq.read_table, path)
             col = _task_column(table, path)
             pairs = zip(table["task_index"].to_pylist(), table[col].to_pylist(), strict=True)
             return {int(i): str(t) for i, t in pairs}
@@ -197,8 +211,8 @@ class LeRobotEpisodes:
                 raise LeRobotError(self.root / "meta" / "episodes", "no episode parquet files")
             rows = []
             for f in files:  # per-episode stats columns are large and unused here: skip them
-                names = [n for n in pq.read_schema(_regular(f)).names if not n.startswith("stats/")]
-                rows += [{**r, "_meta_file": f} for r in pq.read_table(f, columns=names).to_pylist()]
+                names = [n for n in _parquet(pq.read_schema, f).names if not n.startswith("stats/")]
+                rows += [{**r, "_meta_file": f} for r in _parquet(pq.read_table, f, columns=names).to_pylist()]
         else:
             rows = _read_jsonl(self.root / "meta" / "episodes.jsonl")
         return sorted(rows, key=lambda r: int(r["episode_index"]))
@@ -250,15 +264,16 @@ class LeRobotEpisodes:
         path = self._data_path(ep)
         if not path.exists():
             raise LeRobotError(path, f"missing data file of episode {ep['episode_index']}")
-        have = pq.read_schema(_regular(path)).names
+        have = _parquet(pq.read_schema, path).names
         for c in columns:
             if c not in have:
                 raise LeRobotError(path, f"column {c!r} missing (have {have})")
         cols = list(dict.fromkeys(columns + ["episode_index"]))
         if self.version == "v3.0":  # shared file: row-group statistics let pyarrow skip other episodes
-            table = pq.read_table(path, columns=cols, filters=[("episode_index", "=", int(ep["episode_index"]))])
+            table = _parquet(pq.read_table, path, columns=cols,
+                             filters=[("episode_index", "=", int(ep["episode_index"]))])
         else:
-            table = pq.read_table(path, columns=cols)
+            table = _parquet(pq.read_table, path, columns=cols)
         length = int(ep["length"])
         if table.num_rows != length:
             raise LeRobotError(path, f"inconsistent lengths: episode {ep['episode_index']} has {table.num_rows} "

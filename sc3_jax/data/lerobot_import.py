@@ -78,8 +78,14 @@ def import_lerobot(root: str | os.PathLike, out: str | os.PathLike, views=None, 
                           state_key=None)
     feats, info_path = src.features, Path(root) / "meta" / "info.json"
     chosen = [i for i in range(len(src)) if episodes is None or src.episode_index(i) in episodes]
+    have = [src.episode_index(i) for i in range(len(src))]
+    lacking = episodes.missing(set(have)) if callable(getattr(episodes, "missing", None)) else []
+    if lacking:  # asked for by name: importing the others without a word left a store short of what was asked
+        shown = ", ".join(map(str, lacking[:5])) + (f", ... ({len(lacking)} in all)" if len(lacking) > 5 else "")
+        raise LeRobotError(root, f"--episodes asks for episode_index {shown}, which this dataset does not have (it "
+                                 f"has {len(have)} episodes, episode_index {min(have, default=0)}.."
+                                 f"{max(have, default=-1)}): leave them out, or give an open range (e.g. 20:)")
     if not chosen:  # nothing would be imported, yet the command would say "train on it"
-        have = [src.episode_index(i) for i in range(len(src))]
         raise LeRobotError(root, f"--episodes selects none of its {len(have)} episodes (episode_index "
                                  f"{min(have, default=0)}..{max(have, default=-1)})")
     dim = int(np.prod(feats[action_key]["shape"]))

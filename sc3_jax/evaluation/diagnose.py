@@ -64,14 +64,20 @@ from sc3_jax.evaluation.diagnose_video import (PREDICTORS, ErrorSums, moving_mas
 NOT_RUN = {"available": False, "note": NOT_RUN_NOTE}
 
 
-def load(world_model, model_config=None):
+def load(world_model, model_config=None, store=None):
     """(config, norm stats, params, name) of a path (``sc3 train`` workdir or exported dir) or a loaded triple.
-    ``model_config``: the config to evaluate it under (default: its own)."""
+    ``model_config``: the config to evaluate it under (default: its own). ``store``: the held-out store it will read,
+    checked against the model's views and image size before its params load (a config.json image size the data
+    does not have was a params.npz shape error)."""
     if isinstance(world_model, (str, Path)):
         from sc3_jax.model import checkpoint
         cfg = model_config or checkpoint.read_config(world_model)
+        if store is not None:
+            _check_store(store, cfg)
         return cfg, checkpoint.read_norm_stats(world_model), checkpoint.load_params(world_model, cfg), str(world_model)
     cfg, stats, params = world_model
+    if store is not None:
+        _check_store(store, model_config or cfg)
     return model_config or cfg, stats, params, cfg.name if hasattr(cfg, "name") else "<loaded>"
 
 
@@ -156,8 +162,8 @@ def diagnose(world_model, heldout_store, config: DiagnoseConfig | None = None, *
     dc = dataclasses.replace(config or DiagnoseConfig(), **overrides)
     _check_stages(dc.stages)
     t0 = time.time()
-    cfg, stats, params, name = load(world_model, model_config)
     store = heldout_store if isinstance(heldout_store, EpisodeStore) else EpisodeStore(heldout_store)
+    cfg, stats, params, name = load(world_model, model_config, store)
     ids = _episodes(store, cfg, dc.episodes)
     if head is None and isinstance(world_model, (str, Path)):
         from sc3_jax.rollout import state_head
@@ -199,18 +205,28 @@ def _check_stages(stages) -> None:
 
 def _episodes(store, cfg, n: int | None) -> list[str]:
     """The ids to diagnose: ``n`` evenly spaced over the store (stores are ordered by generation knob), or all."""
-    views = list(cfg.data.views)
-    if [v for v in views if v not in store.views]:
-        raise ValueError(f"{store.root}: the world model needs views {views}, the store has {store.views}")
-    if tuple(store.image_size) != tuple(cfg.data.image_size):
-        raise ValueError(f"{store.root}: images {tuple(store.image_size)}, the world model takes "
-                         f"{tuple(cfg.data.image_size)}")
+    _check_store(store, cfg)
+    store.check_whole()  # an emptied episode: named, not passed over
     ids = store.episode_ids()
     if n is not None and n < len(ids):
         ids = [ids[i] for i in np.linspace(0, len(ids) - 1, n).round().astype(int)]
     if not ids:
         raise ValueError(f"{store.root}: no episodes")
     return ids
+
+
+def _check_store(store, cfg) -> None:
+    """The held-out store has the world model's views and image size (one line naming both), else nothing fits."""
+    from sc3_jax.core.errors import UserError
+
+    views = list(cfg.data.views)
+    if [v for v in views if v not in store.views]:
+        raise UserError(f"{store.root}/dataset.json: views {list(store.views)}, the world model needs {views} "
+                        "(its config.json data.views): give held-out episodes of its cameras")
+    if tuple(store.image_size) != tuple(cfg.data.image_size):
+        raise UserError(f"{store.root}/dataset.json: images {list(store.image_size)}, the world model takes "
+                        f"{list(cfg.data.image_size)} (its config.json data.image_size): give held-out episodes "
+                        "at its image size")
 
 
 def model_fps(cfg, store) -> float:

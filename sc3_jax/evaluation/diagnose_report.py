@@ -13,6 +13,7 @@ from sc3_jax.evaluation.diagnose_video import PREDICTORS
 
 
 NOT_RUN_NOTE = "not run (--stages)"  # diagnose.NOT_RUN's note: how a skipped section and its gates read
+NOT_MEASURED = "not measured"  # a gate whose section ran but could not measure it (no outcome scorer, no view)
 SECTIONS = ("teacher_forced", "inverse_dynamics", "counterfactual", "drift", "tracking", "outcomes")
 GATES = ("teacher-forced moving PSNR - copy-last, every third-person view (dB)",
          "teacher-forced moving PSNR - temporal median, every third-person view (dB)",
@@ -33,7 +34,8 @@ def not_run(result: dict) -> list[str]:
 
 def gates(result: dict, dc: DiagnoseConfig) -> list[dict]:
     """Each gate of ``GATES`` on a :func:`diagnose` result: value, ``dc``'s threshold, pass, note. A gate whose
-    section was not run (``--stages``) reads value nan, pass None (neither pass nor fail)."""
+    section was not run (``--stages``), or ran but could not measure it (value nan: no outcome scorer, no
+    third-person view), reads value nan, pass None -- neither pass nor fail -- and its note says which."""
     third = result["third_person_views"] or result["views"]
     rows = []
     if ran(result["teacher_forced"]):
@@ -59,9 +61,7 @@ def gates(result: dict, dc: DiagnoseConfig) -> list[dict]:
                      f"outcome category vs {oc['reference']}, {ref['n_objects']} objects"))
     else:
         rows.append((GATES[3], math.nan, dc.gate_reproduction, oc.get("note", "")))
-    out = [{"gate": g, "value": v, "threshold": t, "pass": bool(math.isfinite(v) and v >= t), "note": n}
-           if v is not None else {"gate": g, "value": math.nan, "threshold": t, "pass": None, "note": NOT_RUN_NOTE}
-           for g, v, t, n in rows]
+    out = [_gate(g, v, t, n) for g, v, t, n in rows]
     if ran(result["drift"]):
         drift_ok = all(r[0]["n_episodes"] > 0 for r in result["drift"]["views"].values())
         out.append({"gate": GATES[4], "value": float(drift_ok), "threshold": 1.0, "pass": drift_ok,
@@ -69,6 +69,22 @@ def gates(result: dict, dc: DiagnoseConfig) -> list[dict]:
     else:
         out.append({"gate": GATES[4], "value": math.nan, "threshold": 1.0, "pass": None, "note": NOT_RUN_NOTE})
     return out
+
+
+def _gate(gate: str, value, threshold: float, note: str) -> dict:
+    """One gate's row: a value measured passes or fails; None (its section not run) or nan (not measurable: a FAIL
+    once, which read as the model's fault) neither."""
+    if value is None or math.isnan(value):
+        note = NOT_RUN_NOTE if value is None else NOT_MEASURED + (f": {note}" if note else "")
+        return {"gate": gate, "value": math.nan, "threshold": threshold, "pass": None, "note": note}
+    return {"gate": gate, "value": value, "threshold": threshold, "pass": bool(value >= threshold), "note": note}
+
+
+def word(g: dict) -> str:
+    """A gate's verdict in a word: PASS, FAIL, not run (--stages) or not measured."""
+    if g["pass"] is not None:
+        return "PASS" if g["pass"] else "FAIL"
+    return "not run" if g.get("note") == NOT_RUN_NOTE else NOT_MEASURED
 
 
 def _f(x, fmt="{:.2f}") -> str:
@@ -121,7 +137,7 @@ def render_table(result: dict) -> str:
         L += ["", f"### Dense probe: the object after real context, where the real arm carries it{detail}", ""] + lines
     L += ["", "### Gates", "", "| gate | value | threshold | pass | note |", "|---|---|---|---|---|"]
     for g in result["gates"]:
-        L.append(f"| {g['gate']} | {_f(g['value'])} | {g['threshold']:g} | {_pass(g)} | {g['note']} |")
+        L.append(f"| {g['gate']} | {_f(g['value'])} | {g['threshold']:g} | {word(g)} | {g['note']} |")
     return "\n".join(L) + "\n"
 
 
@@ -227,10 +243,6 @@ def _reproduction_lines(r: dict, names: dict) -> list[str]:
     return L
 
 
-def _pass(g: dict) -> str:
-    return {True: "PASS", False: "FAIL"}.get(g["pass"], "not run")
-
-
 def save_result(result: dict, path: str | Path) -> Path:
     """JSON with non-finite numbers as strings ("inf", "-inf", "nan")."""
     def clean(x):
@@ -266,15 +278,20 @@ def verdict(result: dict) -> list[str]:
     ``--stages`` skipped in one line; whether the outcome set is large enough to read per category."""
     g = [x for x in result["gates"] if x["pass"] is not None]
     failed = [x for x in g if not x["pass"]]
-    skipped = len(result["gates"]) - len(g)
-    if skipped:
-        out = [f"gates: {len(g) - len(failed)} of the {len(g)} run pass ({skipped} not run: --stages skipped "
-               f"{', '.join(not_run(result))})" + ("; failed:" if failed else "")]
+    unmeasured = [x for x in result["gates"] if word(x) == NOT_MEASURED]
+    skipped = len(result["gates"]) - len(g) - len(unmeasured)
+    aside = [f"{skipped} not run: --stages skipped {', '.join(not_run(result))}"] * bool(skipped) + \
+        [f"{len(unmeasured)} not measured"] * bool(unmeasured)
+    if aside:
+        out = [f"gates: {len(g) - len(failed)} of the {len(g)} measured pass ({'; '.join(aside)})"
+               + ("; failed:" if failed else "")]
     else:
         out = [f"gates: {len(g) - len(failed)} of {len(g)} pass" + (" (the checkpoint passes every gate)"
                                                                      if not failed else "; failed:")]
     out += [f"  FAIL {x['gate']}: {_f(x['value'])}, needs >= {x['threshold']:g}" + (f" ({x['note']})" if x["note"]
                                                                                       else "") for x in failed]
+    out += [f"  not measured {x['gate']}: {x['note'].removeprefix(NOT_MEASURED + ': ') or 'no value'}"
+            for x in unmeasured]
     oc = result["outcomes"]
     r = oc.get("physics_reproduction")
     if "physics_reproduction" in oc and not r:  # (results from before it existed say nothing)

@@ -246,6 +246,11 @@ def run(cfg: ICSweepConfig, named=None) -> Path:
     from sc3_jax.evaluation import labels
     # unreadable real outcomes are refused before any rollout, not after hours of them; read once, kept as read
     real = labels.read(cfg.real) if cfg.real else None
+    # the store against the model's views and image size before its params load (else a params.npz shape error)
+    if Path(cfg.initial_conditions).suffix != ".npz":
+        from sc3_jax.data.shape import check_shape
+
+        check_shape(checkpoint.read_config(cfg.world_model), cfg.initial_conditions)
     setup = engine.Setup(cfg.out, cfg.world_model, cfg, named=named, learned_state=cfg.learned_state, pad=True)
     ro, params = engine.load_world_model(setup)  # the sweep's sampler settings (sc3 rollout / diagnose share them)
     wcfg, s = ro.cfg, ro.spec

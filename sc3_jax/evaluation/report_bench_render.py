@@ -6,7 +6,7 @@ import json
 import math
 from pathlib import Path
 
-from sc3_jax.evaluation import diagnose_headline, report_figures, report_html
+from sc3_jax.evaluation import diagnose_headline, diagnose_report, report_figures, report_html
 from sc3_jax.measures import metrics
 from sc3_jax.evaluation.report_html import UNDEFINED, ci
 from sc3_jax.evaluation.report_html import fmt as _fmt
@@ -112,7 +112,7 @@ def tables(t: dict) -> list[tuple[str, list[str], list[list[str]]]]:
                     f"{Path(str(d['data'])).name} (the world model's diagnose.json).",
                     ["gate", "value", "threshold", "pass"],
                     [[g["gate"], _fmt(g["value"], 2) if g["pass"] is not None else "-", f"{g['threshold']:g}",
-                      {True: "PASS", False: "FAIL"}.get(g["pass"], "not run")] for g in d["gates"]]))
+                      diagnose_report.word(g)] for g in d["gates"]]))
     elif d:
         out.append(("World-model checkpoint gates", ["gate", "value", "threshold", "pass"],
                     [["not diagnosed: run `sc3 diagnose --world-model WORLD_MODEL --data HELDOUT --out "

@@ -53,7 +53,30 @@ def is_store(results: str | Path) -> bool:
     from sc3_jax.core.validate import json_object
 
     fix = "restore it from a copy of the store"
-    return json_object(atomic.read_json(p, fix), str(p), fix).get("kind") == KIND
+    cfg = json_object(atomic.read_json(p, fix), str(p), fix)
+    if "kind" not in cfg and {"initial_conditions", "conditions"} <= cfg.keys():  # only such a sweep records them
+        raise UserError(f"{p}: no \"kind\" (its other fields are a sweep of held-out episodes', which records "
+                        f"\"kind\": \"{KIND}\"); restore it from a copy of the store")
+    return cfg.get("kind") == KIND
+
+
+# the fields of an episodes sweep's sweep.json the report reads: name -> (what it must be, its check)
+_INT = lambda low: lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= low  # noqa: E731
+FIELDS = {"episodes": ("a positive count", _INT(1)), "calibration_episodes": ("a count", _INT(0)),
+          "seed0": ("a seed", _INT(0)), "calibration_seed0": ("a seed", _INT(0)),
+          "taus": ("a list of thresholds", lambda v: isinstance(v, list)),
+          "tau_units": ("'raw' or 'normalised'", lambda v: v in ("raw", "normalised")),
+          "world_model": ("the world model's path", lambda v: isinstance(v, str)),
+          "initial_conditions": ("the initial conditions' path", lambda v: isinstance(v, str))}
+
+
+def check_fields(cfg: dict, where: Path) -> None:
+    """Each field the report reads of sweep.json (``FIELDS``) there and of its kind, else one line naming it (a
+    field removed was a KeyError)."""
+    for name, (what, ok) in FIELDS.items():
+        if name not in cfg or not ok(cfg[name]):
+            have = "missing" if name not in cfg else repr(cfg[name])[:60]
+            raise UserError(f"{where}: {name} is {have}, expected {what}; restore it from a copy of the store")
 
 
 def compute(results: str | Path, real: tuple[str, ...] | list[str] | None = None, draws: int = 2000,
@@ -68,6 +91,7 @@ def compute(results: str | Path, real: tuple[str, ...] | list[str] | None = None
     if not is_store(results):
         raise UserError(f"{results}: not a sweep of held-out episodes (no sweep.json of kind {KIND!r})")
     cfg = store.config()
+    check_fields(cfg, store.root / "sweep.json")
     if taus is not None:
         cfg["taus"] = [str(float(t)) for t in taus]
     own, eps = real is None, None

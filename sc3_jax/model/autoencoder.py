@@ -27,6 +27,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from sc3_jax.core.errors import UserError
 from sc3_jax.core.tokenizer_config import AEConfig  # the architecture; ae.AEConfig for callers
 
 
@@ -182,11 +183,17 @@ def load(directory: str | Path) -> tuple[AEConfig, tuple[int, int], dict, dict]:
     if not (d / "ae.json").exists():
         raise FileNotFoundError(f"{d}: no ae.json (train one with `sc3 train-tokenizer`)")
     from sc3_jax.core import atomic
-    meta = atomic.read_json(d / "ae.json", "train the tokenizer again (`sc3 train-tokenizer`)")
-    cfg = AEConfig(**meta["config"])
-    with atomic.open_npz(d / "ae_params.npz", "train the tokenizer again (`sc3 train-tokenizer`)") as z:
+    from sc3_jax.model.saved_model import AE_FIX, read_ae
+
+    cfg, image_size = read_ae(d)  # every field checked: a retyped one was a JAX TypeError once traced
+    with atomic.open_npz(d / "ae_params.npz", AE_FIX) as z:
         flat = {k: z[k] for k in z.files}
     like = jax.eval_shape(lambda: init(cfg, jax.random.key(0)))
-    params = _unflatten(flat, like)
-    stats = {"mean": np.asarray(flat["stats/mean"], np.float32), "std": np.asarray(flat["stats/std"], np.float32)}
-    return cfg, tuple(meta["image_size"]), params, stats
+    try:
+        params = _unflatten(flat, like)
+    except (KeyError, ValueError) as e:  # not the params of ae.json's autoencoder
+        raise UserError(f"{d / 'ae_params.npz'}: {e.args[0]}; {AE_FIX}") from None
+    if "stats/mean" not in flat or "stats/std" not in flat:
+        raise UserError(f"{d / 'ae_params.npz'}: no latent statistics (stats/mean, stats/std); {AE_FIX}")
+    stats = {k: np.asarray(flat[f"stats/{k}"], np.float32) for k in ("mean", "std")}
+    return cfg, image_size, params, stats

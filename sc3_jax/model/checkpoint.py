@@ -35,7 +35,7 @@ from sc3_jax.core.config import Config, config_from_dict
 from sc3_jax.data.action_space import ActionSpace
 from sc3_jax.data.norm_stats import NormStats
 from sc3_jax.core.errors import UserError
-from sc3_jax.model import dit
+from sc3_jax.model import dit, saved_model
 from sc3_jax.model.shapes import check_shapes
 from sc3_jax.model.tokenizer import token_geometry
 from sc3_jax.core.validate import check_config_types, first_line, is_finite_number, json_object, numeric
@@ -63,16 +63,15 @@ def read_config(path: str | Path, what: str = "") -> Config:
     try:
         cfg = config_from_dict(raw)
     except (TypeError, ValueError, AttributeError) as e:  # a section retyped (a list where fields are)
+        check_config_types(raw, Config(), f"{path}/config.json", fix)  # the field whose type it was, named
         raise UserError(f"{path}/config.json: does not read as a config ({e}); {fix}") from None
-    check_config_types(cfg, Config(), f"{path}/config.json", fix)
-    names = list(cfg.data.views)
-    twice = sorted({v for v in names if names.count(v) > 1}, key=names.index)
-    if twice:  # each camera is fed in at its view's position: a name twice would feed one camera in as another
-        raise UserError(f"{path}/config.json: data.views {names} names {', '.join(map(repr, twice))} twice; each "
-                        f"view is one camera, in the model's view order: {fix}")
+    saved_model.check_config(cfg, f"{path}/config.json", fix)
     tp = cfg.model.tokenizer_path
     if tp and not Path(tp).is_absolute() and (path / tp).exists():  # a tokenizer shipped inside the model dir
         cfg = dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, tokenizer_path=str((path / tp).absolute())))
+    # its tokenizer and statistics too, before anything is built from them (a damaged field was a JAX traceback)
+    saved_model.check_tokenizer(cfg, f"{path}/config.json")
+    saved_model.check_norm_stats(path, cfg)
     return cfg
 
 

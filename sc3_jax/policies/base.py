@@ -63,6 +63,11 @@ class JaxAsHost:
             self._rng, rng = jax.random.split(self._rng)
         return np.asarray(self._apply(self.policy.params, {k: jax.numpy.asarray(v) for k, v in obs.items()}, rng))
 
+    def clear_programs(self) -> None:
+        """Drop the programs compiled so far (one per observation shape): a server of many clients' shapes bounds
+        its memory so (``openpi_server.MAX_PROGRAMS``); a shape seen again compiles again."""
+        self._apply.clear_cache()
+
 
 def as_host(policy: JaxPolicy, rng: jax.Array | None = None) -> JaxAsHost:
     return JaxAsHost(policy, rng)

@@ -148,7 +148,8 @@ class WebsocketClientPolicy:
             self._ws, self._metadata = ws, msgpack_numpy.unpackb(first)
             return
         raise PolicyConnectionError(f"could not connect to the policy server at {self.address} ({self.uri}) after "
-                                    f"{self.max_retries + 1} attempts; last error: {type(last).__name__}: {last}")
+                                    f"{self.max_retries + 1} attempts; last error: {type(last).__name__}: {last}; "
+                                    "is a policy server (sc3 serve-policy, or openpi's) running there?")
 
     def _close(self) -> None:
         if self._ws is not None:

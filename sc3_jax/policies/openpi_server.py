@@ -33,7 +33,7 @@ API_KEY_ENV = "SC3_POLICY_API_KEY"  # where `sc3 serve-policy` reads its key (a 
 
 
 class ShapeError(ValueError):
-    """An observation whose keys or array shapes differ from the first one this server took."""
+    """An observation whose keys or array shapes differ from the first one its connection had answered."""
 
 
 class ObservationError(ValueError):
@@ -46,6 +46,7 @@ class PolicyError(RuntimeError):
 
 MAX_VALUES = 1 << 16  # plain msgpack values (list items, map entries) one decoded message may hold; arrays are bytes
 MAX_CONNECTIONS = 8  # open connections at once: with max_queue=2, memory stays near 3 x max_size per connection
+MAX_PROGRAMS = 8  # observation shapes a JAX policy keeps compiled; one more clears them (recompiled as they return)
 IDLE_SECONDS = 120.0  # a connection silent this long is closed (its slot freed); our client reconnects on its own
 
 
@@ -111,6 +112,12 @@ def describe(sig: Mapping[str, tuple]) -> str:
     return ", ".join(f"{k} {list(shape)} {dtype}" for k, (shape, dtype) in sorted(sig.items()))
 
 
+def _peer(ws) -> str:
+    """The client's address as the log names it (host:port)."""
+    addr = getattr(ws, "remote_address", None)
+    return f"{addr[0]}:{addr[1]}" if isinstance(addr, tuple) and len(addr) >= 2 else "a client"
+
+
 def one_line(e: BaseException) -> str:
     """What a client is told of an error: its type and first line, every path masked (``validate.mask_paths``: rooted,
     ``./``, ``../``, ``~`` and relative file names), so the server's layout stays in its log with the traceback."""
@@ -126,7 +133,8 @@ class PolicyServer:
     ``mapping.from_family``; the reply is ``{"actions": ..., "server_timing": {"infer_ms", "prev_total_ms"}}`` with
     actions mapped by ``mapping.actions_to_family``. A HostPolicy whose ``infer`` returns a dict is passed through
     (openpi-style policies). An exception inside the policy sends the traceback as a text frame and closes the
-    connection with 1011, like openpi. ``GET /healthz`` -> 200 ``OK``. With ``api_key`` set, WebSocket connections
+    connection with 1011, like openpi. ``GET /healthz`` -> 200 ``OK`` and, on the lines after, what the server
+    expects and the shapes its connections send (:meth:`health`). With ``api_key`` set, WebSocket connections
     must carry ``Authorization: Api-Key <key>`` (else 401). Inference is serialised with a lock (one policy, many
     connections). ``port=0`` binds a free port (see ``.port``). Use ``start()`` for a background thread and
     ``shutdown()`` to stop, or ``serve_forever()`` to block.
@@ -136,10 +144,12 @@ class PolicyServer:
     ``max_message_bytes`` closes its connection (1009) before it is read, and one of more than ``MAX_VALUES`` plain
     values (an image as nested lists) is refused while it is decoded; an observation holding NaN or inf, or a state
     of another size than the policy declares, is refused before the policy sees it, and non-finite actions never
-    leave; the first observation the policy answers fixes the keys and array shapes, whatever container carried
-    them (one compiled program), and another is refused (a refused one fixes nothing); an error reaches the client
-    as one line without paths or the library's internals (a JAX policy's shape error names the observation's
-    shapes, not XLA's), the traceback only the server's log.
+    leave; each connection is served on its own terms: the first observation the policy answers on it fixes that
+    connection's keys and array shapes, whatever container carried them, and another on it is refused (a refused one
+    fixes nothing), while other connections keep theirs -- one client's odd shapes lock no other out; a JAX policy
+    keeps at most ``MAX_PROGRAMS`` shapes compiled. An error reaches the client as one line without paths or the
+    library's internals (a JAX policy's shape error names the observation's shapes, not XLA's); the server's log
+    has one line per refusal (the traceback of a policy's own failure at DEBUG).
     """
 
     def __init__(self, policy: JaxPolicy | HostPolicy, host: str = "127.0.0.1", port: int = 8000,
@@ -165,7 +175,9 @@ class PolicyServer:
         self._thread: threading.Thread | None = None
         self._serving = False
         self._stopped = False
-        self.signature: dict[str, tuple] | None = None  # of the first observation answered
+        self.shapes: dict[tuple, int] = {}  # signature -> open connections whose first answer fixed it (_open_lock)
+        self._programs: set[tuple] = set()  # signatures the policy has compiled since its programs were last cleared
+        self.expects = self._declared()
         self.max_connections = int(max_connections)
         self.idle_seconds = float(idle_seconds)
         self._open = 0  # connections being served (a further one is answered 503 before its upgrade)
@@ -188,9 +200,26 @@ class PolicyServer:
         host = f"[{self.host}]" if ":" in self.host else self.host
         return f"ws://{host}:{self.port}"
 
+    def _declared(self) -> str:
+        """What this server expects of an observation, as far as it knows before any arrives."""
+        if self.mapping is None:
+            what = "our observation dict (images [V, H, W, 3] uint8, state [S], task [])"
+        else:
+            what = f"family {self.mapping.name}'s observation ({self.mapping._cameras()}, its state and prompt)"
+        state = getattr(self.policy, "state_dim", None)
+        return what + (f"; state [{int(state)}] (the policy's state_dim)" if state is not None else "")
+
+    def health(self) -> str:
+        """``/healthz``'s body: OK, what it expects, and the shapes its open connections send."""
+        with self._open_lock:  # not the inference lock: a slow policy does not hold up the health check
+            held = sorted((describe(dict(k)), n) for k, n in self.shapes.items())
+        now = "; ".join(f"{d} ({n} connection{'s' * (n > 1)})" for d, n in held) or "none yet"
+        return (f"OK\nexpects: {self.expects}\nshapes: each connection keeps the keys and shapes of its first "
+                f"answered observation; answered now: {now}\n")
+
     def _process_request(self, connection: Any, request: Any) -> Any:
         if request.path == "/healthz":
-            return connection.respond(HTTPStatus.OK, "OK\n")
+            return connection.respond(HTTPStatus.OK, self.health())
         if self.api_key and not hmac.compare_digest(request.headers.get("Authorization") or "",
                                                     f"Api-Key {self.api_key}"):
             return connection.respond(HTTPStatus.UNAUTHORIZED, "missing or wrong Authorization: Api-Key header\n")
@@ -199,21 +228,35 @@ class PolicyServer:
                                       f"this server takes {self.max_connections} connections at once\n")
         return None
 
-    def _check_signature(self, sig: dict) -> None:
-        if self.signature is not None and sig != self.signature:  # a new shape would compile another program
-            diff = sorted(k for k in sig.keys() | self.signature.keys() if sig.get(k) != self.signature.get(k))
-            raise ShapeError(f"observation {diff[0]} is {sig.get(diff[0], 'missing')}, this server takes "
-                             f"{self.signature.get(diff[0], 'no such key')} (fixed by its first observation)")
+    @staticmethod
+    def _check_signature(sig: dict, fixed: dict | None) -> None:
+        if fixed is not None and sig != fixed:  # one connection, one set of shapes (one compiled program)
+            diff = sorted(k for k in sig.keys() | fixed.keys() if sig.get(k) != fixed.get(k))
+            show = lambda s: f"{list(s[diff[0]][0])} {s[diff[0]][1]}" if diff[0] in s else None  # noqa: E731
+            raise ShapeError(f"observation {diff[0]} is {show(sig) or 'missing'}, this connection sends "
+                             f"{show(fixed) or 'no such key'} (fixed by its first answered observation; connect "
+                             "again to send other shapes)")
 
-    def _infer(self, obs: Any) -> dict:
-        """The reply to one observation. Only an observation the policy answered fixes the server's shapes: one
-        refused (here or by the policy) leaves the next client to be the first."""
+    def _compiling(self, sig: dict) -> None:
+        """Count ``sig`` among the policy's compiled programs (under the lock); past ``MAX_PROGRAMS`` a JAX policy's
+        are cleared first, so clients sending ever new shapes cannot fill memory (each shape recompiles once)."""
+        key = tuple(sorted(sig.items()))
+        if key in self._programs:
+            return
+        clear = getattr(self.policy, "clear_programs", None)
+        if len(self._programs) >= MAX_PROGRAMS and callable(clear):
+            clear()
+            self._programs.clear()
+        self._programs.add(key)
+
+    def _infer(self, obs: Any, fixed: dict | None = None) -> dict:
+        """The reply to one observation; ``fixed``: the signature its connection's first answered observation fixed
+        (None: none yet). A refused observation (here or by the policy) fixes nothing."""
         if not isinstance(obs, dict):
             raise TypeError(f"expected an observation dict, got {type(obs).__name__}")
         check_finite(obs)
         sig = signature(obs)
-        with self._lock:
-            self._check_signature(sig)
+        self._check_signature(sig, fixed)
         ours = self.mapping.from_family(obs) if self.mapping is not None else obs
         want = getattr(self.policy, "state_dim", None)  # what the policy declares it reads
         state = ours.get("state") if isinstance(ours, Mapping) else None
@@ -221,7 +264,7 @@ class PolicyServer:
             raise ObservationError(f"observation state has shape {list(np.shape(state))}, policy "
                                    f"{self.metadata['policy']!r} reads [{int(want)}]")
         with self._lock:
-            self._check_signature(sig)  # another first observation may have been answered meanwhile
+            self._compiling(sig)
             try:
                 out = self.policy.infer(ours)
             except (TypeError, ValueError, IndexError, KeyError) as e:
@@ -240,8 +283,6 @@ class PolicyServer:
                 if self.mapping is not None:
                     actions = self.mapping.actions_to_family(actions)
                 reply = {"actions": actions}
-            if self.signature is None:
-                self.signature = sig
         return reply
 
     def _handler(self, ws: websockets.sync.server.ServerConnection) -> None:
@@ -262,6 +303,19 @@ class PolicyServer:
             ws.send(msgpack_numpy.packb(self.metadata))
         except websockets.exceptions.ConnectionClosed:
             return
+        fixed: list[dict] = []  # this connection's signature, once an observation of it is answered
+        try:
+            self._answer(ws, fixed)
+        finally:
+            if fixed:
+                key = tuple(sorted(fixed[0].items()))
+                with self._open_lock:
+                    self.shapes[key] -= 1
+                    if not self.shapes[key]:
+                        del self.shapes[key]
+
+    def _answer(self, ws: websockets.sync.server.ServerConnection, fixed: list[dict]) -> None:
+        """Answer the connection's observations until it closes, the first answered one fixing ``fixed``."""
         prev_total_ms = None
         while True:
             try:
@@ -277,7 +331,12 @@ class PolicyServer:
                     raise TypeError("expected a binary msgpack frame, got a text frame")
                 obs = decode(msg)
                 t0 = time.monotonic()
-                result = self._infer(obs)
+                result = self._infer(obs, fixed[0] if fixed else None)
+                if not fixed:
+                    fixed.append(signature(obs))
+                    key = tuple(sorted(fixed[0].items()))
+                    with self._open_lock:
+                        self.shapes[key] = self.shapes.get(key, 0) + 1
                 timing = {"infer_ms": (time.monotonic() - t0) * 1000.0}
                 if prev_total_ms is not None:
                     timing["prev_total_ms"] = prev_total_ms
@@ -286,7 +345,10 @@ class PolicyServer:
             except websockets.exceptions.ConnectionClosed:
                 return
             except Exception as e:  # noqa: BLE001 - reported to the client in one line, like openpi's text frame
-                logger.error("policy inference failed:\n%s", traceback.format_exc())
+                # one line per refusal on the server's terminal (a client sending garbage cannot flood it with
+                # tracebacks); the traceback at DEBUG, where a policy's own failure is looked into
+                logger.error("refused an observation from %s: %s", _peer(ws), one_line(e))
+                logger.debug("the refusal's traceback:\n%s", traceback.format_exc())
                 try:
                     ws.send(one_line(e))
                     ws.close(CloseCode.INTERNAL_ERROR, "Internal server error: see the previous frame")

@@ -45,6 +45,7 @@ def load_initial_conditions(path: str, cfg, spec, episodes: int | None, start: i
         raise UserError(f"{p}: the world model's learned state is {spec.state_dim}-D, this store records "
                         f"{'no state' if not store.state_dim else f'a {store.state_dim}-D one'} (dataset.json "
                         "\"state\"): give held-out episodes of the robot it was trained on")
+    store.check_whole()  # an emptied episode: named, not passed over for the next one
     ids = store.episode_ids()[:episodes]
     if not ids:
         raise UserError(f"{p}: no episodes")

@@ -94,6 +94,7 @@ def run(cfg: So101SweepConfig) -> Path:
     spec = f"{DETECTOR_PREFIX}{cfg.detector}" if cfg.detector else cfg.scorer
     scorer = load_outcome_scorer(spec)  # a bad path or name: one line before anything runs
     wcfg = checkpoint.read_config(cfg.world_model)
+    check_model(cfg.world_model, wcfg)  # before anything is written: a refused sweep left initial_conditions/ behind
     seconds = cfg.episode_seconds or wcfg.rollout.episode_seconds
     steps = int(round(seconds * wcfg.rollout.control_hz))
     names = list(cfg.policies or ZOO)
@@ -116,6 +117,25 @@ def run(cfg: So101SweepConfig) -> Path:
         episode_seconds=seconds, taus=(math.inf,), batch=cfg.batch, learned_state=cfg.learned_state,
         progress=cfg.progress)
     return ic_sweep.run(ic_cfg, named=named_policy)
+
+
+def check_model(path: str, wcfg) -> None:
+    """A world model of the SO-101 table, as far as the conditions need: cameras the simulator renders, its frame
+    rate and 4-D velocity actions; else one line before the conditions are written (or the real rollouts run)."""
+    from .collect import FPS
+    from .env import CAMERAS
+
+    views = list(wcfg.data.views)
+    if any(v not in CAMERAS and v != "front" for v in views):
+        raise UserError(f"{path}/config.json: data.views {views}, the SO-101 simulator renders "
+                        f"{['front', *CAMERAS]}: give a world model of the SO-101 table (`sc3 train --config "
+                        "so101_latent`)")
+    if wcfg.data.fps is not None and abs(float(wcfg.data.fps) - FPS) > 1e-9:
+        raise UserError(f"{path}/config.json: data.fps {wcfg.data.fps:g}, the SO-101 simulator's episodes are at "
+                        f"{FPS:g} fps: give a world model of the SO-101 table (`sc3 train --config so101_latent`)")
+    if wcfg.model.action_dim != 4:
+        raise UserError(f"{path}/config.json: model.action_dim {wcfg.model.action_dim}, the SO-101 benchmark's "
+                        "actions are 4-D (dx, dy, dz, gripper): give a world model of the SO-101 table")
 
 
 def lerobot_real(specs: tuple[str, ...], names: list[str], episodes: int) -> dict[str, tuple[list[bool], dict]]:

@@ -333,8 +333,8 @@ def evaluate(policy: str, task: str = "bussing", episodes: int = 36, out: str | 
     from sc3_jax.policies.resolve import resolve
     try:
         resolved = resolve(policy, named=named_policy)
-    except ValueError as e:  # a misspelt name: the message lists the spellings and the zoo
-        raise UserError(f"--policy: {e}") from None
+    except (ValueError, ConnectionError, TimeoutError) as e:  # a misspelt name (the message lists the spellings
+        raise UserError(f"--policy: {e}") from None  # and the zoo), a ws:// server not there
     return evaluate_policy(resolved.policy, task, episodes, out, image_size=tuple(image_size), videos=videos,
                            progress=progress)
 

@@ -167,7 +167,7 @@ def _zoo_eval(a: ZooEval) -> int:
     for n in names:  # a wrong name: one line here, not a traceback from a worker
         try:
             resolve(n, named=named_policy)
-        except (ValueError, KeyError, FileNotFoundError) as e:
+        except (ValueError, KeyError, FileNotFoundError, ConnectionError, TimeoutError) as e:  # a server not there
             raise UserError(f"--policies {n}: {e}") from None
     jobs = [Job(EVAL_SEED0 + i, policy=n) for n in names for i in range(a.episodes)]
     t0, ok = time.time(), {n: [] for n in names}
