@@ -109,7 +109,9 @@ def test_the_lineage_is_carried_by_a_resumed_run_and_by_a_branch(data, unbroken,
     lin = lineage.read(unbroken)
     assert lin["windows"] == 12 * 8 and len(lin["stretches"]) == 1
     assert lin["stretches"][0]["to_step"] == 12 and lin["stretches"][0]["schedule"] == "wsd"
-    assert lin["stretches"][0]["commit"] and lin["stretches"][0]["wall_s"] > 0
+    s0 = lin["stretches"][0]
+    assert s0["commit"] and s0["wall_s"] > 0 and 0.5 * s0["wall_s"] <= s0["train_s"] <= s0["wall_s"] + 1e-6
+
     state = branch.save_run(unbroken, tmp_path / "state")
     assert lineage.read(state) == lin
     resumed = tmp_path / "resumed"
@@ -127,6 +129,12 @@ def test_the_lineage_is_carried_by_a_resumed_run_and_by_a_branch(data, unbroken,
     assert json.loads((out / "lineage.json").read_text()) == lin3
     # the trunk itself is untouched: it goes on from step 16 at its peak
     assert lineage.read(resumed) == lin2 and max(read_metrics(resumed)) == 16
+
+def test_the_clock_leaves_out_a_pause_and_keeps_the_training():
+    clock = lineage.StepClock(0.0)
+    for t in [30, 60, 90, 120, 1920, 1950, 1980]:  # a 30 s gap between syncs, one 30 min pause
+        clock.tick(float(t))
+    assert clock.wall_s(1980.0) == 1980 and clock.train_s == pytest.approx(7 * 30)
 
 
 def test_a_travelling_state_whose_params_were_exported_over_is_refused(data, unbroken, tmp_path):

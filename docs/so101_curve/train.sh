@@ -1,5 +1,6 @@
 #!/usr/bin/env bash
-# The SO-101 world-model campaign: one run continued across sessions. ./train.sh FROM WORKDIR STEPS SEED [WARMUP [FLAG...]]
+# Superseded by scripts/trunk.sh (one WSD run with its optimizer state; docs/world_model.md, "The trunk"); kept for
+# the records of the v3 -> v7 stretches. The SO-101 world-model campaign: one run continued across sessions. ./train.sh FROM WORKDIR STEPS SEED [WARMUP [FLAG...]]
 # FLAG...: more `sc3 train` options, for a lever's arm (e.g. --flow.moving-weight 4; docs/so101.md, what is left)
 # SEED: a new one each stretch, so a stretch does not redraw the previous stretch's windows in the same order.
 # FROM: the newest float32 export (exports/so101_vN_cpu, params only: the optimizer's moments are not exported, so

@@ -76,8 +76,9 @@ def advance(lin: dict, step: int, wall_s: float, train_s: float) -> dict:
 
 
 class StepClock:
-    """Seconds a stretch trained: the gaps between steps, less the pauses (a gap ``PAUSE_FACTOR`` times the median
-    of the last steps' gaps, and at least ``PAUSE_MIN_S``, counts as one typical step)."""
+    """Seconds a stretch trained: the gaps between the loop's syncs (its metrics fetched every ``train.log_every``
+    steps: steps are dispatched asynchronously, so only a sync says they ran), less the pauses (a gap
+    ``PAUSE_FACTOR`` times the median of the last gaps, and at least ``PAUSE_MIN_S``, counts as one typical gap)."""
 
     def __init__(self, now: float):
         self.start = self.last = now

@@ -595,12 +595,12 @@ def _steps(cfg: Config, workdir: Path, mesh, stop_at: int | None):
             rate = n_since / (time.perf_counter() - t0)
             rows[-1]["steps_per_s"] = rate
             log.write(rows)
+            clock.tick(time.monotonic())  # after device_get: the steps since the last tick have run (dispatch is async)
             last, pending, t0, n_since = rows[-1], [], time.perf_counter(), 0
             if bar is not None:
                 bar.set_postfix(loss=f"{last['loss']:.4f}", steps_s=f"{rate:.2f}")
         if bar is not None:
             bar.update(1)
-        clock.tick(time.monotonic())
         if save(mngr, step + 1, state, {"iterator": data_iter.get_state()}, force=done or preempted):
             lin = lineage.advance(lin, step + 1, clock.wall_s(time.monotonic()), clock.train_s)
             if jax.process_index() == 0:  # the lineage says no more than the checkpoints hold
