@@ -174,3 +174,14 @@ def test_sc3_trunk_refuses_what_is_not_a_trunk_in_one_line(data, unbroken, tmp_p
     code, err = run("branch", "--trunk", str(cosine), "--steps", "2", "--out", str(tmp_path / "o"))
     assert code in (1, 2) and "not a WSD trunk" in err and len(err.splitlines()) == 1, err
     assert not (tmp_path / "o").exists()
+
+
+def test_the_learned_robot_state_travels_with_the_trunk(data, unbroken, tmp_path):
+    # the head reads the robot's state from real frames and actions, not from the DiT: the continued model keeps it
+    state = branch.save_run(unbroken, tmp_path / "state")
+    (state / "state_head.npz").write_bytes(b"the head's bytes")
+    resumed = tmp_path / "resumed"
+    train(_cfg(data, resumed, 13, resume_from=str(state)))
+    assert (resumed / "state_head.npz").read_bytes() == b"the head's bytes"
+    again = branch.save_run(resumed, tmp_path / "again")
+    assert (again / "state_head.npz").read_bytes() == b"the head's bytes"

@@ -39,7 +39,8 @@ def save_run(workdir: str | Path, out: str | Path, moments: str = "bfloat16") ->
     state, data_state = train.restore(mngr, cfg, sharding.make_mesh(cfg.mesh))
     mngr.close()
     lin = lineage.read(workdir) or lineage.begin(None, cfg, workdir.name, 0)
-    return trunk_state.write(out, cfg, NormStats.load(workdir / "norm_stats.json"), state, data_state, lin, moments)
+    return trunk_state.write(out, cfg, NormStats.load(workdir / "norm_stats.json"), state, data_state, lin, moments,
+                             head=workdir / "state_head.npz")
 
 
 def default_workdir(source: Path, step: int, steps: int) -> Path:

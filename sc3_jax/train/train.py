@@ -574,6 +574,7 @@ def _steps(cfg: Config, workdir: Path, mesh, stop_at: int | None):
     start = int(state["step"])
     log = MetricsLog(workdir, cfg.train.tensorboard, resumed_at=start)
     lin = _begin_lineage(cfg, workdir, start)
+    _carry_state_head(cfg, workdir)
     clock = lineage.StepClock(time.monotonic())
     stop = _PreemptionFlag()
     end = cfg.train.steps if stop_at is None else min(stop_at, cfg.train.steps)
@@ -625,6 +626,17 @@ def _begin_lineage(cfg: Config, workdir: Path, start: int) -> dict:
         return lineage.begin(own, cfg, workdir.name, start)
     src = cfg.train.resume_from or cfg.train.init_from
     return lineage.begin(lineage.read(src), cfg, workdir.name, start, origin=Path(src).name if src else None)
+
+
+def _carry_state_head(cfg: Config, workdir: Path) -> None:
+    """The learned robot state (``rollout/state_head.py``) of the model this run continues, where the run has none
+    of its own: it reads the robot's state from real frames and actions, not from the DiT, so it stays valid for the
+    continued model (same data, same robot) and its exports keep handing policies the robot's state."""
+    src = cfg.train.resume_from or cfg.train.init_from
+    head, mine = (Path(src) / "state_head.npz" if src else None), workdir / "state_head.npz"
+    if jax.process_index() == 0 and head is not None and head.is_file() and not mine.exists():
+        with atomic.replacing(mine) as tmp:
+            shutil.copyfile(head, tmp)
 
 
 def _model_batch(batch: dict, cfg: Config) -> dict:

@@ -15,6 +15,7 @@ and its losses match the unbroken run's to float tolerance (exactly, with float3
 from __future__ import annotations
 
 import hashlib
+import shutil
 from pathlib import Path
 
 import jax
@@ -30,9 +31,10 @@ MOMENTS_DTYPES = {"float32": np.float32, "bfloat16": ml_dtypes.bfloat16}
 
 
 def write(out: str | Path, cfg: Config, stats, state, data_state: dict, lineage: dict,
-          moments: str = "bfloat16") -> Path:
+          moments: str = "bfloat16", head: str | Path | None = None) -> Path:
     """``state`` ({params, opt_state, step, rng}) and the data position at ``out``, a world model that can also be
-    trained on. ``moments``: the dtype the optimizer's float leaves are stored in."""
+    trained on. ``moments``: the dtype the optimizer's float leaves are stored in; ``head``: the run's
+    state_head.npz, where it has one."""
     from sc3_jax.model import checkpoint
 
     if moments not in MOMENTS_DTYPES:
@@ -50,6 +52,8 @@ def write(out: str | Path, cfg: Config, stats, state, data_state: dict, lineage:
     meta = {"step": int(host["step"]), "data": data_state, "moments": moments}
 
     def extra(tmp: Path):
+        if head is not None and Path(head).is_file():  # the learned robot state travels with the model
+            shutil.copyfile(head, tmp / "state_head.npz")
         atomic.save_npz(tmp / STATE_FILE, **arrays)
         meta["params_sha256"] = _sha256(tmp / "params.npz")
         atomic.write_json(tmp / META_FILE, meta)
