@@ -42,7 +42,15 @@ start)
     mv "$CODE.tmp/configs" "$CODE.tmp/sc3_jax/configs"  # where an installed package keeps them
     rm -rf "$CODE" && mv "$CODE.tmp" "$CODE"
   fi
-  if [ -f "$WORK/config.json" ]; then ORIGIN=(); WHAT="resumed from its workdir"
+  if [ -f "$WORK/config.json" ]; then  # the workdir's own start and tokenizer: a resume keeps its config
+    mapfile -t ORIGIN < <(python3 -c '
+import json, sys
+c = json.load(open(sys.argv[1]))
+for flag, v in (("--model.tokenizer-path", c["model"]["tokenizer_path"]), ("--train.init-from", c["train"]["init_from"]),
+                ("--train.resume-from", c["train"].get("resume_from"))):
+    if v:
+        print(flag); print(v)' "$WORK/config.json")
+    WHAT="resumed from its workdir"
   elif [ -f "$STATE/trunk.json" ]; then
     ORIGIN=(--train.resume-from "$STATE" --model.tokenizer-path "$STATE/tokenizer"); WHAT="resumed from $STATE"
   else
