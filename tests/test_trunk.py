@@ -185,3 +185,16 @@ def test_the_learned_robot_state_travels_with_the_trunk(data, unbroken, tmp_path
     assert (resumed / "state_head.npz").read_bytes() == b"the head's bytes"
     again = branch.save_run(resumed, tmp_path / "again")
     assert (again / "state_head.npz").read_bytes() == b"the head's bytes"
+
+
+def test_saving_a_live_trunks_state_leaves_the_checkpoint_it_is_writing_alone(unbroken, tmp_path):
+    # a trunk's async checkpoint in progress is a temporary directory; a reader that cleaned it up killed the trunk
+    live = unbroken / "checkpoints" / "99.orbax-checkpoint-tmp"
+    (live / "state").mkdir(parents=True)
+    (live / "state" / "being_written").write_text("x")
+    try:
+        branch.save_run(unbroken, tmp_path / "state")
+        assert (live / "state" / "being_written").read_text() == "x"
+    finally:
+        import shutil
+        shutil.rmtree(live)

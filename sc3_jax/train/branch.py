@@ -33,7 +33,7 @@ def save_run(workdir: str | Path, out: str | Path, moments: str = "bfloat16") ->
         cfg = checkpoint.with_robot(cfg, checkpoint._recorded_robot(workdir, cfg))
     except UserError:
         pass
-    mngr = train.checkpoint_manager(cfg)
+    mngr = train.checkpoint_manager(cfg, read_only=True)  # the trunk may be training: touch nothing of its
     if mngr.latest_step() is None:
         raise UserError(f"{workdir}: no checkpoint yet (the run saves one every train.ckpt_every steps)")
     state, data_state = train.restore(mngr, cfg, sharding.make_mesh(cfg.mesh))
@@ -71,14 +71,15 @@ def branch(source: str | Path, steps: int, out: str | Path, workdir: str | Path 
         raise UserError(f"--steps {steps}: a branch anneals over at least 1 step")
     step = trunk_state.read_meta(source)["step"] if trunk_state.is_state(source) else _latest_step(source)
     check_branch(step, steps)
+    t = checkpoint.read_config(source).train
+    if t.schedule != "wsd" or t.decay_start is not None:  # before anything is read or written
+        raise UserError(f"{source}: not a WSD trunk (train.schedule {t.schedule!r}, decay_start {t.decay_start}); "
+                        "a branch anneals a run that holds its peak rate (--train.schedule wsd)")
     work = Path(workdir) if workdir else default_workdir(source, step, steps)
     work.mkdir(parents=True, exist_ok=True)
     start = start_state(source, work)
     cfg = checkpoint.read_config(start)
     t = cfg.train
-    if t.schedule != "wsd" or t.decay_start is not None:
-        raise UserError(f"{source}: not a WSD trunk (train.schedule {t.schedule!r}, decay_start {t.decay_start}); "
-                        "a branch anneals a run that holds its peak rate (--train.schedule wsd)")
     cfg = dataclasses.replace(
         cfg, data=dataclasses.replace(cfg.data, path=data or cfg.data.path),
         train=dataclasses.replace(t, workdir=str(work), steps=step + steps, decay_start=step,

@@ -285,13 +285,16 @@ def create_state(cfg: Config, mesh):
 # ================================================================================================================
 # Train-state checkpoints (resuming: optimizer state and data position; checkpoint.py reads a model's params)
 # ================================================================================================================
-def checkpoint_manager(cfg: Config) -> ocp.CheckpointManager:
+def checkpoint_manager(cfg: Config, read_only: bool = False) -> ocp.CheckpointManager:
+    """The run's own manager; ``read_only``: a reader's beside a run that may be training (``sc3 trunk save`` /
+    ``branch``), which must not touch the checkpoint the run is writing (it only restores)."""
     # cleanup_tmp_directories: a checkpoint a kill left half-written (orbax writes it under a temporary name and
-    # renames it when complete, so it is never read) is deleted when the run resumes
+    # renames it when complete, so it is never read) is deleted when the run resumes -- by the run only: a reader
+    # that cleaned up deleted a live trunk's checkpoint under it (its async commit then failed and the run died)
     options = ocp.CheckpointManagerOptions(max_to_keep=cfg.train.keep_checkpoints,
                                            save_interval_steps=cfg.train.ckpt_every,
                                            enable_async_checkpointing=cfg.train.async_checkpointing,
-                                           cleanup_tmp_directories=True)
+                                           cleanup_tmp_directories=not read_only)
     return ocp.CheckpointManager(Path(cfg.train.workdir).absolute() / "checkpoints", options=options)
 
 
