@@ -29,6 +29,8 @@ ALLOWED = {
     **{("evaluation/report_figures.py", fn, "savefig"): STAGED for fn in ("scatter", "u_plot", "filmstrip")},
     ("evaluation/results.py", "ResultsStore.append", "open(a)"):
         "the append-only results.jsonl (flushed, fsynced); ResultsStore._repair drops a line cut by a kill",
+    ("train/trunk_state.py", "write.extra", "shutil.copyfile"):
+        "into the temporary directory of checkpoint.save's atomic.replacing_dir: the state appears whole or not at all",
     ("train/train.py", "MetricsLog.write", "open(a)"):
         "the append-only metrics.jsonl; MetricsLog.__init__ drops a line cut by a kill (atomic.drop_cut_line)",
     ("train/train.py", "MetricsLog.__init__", "SummaryWriter"):

@@ -5,9 +5,9 @@ The branch resumes the trunk's exact state (``trunk_state``), so it draws the wi
 next, and its lineage records where it left the trunk."""
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import os
-import shutil
 from pathlib import Path
 
 import numpy as np
@@ -112,7 +112,5 @@ def _share_latents(source: Path, work: Path) -> None:
     encoding every episode again."""
     mine, theirs = work / "latents", source / "latents"
     if theirs.is_dir() and not os.path.lexists(mine):
-        try:
+        with contextlib.suppress(OSError):  # no links here: the branch encodes its own cache (minutes)
             mine.symlink_to(theirs.absolute(), target_is_directory=True)
-        except OSError:
-            shutil.copytree(theirs, mine)
